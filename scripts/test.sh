@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# The test command of the README: installs what a fresh machine lacks, then runs every test.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+# shellcheck source=scripts/env.sh
+source scripts/env.sh
+ensure_python_deps
+ensure_postgres
+cargo test --workspace --locked "$@"

@@ -1,0 +1,123 @@
+//! Hidden developer commands the end-to-end tests drive (e.g. a synthetic writer to kill).
+
+use super::StoreArgs;
+use anyhow::Result;
+use store::{EpisodeInput, Label, SourceInput, VectorColumn};
+
+#[derive(clap::Subcommand, Debug)]
+pub enum DevCommand {
+    /// Ingest a synthetic source of random episodes (deterministic for a seed).
+    Synth {
+        #[arg(long, default_value_t = 10)]
+        episodes: u32,
+        #[arg(long, default_value_t = 100)]
+        steps: usize,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        #[arg(long, default_value = "synth")]
+        policy: String,
+        #[arg(long, default_value = "ckpt-0")]
+        checkpoint: String,
+        /// Roll over to a new data file past this many bytes.
+        #[arg(long)]
+        max_file_bytes: Option<usize>,
+    },
+    /// Check every visible version: its episodes' steps read back whole, its label snapshot
+    /// file matches; prints a JSON report and fails on any problem.
+    Verify,
+}
+
+pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
+    match cmd {
+        DevCommand::Synth { episodes, steps, seed, policy, checkpoint, max_file_bytes } => {
+            let store = args.open().await?;
+            let sha = store::sha256_hex(format!("synth:{seed}:{episodes}:{steps}:{policy}:{checkpoint}").as_bytes());
+            let source = SourceInput {
+                path: format!("synth://{seed}"),
+                sha256: sha,
+                format: "synth".into(),
+                size_bytes: 0,
+                metadata: serde_json::json!({ "seed": seed }),
+            };
+            let mut w = store.begin_ingest(source, &policy, &checkpoint).await?;
+            if let Some(n) = max_file_bytes {
+                w = w.with_max_file_bytes(n);
+            }
+            let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let mut rnd = move || {
+                state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                ((state >> 33) as f64 / (1u64 << 31) as f64) as f32
+            };
+            for i in 0..episodes {
+                let obs: Vec<f32> = (0..steps * 3).map(|_| rnd()).collect();
+                let act: Vec<f32> = (0..steps * 2).map(|_| rnd() - 0.5).collect();
+                let label = if rnd() < 0.5 { Label::Success } else { Label::Failure };
+                w.add_episode(EpisodeInput {
+                    source_name: format!("episode_{i}"),
+                    source_index: i,
+                    task: Some("synthetic".into()),
+                    label,
+                    label_source: "synth".into(),
+                    tags: vec![],
+                    metadata: serde_json::json!({}),
+                    timestamps: (0..steps).map(|t| t as f64 * 0.1).collect(),
+                    observations: vec![VectorColumn { name: "pos".into(), dim: 3, values: obs }],
+                    action: VectorColumn { name: "action".into(), dim: 2, values: act },
+                    reward: (0..steps).map(|t| if t + 1 == steps && label == Label::Success { 1.0 } else { 0.0 }).collect(),
+                    done: (0..steps).map(|t| t + 1 == steps).collect(),
+                    action_chunk: None,
+                    images: vec![],
+                    media: vec![],
+                })
+                .await?;
+            }
+            let c = w.commit("synthetic episodes").await?;
+            println!("version {} ({} episodes)", c.version, c.episodes);
+            Ok(())
+        }
+        DevCommand::Verify => verify(args).await,
+    }
+}
+
+async fn verify(args: &StoreArgs) -> Result<()> {
+    use arrow::array::{Array, StringArray};
+    let store = args.open().await?;
+    let versions = store.versions().await?;
+    let mut problems = Vec::new();
+    let mut checked = 0usize;
+    for (i, v) in versions.iter().enumerate() {
+        if v.version != i as i64 + 1 {
+            problems.push(format!("version numbers are not dense: found {} at position {}", v.version, i + 1));
+        }
+        let eps = store.episodes(&store::EpisodeFilter { version: Some(v.version), ..Default::default() }).await?;
+        if eps.len() as i64 != v.episode_count {
+            problems.push(format!("version {} lists {} episodes, recorded {}", v.version, eps.len(), v.episode_count));
+        }
+        let labels = store.get_object(&v.labels_path).await;
+        match labels.map(|b| parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(b)) {
+            Ok(Ok(b)) if b.metadata().file_metadata().num_rows() == v.episode_count => {}
+            _ => problems.push(format!("version {}: label snapshot {} unreadable or wrong size", v.version, v.labels_path)),
+        }
+        for e in &eps {
+            match store.read_steps(&e.id, Some(v.version)).await {
+                Ok(batch) => {
+                    let ids = batch.column_by_name("episode_id").and_then(|c| c.as_any().downcast_ref::<StringArray>().cloned());
+                    let ok_ids = ids.is_some_and(|a| (0..a.len()).all(|k| a.value(k) == e.id));
+                    if batch.num_rows() as i64 != e.length || !ok_ids {
+                        problems.push(format!("episode {} in version {}: {} rows, expected {}", e.id, v.version, batch.num_rows(), e.length));
+                    }
+                }
+                Err(err) => problems.push(format!("episode {} in version {}: {err}", e.id, v.version)),
+            }
+            checked += 1;
+        }
+    }
+    let referenced = store.referenced_objects().await?.len();
+    super::print_json(&serde_json::json!({
+        "versions": versions.len(), "episodes_checked": checked, "referenced_objects": referenced, "problems": problems,
+    }))?;
+    if !problems.is_empty() {
+        anyhow::bail!("{} problems in the store", problems.len());
+    }
+    Ok(())
+}

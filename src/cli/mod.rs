@@ -1,0 +1,106 @@
+//! Argument definitions and dispatch of every subcommand.
+
+mod dev;
+mod store_cmds;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+
+#[derive(Parser, Debug)]
+#[command(name = "ufops", version, about = "Update-free on-policy steering: rollouts store, verifiers, steering")]
+pub struct Cli {
+    #[command(flatten)]
+    pub store: StoreArgs,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct StoreArgs {
+    /// Data directory (SQLite catalog and local objects live here by default).
+    #[arg(long, global = true, env = "UFOPS_DATA_DIR", default_value = "./ufops-data")]
+    pub data_dir: PathBuf,
+    /// Catalog database: sqlite://PATH or postgres://USER@HOST/DB.
+    #[arg(long, global = true, env = "UFOPS_DATABASE_URL")]
+    pub database_url: Option<String>,
+    /// Object storage: a local path or s3://BUCKET/PREFIX.
+    #[arg(long, global = true, env = "UFOPS_OBJECT_STORE")]
+    pub object_store: Option<String>,
+}
+
+impl StoreArgs {
+    pub fn config(&self) -> store::StoreConfig {
+        store::StoreConfig {
+            data_dir: self.data_dir.clone(),
+            database_url: self.database_url.clone(),
+            object_store_url: self.object_store.clone(),
+        }
+    }
+    pub async fn open(&self) -> Result<store::Store> {
+        Ok(store::Store::open(&self.config()).await?)
+    }
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Create the store (catalog + object storage) and apply migrations.
+    Init,
+    /// List the store's versions.
+    Versions {
+        #[arg(long)]
+        json: bool,
+    },
+    /// List episodes, now or at a past version.
+    Episodes(store_cmds::EpisodesArgs),
+    /// Set an episode's success label (recorded as an audit event).
+    Label(store_cmds::LabelArgs),
+    /// Show an episode's label history.
+    History {
+        episode: String,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Freeze the current labels into a new version.
+    Snapshot {
+        #[arg(long, default_value = "label snapshot")]
+        message: String,
+        #[arg(long, env = "USER", default_value = "cli")]
+        actor: String,
+    },
+    /// Delete objects that no version references (left by crashed or aborted writes).
+    Gc {
+        /// Keep unreferenced objects younger than this (a writer may still be committing).
+        #[arg(long, default_value_t = 3600)]
+        grace_seconds: u64,
+        #[arg(long)]
+        dry_run: bool,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Developer tools used by the tests.
+    #[command(hide = true)]
+    Dev {
+        #[command(subcommand)]
+        command: dev::DevCommand,
+    },
+}
+
+pub async fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Init => store_cmds::init(&cli.store).await,
+        Command::Versions { json } => store_cmds::versions(&cli.store, json).await,
+        Command::Episodes(a) => store_cmds::episodes(&cli.store, a).await,
+        Command::Label(a) => store_cmds::label(&cli.store, a).await,
+        Command::History { episode, json } => store_cmds::history(&cli.store, &episode, json).await,
+        Command::Snapshot { message, actor } => store_cmds::snapshot(&cli.store, &message, &actor).await,
+        Command::Gc { grace_seconds, dry_run, json } => store_cmds::gc(&cli.store, grace_seconds, dry_run, json).await,
+        Command::Dev { command } => dev::run(&cli.store, command).await,
+    }
+}
+
+/// Prints one JSON document on stdout.
+pub fn print_json<T: serde::Serialize>(v: &T) -> Result<()> {
+    println!("{}", serde_json::to_string_pretty(v)?);
+    Ok(())
+}

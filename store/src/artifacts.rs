@@ -1,0 +1,267 @@
+//! Verifier artifacts: immutable, content-addressed file sets (id = sha256 of their manifest)
+//! with per-checkpoint aliases (`latest` is moved automatically on publish).
+
+use crate::catalog::RowExt;
+use crate::{now_rfc3339, Store, StoreError};
+use bytes::Bytes;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ArtifactFile {
+    pub name: String,
+    pub sha256: String,
+    pub size_bytes: u64,
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct ArtifactRecord {
+    pub id: String,
+    pub policy: String,
+    pub checkpoint: String,
+    /// `classifier` or `q`
+    pub kind: String,
+    pub split_id: Option<String>,
+    pub job_id: Option<String>,
+    /// Object-store folder holding the files.
+    pub prefix: String,
+    pub files: Vec<ArtifactFile>,
+    pub config: serde_json::Value,
+    pub aliases: Vec<String>,
+    pub created_at: String,
+}
+
+/// What to publish: a directory with `manifest.json`, `config.json` and the weights.
+pub struct NewArtifact<'a> {
+    pub dir: &'a Path,
+    pub policy: &'a str,
+    pub checkpoint: &'a str,
+    pub kind: &'a str,
+    pub split_id: Option<&'a str>,
+    pub job_id: Option<&'a str>,
+}
+
+const ART_COLS: &str = "id, policy, checkpoint, kind, split_id, job_id, prefix, files, config, created_at";
+
+fn read(dir: &Path, name: &str) -> Result<Vec<u8>, StoreError> {
+    std::fs::read(dir.join(name))
+        .map_err(|e| StoreError::invalid(format!("artifact {}: cannot read {name}: {e}", dir.display())))
+}
+
+impl Store {
+    /// Publishes an artifact directory: checks every file against its manifest, copies the files
+    /// into object storage and records the artifact; moves the `latest` alias.
+    pub async fn publish_artifact(&self, new: NewArtifact<'_>) -> Result<ArtifactRecord, StoreError> {
+        if new.kind != "classifier" && new.kind != "q" {
+            return Err(StoreError::invalid(format!("unknown verifier kind {:?}", new.kind)));
+        }
+        let manifest_bytes = read(new.dir, "manifest.json")?;
+        let id = crate::sha256_hex(&manifest_bytes)[..16].to_string();
+        let manifest: serde_json::Value = serde_json::from_slice(&manifest_bytes)
+            .map_err(|e| StoreError::invalid(format!("artifact manifest.json is not JSON: {e}")))?;
+        let listed = manifest
+            .get("files")
+            .and_then(|f| f.as_object())
+            .ok_or_else(|| StoreError::invalid("artifact manifest.json has no \"files\" object"))?;
+        let prefix = format!("artifacts/{id}");
+        let mut files = vec![ArtifactFile {
+            name: "manifest.json".into(),
+            sha256: crate::sha256_hex(&manifest_bytes),
+            size_bytes: manifest_bytes.len() as u64,
+        }];
+        let mut config = serde_json::Value::Null;
+        let mut uploads = vec![("manifest.json".to_string(), manifest_bytes.clone())];
+        for (name, sha) in listed {
+            if name.contains('/') || name.contains("..") {
+                return Err(StoreError::invalid(format!("artifact file name {name:?} is not a plain name")));
+            }
+            let data = read(new.dir, name)?;
+            let actual = crate::sha256_hex(&data);
+            if Some(actual.as_str()) != sha.as_str() {
+                return Err(StoreError::invalid(format!(
+                    "artifact file {name}: sha256 {actual} does not match the manifest"
+                )));
+            }
+            if name == "config.json" {
+                config = serde_json::from_slice(&data)
+                    .map_err(|e| StoreError::invalid(format!("artifact config.json is not JSON: {e}")))?;
+            }
+            files.push(ArtifactFile { name: name.clone(), sha256: actual, size_bytes: data.len() as u64 });
+            uploads.push((name.clone(), data));
+        }
+        if config.is_null() {
+            return Err(StoreError::invalid("artifact has no config.json in its manifest"));
+        }
+        for (name, data) in uploads {
+            self.objects().put_content_addressed(&format!("{prefix}/{name}"), Bytes::from(data)).await?;
+        }
+        let now = now_rfc3339();
+        let mut tx = self.db().begin_write().await?;
+        sqlx::query(&format!(
+            "INSERT INTO artifacts ({ART_COLS}) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10) ON CONFLICT DO NOTHING"
+        ))
+        .bind(&id)
+        .bind(new.policy)
+        .bind(new.checkpoint)
+        .bind(new.kind)
+        .bind(new.split_id.map(String::from))
+        .bind(new.job_id.map(String::from))
+        .bind(&prefix)
+        .bind(serde_json::to_string(&files)?)
+        .bind(serde_json::to_string(&config)?)
+        .bind(&now)
+        .execute(&mut *tx)
+        .await?;
+        upsert_alias(&mut tx, new.policy, new.checkpoint, new.kind, "latest", &id, &now).await?;
+        tx.commit().await?;
+        self.artifact(&id).await
+    }
+
+    pub async fn artifact(&self, id: &str) -> Result<ArtifactRecord, StoreError> {
+        let row = sqlx::query(&format!("SELECT {ART_COLS} FROM artifacts WHERE id = $1"))
+            .bind(id)
+            .fetch_optional(&self.db().pool)
+            .await?
+            .ok_or_else(|| StoreError::not_found("artifact", id))?;
+        let mut rec = artifact_from_row(&row)?;
+        rec.aliases = self.aliases_of(id).await?;
+        Ok(rec)
+    }
+
+    pub async fn artifacts(
+        &self,
+        policy: Option<&str>,
+        checkpoint: Option<&str>,
+        kind: Option<&str>,
+    ) -> Result<Vec<ArtifactRecord>, StoreError> {
+        let rows = sqlx::query(&format!(
+            "SELECT {ART_COLS} FROM artifacts WHERE ($1 = '' OR policy = $1) AND ($2 = '' OR checkpoint = $2) \
+             AND ($3 = '' OR kind = $3) ORDER BY created_at, id"
+        ))
+        .bind(policy.unwrap_or(""))
+        .bind(checkpoint.unwrap_or(""))
+        .bind(kind.unwrap_or(""))
+        .fetch_all(&self.db().pool)
+        .await?;
+        let mut out = Vec::with_capacity(rows.len());
+        for r in &rows {
+            let mut rec = artifact_from_row(r)?;
+            rec.aliases = self.aliases_of(&rec.id).await?;
+            out.push(rec);
+        }
+        Ok(out)
+    }
+
+    async fn aliases_of(&self, id: &str) -> Result<Vec<String>, StoreError> {
+        let rows = sqlx::query("SELECT alias FROM artifact_aliases WHERE artifact_id = $1 ORDER BY alias")
+            .bind(id)
+            .fetch_all(&self.db().pool)
+            .await?;
+        rows.iter().map(|r| r.s("alias")).collect()
+    }
+
+    /// Points `alias` of the artifact's (policy, checkpoint, kind) at the artifact.
+    pub async fn set_alias(&self, alias: &str, artifact_id: &str) -> Result<ArtifactRecord, StoreError> {
+        crate::writer::check_name("alias", alias)?;
+        if alias.contains('@') || alias.contains('/') {
+            return Err(StoreError::invalid(format!("alias {alias:?} may not contain '@' or '/'")));
+        }
+        let a = self.artifact(artifact_id).await?;
+        let mut tx = self.db().begin_write().await?;
+        upsert_alias(&mut tx, &a.policy, &a.checkpoint, &a.kind, alias, &a.id, &now_rfc3339()).await?;
+        tx.commit().await?;
+        self.artifact(artifact_id).await
+    }
+
+    /// Resolves `policy/checkpoint/kind@alias` to an artifact.
+    pub async fn resolve_alias(
+        &self,
+        policy: &str,
+        checkpoint: &str,
+        kind: &str,
+        alias: &str,
+    ) -> Result<ArtifactRecord, StoreError> {
+        let row = sqlx::query(
+            "SELECT artifact_id FROM artifact_aliases WHERE policy = $1 AND checkpoint = $2 AND kind = $3 AND alias = $4",
+        )
+        .bind(policy)
+        .bind(checkpoint)
+        .bind(kind)
+        .bind(alias)
+        .fetch_optional(&self.db().pool)
+        .await?
+        .ok_or_else(|| StoreError::not_found("artifact alias", format!("{policy}/{checkpoint}/{kind}@{alias}")))?;
+        self.artifact(&row.s("artifact_id")?).await
+    }
+
+    /// Resolves an artifact reference: an id, or `policy/checkpoint/kind@alias`.
+    pub async fn resolve_artifact(&self, reference: &str) -> Result<ArtifactRecord, StoreError> {
+        if let Some((path, alias)) = reference.rsplit_once('@') {
+            let parts: Vec<&str> = path.rsplitn(3, '/').collect();
+            if parts.len() != 3 {
+                return Err(StoreError::invalid(format!(
+                    "artifact reference {reference:?}: expected ID or POLICY/CHECKPOINT/KIND@ALIAS"
+                )));
+            }
+            return self.resolve_alias(parts[2], parts[1], parts[0], alias).await;
+        }
+        self.artifact(reference).await
+    }
+
+    /// Copies an artifact's files into `dir` (checking their sha256).
+    pub async fn download_artifact(&self, id: &str, dir: &Path) -> Result<ArtifactRecord, StoreError> {
+        let a = self.artifact(id).await?;
+        std::fs::create_dir_all(dir)
+            .map_err(|e| StoreError::invalid(format!("cannot create {}: {e}", dir.display())))?;
+        for f in &a.files {
+            let data = self.get_object(&format!("{}/{}", a.prefix, f.name)).await?;
+            if crate::sha256_hex(&data) != f.sha256 {
+                return Err(StoreError::Corrupt(format!("artifact {id} file {} fails its sha256", f.name)));
+            }
+            std::fs::write(dir.join(&f.name), &data)
+                .map_err(|e| StoreError::invalid(format!("cannot write {}: {e}", dir.display())))?;
+        }
+        Ok(a)
+    }
+}
+
+async fn upsert_alias(
+    tx: &mut crate::catalog::Tx,
+    policy: &str,
+    checkpoint: &str,
+    kind: &str,
+    alias: &str,
+    id: &str,
+    now: &str,
+) -> Result<(), StoreError> {
+    sqlx::query(
+        "INSERT INTO artifact_aliases (policy, checkpoint, kind, alias, artifact_id, updated_at) \
+         VALUES ($1, $2, $3, $4, $5, $6) ON CONFLICT (policy, checkpoint, kind, alias) \
+         DO UPDATE SET artifact_id = excluded.artifact_id, updated_at = excluded.updated_at",
+    )
+    .bind(policy)
+    .bind(checkpoint)
+    .bind(kind)
+    .bind(alias)
+    .bind(id)
+    .bind(now)
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
+}
+
+fn artifact_from_row(r: &sqlx::any::AnyRow) -> Result<ArtifactRecord, StoreError> {
+    Ok(ArtifactRecord {
+        id: r.s("id")?,
+        policy: r.s("policy")?,
+        checkpoint: r.s("checkpoint")?,
+        kind: r.s("kind")?,
+        split_id: r.os("split_id")?,
+        job_id: r.os("job_id")?,
+        prefix: r.s("prefix")?,
+        files: serde_json::from_str(&r.s("files")?)?,
+        config: serde_json::from_str(&r.s("config")?)?,
+        aliases: Vec::new(),
+        created_at: r.s("created_at")?,
+    })
+}

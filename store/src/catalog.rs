@@ -1,0 +1,262 @@
+//! The SQL catalog: one connection pool over SQLite or Postgres (sqlx's `Any` driver, so every
+//! query is written once with `$n` placeholders), the embedded migrations, and write transactions.
+
+use crate::StoreError;
+use sqlx::any::{AnyPoolOptions, AnyRow};
+use sqlx::migrate::{Migration, MigrationType, Migrator};
+use sqlx::{Any, AnyPool, Transaction};
+use std::borrow::Cow;
+use std::time::Duration;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Backend {
+    Sqlite,
+    Postgres,
+}
+
+pub(crate) type Tx = Transaction<'static, Any>;
+
+pub(crate) struct Catalog {
+    pub pool: AnyPool,
+    pub backend: Backend,
+    url_for_display: String,
+}
+
+/// The migrations, embedded so the binary needs no files at run time. Both histories carry the
+/// same versions and names (a test checks it).
+const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
+    (1, "store", include_str!("../../migrations/sqlite/0001_store.sql")),
+    (2, "splits_artifacts_jobs", include_str!("../../migrations/sqlite/0002_splits_artifacts_jobs.sql")),
+];
+const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
+    (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
+    (2, "splits_artifacts_jobs", include_str!("../../migrations/postgres/0002_splits_artifacts_jobs.sql")),
+];
+
+fn migrator(backend: Backend) -> Migrator {
+    let list = match backend {
+        Backend::Sqlite => SQLITE_MIGRATIONS,
+        Backend::Postgres => POSTGRES_MIGRATIONS,
+    };
+    let migrations: Vec<Migration> = list
+        .iter()
+        .map(|(v, name, sql)| {
+            Migration::new(*v, Cow::Borrowed(*name), MigrationType::Simple, Cow::Borrowed(*sql), false)
+        })
+        .collect();
+    Migrator { migrations: Cow::Owned(migrations), ignore_missing: false, locking: true, no_tx: false }
+}
+
+/// The names of the embedded migrations per backend (for the in-step check).
+pub fn migration_names() -> (Vec<(i64, &'static str)>, Vec<(i64, &'static str)>) {
+    (
+        SQLITE_MIGRATIONS.iter().map(|(v, n, _)| (*v, *n)).collect(),
+        POSTGRES_MIGRATIONS.iter().map(|(v, n, _)| (*v, *n)).collect(),
+    )
+}
+
+impl Catalog {
+    pub async fn connect(url: &str) -> Result<Catalog, StoreError> {
+        sqlx::any::install_default_drivers();
+        let (backend, url) = if url.starts_with("sqlite:") {
+            let u = if url.contains('?') { url.to_string() } else { format!("{url}?mode=rwc") };
+            (Backend::Sqlite, u)
+        } else if url.starts_with("postgres:") || url.starts_with("postgresql:") {
+            (Backend::Postgres, url.to_string())
+        } else {
+            return Err(StoreError::invalid(format!(
+                "unsupported database URL {url:?}: use sqlite://PATH or postgres://USER@HOST/DB"
+            )));
+        };
+        let mut opts = AnyPoolOptions::new().acquire_timeout(Duration::from_secs(30));
+        opts = match backend {
+            // One writer at a time anyway; WAL lets readers run beside it.
+            Backend::Sqlite => opts.max_connections(8).after_connect(|conn, _| {
+                Box::pin(async move {
+                    use sqlx::Executor;
+                    conn.execute("PRAGMA journal_mode = WAL; PRAGMA synchronous = NORMAL; PRAGMA busy_timeout = 30000; PRAGMA foreign_keys = ON;").await?;
+                    Ok(())
+                })
+            }),
+            Backend::Postgres => opts.max_connections(16),
+        };
+        let pool = opts.connect(&url).await.map_err(|e| {
+            StoreError::invalid(format!("cannot open catalog database {}: {e}", redact(&url)))
+        })?;
+        let catalog = Catalog { pool, backend, url_for_display: redact(&url) };
+        catalog.migrate().await?;
+        Ok(catalog)
+    }
+
+    async fn migrate(&self) -> Result<(), StoreError> {
+        // Two processes opening a fresh SQLite file at once can race on the first migration; the
+        // loser sees the tables already there and succeeds on a second look.
+        let m = migrator(self.backend);
+        let mut last = None;
+        for attempt in 0..5 {
+            match m.run(&self.pool).await {
+                Ok(()) => return Ok(()),
+                Err(e) => {
+                    last = Some(e);
+                    tokio::time::sleep(Duration::from_millis(50 * (attempt + 1))).await;
+                }
+            }
+        }
+        Err(last.expect("at least one attempt").into())
+    }
+
+    pub fn describe(&self) -> String {
+        self.url_for_display.clone()
+    }
+
+    /// A transaction that creates a new version: it holds the store-wide version lock until it
+    /// commits, so version numbers are dense and no concurrent write is lost.
+    pub async fn begin_version_write(&self) -> Result<Tx, StoreError> {
+        match self.backend {
+            Backend::Sqlite => Ok(self.pool.begin_with("BEGIN IMMEDIATE").await?),
+            Backend::Postgres => {
+                let mut tx = self.pool.begin().await?;
+                sqlx::query("SELECT version FROM store_head WHERE id = 1 FOR UPDATE")
+                    .execute(&mut *tx)
+                    .await?;
+                Ok(tx)
+            }
+        }
+    }
+
+    /// A transaction for row-level writes (labels, jobs): SQLite takes its write lock up front
+    /// (avoids upgrade deadlocks); Postgres relies on conditional updates.
+    pub async fn begin_write(&self) -> Result<Tx, StoreError> {
+        match self.backend {
+            Backend::Sqlite => Ok(self.pool.begin_with("BEGIN IMMEDIATE").await?),
+            Backend::Postgres => Ok(self.pool.begin().await?),
+        }
+    }
+}
+
+fn redact(url: &str) -> String {
+    // postgres://user:secret@host → postgres://user:***@host
+    if let Some(at) = url.find('@') {
+        if let Some(scheme_end) = url.find("://") {
+            let cred = &url[scheme_end + 3..at];
+            if let Some(colon) = cred.find(':') {
+                return format!("{}{}:***{}", &url[..scheme_end + 3], &cred[..colon], &url[at..]);
+            }
+        }
+    }
+    url.to_string()
+}
+
+/// Small helpers to read columns from `Any` rows with a useful error.
+pub(crate) trait RowExt {
+    fn s(&self, col: &str) -> Result<String, StoreError>;
+    fn os(&self, col: &str) -> Result<Option<String>, StoreError>;
+    fn i(&self, col: &str) -> Result<i64, StoreError>;
+    fn oi(&self, col: &str) -> Result<Option<i64>, StoreError>;
+    fn f(&self, col: &str) -> Result<f64, StoreError>;
+}
+
+impl RowExt for AnyRow {
+    fn s(&self, col: &str) -> Result<String, StoreError> {
+        use sqlx::Row;
+        Ok(self.try_get::<String, _>(col)?)
+    }
+    fn os(&self, col: &str) -> Result<Option<String>, StoreError> {
+        use sqlx::Row;
+        Ok(self.try_get::<Option<String>, _>(col)?)
+    }
+    fn i(&self, col: &str) -> Result<i64, StoreError> {
+        use sqlx::Row;
+        Ok(self.try_get::<i64, _>(col)?)
+    }
+    fn oi(&self, col: &str) -> Result<Option<i64>, StoreError> {
+        use sqlx::Row;
+        Ok(self.try_get::<Option<i64>, _>(col)?)
+    }
+    fn f(&self, col: &str) -> Result<f64, StoreError> {
+        use sqlx::Row;
+        Ok(self.try_get::<f64, _>(col)?)
+    }
+}
+
+/// A value bound into a dynamically built statement.
+#[derive(Debug, Clone)]
+pub(crate) enum Val {
+    I(i64),
+    S(String),
+    OS(Option<String>),
+}
+
+impl From<i64> for Val {
+    fn from(v: i64) -> Self {
+        Val::I(v)
+    }
+}
+impl From<String> for Val {
+    fn from(v: String) -> Self {
+        Val::S(v)
+    }
+}
+impl From<&str> for Val {
+    fn from(v: &str) -> Self {
+        Val::S(v.to_string())
+    }
+}
+impl From<Option<String>> for Val {
+    fn from(v: Option<String>) -> Self {
+        Val::OS(v)
+    }
+}
+
+pub(crate) fn bind_val<'q>(
+    q: sqlx::query::Query<'q, Any, sqlx::any::AnyArguments<'q>>,
+    v: Val,
+) -> sqlx::query::Query<'q, Any, sqlx::any::AnyArguments<'q>> {
+    match v {
+        Val::I(x) => q.bind(x),
+        Val::S(x) => q.bind(x),
+        Val::OS(x) => q.bind(x),
+    }
+}
+
+/// Inserts many rows in batches of multi-row `INSERT`s (`suffix` may add `ON CONFLICT DO NOTHING`).
+pub(crate) async fn insert_rows(
+    tx: &mut Tx,
+    table: &str,
+    cols: &[&str],
+    rows: Vec<Vec<Val>>,
+    suffix: &str,
+) -> Result<(), StoreError> {
+    let per_batch = (4000 / cols.len()).max(1);
+    let mut rows = rows.into_iter().peekable();
+    while rows.peek().is_some() {
+        let batch: Vec<Vec<Val>> = rows.by_ref().take(per_batch).collect();
+        let mut sql = format!("INSERT INTO {table} ({}) VALUES ", cols.join(", "));
+        let mut n = 0;
+        for (i, row) in batch.iter().enumerate() {
+            debug_assert_eq!(row.len(), cols.len());
+            if i > 0 {
+                sql.push_str(", ");
+            }
+            sql.push('(');
+            for j in 0..row.len() {
+                if j > 0 {
+                    sql.push_str(", ");
+                }
+                n += 1;
+                sql.push_str(&format!("${n}"));
+            }
+            sql.push(')');
+        }
+        sql.push(' ');
+        sql.push_str(suffix);
+        let mut q = sqlx::query(&sql);
+        for row in batch {
+            for v in row {
+                q = bind_val(q, v);
+            }
+        }
+        q.execute(&mut **tx).await?;
+    }
+    Ok(())
+}

@@ -1,0 +1,225 @@
+//! Jobs (training, ingest) as catalog rows that workers claim with a lease: queued → running →
+//! succeeded | failed | cancelled. A job whose worker stops heartbeating is claimed again (up to
+//! `max_attempts`); no job runs twice at once. Postgres claims with `FOR UPDATE SKIP LOCKED`.
+
+use crate::catalog::{Backend, RowExt};
+use crate::{now_ms, now_rfc3339, Store, StoreError};
+use serde::Serialize;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum JobState {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+}
+
+impl JobState {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Succeeded => "succeeded",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+    fn parse(s: &str) -> Result<Self, StoreError> {
+        Ok(match s {
+            "queued" => JobState::Queued,
+            "running" => JobState::Running,
+            "succeeded" => JobState::Succeeded,
+            "failed" => JobState::Failed,
+            "cancelled" => JobState::Cancelled,
+            _ => return Err(StoreError::Corrupt(format!("unknown job state {s:?}"))),
+        })
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct JobRecord {
+    pub id: String,
+    /// `train` or `ingest`
+    pub kind: String,
+    pub state: JobState,
+    pub spec: serde_json::Value,
+    pub progress: serde_json::Value,
+    pub result: Option<serde_json::Value>,
+    pub error: Option<String>,
+    pub attempts: i64,
+    pub max_attempts: i64,
+    pub worker: Option<String>,
+    pub lease_until_ms: Option<i64>,
+    pub cancel_requested: bool,
+    pub created_by: String,
+    pub created_at: String,
+    pub updated_at: String,
+}
+
+const JOB_COLS: &str = "id, kind, state, spec, progress, result, error, attempts, max_attempts, worker, \
+    lease_until_ms, cancel_requested, created_by, created_at, updated_at";
+
+fn job_from_row(r: &sqlx::any::AnyRow) -> Result<JobRecord, StoreError> {
+    Ok(JobRecord {
+        id: r.s("id")?,
+        kind: r.s("kind")?,
+        state: JobState::parse(&r.s("state")?)?,
+        spec: serde_json::from_str(&r.s("spec")?)?,
+        progress: serde_json::from_str(&r.s("progress")?)?,
+        result: r.os("result")?.map(|s| serde_json::from_str(&s)).transpose()?,
+        error: r.os("error")?,
+        attempts: r.i("attempts")?,
+        max_attempts: r.i("max_attempts")?,
+        worker: r.os("worker")?,
+        lease_until_ms: r.oi("lease_until_ms")?,
+        cancel_requested: r.i("cancel_requested")? != 0,
+        created_by: r.s("created_by")?,
+        created_at: r.s("created_at")?,
+        updated_at: r.s("updated_at")?,
+    })
+}
+
+impl Store {
+    pub async fn create_job(&self, kind: &str, spec: &serde_json::Value, actor: &str) -> Result<JobRecord, StoreError> {
+        let id = format!("job-{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
+        let now = now_rfc3339();
+        sqlx::query(&format!(
+            "INSERT INTO jobs ({JOB_COLS}) VALUES ($1, $2, 'queued', $3, '{{}}', NULL, NULL, 0, 3, NULL, NULL, 0, $4, $5, $5)"
+        ))
+        .bind(&id)
+        .bind(kind)
+        .bind(serde_json::to_string(spec)?)
+        .bind(actor)
+        .bind(&now)
+        .execute(&self.db().pool)
+        .await?;
+        self.job(&id).await
+    }
+
+    pub async fn job(&self, id: &str) -> Result<JobRecord, StoreError> {
+        let row = sqlx::query(&format!("SELECT {JOB_COLS} FROM jobs WHERE id = $1"))
+            .bind(id)
+            .fetch_optional(&self.db().pool)
+            .await?
+            .ok_or_else(|| StoreError::not_found("job", id))?;
+        job_from_row(&row)
+    }
+
+    pub async fn jobs(&self, state: Option<JobState>) -> Result<Vec<JobRecord>, StoreError> {
+        let rows = sqlx::query(&format!(
+            "SELECT {JOB_COLS} FROM jobs WHERE ($1 = '' OR state = $1) ORDER BY created_at, id"
+        ))
+        .bind(state.map(|s| s.as_str()).unwrap_or(""))
+        .fetch_all(&self.db().pool)
+        .await?;
+        rows.iter().map(job_from_row).collect()
+    }
+
+    /// Claims the oldest runnable job (queued, or running with an expired lease) for `worker`.
+    pub async fn claim_job(&self, worker: &str, lease_ms: i64) -> Result<Option<JobRecord>, StoreError> {
+        let now = now_ms();
+        let mut tx = self.db().begin_write().await?;
+        // Jobs whose lease ran out too often are failed for good.
+        sqlx::query(
+            "UPDATE jobs SET state = 'failed', error = 'worker lost too many times (lease expired)', updated_at = $1 \
+             WHERE state = 'running' AND lease_until_ms < $2 AND attempts >= max_attempts",
+        )
+        .bind(now_rfc3339())
+        .bind(now)
+        .execute(&mut *tx)
+        .await?;
+        let lock = if self.backend() == Backend::Postgres { " FOR UPDATE SKIP LOCKED" } else { "" };
+        let row = sqlx::query(&format!(
+            "SELECT id FROM jobs WHERE (state = 'queued' OR (state = 'running' AND lease_until_ms < $1)) \
+             AND cancel_requested = 0 ORDER BY created_at, id LIMIT 1{lock}"
+        ))
+        .bind(now)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(row) = row else {
+            tx.commit().await?;
+            return Ok(None);
+        };
+        let id = row.s("id")?;
+        sqlx::query(
+            "UPDATE jobs SET state = 'running', worker = $1, lease_until_ms = $2, attempts = attempts + 1, \
+             updated_at = $3 WHERE id = $4",
+        )
+        .bind(worker)
+        .bind(now + lease_ms)
+        .bind(now_rfc3339())
+        .bind(&id)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(Some(self.job(&id).await?))
+    }
+
+    /// Extends the lease and records progress. Returns `false` when the worker no longer owns
+    /// the job (lease lost) or a cancel was requested: the worker must stop.
+    pub async fn heartbeat_job(
+        &self,
+        id: &str,
+        worker: &str,
+        lease_ms: i64,
+        progress: &serde_json::Value,
+    ) -> Result<bool, StoreError> {
+        let r = sqlx::query(
+            "UPDATE jobs SET lease_until_ms = $1, progress = $2, updated_at = $3 \
+             WHERE id = $4 AND worker = $5 AND state = 'running' AND cancel_requested = 0",
+        )
+        .bind(now_ms() + lease_ms)
+        .bind(serde_json::to_string(progress)?)
+        .bind(now_rfc3339())
+        .bind(id)
+        .bind(worker)
+        .execute(&self.db().pool)
+        .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    /// Ends a job the worker owns: succeeded with a result, or failed/cancelled with an error.
+    pub async fn finish_job(
+        &self,
+        id: &str,
+        worker: &str,
+        outcome: Result<serde_json::Value, String>,
+    ) -> Result<bool, StoreError> {
+        let (state, result, error) = match outcome {
+            Ok(v) => ("succeeded", Some(serde_json::to_string(&v)?), None),
+            Err(e) => ("failed", None, Some(e)),
+        };
+        let r = sqlx::query(
+            "UPDATE jobs SET state = CASE WHEN cancel_requested = 1 AND CAST($1 AS TEXT) = 'failed' THEN 'cancelled' ELSE CAST($1 AS TEXT) END, \
+             result = $2, error = $3, lease_until_ms = NULL, updated_at = $4 \
+             WHERE id = $5 AND worker = $6 AND state = 'running'",
+        )
+        .bind(state)
+        .bind(result)
+        .bind(error)
+        .bind(now_rfc3339())
+        .bind(id)
+        .bind(worker)
+        .execute(&self.db().pool)
+        .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    /// Requests cancellation: a queued job is cancelled at once, a running one at its next heartbeat.
+    pub async fn cancel_job(&self, id: &str) -> Result<JobRecord, StoreError> {
+        let now = now_rfc3339();
+        sqlx::query("UPDATE jobs SET state = 'cancelled', cancel_requested = 1, updated_at = $1 WHERE id = $2 AND state = 'queued'")
+            .bind(&now)
+            .bind(id)
+            .execute(&self.db().pool)
+            .await?;
+        sqlx::query("UPDATE jobs SET cancel_requested = 1, updated_at = $1 WHERE id = $2 AND state = 'running'")
+            .bind(&now)
+            .bind(id)
+            .execute(&self.db().pool)
+            .await?;
+        self.job(id).await
+    }
+}

@@ -1,0 +1,160 @@
+//! The ufops store: the single source of truth for rollouts, labels, splits, artifacts and jobs.
+//!
+//! It owns the catalog (SQL via sqlx: SQLite by default, Postgres for scale-out), the object
+//! storage (a local directory or S3 via `object_store`) and the Parquet layout of episode steps.
+//! Every write creates an immutable, numbered version; data files are written first under unique
+//! names and become visible only when the version's catalog row commits in one transaction.
+
+mod artifacts;
+mod catalog;
+mod error;
+mod gc;
+mod jobs;
+mod labels;
+pub mod model;
+mod objects;
+mod query;
+mod splits;
+pub mod steps;
+mod tokens;
+mod writer;
+
+pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
+pub use catalog::{migration_names, Backend};
+pub use error::StoreError;
+pub use gc::GcReport;
+pub use jobs::{JobRecord, JobState};
+pub use labels::{LabelChange, LabelEvent, LabelUpdate};
+pub use model::*;
+pub use query::{EpisodeFilter, EpisodeRecord, VersionDiff, VersionInfo};
+pub use splits::{SplitEpisode, SplitRecord, SplitRequest};
+pub use tokens::{Role, TokenRecord};
+pub use writer::{CommitInfo, IngestWriter};
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// Where the store lives. Defaults: SQLite file and object directory inside `data_dir`.
+#[derive(Debug, Clone)]
+pub struct StoreConfig {
+    pub data_dir: PathBuf,
+    /// `sqlite://…` or `postgres://…`; default `sqlite://<data_dir>/catalog.sqlite`.
+    pub database_url: Option<String>,
+    /// A local path, `file:///…` or `s3://bucket/prefix`; default `<data_dir>/objects`.
+    pub object_store_url: Option<String>,
+}
+
+impl StoreConfig {
+    pub fn local(data_dir: impl Into<PathBuf>) -> Self {
+        StoreConfig { data_dir: data_dir.into(), database_url: None, object_store_url: None }
+    }
+}
+
+/// A handle on an opened store; cheap to clone.
+#[derive(Clone)]
+pub struct Store {
+    inner: Arc<Inner>,
+}
+
+struct Inner {
+    db: catalog::Catalog,
+    objects: objects::Objects,
+    data_dir: PathBuf,
+}
+
+impl Store {
+    /// Opens (creating if needed) the store and applies pending migrations.
+    pub async fn open(config: &StoreConfig) -> Result<Store, StoreError> {
+        let url = match &config.database_url {
+            Some(u) => u.clone(),
+            None => {
+                std::fs::create_dir_all(&config.data_dir).map_err(|e| {
+                    StoreError::invalid(format!(
+                        "cannot create data dir {}: {e}",
+                        config.data_dir.display()
+                    ))
+                })?;
+                format!("sqlite://{}/catalog.sqlite", config.data_dir.display())
+            }
+        };
+        let db = catalog::Catalog::connect(&url).await?;
+        let objects = objects::Objects::open(config)?;
+        Ok(Store { inner: Arc::new(Inner { db, objects, data_dir: config.data_dir.clone() }) })
+    }
+
+    pub fn backend(&self) -> Backend {
+        self.inner.db.backend
+    }
+
+    pub fn data_dir(&self) -> &Path {
+        &self.inner.data_dir
+    }
+
+    /// A short description of where the catalog and objects live.
+    pub fn describe(&self) -> String {
+        format!("catalog: {}, objects: {}", self.inner.db.describe(), self.inner.objects.describe())
+    }
+
+    /// Reads a whole object (a data file, a media file, an artifact file) by its store path.
+    pub async fn get_object(&self, path: &str) -> Result<bytes::Bytes, StoreError> {
+        self.inner.objects.get(path).await
+    }
+
+    /// Reads a byte range of an object (for HTTP range requests on media).
+    pub async fn get_object_range(
+        &self,
+        path: &str,
+        range: std::ops::Range<u64>,
+    ) -> Result<bytes::Bytes, StoreError> {
+        self.inner.objects.get_range(path, range).await
+    }
+
+    /// Size in bytes of an object.
+    pub async fn object_size(&self, path: &str) -> Result<u64, StoreError> {
+        self.inner.objects.size(path).await
+    }
+
+    pub(crate) fn db(&self) -> &catalog::Catalog {
+        &self.inner.db
+    }
+    pub(crate) fn objects(&self) -> &objects::Objects {
+        &self.inner.objects
+    }
+}
+
+pub(crate) fn now_rfc3339() -> String {
+    chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
+}
+
+pub(crate) fn now_ms() -> i64 {
+    chrono::Utc::now().timestamp_millis()
+}
+
+/// Lower-case hex sha256 of a byte slice.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    use sha2::Digest;
+    hex::encode(sha2::Sha256::digest(bytes))
+}
+
+/// Test support: the Postgres server the tests use (`UFOPS_TEST_POSTGRES`, default the local
+/// `test` database with trust auth, as on our machines).
+#[doc(hidden)]
+pub fn test_postgres_base() -> String {
+    std::env::var("UFOPS_TEST_POSTGRES").unwrap_or_else(|_| "postgres://postgres@127.0.0.1:5432/test".into())
+}
+
+/// Test support: creates a fresh schema on the test Postgres server and returns a database URL
+/// whose connections use it, so tests never see each other's rows.
+#[doc(hidden)]
+pub async fn create_test_schema(prefix: &str) -> Result<String, StoreError> {
+    use sqlx::{Connection, Executor};
+    sqlx::any::install_default_drivers();
+    let base = test_postgres_base();
+    let schema = format!("{prefix}_{}", &uuid::Uuid::new_v4().simple().to_string()[..10]);
+    let mut conn = sqlx::AnyConnection::connect(&base).await.map_err(|e| {
+        StoreError::invalid(format!("cannot reach the test Postgres at {base}: {e} (start it, or set UFOPS_TEST_POSTGRES)"))
+    })?;
+    conn.execute(format!("CREATE SCHEMA {schema}").as_str()).await?;
+    let sep = if base.contains('?') { '&' } else { '?' };
+    Ok(format!("{base}{sep}options[search_path]={schema}"))
+}

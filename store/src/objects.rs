@@ -1,0 +1,180 @@
+//! Object storage through `object_store`: a local directory by default, S3-compatible storage
+//! (`s3://bucket/prefix`, endpoint and keys from the usual `AWS_*` variables) when configured.
+
+use crate::{StoreConfig, StoreError};
+use bytes::Bytes;
+use futures::TryStreamExt;
+use object_store::path::Path as ObjPath;
+use object_store::{ObjectStore, PutMode, PutOptions, PutPayload};
+use std::sync::Arc;
+
+pub(crate) struct Objects {
+    store: Arc<dyn ObjectStore>,
+    desc: String,
+    /// For a local directory: its root (to find staging files a killed writer left).
+    local_root: Option<std::path::PathBuf>,
+}
+
+/// An object as seen by a listing (for gc).
+pub(crate) struct ObjectEntry {
+    pub path: String,
+    pub last_modified_ms: i64,
+}
+
+impl Objects {
+    pub fn open(config: &StoreConfig) -> Result<Objects, StoreError> {
+        let url = config.object_store_url.clone();
+        match url.as_deref() {
+            Some(u) if u.starts_with("s3://") => {
+                let rest = &u["s3://".len()..];
+                let (bucket, prefix) = match rest.split_once('/') {
+                    Some((b, p)) => (b, p.trim_end_matches('/')),
+                    None => (rest, ""),
+                };
+                if bucket.is_empty() {
+                    return Err(StoreError::invalid(format!("object store URL {u:?} names no bucket")));
+                }
+                let mut builder = object_store::aws::AmazonS3Builder::from_env()
+                    .with_bucket_name(bucket)
+                    .with_allow_http(true);
+                if let Ok(ep) = std::env::var("AWS_ENDPOINT_URL") {
+                    builder = builder.with_endpoint(ep);
+                }
+                if std::env::var("AWS_REGION").is_err() && std::env::var("AWS_DEFAULT_REGION").is_err() {
+                    builder = builder.with_region("us-east-1");
+                }
+                let s3 = builder
+                    .build()
+                    .map_err(|e| StoreError::invalid(format!("cannot configure S3 store {u:?}: {e}")))?;
+                let store: Arc<dyn ObjectStore> = if prefix.is_empty() {
+                    Arc::new(s3)
+                } else {
+                    Arc::new(object_store::prefix::PrefixStore::new(s3, prefix))
+                };
+                Ok(Objects { store, desc: u.to_string(), local_root: None })
+            }
+            Some(u) if u.contains("://") && !u.starts_with("file://") => Err(StoreError::invalid(format!(
+                "unsupported object store URL {u:?}: use a local path, file:///PATH or s3://BUCKET/PREFIX"
+            ))),
+            other => {
+                let dir = match other {
+                    Some(u) => std::path::PathBuf::from(u.trim_start_matches("file://")),
+                    None => config.data_dir.join("objects"),
+                };
+                std::fs::create_dir_all(&dir).map_err(|e| {
+                    StoreError::invalid(format!("cannot create object directory {}: {e}", dir.display()))
+                })?;
+                let local = object_store::local::LocalFileSystem::new_with_prefix(&dir)
+                    .map_err(|e| StoreError::invalid(format!("cannot open {}: {e}", dir.display())))?;
+                Ok(Objects { store: Arc::new(local), desc: dir.display().to_string(), local_root: Some(dir) })
+            }
+        }
+    }
+
+    pub fn describe(&self) -> String {
+        self.desc.clone()
+    }
+
+    /// Writes a new object; fails with `AlreadyExists` rather than overwrite (put-if-absent).
+    pub async fn put_new(&self, path: &str, data: Bytes) -> Result<(), object_store::Error> {
+        let opts = PutOptions { mode: PutMode::Create, ..Default::default() };
+        match self.store.put_opts(&ObjPath::from(path), PutPayload::from(data.clone()), opts).await {
+            Ok(_) => Ok(()),
+            // Some S3-compatible servers lack conditional puts; our names are unique anyway.
+            Err(object_store::Error::NotImplemented) => {
+                self.store.put(&ObjPath::from(path), PutPayload::from(data)).await.map(|_| ())
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Writes a content-addressed object: an existing object of that name already holds it.
+    pub async fn put_content_addressed(&self, path: &str, data: Bytes) -> Result<(), StoreError> {
+        if self.exists(path).await? {
+            return Ok(());
+        }
+        match self.put_new(path, data).await {
+            Ok(()) | Err(object_store::Error::AlreadyExists { .. }) => Ok(()),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    pub async fn exists(&self, path: &str) -> Result<bool, StoreError> {
+        match self.store.head(&ObjPath::from(path)).await {
+            Ok(_) => Ok(true),
+            Err(object_store::Error::NotFound { .. }) => Ok(false),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    pub async fn get(&self, path: &str) -> Result<Bytes, StoreError> {
+        match self.store.get(&ObjPath::from(path)).await {
+            Ok(r) => Ok(r.bytes().await?),
+            Err(object_store::Error::NotFound { .. }) => Err(StoreError::not_found("object", path)),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    pub async fn get_range(&self, path: &str, range: std::ops::Range<u64>) -> Result<Bytes, StoreError> {
+        match self.store.get_range(&ObjPath::from(path), range).await {
+            Ok(b) => Ok(b),
+            Err(object_store::Error::NotFound { .. }) => Err(StoreError::not_found("object", path)),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    pub async fn size(&self, path: &str) -> Result<u64, StoreError> {
+        match self.store.head(&ObjPath::from(path)).await {
+            Ok(m) => Ok(m.size),
+            Err(object_store::Error::NotFound { .. }) => Err(StoreError::not_found("object", path)),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    pub async fn list_all(&self) -> Result<Vec<ObjectEntry>, StoreError> {
+        let metas: Vec<_> = self.store.list(None).try_collect().await?;
+        Ok(metas
+            .into_iter()
+            .map(|m| ObjectEntry {
+                path: m.location.to_string(),
+                last_modified_ms: m.last_modified.timestamp_millis(),
+            })
+            .collect())
+    }
+
+    /// Half-written staging files (`name#<digits>`) of the local store, which listings hide.
+    pub fn local_staging_files(&self) -> Vec<(std::path::PathBuf, i64)> {
+        fn walk(dir: &std::path::Path, out: &mut Vec<(std::path::PathBuf, i64)>) {
+            let Ok(rd) = std::fs::read_dir(dir) else { return };
+            for e in rd.flatten() {
+                let p = e.path();
+                if p.is_dir() {
+                    walk(&p, out);
+                } else if let Some((_, suffix)) = e.file_name().to_string_lossy().split_once('#') {
+                    if !suffix.is_empty() && suffix.bytes().all(|b| b.is_ascii_digit()) {
+                        let ms = e
+                            .metadata()
+                            .and_then(|m| m.modified())
+                            .ok()
+                            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                            .map(|d| d.as_millis() as i64)
+                            .unwrap_or(0);
+                        out.push((p, ms));
+                    }
+                }
+            }
+        }
+        let mut out = Vec::new();
+        if let Some(root) = &self.local_root {
+            walk(root, &mut out);
+        }
+        out
+    }
+
+    pub async fn delete(&self, path: &str) -> Result<(), StoreError> {
+        match self.store.delete(&ObjPath::from(path)).await {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+            Err(e) => Err(e.into()),
+        }
+    }
+}

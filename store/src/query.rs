@@ -1,0 +1,275 @@
+//! Reads: versions, episodes (now or at any past version), their steps, and version diffs.
+
+use crate::catalog::{bind_val, RowExt, Val};
+use crate::{steps, Label, Store, StoreError};
+use arrow::array::RecordBatch;
+use serde::Serialize;
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct VersionInfo {
+    pub version: i64,
+    pub kind: String,
+    pub message: String,
+    pub actor: String,
+    pub created_at: String,
+    pub labels_path: String,
+    pub source_sha256: Option<String>,
+    pub episodes_added: i64,
+    pub episodes_removed: i64,
+    pub labels_changed: i64,
+    pub episode_count: i64,
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct EpisodeRecord {
+    pub id: String,
+    pub policy: String,
+    pub checkpoint: String,
+    pub task: Option<String>,
+    pub source_sha256: String,
+    pub source_name: String,
+    pub source_index: i64,
+    pub length: i64,
+    pub tags: Vec<String>,
+    pub metadata: serde_json::Value,
+    pub data_file: String,
+    pub row_group: i64,
+    pub version_added: i64,
+    pub label: Label,
+    pub label_source: String,
+    pub label_revision: i64,
+    pub label_actor: String,
+    pub label_updated_at: String,
+    pub created_at: String,
+}
+
+/// Filters for listing episodes; `version: None` means the current state (latest labels).
+#[derive(Debug, Clone, Default)]
+pub struct EpisodeFilter {
+    pub version: Option<i64>,
+    pub id: Option<String>,
+    pub policy: Option<String>,
+    pub checkpoint: Option<String>,
+    pub task: Option<String>,
+    pub label: Option<Label>,
+    pub label_source: Option<String>,
+    pub tag: Option<String>,
+    /// Only episodes whose id sorts after this one (cursor pagination).
+    pub after: Option<String>,
+    pub limit: Option<i64>,
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct VersionDiff {
+    pub from: i64,
+    pub to: i64,
+    pub episodes_added: Vec<String>,
+    pub episodes_removed: Vec<String>,
+    /// `(episode, label in from, label in to)`
+    pub labels_changed: Vec<(String, Label, Label)>,
+}
+
+const VERSION_COLS: &str = "version, kind, message, actor, created_at, labels_path, source_sha256, \
+    episodes_added, episodes_removed, labels_changed, episode_count";
+
+fn version_from_row(r: &sqlx::any::AnyRow) -> Result<VersionInfo, StoreError> {
+    Ok(VersionInfo {
+        version: r.i("version")?,
+        kind: r.s("kind")?,
+        message: r.s("message")?,
+        actor: r.s("actor")?,
+        created_at: r.s("created_at")?,
+        labels_path: r.s("labels_path")?,
+        source_sha256: r.os("source_sha256")?,
+        episodes_added: r.i("episodes_added")?,
+        episodes_removed: r.i("episodes_removed")?,
+        labels_changed: r.i("labels_changed")?,
+        episode_count: r.i("episode_count")?,
+    })
+}
+
+impl Store {
+    /// The latest committed version (0 for an empty store).
+    pub async fn head_version(&self) -> Result<i64, StoreError> {
+        let r = sqlx::query("SELECT version FROM store_head WHERE id = 1").fetch_one(&self.db().pool).await?;
+        r.i("version")
+    }
+
+    pub async fn versions(&self) -> Result<Vec<VersionInfo>, StoreError> {
+        let rows = sqlx::query(&format!("SELECT {VERSION_COLS} FROM versions ORDER BY version"))
+            .fetch_all(&self.db().pool)
+            .await?;
+        rows.iter().map(version_from_row).collect()
+    }
+
+    pub async fn version(&self, version: i64) -> Result<VersionInfo, StoreError> {
+        let row = sqlx::query(&format!("SELECT {VERSION_COLS} FROM versions WHERE version = $1"))
+            .bind(version)
+            .fetch_optional(&self.db().pool)
+            .await?
+            .ok_or_else(|| StoreError::not_found("version", version.to_string()))?;
+        version_from_row(&row)
+    }
+
+    /// Lists episodes, now (`filter.version = None`) or as they were in a past version.
+    pub async fn episodes(&self, filter: &EpisodeFilter) -> Result<Vec<EpisodeRecord>, StoreError> {
+        let mut args: Vec<Val> = Vec::new();
+        let next = |v: Val, args: &mut Vec<Val>| {
+            args.push(v);
+            format!("${}", args.len())
+        };
+        let mut sql = String::from(
+            "SELECT e.id, e.policy, e.checkpoint, e.task, e.source_sha256, e.source_name, e.source_index, \
+             e.length, e.tags, e.metadata, e.data_file, e.row_group, e.version_added, e.created_at, ",
+        );
+        let mut conds: Vec<String> = Vec::new();
+        match filter.version {
+            None => {
+                sql.push_str(
+                    "e.label AS label, e.label_source AS label_source, e.label_revision AS label_revision, \
+                     e.label_actor AS label_actor, e.label_updated_at AS label_updated_at FROM episodes e",
+                );
+                conds.push("e.version_removed IS NULL".into());
+            }
+            Some(v) => {
+                self.version(v).await?;
+                let p = next(Val::I(v), &mut args);
+                sql.push_str(&format!(
+                    "l.label AS label, l.label_source AS label_source, l.revision AS label_revision, \
+                     ev.actor AS label_actor, ev.created_at AS label_updated_at FROM episodes e \
+                     JOIN version_labels l ON l.episode_id = e.id AND l.version = {p} \
+                     JOIN label_events ev ON ev.episode_id = e.id AND ev.revision = l.revision"
+                ));
+            }
+        }
+        let label_col = if filter.version.is_some() { "l.label" } else { "e.label" };
+        let source_col = if filter.version.is_some() { "l.label_source" } else { "e.label_source" };
+        if let Some(id) = &filter.id {
+            conds.push(format!("e.id = {}", next(Val::S(id.clone()), &mut args)));
+        }
+        if let Some(p) = &filter.policy {
+            conds.push(format!("e.policy = {}", next(Val::S(p.clone()), &mut args)));
+        }
+        if let Some(c) = &filter.checkpoint {
+            conds.push(format!("e.checkpoint = {}", next(Val::S(c.clone()), &mut args)));
+        }
+        if let Some(t) = &filter.task {
+            conds.push(format!("e.task = {}", next(Val::S(t.clone()), &mut args)));
+        }
+        if let Some(l) = filter.label {
+            conds.push(format!("{label_col} = {}", next(Val::S(l.as_str().into()), &mut args)));
+        }
+        if let Some(s) = &filter.label_source {
+            conds.push(format!("{source_col} = {}", next(Val::S(s.clone()), &mut args)));
+        }
+        if let Some(t) = &filter.tag {
+            let pat = format!("%{}%", serde_json::to_string(t)?);
+            conds.push(format!("e.tags LIKE {}", next(Val::S(pat), &mut args)));
+        }
+        if let Some(a) = &filter.after {
+            conds.push(format!("e.id > {}", next(Val::S(a.clone()), &mut args)));
+        }
+        if !conds.is_empty() {
+            sql.push_str(" WHERE ");
+            sql.push_str(&conds.join(" AND "));
+        }
+        sql.push_str(" ORDER BY e.id");
+        if let Some(n) = filter.limit {
+            sql.push_str(&format!(" LIMIT {}", next(Val::I(n.max(0)), &mut args)));
+        }
+        let mut q = sqlx::query(&sql);
+        for a in args {
+            q = bind_val(q, a);
+        }
+        let rows = q.fetch_all(&self.db().pool).await?;
+        rows.iter().map(episode_from_row).collect()
+    }
+
+    /// One episode, now or at a past version.
+    pub async fn episode(&self, id: &str, version: Option<i64>) -> Result<EpisodeRecord, StoreError> {
+        let filter = EpisodeFilter { version, id: Some(id.to_string()), ..Default::default() };
+        self.episodes(&filter).await?.pop().ok_or_else(|| StoreError::not_found("episode", id))
+    }
+
+    /// The step table of an episode (one record batch).
+    pub async fn read_steps(&self, id: &str, version: Option<i64>) -> Result<RecordBatch, StoreError> {
+        let row = sqlx::query("SELECT data_file, row_group, version_added, version_removed FROM episodes WHERE id = $1")
+            .bind(id)
+            .fetch_optional(&self.db().pool)
+            .await?
+            .ok_or_else(|| StoreError::not_found("episode", id))?;
+        let removed = row.oi("version_removed")?;
+        let visible = match version {
+            None => removed.is_none(),
+            Some(v) => row.i("version_added")? <= v && removed.is_none_or(|r| r > v),
+        };
+        if !visible {
+            return Err(StoreError::not_found("episode", id));
+        }
+        let data = self.objects().get(&row.s("data_file")?).await?;
+        steps::read_row_group(data, row.i("row_group")? as usize)
+    }
+
+    pub async fn policies(&self) -> Result<Vec<String>, StoreError> {
+        let rows = sqlx::query("SELECT name FROM policies ORDER BY name").fetch_all(&self.db().pool).await?;
+        rows.iter().map(|r| r.s("name")).collect()
+    }
+
+    /// `(policy, checkpoint)` pairs.
+    pub async fn checkpoints(&self, policy: Option<&str>) -> Result<Vec<(String, String)>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT policy, name FROM checkpoints WHERE ($1 = '' OR policy = $1) ORDER BY policy, name",
+        )
+        .bind(policy.unwrap_or(""))
+        .fetch_all(&self.db().pool)
+        .await?;
+        rows.iter().map(|r| Ok((r.s("policy")?, r.s("name")?))).collect()
+    }
+
+    pub async fn tasks(&self) -> Result<Vec<String>, StoreError> {
+        let rows = sqlx::query("SELECT name FROM tasks ORDER BY name").fetch_all(&self.db().pool).await?;
+        rows.iter().map(|r| r.s("name")).collect()
+    }
+
+    /// Episodes added/removed and labels changed between two versions.
+    pub async fn diff(&self, from: i64, to: i64) -> Result<VersionDiff, StoreError> {
+        let a = self.episodes(&EpisodeFilter { version: Some(from), ..Default::default() }).await?;
+        let b = self.episodes(&EpisodeFilter { version: Some(to), ..Default::default() }).await?;
+        let am: std::collections::HashMap<&str, Label> = a.iter().map(|e| (e.id.as_str(), e.label)).collect();
+        let bm: std::collections::HashMap<&str, Label> = b.iter().map(|e| (e.id.as_str(), e.label)).collect();
+        let mut d = VersionDiff { from, to, episodes_added: vec![], episodes_removed: vec![], labels_changed: vec![] };
+        for e in &b {
+            match am.get(e.id.as_str()) {
+                None => d.episodes_added.push(e.id.clone()),
+                Some(old) if *old != e.label => d.labels_changed.push((e.id.clone(), *old, e.label)),
+                _ => {}
+            }
+        }
+        d.episodes_removed = a.iter().filter(|e| !bm.contains_key(e.id.as_str())).map(|e| e.id.clone()).collect();
+        Ok(d)
+    }
+}
+
+fn episode_from_row(r: &sqlx::any::AnyRow) -> Result<EpisodeRecord, StoreError> {
+    Ok(EpisodeRecord {
+        id: r.s("id")?,
+        policy: r.s("policy")?,
+        checkpoint: r.s("checkpoint")?,
+        task: r.os("task")?,
+        source_sha256: r.s("source_sha256")?,
+        source_name: r.s("source_name")?,
+        source_index: r.i("source_index")?,
+        length: r.i("length")?,
+        tags: serde_json::from_str(&r.s("tags")?)?,
+        metadata: serde_json::from_str(&r.s("metadata")?)?,
+        data_file: r.s("data_file")?,
+        row_group: r.i("row_group")?,
+        version_added: r.i("version_added")?,
+        label: r.s("label")?.parse()?,
+        label_source: r.s("label_source")?,
+        label_revision: r.i("label_revision")?,
+        label_actor: r.s("label_actor")?,
+        label_updated_at: r.s("label_updated_at")?,
+        created_at: r.s("created_at")?,
+    })
+}

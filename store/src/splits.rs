@@ -1,0 +1,214 @@
+//! Splits: a frozen train/val division, by episode with a seeded hash, of the labeled episodes
+//! of one checkpoint (on-policy) or of other checkpoints (off-policy), pinned to a version.
+
+use crate::catalog::{insert_rows, RowExt, Val};
+use crate::{now_rfc3339, EpisodeFilter, Label, Store, StoreError};
+use serde::Serialize;
+
+#[derive(Debug, Clone)]
+pub struct SplitRequest {
+    pub policy: String,
+    pub checkpoint: String,
+    /// Pin to this version; `None`: the head, after freezing any unsnapshotted label changes.
+    pub version: Option<i64>,
+    /// Off-policy: take the episodes of these `(policy, checkpoint)`s instead.
+    pub off_policy_from: Vec<(String, String)>,
+    pub val_fraction: f64,
+    pub seed: u64,
+    pub actor: String,
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct SplitRecord {
+    pub id: String,
+    pub policy: String,
+    pub checkpoint: String,
+    /// `on_policy` or `off_policy`
+    pub mode: String,
+    pub source_checkpoints: Vec<(String, String)>,
+    pub version: i64,
+    pub val_fraction: f64,
+    pub seed: i64,
+    pub train_episodes: i64,
+    pub val_episodes: i64,
+    pub created_by: String,
+    pub created_at: String,
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct SplitEpisode {
+    pub episode_id: String,
+    /// `train` or `val`
+    pub part: String,
+    pub label: Label,
+}
+
+/// Deterministic position of an episode in [0, 1) for a seed.
+fn split_key(seed: u64, episode_id: &str) -> f64 {
+    use sha2::Digest;
+    let mut h = sha2::Sha256::new();
+    h.update(seed.to_le_bytes());
+    h.update(episode_id.as_bytes());
+    let d = h.finalize();
+    let x = u64::from_le_bytes(d[..8].try_into().expect("8 bytes"));
+    (x >> 11) as f64 / (1u64 << 53) as f64
+}
+
+const SPLIT_COLS: &str = "id, policy, checkpoint, mode, source_checkpoints, version, val_fraction, seed, \
+    train_episodes, val_episodes, created_by, created_at";
+
+fn split_from_row(r: &sqlx::any::AnyRow) -> Result<SplitRecord, StoreError> {
+    Ok(SplitRecord {
+        id: r.s("id")?,
+        policy: r.s("policy")?,
+        checkpoint: r.s("checkpoint")?,
+        mode: r.s("mode")?,
+        source_checkpoints: serde_json::from_str(&r.s("source_checkpoints")?)?,
+        version: r.i("version")?,
+        val_fraction: r.f("val_fraction")?,
+        seed: r.i("seed")?,
+        train_episodes: r.i("train_episodes")?,
+        val_episodes: r.i("val_episodes")?,
+        created_by: r.s("created_by")?,
+        created_at: r.s("created_at")?,
+    })
+}
+
+impl Store {
+    pub async fn create_split(&self, req: &SplitRequest) -> Result<SplitRecord, StoreError> {
+        if !(0.0..1.0).contains(&req.val_fraction) {
+            return Err(StoreError::invalid(format!("val fraction {} must be in [0, 1)", req.val_fraction)));
+        }
+        let version = match req.version {
+            Some(v) => {
+                self.version(v).await?;
+                v
+            }
+            None => {
+                if self.labels_changed_since_head().await? {
+                    self.snapshot_labels(&req.actor, "label snapshot for a split").await?.version
+                } else {
+                    self.head_version().await?
+                }
+            }
+        };
+        let (mode, sources) = if req.off_policy_from.is_empty() {
+            ("on_policy", vec![(req.policy.clone(), req.checkpoint.clone())])
+        } else {
+            ("off_policy", req.off_policy_from.clone())
+        };
+        let mut members = Vec::new();
+        for (p, c) in &sources {
+            let eps = self
+                .episodes(&EpisodeFilter {
+                    version: Some(version),
+                    policy: Some(p.clone()),
+                    checkpoint: Some(c.clone()),
+                    ..Default::default()
+                })
+                .await?;
+            members.extend(eps.into_iter().filter(|e| e.label != Label::Unknown));
+        }
+        if members.is_empty() {
+            return Err(StoreError::invalid(format!(
+                "no labeled episodes of {} in version {version}",
+                sources.iter().map(|(p, c)| format!("{p}/{c}")).collect::<Vec<_>>().join(", ")
+            )));
+        }
+        let mut parts: Vec<SplitEpisode> = members
+            .iter()
+            .map(|e| SplitEpisode {
+                episode_id: e.id.clone(),
+                part: if split_key(req.seed, &e.id) < req.val_fraction { "val" } else { "train" }.into(),
+                label: e.label,
+            })
+            .collect();
+        parts.sort_by(|a, b| a.episode_id.cmp(&b.episode_id));
+        let n_val = parts.iter().filter(|p| p.part == "val").count() as i64;
+        let id = format!("split-{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
+        let rec = SplitRecord {
+            id: id.clone(),
+            policy: req.policy.clone(),
+            checkpoint: req.checkpoint.clone(),
+            mode: mode.into(),
+            source_checkpoints: sources,
+            version,
+            val_fraction: req.val_fraction,
+            seed: req.seed as i64,
+            train_episodes: parts.len() as i64 - n_val,
+            val_episodes: n_val,
+            created_by: req.actor.clone(),
+            created_at: now_rfc3339(),
+        };
+        let mut tx = self.db().begin_write().await?;
+        sqlx::query(&format!(
+            "INSERT INTO splits ({SPLIT_COLS}) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12)"
+        ))
+        .bind(&rec.id)
+        .bind(&rec.policy)
+        .bind(&rec.checkpoint)
+        .bind(&rec.mode)
+        .bind(serde_json::to_string(&rec.source_checkpoints)?)
+        .bind(rec.version)
+        .bind(rec.val_fraction)
+        .bind(rec.seed)
+        .bind(rec.train_episodes)
+        .bind(rec.val_episodes)
+        .bind(&rec.created_by)
+        .bind(&rec.created_at)
+        .execute(&mut *tx)
+        .await?;
+        insert_rows(
+            &mut tx,
+            "split_episodes",
+            &["split_id", "episode_id", "part", "label"],
+            parts
+                .iter()
+                .map(|p| vec![Val::S(id.clone()), p.episode_id.as_str().into(), p.part.as_str().into(), p.label.as_str().into()])
+                .collect(),
+            "",
+        )
+        .await?;
+        tx.commit().await?;
+        Ok(rec)
+    }
+
+    pub async fn split(&self, id: &str) -> Result<SplitRecord, StoreError> {
+        let row = sqlx::query(&format!("SELECT {SPLIT_COLS} FROM splits WHERE id = $1"))
+            .bind(id)
+            .fetch_optional(&self.db().pool)
+            .await?
+            .ok_or_else(|| StoreError::not_found("split", id))?;
+        split_from_row(&row)
+    }
+
+    pub async fn splits(&self) -> Result<Vec<SplitRecord>, StoreError> {
+        let rows = sqlx::query(&format!("SELECT {SPLIT_COLS} FROM splits ORDER BY created_at"))
+            .fetch_all(&self.db().pool)
+            .await?;
+        rows.iter().map(split_from_row).collect()
+    }
+
+    pub async fn split_episodes(&self, id: &str) -> Result<Vec<SplitEpisode>, StoreError> {
+        self.split(id).await?;
+        let rows = sqlx::query("SELECT episode_id, part, label FROM split_episodes WHERE split_id = $1 ORDER BY episode_id")
+            .bind(id)
+            .fetch_all(&self.db().pool)
+            .await?;
+        rows.iter()
+            .map(|r| Ok(SplitEpisode { episode_id: r.s("episode_id")?, part: r.s("part")?, label: r.s("label")?.parse()? }))
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn split_key_is_uniform_and_seeded() {
+        let xs: Vec<f64> = (0..10_000).map(|i| super::split_key(7, &format!("ep-{i}"))).collect();
+        let below = xs.iter().filter(|x| **x < 0.2).count();
+        assert!((1800..2200).contains(&below), "{below}");
+        assert_ne!(super::split_key(7, "a"), super::split_key(8, "a"));
+        assert_eq!(super::split_key(7, "a"), super::split_key(7, "a"));
+    }
+}

@@ -1,0 +1,459 @@
+//! Ingest writes: data files first under unique names (put-if-absent), then one catalog
+//! transaction that makes the new version visible. A crash before the commit leaves only
+//! unreferenced objects, which `gc` removes.
+
+use crate::catalog::{insert_rows, RowExt, Tx, Val};
+use crate::steps::{self, EpisodeMeta, StepsFileWriter};
+use crate::{now_rfc3339, EpisodeInput, Label, MediaFile, SourceInput, Store, StoreError};
+use bytes::Bytes;
+use std::collections::{HashMap, HashSet};
+
+/// Roll over to a new data file past this many encoded bytes (bounds memory).
+const MAX_FILE_BYTES: usize = 64 << 20;
+
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CommitInfo {
+    pub version: i64,
+    pub episodes: usize,
+}
+
+struct PendingEpisode {
+    id: String,
+    source_name: String,
+    source_index: i64,
+    task: Option<String>,
+    length: i64,
+    tags: String,
+    metadata: String,
+    data_file: String,
+    row_group: i64,
+    label: Label,
+    label_source: String,
+}
+
+struct WrittenFile {
+    path: String,
+    size: i64,
+    rows: i64,
+}
+
+/// An ingest in progress; nothing is visible until [`IngestWriter::commit`].
+pub struct IngestWriter {
+    store: Store,
+    source: SourceInput,
+    policy: String,
+    checkpoint: String,
+    current: Option<(String, StepsFileWriter)>,
+    files: Vec<WrittenFile>,
+    episodes: Vec<PendingEpisode>,
+    ids: HashSet<String>,
+    media: HashMap<String, (String, String, i64)>,
+    max_file_bytes: usize,
+}
+
+pub(crate) fn check_name(what: &str, s: &str) -> Result<(), StoreError> {
+    if s.is_empty() || s.len() > 200 || s.chars().any(|c| c.is_control()) || s.trim() != s {
+        return Err(StoreError::invalid(format!(
+            "invalid {what} name {s:?}: 1-200 printable characters without surrounding spaces"
+        )));
+    }
+    Ok(())
+}
+
+impl Store {
+    /// Starts an ingest of one source into a new version.
+    pub async fn begin_ingest(
+        &self,
+        source: SourceInput,
+        policy: &str,
+        checkpoint: &str,
+    ) -> Result<IngestWriter, StoreError> {
+        check_name("policy", policy)?;
+        check_name("checkpoint", checkpoint)?;
+        if source.sha256.len() != 64 || !source.sha256.chars().all(|c| c.is_ascii_hexdigit()) {
+            return Err(StoreError::invalid(format!("source sha256 {:?} is not 64 hex digits", source.sha256)));
+        }
+        if let Some(version) = self.source_version(&source.sha256).await? {
+            return Err(StoreError::AlreadyIngested { sha256: source.sha256, version });
+        }
+        Ok(IngestWriter {
+            store: self.clone(),
+            source,
+            policy: policy.to_string(),
+            checkpoint: checkpoint.to_string(),
+            current: None,
+            files: Vec::new(),
+            episodes: Vec::new(),
+            ids: HashSet::new(),
+            media: HashMap::new(),
+            max_file_bytes: MAX_FILE_BYTES,
+        })
+    }
+
+    /// The version that holds a source with this sha256, if any.
+    pub async fn source_version(&self, sha256: &str) -> Result<Option<i64>, StoreError> {
+        let row = sqlx::query("SELECT version FROM sources WHERE sha256 = $1")
+            .bind(sha256)
+            .fetch_optional(&self.db().pool)
+            .await?;
+        row.map(|r| r.i("version")).transpose()
+    }
+}
+
+impl IngestWriter {
+    /// Rolls over to a new data file past this many encoded bytes (default 64 MB).
+    pub fn with_max_file_bytes(mut self, bytes: usize) -> Self {
+        self.max_file_bytes = bytes.max(1);
+        self
+    }
+
+    /// Copies a media file into object storage under its sha256 (stored once).
+    pub async fn add_media(&mut self, file: &MediaFile) -> Result<(), StoreError> {
+        if self.media.contains_key(&file.sha256) {
+            return Ok(());
+        }
+        let data = tokio::fs::read(&file.local_path).await.map_err(|e| {
+            StoreError::invalid(format!("cannot read media file {}: {e}", file.local_path.display()))
+        })?;
+        let actual = crate::sha256_hex(&data);
+        if actual != file.sha256 {
+            return Err(StoreError::invalid(format!(
+                "media file {} changed while ingesting: sha256 {actual}, expected {}",
+                file.local_path.display(),
+                file.sha256
+            )));
+        }
+        let ext = file
+            .local_path
+            .extension()
+            .and_then(|e| e.to_str())
+            .filter(|e| e.chars().all(|c| c.is_ascii_alphanumeric()))
+            .unwrap_or("bin");
+        let path = format!("media/{}.{ext}", file.sha256);
+        self.store.objects().put_content_addressed(&path, Bytes::from(data)).await?;
+        self.media.insert(file.sha256.clone(), (path, file.content_type.clone(), file.size_bytes as i64));
+        Ok(())
+    }
+
+    /// Appends one episode (written to the current Parquet file as its own row group).
+    pub async fn add_episode(&mut self, ep: EpisodeInput) -> Result<String, StoreError> {
+        steps::validate(&ep)?;
+        if let Some(t) = &ep.task {
+            check_name("task", t)?;
+        }
+        let id = format!("{}-{:05}", &self.source.sha256[..12], ep.source_index);
+        if !self.ids.insert(id.clone()) {
+            return Err(StoreError::invalid(format!(
+                "episode index {} ({:?}) appears twice in the source",
+                ep.source_index, ep.source_name
+            )));
+        }
+        let media_paths: HashMap<String, String> =
+            self.media.iter().map(|(k, v)| (k.clone(), v.0.clone())).collect();
+        let meta = EpisodeMeta { episode_id: &id, policy: &self.policy, checkpoint: &self.checkpoint };
+        let batch = steps::episode_batch(&ep, &meta, &media_paths)?;
+        if self.current.as_ref().is_some_and(|(_, w)| w.schema != batch.schema()) {
+            self.finish_file().await?;
+        }
+        if self.current.is_none() {
+            let path = format!("steps/{}.parquet", uuid::Uuid::new_v4());
+            self.current = Some((path, StepsFileWriter::new(batch.schema())?));
+        }
+        let (path, w) = self.current.as_mut().expect("writer just created");
+        let row_group = w.write_episode(&batch)?;
+        self.episodes.push(PendingEpisode {
+            id: id.clone(),
+            source_name: ep.source_name.clone(),
+            source_index: ep.source_index as i64,
+            task: ep.task.clone(),
+            length: ep.len() as i64,
+            tags: serde_json::to_string(&ep.tags)?,
+            metadata: serde_json::to_string(&ep.metadata)?,
+            data_file: path.clone(),
+            row_group: row_group as i64,
+            label: ep.label,
+            label_source: ep.label_source.clone(),
+        });
+        if w.bytes_written() > self.max_file_bytes {
+            self.finish_file().await?;
+        }
+        Ok(id)
+    }
+
+    async fn finish_file(&mut self) -> Result<(), StoreError> {
+        if let Some((path, w)) = self.current.take() {
+            let rows = w.rows as i64;
+            let data = w.finish()?;
+            let size = data.len() as i64;
+            self.store.objects().put_new(&path, Bytes::from(data)).await?;
+            self.files.push(WrittenFile { path, size, rows });
+        }
+        Ok(())
+    }
+
+    /// Gives up: nothing becomes visible (written files are left for `gc`).
+    pub async fn abort(self) -> Result<(), StoreError> {
+        Ok(())
+    }
+
+    /// Makes everything added so far visible as one new version.
+    pub async fn commit(mut self, message: &str) -> Result<CommitInfo, StoreError> {
+        if self.episodes.is_empty() {
+            return Err(StoreError::invalid(format!(
+                "source {} holds no episodes: nothing to ingest",
+                self.source.path
+            )));
+        }
+        self.finish_file().await?;
+        let store = self.store.clone();
+        let mut tx = store.db().begin_version_write().await?;
+        if let Some(r) = sqlx::query("SELECT version FROM sources WHERE sha256 = $1")
+            .bind(&self.source.sha256)
+            .fetch_optional(&mut *tx)
+            .await?
+        {
+            return Err(StoreError::AlreadyIngested { sha256: self.source.sha256.clone(), version: r.i("version")? });
+        }
+        let version = next_version(&mut tx).await?;
+        let now = now_rfc3339();
+        ensure_checkpoint(&mut tx, &self.policy, &self.checkpoint, &now).await?;
+        let tasks: HashSet<&String> = self.episodes.iter().filter_map(|e| e.task.as_ref()).collect();
+        insert_rows(
+            &mut tx,
+            "tasks",
+            &["name", "created_at"],
+            tasks.into_iter().map(|t| vec![t.as_str().into(), now.as_str().into()]).collect(),
+            "ON CONFLICT DO NOTHING",
+        )
+        .await?;
+        sqlx::query(
+            "INSERT INTO sources (sha256, path, format, size_bytes, metadata, version, created_at) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7)",
+        )
+        .bind(&self.source.sha256)
+        .bind(&self.source.path)
+        .bind(&self.source.format)
+        .bind(self.source.size_bytes as i64)
+        .bind(serde_json::to_string(&self.source.metadata)?)
+        .bind(version)
+        .bind(&now)
+        .execute(&mut *tx)
+        .await?;
+        insert_rows(
+            &mut tx,
+            "data_files",
+            &["path", "kind", "size_bytes", "num_rows", "version_added"],
+            self.files
+                .iter()
+                .map(|f| vec![f.path.as_str().into(), "steps".into(), f.size.into(), f.rows.into(), version.into()])
+                .collect(),
+            "",
+        )
+        .await?;
+        insert_rows(
+            &mut tx,
+            "media_objects",
+            &["sha256", "path", "content_type", "size_bytes", "version_added"],
+            self.media
+                .iter()
+                .map(|(sha, (p, ct, sz))| {
+                    vec![sha.as_str().into(), p.as_str().into(), ct.as_str().into(), (*sz).into(), version.into()]
+                })
+                .collect(),
+            "ON CONFLICT DO NOTHING",
+        )
+        .await?;
+        let ep_rows: Vec<Vec<Val>> = self
+            .episodes
+            .iter()
+            .map(|e| {
+                vec![
+                    e.id.as_str().into(),
+                    self.policy.as_str().into(),
+                    self.checkpoint.as_str().into(),
+                    e.task.clone().into(),
+                    self.source.sha256.as_str().into(),
+                    e.source_name.as_str().into(),
+                    e.source_index.into(),
+                    e.length.into(),
+                    e.tags.as_str().into(),
+                    e.metadata.as_str().into(),
+                    e.data_file.as_str().into(),
+                    e.row_group.into(),
+                    version.into(),
+                    e.label.as_str().into(),
+                    e.label_source.as_str().into(),
+                    1i64.into(),
+                    "ingest".into(),
+                    now.as_str().into(),
+                    now.as_str().into(),
+                ]
+            })
+            .collect();
+        insert_rows(
+            &mut tx,
+            "episodes",
+            &[
+                "id", "policy", "checkpoint", "task", "source_sha256", "source_name", "source_index", "length",
+                "tags", "metadata", "data_file", "row_group", "version_added", "label", "label_source",
+                "label_revision", "label_actor", "label_updated_at", "created_at",
+            ],
+            ep_rows,
+            "",
+        )
+        .await?;
+        let ev_rows: Vec<Vec<Val>> = self
+            .episodes
+            .iter()
+            .map(|e| {
+                vec![
+                    e.id.as_str().into(),
+                    1i64.into(),
+                    Val::OS(None),
+                    e.label.as_str().into(),
+                    e.label_source.as_str().into(),
+                    "ingest".into(),
+                    Val::OS(None),
+                    now.as_str().into(),
+                ]
+            })
+            .collect();
+        insert_rows(
+            &mut tx,
+            "label_events",
+            &["episode_id", "revision", "old_label", "new_label", "source", "actor", "note", "created_at"],
+            ev_rows,
+            "",
+        )
+        .await?;
+        let n = self.episodes.len();
+        let head = VersionHead {
+            version,
+            kind: "ingest",
+            message: message.to_string(),
+            actor: "ingest".into(),
+            source_sha256: Some(self.source.sha256.clone()),
+            episodes_added: n as i64,
+            episodes_removed: 0,
+        };
+        finish_version(&store, tx, head).await?;
+        Ok(CommitInfo { version, episodes: n })
+    }
+}
+
+/// Reads the head under the version lock and returns the next version number.
+pub(crate) async fn next_version(tx: &mut Tx) -> Result<i64, StoreError> {
+    let row = sqlx::query("SELECT version FROM store_head WHERE id = 1").fetch_one(&mut **tx).await?;
+    Ok(row.i("version")? + 1)
+}
+
+pub(crate) async fn ensure_checkpoint(tx: &mut Tx, policy: &str, checkpoint: &str, now: &str) -> Result<(), StoreError> {
+    sqlx::query("INSERT INTO policies (name, created_at) VALUES ($1, $2) ON CONFLICT DO NOTHING")
+        .bind(policy)
+        .bind(now)
+        .execute(&mut **tx)
+        .await?;
+    sqlx::query("INSERT INTO checkpoints (policy, name, created_at) VALUES ($1, $2, $3) ON CONFLICT DO NOTHING")
+        .bind(policy)
+        .bind(checkpoint)
+        .bind(now)
+        .execute(&mut **tx)
+        .await?;
+    Ok(())
+}
+
+pub(crate) struct VersionHead {
+    pub version: i64,
+    pub kind: &'static str,
+    pub message: String,
+    pub actor: String,
+    pub source_sha256: Option<String>,
+    pub episodes_added: i64,
+    pub episodes_removed: i64,
+}
+
+/// Freezes the current labels of every visible episode into the version, writes the label
+/// snapshot file, records the version row and moves the head — then commits.
+pub(crate) async fn finish_version(store: &Store, mut tx: Tx, head: VersionHead) -> Result<i64, StoreError> {
+    let v = head.version;
+    sqlx::query(
+        "INSERT INTO version_labels (version, episode_id, label, label_source, revision) \
+         SELECT $1, id, label, label_source, label_revision FROM episodes WHERE version_removed IS NULL",
+    )
+    .bind(v)
+    .execute(&mut *tx)
+    .await?;
+    let rows = sqlx::query(
+        "SELECT e.id, e.policy, e.checkpoint, e.task, e.length, l.label, l.label_source, l.revision, \
+         e.data_file, e.row_group FROM version_labels l JOIN episodes e ON e.id = l.episode_id \
+         WHERE l.version = $1 ORDER BY e.id",
+    )
+    .bind(v)
+    .fetch_all(&mut *tx)
+    .await?;
+    let mut label_rows = Vec::with_capacity(rows.len());
+    for r in &rows {
+        label_rows.push(steps::LabelRow {
+            episode_id: r.s("id")?,
+            policy: r.s("policy")?,
+            checkpoint: r.s("checkpoint")?,
+            task: r.os("task")?,
+            length: r.i("length")?,
+            label: r.s("label")?.parse()?,
+            label_source: r.s("label_source")?,
+            revision: r.i("revision")?,
+            data_file: r.s("data_file")?,
+            row_group: r.i("row_group")?,
+        });
+    }
+    let changed = sqlx::query(
+        "SELECT COUNT(*) AS n FROM version_labels a JOIN version_labels b \
+         ON b.episode_id = a.episode_id AND b.version = $2 WHERE a.version = $1 AND a.revision <> b.revision",
+    )
+    .bind(v)
+    .bind(v - 1)
+    .fetch_one(&mut *tx)
+    .await?
+    .i("n")?;
+    let data = steps::labels_file(v, &label_rows)?;
+    let labels_path = format!("labels/{}.parquet", uuid::Uuid::new_v4());
+    let size = data.len() as i64;
+    store.objects().put_new(&labels_path, Bytes::from(data)).await?;
+    sqlx::query(
+        "INSERT INTO data_files (path, kind, size_bytes, num_rows, version_added) VALUES ($1, 'labels', $2, $3, $4)",
+    )
+    .bind(&labels_path)
+    .bind(size)
+    .bind(label_rows.len() as i64)
+    .bind(v)
+    .execute(&mut *tx)
+    .await?;
+    sqlx::query(
+        "INSERT INTO versions (version, kind, message, actor, created_at, labels_path, source_sha256, \
+         episodes_added, episodes_removed, labels_changed, episode_count) \
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11)",
+    )
+    .bind(v)
+    .bind(head.kind)
+    .bind(&head.message)
+    .bind(&head.actor)
+    .bind(now_rfc3339())
+    .bind(&labels_path)
+    .bind(head.source_sha256.clone())
+    .bind(head.episodes_added)
+    .bind(head.episodes_removed)
+    .bind(changed)
+    .bind(label_rows.len() as i64)
+    .execute(&mut *tx)
+    .await?;
+    let moved = sqlx::query("UPDATE store_head SET version = $1 WHERE id = 1 AND version = $2")
+        .bind(v)
+        .bind(v - 1)
+        .execute(&mut *tx)
+        .await?;
+    if moved.rows_affected() != 1 {
+        return Err(StoreError::Conflict(format!("another writer committed version {v} first; retry")));
+    }
+    tx.commit().await?;
+    Ok(v)
+}

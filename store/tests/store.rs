@@ -1,0 +1,268 @@
+//! The store's behaviour on both catalogs: versions and time travel, labels with optimistic
+//! concurrency and audit, snapshots, splits, artifacts, jobs, tokens and gc.
+
+use store::*;
+
+fn episode(i: u32, steps: usize, label: Label) -> EpisodeInput {
+    EpisodeInput {
+        source_name: format!("demo_{i}"),
+        source_index: i,
+        task: Some("reach".into()),
+        label,
+        label_source: "test".into(),
+        tags: vec!["eval".into()],
+        metadata: serde_json::json!({"i": i}),
+        timestamps: (0..steps).map(|t| t as f64 / 10.0).collect(),
+        observations: vec![VectorColumn {
+            name: "pos".into(),
+            dim: 2,
+            values: (0..steps * 2).map(|k| (k as f32) + i as f32 * 1000.0).collect(),
+        }],
+        action: VectorColumn { name: "action".into(), dim: 3, values: vec![0.5; steps * 3] },
+        reward: vec![0.0; steps],
+        done: (0..steps).map(|t| t + 1 == steps).collect(),
+        action_chunk: None,
+        images: vec![],
+        media: vec![],
+    }
+}
+
+fn source(tag: &str) -> SourceInput {
+    SourceInput {
+        path: format!("/tmp/{tag}"),
+        sha256: sha256_hex(tag.as_bytes()),
+        format: "test".into(),
+        size_bytes: 1,
+        metadata: serde_json::json!({}),
+    }
+}
+
+async fn ingest(store: &Store, tag: &str, ckpt: &str, n: u32) -> CommitInfo {
+    let mut w = store.begin_ingest(source(tag), "pol", ckpt).await.unwrap();
+    for i in 0..n {
+        let label = if i % 2 == 0 { Label::Success } else { Label::Failure };
+        w.add_episode(episode(i, 5 + i as usize, label)).await.unwrap();
+    }
+    w.commit("test ingest").await.unwrap()
+}
+
+async fn open_sqlite(dir: &std::path::Path) -> Store {
+    Store::open(&StoreConfig::local(dir)).await.unwrap()
+}
+
+async fn open_postgres(dir: &std::path::Path) -> Store {
+    let url = create_test_schema("store").await.expect("the Postgres tests need a server (UFOPS_TEST_POSTGRES)");
+    Store::open(&StoreConfig { data_dir: dir.into(), database_url: Some(url), object_store_url: None })
+        .await
+        .unwrap()
+}
+
+async fn versions_labels_time_travel(store: Store) {
+    assert_eq!(store.head_version().await.unwrap(), 0);
+    let c1 = ingest(&store, "a", "c1", 4).await;
+    assert_eq!((c1.version, c1.episodes), (1, 4));
+    let eps = store.episodes(&EpisodeFilter::default()).await.unwrap();
+    assert_eq!(eps.len(), 4);
+    assert_eq!(eps.iter().filter(|e| e.label == Label::Success).count(), 2);
+    let id = eps[1].id.clone();
+    assert_eq!(eps[1].label, Label::Failure);
+    assert_eq!(eps[1].label_revision, 1);
+
+    // Steps round-trip through Parquet.
+    let batch = store.read_steps(&eps[1].id, None).await.unwrap();
+    assert_eq!(batch.num_rows() as i64, eps[1].length);
+    let (dim, pos) = steps::vector_column(&batch, "obs.pos").unwrap();
+    assert_eq!(dim, 2);
+    assert_eq!(pos[..4], [1000.0, 1001.0, 1002.0, 1003.0]);
+
+    // Re-ingesting the same content is refused with the version that holds it.
+    match store.begin_ingest(source("a"), "pol", "c1").await {
+        Err(StoreError::AlreadyIngested { version, .. }) => assert_eq!(version, 1),
+        other => panic!("expected AlreadyIngested, got {:?}", other.map(|_| ())),
+    }
+
+    // Labels: optimistic concurrency and an audit log.
+    let ch = store
+        .set_label(LabelUpdate { episode_id: id.clone(), label: Label::Success, expect_revision: Some(1), note: Some("looked again".into()) }, "alice", "human")
+        .await
+        .unwrap();
+    assert_eq!((ch.old_label, ch.label, ch.revision), (Label::Failure, Label::Success, 2));
+    let stale = store
+        .set_label(LabelUpdate { episode_id: id.clone(), label: Label::Failure, expect_revision: Some(1), note: None }, "bob", "human")
+        .await;
+    match stale {
+        Err(StoreError::LabelConflict { revision, label, actor, .. }) => {
+            assert_eq!((revision, label, actor.as_str()), (2, Label::Success, "alice"))
+        }
+        other => panic!("expected a conflict, got {other:?}"),
+    }
+    let hist = store.label_history(&id).await.unwrap();
+    assert_eq!(hist.len(), 2);
+    assert_eq!(hist[1].actor, "alice");
+    assert_eq!(hist[1].old_label, Some(Label::Failure));
+
+    // The change is live now but version 1 still shows the old label (time travel).
+    assert_eq!(store.episode(&id, None).await.unwrap().label, Label::Success);
+    assert_eq!(store.episode(&id, Some(1)).await.unwrap().label, Label::Failure);
+    assert!(store.labels_changed_since_head().await.unwrap());
+    let snap = store.snapshot_labels("alice", "relabel").await.unwrap();
+    assert_eq!(snap.version, 2);
+    assert!(!store.labels_changed_since_head().await.unwrap());
+    assert_eq!(store.episode(&id, Some(2)).await.unwrap().label, Label::Success);
+    let v2 = store.version(2).await.unwrap();
+    assert_eq!((v2.kind.as_str(), v2.labels_changed, v2.episode_count), ("label_snapshot", 1, 4));
+
+    // A bulk change is one transaction: one bad id and nothing changes.
+    let bad = store
+        .set_labels(
+            vec![
+                LabelUpdate { episode_id: eps[0].id.clone(), label: Label::Failure, expect_revision: None, note: None },
+                LabelUpdate { episode_id: "nope".into(), label: Label::Failure, expect_revision: None, note: None },
+            ],
+            "bob",
+            "human",
+        )
+        .await;
+    assert!(matches!(bad, Err(StoreError::NotFound { .. })));
+    assert_eq!(store.episode(&eps[0].id, None).await.unwrap().label, Label::Success);
+
+    // A second ingest, a diff, and a deletion version.
+    let c3 = ingest(&store, "b", "c2", 2).await;
+    assert_eq!(c3.version, 3);
+    let d = store.diff(1, 3).await.unwrap();
+    assert_eq!(d.episodes_added.len(), 2);
+    assert_eq!(d.labels_changed, vec![(id.clone(), Label::Failure, Label::Success)]);
+    let del = store.delete_episodes(&[eps[3].id.clone()], "alice", "bad episode").await.unwrap();
+    assert_eq!((del.version, del.episodes), (4, 5));
+    assert!(store.read_steps(&eps[3].id, None).await.is_err());
+    assert_eq!(store.read_steps(&eps[3].id, Some(3)).await.unwrap().num_rows(), 8);
+    let at1 = store.episodes(&EpisodeFilter { version: Some(1), ..Default::default() }).await.unwrap();
+    assert_eq!(at1.len(), 4);
+    let filtered = store
+        .episodes(&EpisodeFilter { checkpoint: Some("c2".into()), label: Some(Label::Success), ..Default::default() })
+        .await
+        .unwrap();
+    assert_eq!(filtered.len(), 1);
+    let versions = store.versions().await.unwrap();
+    assert_eq!(versions.iter().map(|v| v.version).collect::<Vec<_>>(), vec![1, 2, 3, 4]);
+    assert_eq!(store.checkpoints(Some("pol")).await.unwrap().len(), 2);
+
+    // Splits are by episode, seeded, pinned to a version.
+    let req = SplitRequest {
+        policy: "pol".into(),
+        checkpoint: "c1".into(),
+        version: None,
+        off_policy_from: vec![],
+        val_fraction: 0.5,
+        seed: 3,
+        actor: "alice".into(),
+    };
+    let s1 = store.create_split(&req).await.unwrap();
+    let s2 = store.create_split(&req).await.unwrap();
+    assert_eq!(s1.version, 4);
+    assert_eq!(s1.train_episodes + s1.val_episodes, 3);
+    assert_eq!(store.split_episodes(&s1.id).await.unwrap(), store.split_episodes(&s2.id).await.unwrap());
+    let off = store
+        .create_split(&SplitRequest { off_policy_from: vec![("pol".into(), "c2".into())], ..req.clone() })
+        .await
+        .unwrap();
+    assert_eq!((off.mode.as_str(), off.train_episodes + off.val_episodes), ("off_policy", 2));
+
+    // Artifacts: content-addressed, checked against the manifest, aliased.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("config.json"), b"{\"kind\":\"classifier\"}").unwrap();
+    std::fs::write(dir.path().join("model.safetensors"), b"weights").unwrap();
+    let manifest = serde_json::json!({"schema_version": 1, "files": {
+        "config.json": sha256_hex(b"{\"kind\":\"classifier\"}"), "model.safetensors": sha256_hex(b"weights")}});
+    std::fs::write(dir.path().join("manifest.json"), serde_json::to_vec(&manifest).unwrap()).unwrap();
+    let new = || NewArtifact { dir: dir.path(), policy: "pol", checkpoint: "c1", kind: "classifier", split_id: Some(&s1.id), job_id: None };
+    let a = store.publish_artifact(new()).await.unwrap();
+    assert_eq!(a.aliases, vec!["latest".to_string()]);
+    assert_eq!(store.resolve_artifact("pol/c1/classifier@latest").await.unwrap().id, a.id);
+    store.set_alias("prod", &a.id).await.unwrap();
+    assert_eq!(store.resolve_artifact("pol/c1/classifier@prod").await.unwrap().id, a.id);
+    let out = tempfile::tempdir().unwrap();
+    store.download_artifact(&a.id, out.path()).await.unwrap();
+    assert_eq!(std::fs::read(out.path().join("model.safetensors")).unwrap(), b"weights");
+    std::fs::write(dir.path().join("model.safetensors"), b"tampered").unwrap();
+    assert!(store.publish_artifact(new()).await.is_err());
+
+    // Jobs: claimed once, leases expire, cancel.
+    let j = store.create_job("train", &serde_json::json!({"split": s1.id}), "alice").await.unwrap();
+    let claimed = store.claim_job("w1", 60_000).await.unwrap().unwrap();
+    assert_eq!((claimed.id.as_str(), claimed.state, claimed.attempts), (j.id.as_str(), JobState::Running, 1));
+    assert!(store.claim_job("w2", 60_000).await.unwrap().is_none());
+    assert!(store.heartbeat_job(&j.id, "w1", 1, &serde_json::json!({"epoch": 1})).await.unwrap());
+    tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    let again = store.claim_job("w2", 60_000).await.unwrap().unwrap();
+    assert_eq!((again.id.as_str(), again.attempts), (j.id.as_str(), 2));
+    assert!(!store.heartbeat_job(&j.id, "w1", 60_000, &serde_json::json!({})).await.unwrap());
+    assert!(store.finish_job(&j.id, "w2", Ok(serde_json::json!({"artifact": a.id}))).await.unwrap());
+    assert_eq!(store.job(&j.id).await.unwrap().state, JobState::Succeeded);
+    let j2 = store.create_job("train", &serde_json::json!({}), "alice").await.unwrap();
+    assert_eq!(store.cancel_job(&j2.id).await.unwrap().state, JobState::Cancelled);
+
+    // Tokens are stored hashed and can be revoked.
+    let (secret, tok) = store.create_token("ci", Role::Labeler).await.unwrap();
+    assert_eq!(store.verify_token(&secret).await.unwrap().unwrap().role, Role::Labeler);
+    assert!(store.verify_token("ufops_wrong").await.unwrap().is_none());
+    store.revoke_token(&tok.id).await.unwrap();
+    assert!(store.verify_token(&secret).await.unwrap().is_none());
+
+    // gc keeps everything referenced.
+    let r = store.gc(0, false).await.unwrap();
+    assert!(r.deleted.is_empty(), "{:?}", r.deleted);
+}
+
+#[tokio::test]
+async fn sqlite_store_behaviour() {
+    let dir = tempfile::tempdir().unwrap();
+    versions_labels_time_travel(open_sqlite(dir.path()).await).await;
+}
+
+#[tokio::test]
+async fn postgres_store_behaviour() {
+    let dir = tempfile::tempdir().unwrap();
+    versions_labels_time_travel(open_postgres(dir.path()).await).await;
+}
+
+#[tokio::test]
+async fn aborted_ingest_is_invisible_and_collected() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = open_sqlite(dir.path()).await;
+    ingest(&store, "keep", "c", 2).await;
+    let mut w = store.begin_ingest(source("drop"), "pol", "c").await.unwrap();
+    for i in 0..3 {
+        w.add_episode(episode(i, 4, Label::Unknown)).await.unwrap();
+    }
+    w.abort().await.unwrap();
+    assert_eq!(store.head_version().await.unwrap(), 1);
+    assert_eq!(store.episodes(&EpisodeFilter::default()).await.unwrap().len(), 2);
+    // Bad input is refused with a message and changes nothing.
+    let mut w = store.begin_ingest(source("bad"), "pol", "c").await.unwrap();
+    let mut ep = episode(0, 4, Label::Success);
+    ep.reward.pop();
+    let err = w.add_episode(ep).await.unwrap_err().to_string();
+    assert!(err.contains("reward"), "{err}");
+    assert_eq!(store.head_version().await.unwrap(), 1);
+    let r = store.gc(3600, false).await.unwrap();
+    assert!(r.deleted.is_empty(), "young orphans are kept");
+    let r = store.gc(0, false).await.unwrap();
+    assert_eq!(r.deleted.len(), 0, "abort wrote nothing (one open file not yet flushed)");
+}
+
+#[test]
+fn migration_histories_are_in_step() {
+    let (sqlite, pg) = store::migration_names();
+    assert_eq!(sqlite, pg);
+    let names = |dir: &str| {
+        let mut v: Vec<String> = std::fs::read_dir(format!("{}/../migrations/{dir}", env!("CARGO_MANIFEST_DIR")))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        v.sort();
+        v
+    };
+    assert_eq!(names("sqlite"), names("postgres"));
+    assert_eq!(names("sqlite").len(), sqlite.len(), "every migration file is embedded");
+}

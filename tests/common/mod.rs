@@ -1,0 +1,91 @@
+//! Helpers for the end-to-end tests: run the real `ufops` binary against a store.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+pub fn bin() -> PathBuf {
+    PathBuf::from(env!("CARGO_BIN_EXE_ufops"))
+}
+
+/// A store location: a data dir and optionally a Postgres catalog.
+#[derive(Clone)]
+pub struct Target {
+    pub data_dir: PathBuf,
+    pub database_url: Option<String>,
+}
+
+impl Target {
+    pub fn sqlite(dir: &Path) -> Target {
+        Target { data_dir: dir.to_path_buf(), database_url: None }
+    }
+
+    pub fn command(&self) -> Command {
+        let mut c = Command::new(bin());
+        c.arg("--data-dir").arg(&self.data_dir);
+        if let Some(u) = &self.database_url {
+            c.arg("--database-url").arg(u);
+        }
+        c.env_remove("UFOPS_DATABASE_URL").env_remove("UFOPS_OBJECT_STORE").env("CI", "true");
+        c
+    }
+
+    pub fn run(&self, args: &[&str]) -> Output {
+        self.command().args(args).output().expect("run ufops")
+    }
+
+    /// Runs a command that must succeed and returns its stdout parsed as JSON.
+    pub fn json(&self, args: &[&str]) -> serde_json::Value {
+        let out = self.run(args);
+        assert!(
+            out.status.success(),
+            "ufops {args:?} failed: {}\n{}",
+            String::from_utf8_lossy(&out.stderr),
+            String::from_utf8_lossy(&out.stdout)
+        );
+        serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+            panic!("ufops {args:?} printed no JSON ({e}): {}", String::from_utf8_lossy(&out.stdout))
+        })
+    }
+
+    pub fn ok(&self, args: &[&str]) -> String {
+        let out = self.run(args);
+        assert!(out.status.success(), "ufops {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    }
+}
+
+pub fn postgres_target(dir: &Path) -> Target {
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let url = rt
+        .block_on(store::create_test_schema("e2e"))
+        .expect("the Postgres tests need the server at 127.0.0.1:5432 (UFOPS_TEST_POSTGRES)");
+    Target { data_dir: dir.to_path_buf(), database_url: Some(url) }
+}
+
+/// Every file under the local object directory, relative to it.
+pub fn object_files(data_dir: &Path) -> Vec<String> {
+    fn walk(root: &Path, dir: &Path, out: &mut Vec<String>) {
+        for e in std::fs::read_dir(dir).unwrap().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                walk(root, &p, out);
+            } else {
+                out.push(p.strip_prefix(root).unwrap().to_string_lossy().into_owned());
+            }
+        }
+    }
+    let root = data_dir.join("objects");
+    let mut out = Vec::new();
+    if root.exists() {
+        walk(&root, &root, &mut out);
+    }
+    out.sort();
+    out
+}
+
+pub fn shared_fixtures() -> PathBuf {
+    std::env::var("UFOPS_FIXTURES")
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"))
+}
