@@ -1,5 +1,6 @@
 //! Argument definitions and dispatch of every subcommand.
 
+mod catalog_cmds;
 mod dev;
 mod store_cmds;
 
@@ -78,6 +79,18 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Train/val splits per checkpoint.
+    Split {
+        #[command(subcommand)]
+        command: catalog_cmds::SplitCommand,
+    },
+    /// List verifier artifacts, set aliases, show or download one.
+    Artifacts(catalog_cmds::ArtifactsArgs),
+    /// API tokens.
+    Token {
+        #[command(subcommand)]
+        command: catalog_cmds::TokenCommand,
+    },
     /// Developer tools used by the tests.
     #[command(hide = true)]
     Dev {
@@ -95,6 +108,9 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::History { episode, json } => store_cmds::history(&cli.store, &episode, json).await,
         Command::Snapshot { message, actor } => store_cmds::snapshot(&cli.store, &message, &actor).await,
         Command::Gc { grace_seconds, dry_run, json } => store_cmds::gc(&cli.store, grace_seconds, dry_run, json).await,
+        Command::Split { command } => catalog_cmds::split(&cli.store, command).await,
+        Command::Artifacts(a) => catalog_cmds::artifacts(&cli.store, a).await,
+        Command::Token { command } => catalog_cmds::token(&cli.store, command).await,
         Command::Dev { command } => dev::run(&cli.store, command).await,
     }
 }

@@ -1,0 +1,216 @@
+//! Splits, artifacts and tokens: thin wrappers over the store.
+
+use super::{print_json, StoreArgs};
+use anyhow::{bail, Result};
+use store::{Role, SplitRequest};
+
+#[derive(clap::Subcommand, Debug)]
+pub enum SplitCommand {
+    /// Freeze a train/val split of a checkpoint's labeled episodes (on-policy), or of other
+    /// checkpoints' episodes (off-policy), pinned to a store version.
+    Create {
+        #[arg(long)]
+        policy: String,
+        #[arg(long)]
+        checkpoint: String,
+        /// Pin to this version (default: the head, after freezing unsnapshotted label changes).
+        #[arg(long)]
+        version: Option<i64>,
+        /// Off-policy: use the episodes of these checkpoints (CKPT of the same policy, or POLICY/CKPT).
+        #[arg(long, num_args = 1..)]
+        off_policy_from: Vec<String>,
+        #[arg(long, default_value_t = 0.2)]
+        val_fraction: f64,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        #[arg(long, env = "USER", default_value = "cli")]
+        actor: String,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Show a split (and with --episodes its members).
+    Show {
+        id: String,
+        #[arg(long)]
+        episodes: bool,
+        #[arg(long)]
+        json: bool,
+    },
+    /// List splits.
+    List {
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+pub async fn split(args: &StoreArgs, cmd: SplitCommand) -> Result<()> {
+    let store = args.open().await?;
+    match cmd {
+        SplitCommand::Create { policy, checkpoint, version, off_policy_from, val_fraction, seed, actor, json } => {
+            let off = off_policy_from
+                .iter()
+                .map(|s| match s.split_once('/') {
+                    Some((p, c)) => (p.to_string(), c.to_string()),
+                    None => (policy.clone(), s.clone()),
+                })
+                .collect();
+            let req = SplitRequest { policy, checkpoint, version, off_policy_from: off, val_fraction, seed, actor };
+            let s = store.create_split(&req).await?;
+            if json {
+                return print_json(&s);
+            }
+            println!(
+                "{}: {} of {}/{} at version {} — {} train / {} val episodes",
+                s.id, s.mode, s.policy, s.checkpoint, s.version, s.train_episodes, s.val_episodes
+            );
+        }
+        SplitCommand::Show { id, episodes, json } => {
+            let s = store.split(&id).await?;
+            let members = if episodes { Some(store.split_episodes(&id).await?) } else { None };
+            if json {
+                return print_json(&serde_json::json!({ "split": s, "episodes": members }));
+            }
+            println!("{} ({}) {}/{} version {} seed {} val {:.2}", s.id, s.mode, s.policy, s.checkpoint, s.version, s.seed, s.val_fraction);
+            println!("sources: {:?}; {} train / {} val", s.source_checkpoints, s.train_episodes, s.val_episodes);
+            for m in members.unwrap_or_default() {
+                println!("  {:<20} {:<5} {}", m.episode_id, m.part, m.label);
+            }
+        }
+        SplitCommand::List { json } => {
+            let all = store.splits().await?;
+            if json {
+                return print_json(&all);
+            }
+            for s in all {
+                println!("{}  {:<10} {}/{} v{} {}+{}", s.id, s.mode, s.policy, s.checkpoint, s.version, s.train_episodes, s.val_episodes);
+            }
+        }
+    }
+    Ok(())
+}
+
+#[derive(clap::Args, Debug)]
+pub struct ArtifactsArgs {
+    #[command(subcommand)]
+    pub command: Option<ArtifactCommand>,
+    #[arg(long)]
+    pub policy: Option<String>,
+    #[arg(long)]
+    pub checkpoint: Option<String>,
+    #[arg(long)]
+    pub kind: Option<String>,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(clap::Subcommand, Debug)]
+pub enum ArtifactCommand {
+    /// Point NAME (for the artifact's policy, checkpoint and kind) at ARTIFACT.
+    Alias { name: String, artifact: String },
+    /// Show one artifact (an id or POLICY/CHECKPOINT/KIND@ALIAS).
+    Show {
+        artifact: String,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Copy an artifact's files into a directory (checking their sha256).
+    Download { artifact: String, dir: std::path::PathBuf },
+}
+
+pub async fn artifacts(args: &StoreArgs, a: ArtifactsArgs) -> Result<()> {
+    let store = args.open().await?;
+    match a.command {
+        None => {
+            let list = store.artifacts(a.policy.as_deref(), a.checkpoint.as_deref(), a.kind.as_deref()).await?;
+            if a.json {
+                return print_json(&list);
+            }
+            for r in list {
+                let m = &r.config["metrics"];
+                println!(
+                    "{}  {:<10} {}/{}  split {}  aliases [{}]  val_loss {}",
+                    r.id,
+                    r.kind,
+                    r.policy,
+                    r.checkpoint,
+                    r.split_id.as_deref().unwrap_or("-"),
+                    r.aliases.join(", "),
+                    m.get("best_val_loss").map(|v| v.to_string()).unwrap_or_else(|| "-".into())
+                );
+            }
+        }
+        Some(ArtifactCommand::Alias { name, artifact }) => {
+            let id = store.resolve_artifact(&artifact).await?.id;
+            let r = store.set_alias(&name, &id).await?;
+            println!("{}/{}/{}@{name} -> {}", r.policy, r.checkpoint, r.kind, r.id);
+        }
+        Some(ArtifactCommand::Show { artifact, json }) => {
+            let r = store.resolve_artifact(&artifact).await?;
+            if json {
+                return print_json(&r);
+            }
+            println!("{} {} {}/{} aliases [{}]", r.id, r.kind, r.policy, r.checkpoint, r.aliases.join(", "));
+            for f in &r.files {
+                println!("  {:<20} {:>10} bytes  sha256 {}", f.name, f.size_bytes, f.sha256);
+            }
+            println!("{}", serde_json::to_string_pretty(&r.config["metrics"])?);
+        }
+        Some(ArtifactCommand::Download { artifact, dir }) => {
+            let id = store.resolve_artifact(&artifact).await?.id;
+            store.download_artifact(&id, &dir).await?;
+            println!("artifact {id} written to {}", dir.display());
+        }
+    }
+    Ok(())
+}
+
+#[derive(clap::Subcommand, Debug)]
+pub enum TokenCommand {
+    /// Create an API token; the secret is shown once.
+    Create {
+        #[arg(long)]
+        name: String,
+        /// viewer | labeler | trainer | admin
+        #[arg(long)]
+        role: String,
+        #[arg(long)]
+        json: bool,
+    },
+    List {
+        #[arg(long)]
+        json: bool,
+    },
+    Revoke { id: String },
+}
+
+pub async fn token(args: &StoreArgs, cmd: TokenCommand) -> Result<()> {
+    let store = args.open().await?;
+    match cmd {
+        TokenCommand::Create { name, role, json } => {
+            let role: Role = role.parse()?;
+            let (secret, rec) = store.create_token(&name, role).await?;
+            if json {
+                return print_json(&serde_json::json!({ "token": secret, "record": rec }));
+            }
+            eprintln!("token {} ({}, {}) — store the secret now, it is not shown again:", rec.id, rec.name, rec.role.as_str());
+            println!("{secret}");
+        }
+        TokenCommand::List { json } => {
+            let all = store.tokens().await?;
+            if json {
+                return print_json(&all);
+            }
+            for t in all {
+                println!("{}  {:<16} {:<8} {}{}", t.id, t.name, t.role.as_str(), t.created_at, if t.revoked_at.is_some() { "  revoked" } else { "" });
+            }
+        }
+        TokenCommand::Revoke { id } => {
+            if id.is_empty() {
+                bail!("token id is empty");
+            }
+            store.revoke_token(&id).await?;
+            println!("token {id} revoked");
+        }
+    }
+    Ok(())
+}
