@@ -1,0 +1,192 @@
+//! Training jobs over the store: a split's episodes are read back from their pinned version,
+//! turned into [`Episode`]s, trained on, and published as an artifact with its lineage. The CLI
+//! (`ufops train`), the API's workers and the demo all run training through this one function.
+
+use crate::{build_samples, train_samples, write_artifact, Episode, EpochReport, InputSpec, Kind, ObsKey, ObsSeries, TrainConfig};
+use anyhow::{bail, Context, Result};
+use serde::{Deserialize, Serialize};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+/// What a training job runs (stored as the job's spec).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainJobSpec {
+    pub split_id: String,
+    pub kind: Kind,
+    /// The recipe (default: the paper's for this kind).
+    #[serde(default)]
+    pub config: Option<TrainConfig>,
+    /// Observation keys, in order (default: every observation column of the episodes).
+    #[serde(default)]
+    pub obs_keys: Option<Vec<String>>,
+    /// `T_o` (default 2).
+    #[serde(default)]
+    pub obs_history: Option<usize>,
+    /// `H` when the episodes store no action chunks (default 16, the paper's).
+    #[serde(default)]
+    pub chunk_len: Option<usize>,
+    /// Train only on steps `t` with `t % step_stride == 0`: the steps where a chunking policy
+    /// re-planned, i.e. the (obs, chunk, t) the verifier is queried on (default 1: every step).
+    #[serde(default)]
+    pub step_stride: Option<usize>,
+}
+
+/// A split's episodes, ready for training.
+pub struct SplitData {
+    pub train: Vec<Episode>,
+    pub val: Vec<Episode>,
+    pub input: InputSpec,
+    pub version: i64,
+}
+
+fn episode_from_steps(
+    id: &str,
+    success: bool,
+    batch: &arrow::array::RecordBatch,
+    keys: &[String],
+) -> Result<Episode> {
+    let mut obs = Vec::with_capacity(keys.len());
+    for k in keys {
+        let (dim, values) = store::steps::vector_column(batch, &format!("{}{k}", store::steps::OBS_PREFIX))
+            .with_context(|| format!("episode {id}"))?;
+        obs.push(ObsSeries { key: k.clone(), dim, values });
+    }
+    let (action_dim, actions) = store::steps::vector_column(batch, "action")?;
+    let action_chunk = match batch.schema().field_with_name("action_chunk") {
+        Ok(_) => {
+            let (hd, values) = store::steps::vector_column(batch, "action_chunk")?;
+            if hd % action_dim != 0 {
+                bail!("episode {id}: action_chunk width {hd} is not a multiple of the action dim {action_dim}");
+            }
+            Some((hd / action_dim, values))
+        }
+        Err(_) => None,
+    };
+    Ok(Episode { id: id.to_string(), success, obs, actions, action_dim, action_chunk })
+}
+
+/// Reads a split's labeled episodes back from the store, at the split's pinned version.
+pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<SplitData> {
+    let split = store.split(&spec.split_id).await?;
+    let members = store.split_episodes(&split.id).await?;
+    let mut train = Vec::new();
+    let mut val = Vec::new();
+    let mut keys: Option<Vec<String>> = spec.obs_keys.clone();
+    let mut dims: Vec<usize> = Vec::new();
+    let mut chunk_len = None;
+    let mut action_dim = 0;
+    for m in &members {
+        let batch = store.read_steps(&m.episode_id, Some(split.version)).await?;
+        let keys = keys.get_or_insert_with(|| {
+            store::steps::observation_keys(batch.schema().as_ref()).into_iter().map(|(k, _)| k).collect()
+        });
+        let success = match m.label.as_bool() {
+            Some(b) => b,
+            None => continue,
+        };
+        let ep = episode_from_steps(&m.episode_id, success, &batch, keys)?;
+        if dims.is_empty() {
+            dims = ep.obs.iter().map(|o| o.dim).collect();
+            action_dim = ep.action_dim;
+            chunk_len = ep.action_chunk.as_ref().map(|(h, _)| *h);
+        }
+        if m.part == "val" { val.push(ep) } else { train.push(ep) }
+    }
+    let keys = keys.unwrap_or_default();
+    if train.is_empty() {
+        bail!("split {} has no labeled training episodes", split.id);
+    }
+    if keys.is_empty() {
+        bail!("the episodes of split {} have no observation columns", split.id);
+    }
+    let input = InputSpec {
+        obs_keys: keys.iter().zip(&dims).map(|(k, d)| ObsKey { key: k.clone(), dim: *d }).collect(),
+        obs_history: spec.obs_history.unwrap_or(2),
+        chunk_len: chunk_len.or(spec.chunk_len).unwrap_or(16),
+        action_dim,
+        t_embed_dim: spec.config.as_ref().map(|c| c.architecture.t_embed_dim).unwrap_or(64),
+        extra_inputs: vec![],
+    };
+    Ok(SplitData { train, val, input, version: split.version })
+}
+
+/// Runs a training job end to end and publishes the artifact (which becomes `latest`).
+pub async fn run_train_job(
+    store: &store::Store,
+    spec: &TrainJobSpec,
+    job_id: Option<&str>,
+    observer: Box<dyn FnMut(&EpochReport) + Send>,
+    cancel: Option<Arc<AtomicBool>>,
+) -> Result<store::ArtifactRecord> {
+    let split = store.split(&spec.split_id).await?;
+    let data = load_split(store, spec).await?;
+    let mut cfg = spec.config.clone().unwrap_or_else(|| TrainConfig { kind: spec.kind, ..Default::default() });
+    cfg.kind = spec.kind;
+    cfg.validate()?;
+    let lineage = serde_json::json!({
+        "store_version": split.version,
+        "label_snapshot_version": split.version,
+        "split_id": split.id,
+        "split_mode": split.mode,
+        "source_checkpoints": split.source_checkpoints,
+        "policy": split.policy,
+        "checkpoint": split.checkpoint,
+        "train_episodes": data.train.len(),
+        "val_episodes": data.val.len(),
+        "train_successes": data.train.iter().filter(|e| e.success).count(),
+        "val_successes": data.val.iter().filter(|e| e.success).count(),
+        "job_id": job_id,
+        "step_stride": spec.step_stride.unwrap_or(1),
+        "code_version": concat!("ufops-trainer ", env!("CARGO_PKG_VERSION")),
+    });
+    let dir = tempfile::tempdir().context("creating a temporary artifact directory")?;
+    let out = dir.path().to_path_buf();
+    let stride = spec.step_stride.unwrap_or(1).max(1) as u32;
+    let trained = tokio::task::spawn_blocking(move || -> Result<()> {
+        let mut observer = observer;
+        let keep = |t: u32| t % stride == 0;
+        let tr = build_samples(&data.train, &data.input, cfg.gamma).context("building train samples")?.filter_steps(keep);
+        let va = build_samples(&data.val, &data.input, cfg.gamma).context("building validation samples")?.filter_steps(keep);
+        let t = train_samples(tr, va, &data.input, &cfg, &mut *observer, cancel.as_deref())?;
+        write_artifact(&out, &t, lineage)?;
+        Ok(())
+    });
+    trained.await.context("training thread panicked")??;
+    let kind = match spec.kind {
+        Kind::Classifier => "classifier",
+        Kind::Q => "q",
+    };
+    let rec = store
+        .publish_artifact(store::NewArtifact {
+            dir: dir.path(),
+            policy: &split.policy,
+            checkpoint: &split.checkpoint,
+            kind,
+            split_id: Some(&split.id),
+            job_id,
+        })
+        .await?;
+    Ok(rec)
+}
+
+/// Scores every step of a stored episode with an artifact: the (obs history, chunk, t) of each
+/// step are built exactly as for training (stored chunk, else the next H actions).
+pub fn score_steps(artifact: &crate::Artifact, batch: &arrow::array::RecordBatch) -> Result<Vec<f32>> {
+    let input = artifact.config.input_spec();
+    let keys: Vec<String> = input.obs_keys.iter().map(|k| k.key.clone()).collect();
+    let mut ep = episode_from_steps("scored", false, batch, &keys)?;
+    if ep.action_chunk.as_ref().is_some_and(|(h, _)| *h != input.chunk_len) {
+        ep.action_chunk = None;
+    }
+    let s = build_samples(std::slice::from_ref(&ep), &input, artifact.config.gamma.unwrap_or(0.99))?;
+    let rows: Vec<crate::ScoreRow> = (0..s.len())
+        .map(|i| crate::ScoreRow {
+            obs: s.obs[i * s.obs_dim..(i + 1) * s.obs_dim].to_vec(),
+            action: s.act[i * s.act_dim..(i + 1) * s.act_dim].to_vec(),
+            t: s.t[i] as f64,
+            extras: Default::default(),
+        })
+        .collect();
+    artifact.score(&rows)
+}

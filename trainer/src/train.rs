@@ -1,0 +1,521 @@
+//! The training loop: recipe configuration, epochs over shuffled batches with AdamW, linear LR
+//! decay, global-norm clipping, validation metrics each epoch, best-validation-loss selection,
+//! optional early stopping, progress observer and cancellation.
+
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use anyhow::{bail, ensure, Context, Result};
+use candle_core::Tensor;
+use rand::seq::SliceRandom;
+use rand::{RngCore, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use serde::{Deserialize, Serialize};
+
+use crate::data::{build_samples, Episode, InputSpec, Normalization, Samples, TimeEmbedTable};
+use crate::fast::{BatchSource, FastModel};
+use crate::loss::{objective, objective_host, LossConfig};
+use crate::metrics::{pearson, roc_auc};
+use crate::model::{Architecture, CandleModel, ExtraInput, Kind, ModelSpec, ParamSet, Variant};
+use crate::optim::{clip_grad_norm, linear_factor, AdamW, AdamWConfig};
+
+/// Which implementation computes forward/backward during training.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    /// The fused fast path when it supports the architecture, candle otherwise.
+    #[default]
+    Auto,
+    /// Always the candle graph (the reference).
+    Candle,
+    /// The fused fast path (error if unsupported).
+    Fast,
+}
+
+/// The full training recipe. Defaults are the paper's low-dim (Square) settings for the
+/// contrastive classifier; see [`TrainConfig::preset`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainConfig {
+    pub kind: Kind,
+    pub architecture: Architecture,
+    pub optimizer: AdamWConfig,
+    /// LR factor goes linearly from 1.0 to this over all optimiser steps.
+    pub lr_end_factor: f64,
+    pub batch_size: usize,
+    pub epochs: usize,
+    /// Global gradient-norm clip (<= 0 disables).
+    pub grad_clip: f64,
+    /// Stop after this many epochs without a better validation loss (None: run all epochs).
+    pub early_stopping_patience: Option<usize>,
+    pub seed: u64,
+    /// Discount for the Q target `gamma^(T-t) r_T`.
+    pub gamma: f64,
+    /// Classifier: weight `lambda_c` of the contrastive hinge.
+    pub contrastive_weight: f64,
+    /// Classifier: hinge margin.
+    pub contrastive_margin: f64,
+    /// Classifier: `||d|| = sqrt(sum d^2 + eps)`.
+    pub contrastive_eps: f64,
+    /// Std of Gaussian noise added to the (layer-normed) observation at train time (features).
+    pub obs_noise_std: f64,
+    /// Threads for the fused path (data parallel). 1 measured fastest for the low-dim model.
+    pub threads: usize,
+    pub backend: Backend,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig {
+            kind: Kind::Classifier,
+            architecture: Architecture::lowdim(),
+            optimizer: AdamWConfig::default(),
+            lr_end_factor: 0.01,
+            batch_size: 1024,
+            epochs: 200,
+            grad_clip: 1.0,
+            early_stopping_patience: None,
+            seed: 0,
+            gamma: 0.99,
+            contrastive_weight: 0.1,
+            contrastive_margin: 1.0,
+            contrastive_eps: 1e-9,
+            obs_noise_std: 0.0,
+            threads: 1,
+            backend: Backend::Auto,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Paper presets: `Lowdim` (Square low-dim column) or `Features` (Square image column:
+    /// GELU, LayerNorm, spectral norm, lr 5e-5, wd 1e-4, obs noise 0.02; Q dropout 0.1).
+    pub fn preset(kind: Kind, variant: Variant) -> Self {
+        let mut c = TrainConfig { kind, ..Default::default() };
+        if variant == Variant::Features {
+            c.architecture = Architecture::features();
+            c.optimizer.lr = 5e-5;
+            c.optimizer.weight_decay = 1e-4;
+            c.obs_noise_std = 0.02;
+            if kind == Kind::Q {
+                c.architecture.dropout = 0.1;
+            }
+        }
+        c
+    }
+
+    /// Load from a `.json` or `.toml` file (missing fields take the defaults).
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let s = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let is_toml = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("toml"));
+        let c: TrainConfig = if is_toml {
+            toml::from_str(&s).with_context(|| format!("parsing {}", path.display()))?
+        } else {
+            serde_json::from_str(&s).with_context(|| format!("parsing {}", path.display()))?
+        };
+        c.validate()?;
+        Ok(c)
+    }
+
+    /// The loss hyper-parameters.
+    pub fn loss(&self) -> LossConfig {
+        LossConfig {
+            contrastive_weight: self.contrastive_weight,
+            contrastive_margin: self.contrastive_margin,
+            contrastive_eps: self.contrastive_eps,
+        }
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        self.architecture.validate()?;
+        ensure!(self.batch_size > 0, "batch_size must be > 0");
+        ensure!(self.optimizer.lr > 0.0, "lr must be > 0");
+        ensure!(self.gamma > 0.0 && self.gamma <= 1.0, "gamma must be in (0, 1]");
+        Ok(())
+    }
+}
+
+/// Progress of one finished epoch.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EpochReport {
+    /// 1-based.
+    pub epoch: usize,
+    pub epochs: usize,
+    pub train_loss: f64,
+    pub val_loss: Option<f64>,
+    /// Classifier: AUC of the logit vs success; Q: AUC of the value vs success.
+    pub val_auc: Option<f64>,
+    /// Q only: Pearson correlation of the value with the discounted target on val.
+    pub val_pearson: Option<f64>,
+    /// LR at the end of the epoch.
+    pub lr: f64,
+    pub seconds: f64,
+    /// This epoch's weights are the best so far (kept).
+    pub best: bool,
+}
+
+/// Final metrics (stored in `config.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Metrics {
+    pub best_epoch: usize,
+    /// Best validation loss (train loss when there is no validation set).
+    pub best_val_loss: Option<f64>,
+    pub val_auc: Option<f64>,
+    pub val_pearson: Option<f64>,
+    pub final_train_loss: f64,
+    pub epochs_run: usize,
+    pub early_stopped: bool,
+    pub train_samples: usize,
+    pub val_samples: usize,
+    pub train_positive_fraction: f64,
+    pub seconds: f64,
+    pub samples_per_second: f64,
+    pub backend: String,
+}
+
+/// The result of training: everything `artifact::write_artifact` needs.
+#[derive(Clone, Debug)]
+pub struct Trained {
+    pub spec: ModelSpec,
+    pub input: InputSpec,
+    pub norm: Normalization,
+    /// Best weights, inference-ready (spectral norm folded in).
+    pub params: ParamSet,
+    pub config: TrainConfig,
+    pub metrics: Metrics,
+    pub history: Vec<EpochReport>,
+}
+
+/// Error returned when the cancel flag was raised.
+#[derive(Debug, thiserror::Error)]
+#[error("training cancelled")]
+pub struct Cancelled;
+
+/// Train from episodes (train / validation division by the caller).
+pub fn train(train: &[Episode], val: &[Episode], input: &InputSpec, cfg: &TrainConfig) -> Result<Trained> {
+    train_with(train, val, input, cfg, &mut |_| {}, None)
+}
+
+/// [`train`] with a per-epoch observer and a cancel flag (checked every step; on cancel the
+/// function returns an error that downcasts to [`Cancelled`]).
+pub fn train_with(
+    train: &[Episode],
+    val: &[Episode],
+    input: &InputSpec,
+    cfg: &TrainConfig,
+    observer: &mut dyn FnMut(&EpochReport),
+    cancel: Option<&AtomicBool>,
+) -> Result<Trained> {
+    let tr = build_samples(train, input, cfg.gamma).context("building train samples")?;
+    let va = build_samples(val, input, cfg.gamma).context("building validation samples")?;
+    train_samples(tr, va, input, cfg, observer, cancel)
+}
+
+/// The model spec a config and input spec imply.
+pub fn model_spec(input: &InputSpec, cfg: &TrainConfig) -> ModelSpec {
+    let mut arch = cfg.architecture.clone();
+    arch.t_embed_dim = input.t_embed_dim;
+    arch.extra_inputs = input
+        .extra_inputs
+        .iter()
+        .map(|e| ExtraInput { name: e.name.clone(), dim: e.dim, width: e.width })
+        .collect();
+    ModelSpec { kind: cfg.kind, arch, obs_dim: input.obs_dim(), act_dim: input.act_dim() }
+}
+
+enum Engine {
+    Fast(Box<FastModel>),
+    Candle(Box<CandleModel>),
+}
+
+/// Train on prepared (raw, un-normalised) samples.
+pub fn train_samples(
+    mut tr: Samples,
+    mut va: Samples,
+    input: &InputSpec,
+    cfg: &TrainConfig,
+    observer: &mut dyn FnMut(&EpochReport),
+    cancel: Option<&AtomicBool>,
+) -> Result<Trained> {
+    cfg.validate()?;
+    let spec = model_spec(input, cfg);
+    spec.arch.validate()?;
+    ensure!(!tr.is_empty(), "no training samples");
+    ensure!(tr.obs_dim == spec.obs_dim && tr.act_dim == spec.act_dim, "sample dims do not match the input spec");
+    let start = Instant::now();
+    let norm = Normalization::fit(&tr);
+    norm.apply(&mut tr.obs, &mut tr.act);
+    norm.apply(&mut va.obs, &mut va.act);
+    let mut temb = TimeEmbedTable::new(spec.arch.t_embed_dim);
+    let max_t = tr.t.iter().chain(&va.t).copied().max().unwrap_or(0);
+    temb.ensure(max_t);
+
+    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+    let mut params = spec.init_params(&mut rng);
+    let use_fast = match cfg.backend {
+        Backend::Candle => false,
+        Backend::Fast => {
+            ensure!(crate::fast::supports(&spec), "backend \"fast\" does not support this architecture");
+            true
+        }
+        Backend::Auto => crate::fast::supports(&spec),
+    };
+    let mut engine = if use_fast {
+        Engine::Fast(Box::new(FastModel::new(&spec, &params, cfg.batch_size, cfg.threads.max(1))?))
+    } else {
+        Engine::Candle(Box::new(CandleModel::new(&spec, &params, &mut rng)?))
+    };
+    let backend_name = if use_fast { "fast" } else { "candle" };
+
+    let n = tr.len();
+    let bs = cfg.batch_size;
+    let steps_per_epoch = n.div_ceil(bs);
+    let total_steps = (steps_per_epoch * cfg.epochs) as u64;
+    let mut opt = AdamW::new(cfg.optimizer, params.values.iter().map(|v| v.len()));
+    let zdim = *spec.arch.trunk_dims.last().unwrap();
+    let p_drop = spec.arch.dropout;
+    let keep_scale = (1.0 / (1.0 - p_drop)) as f32;
+    let drop_threshold = (p_drop * 65536.0).round() as u32;
+    let noise = if cfg.obs_noise_std > 0.0 { Some(Normal::new(0.0, cfg.obs_noise_std)?) } else { None };
+    let target_of = |s: &Samples| -> Vec<f32> {
+        match cfg.kind {
+            Kind::Classifier => s.label.clone(),
+            Kind::Q => s.q_target.clone(),
+        }
+    };
+    let tr_target = target_of(&tr);
+    let va_target = target_of(&va);
+    // A fixed validation order (contrastive pairs are formed within batches).
+    let mut va_order: Vec<u32> = (0..va.len() as u32).collect();
+    va_order.shuffle(&mut ChaCha8Rng::seed_from_u64(cfg.seed ^ 0x5eed_7a11));
+
+    let mut perm: Vec<u32> = (0..n as u32).collect();
+    let mut mask = vec![0f32; bs * zdim];
+    let mut mask_bytes = vec![0u8; 2 * bs * zdim];
+    let mut tgt = vec![0f32; bs];
+    let mut grads = params.zeros_like();
+    let mut best: Option<(f64, usize, ParamSet, EpochReport)> = None;
+    let mut history = Vec::new();
+    let mut since_best = 0usize;
+    let mut early_stopped = false;
+    let mut last_train_loss = f64::NAN;
+    let mut samples_seen = 0usize;
+
+    for epoch in 1..=cfg.epochs {
+        let t0 = Instant::now();
+        perm.shuffle(&mut rng);
+        let mut loss_sum = 0f64;
+        for rows in perm.chunks(bs) {
+            if cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
+                return Err(Cancelled.into());
+            }
+            let b = rows.len();
+            for (d, &i) in tgt.iter_mut().zip(rows) {
+                *d = tr_target[i as usize];
+            }
+            let m = if p_drop > 0.0 {
+                // 16-bit little-endian uniforms from the seeded stream (probability resolution 2^-16).
+                let bytes = &mut mask_bytes[..2 * b * zdim];
+                rng.fill_bytes(bytes);
+                for (v, h) in mask[..b * zdim].iter_mut().zip(bytes.chunks_exact(2)) {
+                    let u = u16::from_le_bytes([h[0], h[1]]) as u32;
+                    *v = if u < drop_threshold { 0.0 } else { keep_scale };
+                }
+                Some(&mask[..b * zdim])
+            } else {
+                None
+            };
+            let loss = match &mut engine {
+                Engine::Fast(f) => {
+                    let src = BatchSource { obs: &tr.obs, act: &tr.act, t: &tr.t, temb: &temb };
+                    let l = f.loss_and_grads(&params, &src, rows, &tgt[..b], m, cfg.kind, &cfg.loss());
+                    for (g, s) in grads.iter_mut().zip(&f.grads) {
+                        g.copy_from_slice(s);
+                    }
+                    l
+                }
+                Engine::Candle(model) => {
+                    let obs_noise = noise.map(|d| (0..b * spec.obs_dim).map(|_| d.sample(&mut rng) as f32).collect::<Vec<_>>());
+                    candle_step(model, &tr, &temb, rows, &tgt[..b], m, obs_noise, cfg, &mut grads)?
+                }
+            };
+            ensure!(loss.is_finite(), "training loss is not finite (epoch {epoch})");
+            loss_sum += loss * b as f64;
+            if cfg.grad_clip > 0.0 {
+                clip_grad_norm(&mut grads, cfg.grad_clip);
+            }
+            let lr = cfg.optimizer.lr * linear_factor(opt.steps(), total_steps, 1.0, cfg.lr_end_factor);
+            opt.step(&mut params.values, &grads, lr);
+            if let Engine::Candle(model) = &engine {
+                model.set_params(&params)?;
+            }
+        }
+        samples_seen += n;
+        last_train_loss = loss_sum / n as f64;
+        let lr_now = cfg.optimizer.lr * linear_factor(opt.steps(), total_steps, 1.0, cfg.lr_end_factor);
+
+        let (val_loss, val_auc, val_pearson) = if va.is_empty() {
+            (None, None, None)
+        } else {
+            let (y, loss) = evaluate(&mut engine, &params, &spec, &va, &va_target, &va_order, &temb, cfg)?;
+            let labels: Vec<f32> = va_order.iter().map(|&i| va.label[i as usize]).collect();
+            let auc = roc_auc(&y, &labels);
+            let pr = if cfg.kind == Kind::Q {
+                let t: Vec<f32> = va_order.iter().map(|&i| va.q_target[i as usize]).collect();
+                pearson(&y, &t)
+            } else {
+                None
+            };
+            (Some(loss), auc, pr)
+        };
+        let sel = val_loss.unwrap_or(last_train_loss);
+        let is_best = best.as_ref().is_none_or(|b| sel < b.0);
+        let rep = EpochReport {
+            epoch,
+            epochs: cfg.epochs,
+            train_loss: last_train_loss,
+            val_loss,
+            val_auc,
+            val_pearson,
+            lr: lr_now,
+            seconds: t0.elapsed().as_secs_f64(),
+            best: is_best,
+        };
+        if is_best {
+            let p = match &engine {
+                Engine::Candle(m) if spec.arch.spectral_norm => m.inference_params()?,
+                _ => params.clone(),
+            };
+            best = Some((sel, epoch, p, rep.clone()));
+            since_best = 0;
+        } else {
+            since_best += 1;
+        }
+        observer(&rep);
+        history.push(rep);
+        if cfg.early_stopping_patience.is_some_and(|p| since_best >= p) {
+            early_stopped = true;
+            break;
+        }
+    }
+    let seconds = start.elapsed().as_secs_f64();
+    let (best_params, metrics) = match best {
+        Some((sel, be, p, rep)) => (
+            p,
+            Metrics {
+                best_epoch: be,
+                best_val_loss: Some(sel),
+                val_auc: rep.val_auc,
+                val_pearson: rep.val_pearson,
+                final_train_loss: last_train_loss,
+                epochs_run: history.len(),
+                early_stopped,
+                train_samples: n,
+                val_samples: va.len(),
+                train_positive_fraction: tr.class_counts().0 as f64 / n as f64,
+                seconds,
+                samples_per_second: samples_seen as f64 / seconds.max(1e-9),
+                backend: backend_name.into(),
+            },
+        ),
+        None => bail!("no epoch was run (epochs = 0)"),
+    };
+    Ok(Trained { spec, input: input.clone(), norm, params: best_params, config: cfg.clone(), metrics, history })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn candle_step(
+    model: &CandleModel,
+    tr: &Samples,
+    temb: &TimeEmbedTable,
+    rows: &[u32],
+    target: &[f32],
+    mask: Option<&[f32]>,
+    obs_noise: Option<Vec<f32>>,
+    cfg: &TrainConfig,
+    grads: &mut [Vec<f32>],
+) -> Result<f64> {
+    let b = rows.len();
+    model.power_iteration(1)?;
+    let bt = gather_tensors(model, tr, temb, rows)?;
+    let zdim = *model.spec.arch.trunk_dims.last().unwrap();
+    let dev = model.device();
+    let noise = crate::model::TrainNoise {
+        drop_mask: mask.map(|m| Tensor::from_slice(m, (b, zdim), dev)).transpose()?,
+        obs_noise: obs_noise.map(|v| Tensor::from_vec(v, (b, model.spec.obs_dim), dev)).transpose()?,
+    };
+    let (y, z) = model.forward(&bt, &noise)?;
+    let loss = objective(model.spec.kind, &y, &z, target, &cfg.loss())?;
+    let gs = loss.backward()?;
+    for (g, v) in grads.iter_mut().zip(model.vars()) {
+        match gs.get(v.as_tensor()) {
+            Some(t) => g.copy_from_slice(&t.flatten_all()?.to_vec1::<f32>()?),
+            None => g.iter_mut().for_each(|x| *x = 0.0),
+        }
+    }
+    Ok(loss.to_scalar::<f32>()? as f64)
+}
+
+/// Gather rows of (standardised) samples into batch tensors.
+pub fn gather_tensors(
+    model: &CandleModel,
+    s: &Samples,
+    temb: &TimeEmbedTable,
+    rows: &[u32],
+) -> Result<crate::model::BatchTensors> {
+    let (od, ad) = (s.obs_dim, s.act_dim);
+    let te = model.spec.arch.t_embed_dim;
+    let b = rows.len();
+    let mut obs = Vec::with_capacity(b * od);
+    let mut act = Vec::with_capacity(b * ad);
+    let mut tv = Vec::with_capacity(b * te);
+    let mut extras: Vec<Vec<f32>> = vec![Vec::new(); s.extras.len()];
+    for &i in rows {
+        let i = i as usize;
+        obs.extend_from_slice(&s.obs[i * od..(i + 1) * od]);
+        act.extend_from_slice(&s.act[i * ad..(i + 1) * ad]);
+        tv.extend_from_slice(temb.get(s.t[i]));
+        for (e, (dst, src)) in model.spec.arch.extra_inputs.iter().zip(extras.iter_mut().zip(&s.extras)) {
+            dst.extend_from_slice(&src[i * e.dim..(i + 1) * e.dim]);
+        }
+    }
+    let ex: Vec<&[f32]> = extras.iter().map(|v| v.as_slice()).collect();
+    model.batch_tensors(b, &obs, &act, &tv, &ex)
+}
+
+/// Eval-mode predictions over `order` in batches of `batch_size`; returns (y in `order`, mean loss).
+#[allow(clippy::too_many_arguments)]
+fn evaluate(
+    engine: &mut Engine,
+    params: &ParamSet,
+    spec: &ModelSpec,
+    va: &Samples,
+    target: &[f32],
+    order: &[u32],
+    temb: &TimeEmbedTable,
+    cfg: &TrainConfig,
+) -> Result<(Vec<f32>, f64)> {
+    let zdim = *spec.arch.trunk_dims.last().unwrap();
+    let mut ys = Vec::with_capacity(order.len());
+    let mut loss = 0f64;
+    for rows in order.chunks(cfg.batch_size) {
+        let t: Vec<f32> = rows.iter().map(|&i| target[i as usize]).collect();
+        let (y, z): (Vec<f32>, Vec<f32>) = match engine {
+            Engine::Fast(f) => {
+                let src = BatchSource { obs: &va.obs, act: &va.act, t: &va.t, temb };
+                f.forward(params, &src, rows, None);
+                (f.y()[..rows.len()].to_vec(), f.z()[..rows.len() * zdim].to_vec())
+            }
+            Engine::Candle(m) => {
+                let bt = gather_tensors(m, va, temb, rows)?;
+                let (y, z) = m.forward(&bt, &Default::default())?;
+                (y.to_vec1::<f32>()?, z.flatten_all()?.to_vec1::<f32>()?)
+            }
+        };
+        loss += objective_host(spec.kind, &y, &z, zdim, &t, &cfg.loss(), None) * rows.len() as f64;
+        ys.extend_from_slice(&y);
+    }
+    Ok((ys, loss / order.len().max(1) as f64))
+}
