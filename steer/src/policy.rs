@@ -1,0 +1,61 @@
+//! Traits a user implements for their own policy model.
+use crate::error::Result;
+use crate::schedule::DdpmSchedule;
+
+/// Per-dimension affine map from the policy's sample space to raw actions:
+/// `raw = x * scale + offset` (e.g. a [-1, 1] normaliser). The verifier sees raw chunks, and its
+/// gradient is mapped back by the chain rule (`d/dx = scale * d/draw`).
+#[derive(Debug, Clone)]
+pub struct ActionAffine {
+    pub scale: Vec<f32>,
+    pub offset: Vec<f32>,
+}
+
+impl ActionAffine {
+    pub fn apply(&self, x: &mut [f32]) {
+        let d = self.scale.len();
+        for (i, v) in x.iter_mut().enumerate() {
+            *v = *v * self.scale[i % d] + self.offset[i % d];
+        }
+    }
+}
+
+/// A DDPM noise predictor eps_theta(s, a_k, k), batched.
+pub trait NoisePredictor {
+    /// Length of one observation row the model is conditioned on.
+    fn obs_dim(&self) -> usize;
+    /// Length of one flattened action chunk (H * A).
+    fn act_dim(&self) -> usize;
+    fn schedule(&self) -> &DdpmSchedule;
+    /// eps for B rows: `obs` is `B * obs_dim`, `a_k` is `B * act_dim`; `timestep` is diffusers'
+    /// 0-based index, i.e. the paper's k - 1 (in 0..K).
+    fn predict_noise(&self, obs: &[f32], a_k: &[f32], timestep: usize) -> Result<Vec<f32>>;
+    /// diffusers' `clip_sample`: clamp the x0 estimate to [-c, c] at every step.
+    fn clip_sample(&self) -> Option<f32> {
+        None
+    }
+    /// Map from sample space to raw actions (identity when `None`).
+    fn action_affine(&self) -> Option<ActionAffine> {
+        None
+    }
+}
+
+/// A flow-matching velocity field v(s, a_t, t), batched, with the paper's convention
+/// a_t = (1 - t) a_0 + t a_1: t = 1 is noise, t = 0 is data, x0_hat = a_t - t v.
+pub trait VelocityField {
+    fn obs_dim(&self) -> usize;
+    fn act_dim(&self) -> usize;
+    /// v for B rows at time `t` in (0, 1].
+    fn velocity(&self, obs: &[f32], a_t: &[f32], t: f32) -> Result<Vec<f32>>;
+    /// Number of Euler steps from t = 1 to t = 0.
+    fn num_steps(&self) -> usize {
+        10
+    }
+    /// Clamp the final sample to [-c, c].
+    fn clip_sample(&self) -> Option<f32> {
+        None
+    }
+    fn action_affine(&self) -> Option<ActionAffine> {
+        None
+    }
+}
