@@ -1,0 +1,304 @@
+//! `demo`: the paper's pedagogical experiment, end to end, through the real store.
+//!
+//! It owns only the orchestration of `ufops demo`: train the base policy (sim), evaluate it and
+//! ingest its rollouts as checkpoint `nav-dp/base` (store), freeze an on-policy split and train a
+//! classifier and a time-to-success verifier (trainer), steer the unchanged base policy with them
+//! (steer: best-of-N and guidance), repeat with an off-policy verifier for the ablation, and write
+//! the report (`report.md`, `report.json`, `trajectories.png`).
+
+mod report;
+
+pub use report::{Report, Row};
+
+use anyhow::{Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use sim::{rollout, ChunkPolicy, DiffusionPolicy, EnvConfig, FlowPolicy, PolicyConfig, Steering};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use store::{EpisodeInput, Label, SourceInput, Store, VectorColumn};
+
+pub const POLICY: &str = "nav-dp";
+pub const BASE: &str = "base";
+pub const ALT: &str = "alt";
+
+/// The scale of a demo run.
+#[derive(Debug, Clone)]
+pub struct DemoConfig {
+    pub episodes: usize,
+    pub demos: usize,
+    pub policy_steps: usize,
+    pub verifier_epochs: usize,
+    pub bon_n: Vec<usize>,
+    pub lambdas: Vec<f32>,
+    pub seed: u64,
+    pub out_dir: PathBuf,
+}
+
+impl DemoConfig {
+    /// The full demo: 1000 rollouts per row.
+    pub fn full(out_dir: &Path) -> Self {
+        DemoConfig {
+            episodes: 1000,
+            demos: 100,
+            policy_steps: 1500,
+            verifier_epochs: 200,
+            bon_n: vec![30, 10],
+            lambdas: vec![1.0, 3.0, 10.0],
+            seed: 0,
+            out_dir: out_dir.to_path_buf(),
+        }
+    }
+    /// `--quick`: the same loop at a scale that finishes in about a minute.
+    pub fn quick(out_dir: &Path) -> Self {
+        DemoConfig {
+            episodes: 200,
+            demos: 60,
+            policy_steps: 800,
+            verifier_epochs: 40,
+            bon_n: vec![10],
+            lambdas: vec![3.0],
+            ..Self::full(out_dir)
+        }
+    }
+}
+
+fn stage(msg: &str) -> ProgressBar {
+    let pb = if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        let pb = ProgressBar::new_spinner();
+        pb.set_style(ProgressStyle::with_template("{spinner} [{elapsed:>4}] {msg}").expect("valid template"));
+        pb.enable_steady_tick(std::time::Duration::from_millis(120));
+        pb
+    } else {
+        eprintln!("demo: {msg}");
+        ProgressBar::hidden()
+    };
+    pb.set_message(msg.to_string());
+    pb
+}
+
+/// The rollouts of a policy as store episodes: obs `pos` (2), `action` (2), the executed chunk.
+fn to_episodes(eps: &[sim::Episode], horizon: usize) -> Vec<EpisodeInput> {
+    eps.iter()
+        .enumerate()
+        .map(|(i, e)| {
+            let n = e.length;
+            EpisodeInput {
+                source_name: format!("rollout_{i}"),
+                source_index: i as u32,
+                task: Some("two-gap-navigation".into()),
+                label: if e.success { Label::Success } else { Label::Failure },
+                label_source: "sim".into(),
+                tags: vec![format!("{:?}", e.outcome).to_lowercase()],
+                metadata: serde_json::json!({ "gap": e.gap.map(|g| format!("{g:?}").to_lowercase()) }),
+                timestamps: (0..n).map(|t| t as f64 * 0.1).collect(),
+                observations: vec![VectorColumn {
+                    name: "pos".into(),
+                    dim: 2,
+                    values: e.positions[..n].iter().flatten().copied().collect(),
+                }],
+                action: VectorColumn { name: "action".into(), dim: 2, values: e.actions.iter().flatten().copied().collect() },
+                reward: (0..n).map(|t| if e.success && t + 1 == n { 1.0 } else { 0.0 }).collect(),
+                done: (0..n).map(|t| t + 1 == n).collect(),
+                action_chunk: Some(store::ChunkColumn {
+                    horizon,
+                    action_dim: 2,
+                    values: e.action_chunks.iter().flatten().copied().collect(),
+                }),
+                images: vec![],
+                media: vec![],
+            }
+        })
+        .collect()
+}
+
+/// Ingests rollouts as one version (or finds the version that already holds the same rollouts).
+async fn ingest_rollouts(store: &Store, eps: &[sim::Episode], checkpoint: &str, horizon: usize, seed: u64) -> Result<i64> {
+    let inputs = to_episodes(eps, horizon);
+    let mut bytes = Vec::new();
+    for e in &inputs {
+        for v in e.observations[0].values.iter().chain(&e.action.values) {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+        bytes.push(u8::from(e.label == Label::Success));
+    }
+    let source = SourceInput {
+        path: format!("sim://{POLICY}/{checkpoint}?seed={seed}"),
+        sha256: store::sha256_hex(&bytes),
+        format: "sim".into(),
+        size_bytes: bytes.len() as u64,
+        metadata: serde_json::json!({ "env": "two-gap-navigation", "seed": seed, "episodes": eps.len() }),
+    };
+    let mut w = match store.begin_ingest(source, POLICY, checkpoint).await {
+        Ok(w) => w,
+        Err(store::StoreError::AlreadyIngested { version, .. }) => return Ok(version),
+        Err(e) => return Err(e.into()),
+    };
+    for e in inputs {
+        w.add_episode(e).await?;
+    }
+    Ok(w.commit(&format!("demo rollouts of {POLICY}/{checkpoint}")).await?.version)
+}
+
+/// Trains one verifier on a split and loads it through its published artifact (sha256-checked).
+async fn train_verifier(
+    store: &Store,
+    split_id: &str,
+    kind: trainer::Kind,
+    cfg: &DemoConfig,
+    stride: usize,
+    artifacts_dir: &Path,
+) -> Result<(store::ArtifactRecord, steer::Verifier)> {
+    let mut tc = trainer::TrainConfig { kind, epochs: cfg.verifier_epochs, seed: cfg.seed, ..Default::default() };
+    tc.early_stopping_patience = Some(30);
+    let spec = trainer::TrainJobSpec {
+        split_id: split_id.to_string(),
+        kind,
+        config: Some(tc),
+        obs_keys: Some(vec!["pos".into()]),
+        obs_history: Some(2),
+        chunk_len: None,
+        step_stride: Some(stride),
+    };
+    let pb = stage(&format!("training the {kind:?} verifier on {split_id}"));
+    let pb2 = pb.clone();
+    let observer = Box::new(move |r: &trainer::EpochReport| {
+        pb2.set_message(format!(
+            "training {kind:?}: epoch {}/{} train {:.4} val {:.4}{}",
+            r.epoch,
+            r.epochs,
+            r.train_loss,
+            r.val_loss.unwrap_or(f64::NAN),
+            r.val_auc.map(|a| format!(" auc {a:.3}")).unwrap_or_default()
+        ))
+    });
+    let rec = trainer::run_train_job(store, &spec, None, observer, None).await?;
+    pb.finish_and_clear();
+    let dir = artifacts_dir.join(&rec.id);
+    store.download_artifact(&rec.id, &dir).await?;
+    let v = steer::Verifier::load_dir(&dir).with_context(|| format!("loading artifact {}", rec.id))?;
+    Ok((rec, v))
+}
+
+/// Runs the whole experiment and writes the report into `cfg.out_dir`.
+pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
+    let t0 = Instant::now();
+    let env = EnvConfig::default();
+    let pc = PolicyConfig::default();
+    let n = cfg.episodes;
+    std::fs::create_dir_all(&cfg.out_dir)?;
+
+    // 1. Base policy (DDPM) and its flow-matching twin, trained on expert demos, stopped early.
+    let pb = stage("training the base diffusion policy and its flow twin on expert demonstrations");
+    let demos = sim::expert_demos(&env, cfg.demos, cfg.seed);
+    let tc = sim::TrainConfig { steps: cfg.policy_steps, seed: cfg.seed, ..Default::default() };
+    let (base, flow) = tokio::task::block_in_place(|| -> Result<_> {
+        Ok((DiffusionPolicy::train(&pc, &tc, &demos)?, FlowPolicy::train(&pc, &tc, &demos)?))
+    })?;
+    // A second, differently trained checkpoint for the off-policy ablation: trained on demos that
+    // all take the wide gap, so its rollouts cover a different part of the state-action space.
+    let alt_demos: Vec<sim::Demo> =
+        sim::expert_demos(&env, 2 * cfg.demos, cfg.seed + 1).into_iter().filter(|d| d.wide).collect();
+    let alt_tc = sim::TrainConfig { steps: cfg.policy_steps * 2, seed: cfg.seed + 1, ..tc.clone() };
+    let alt = tokio::task::block_in_place(|| DiffusionPolicy::train(&pc, &alt_tc, &alt_demos))?;
+    base.save(&cfg.out_dir.join("policies/base"))?;
+    alt.save(&cfg.out_dir.join("policies/alt"))?;
+    pb.finish_and_clear();
+
+    let eval = |p: &dyn ChunkPolicy, s: Steering, label: &str, seed: u64| -> Result<Vec<sim::Episode>> {
+        let pb = stage(&format!("{label}: {n} rollouts"));
+        let r = tokio::task::block_in_place(|| rollout(p, &env, n, s, seed));
+        pb.finish_and_clear();
+        r
+    };
+
+    // 2. Evaluate the base policy and ingest its rollouts (success from the simulator).
+    let base_eps = eval(&base, Steering::None, "evaluating the base policy", cfg.seed + 100)?;
+    let v_base = ingest_rollouts(store, &base_eps, BASE, pc.horizon, cfg.seed + 100).await?;
+    let alt_eps = eval(&alt, Steering::None, "evaluating the alt checkpoint", cfg.seed + 200)?;
+    let v_alt = ingest_rollouts(store, &alt_eps, ALT, pc.horizon, cfg.seed + 200).await?;
+
+    // 3. On-policy split; classifier and Q verifiers. Off-policy: a classifier on alt's rollouts.
+    let split_req = |off: Vec<(String, String)>| store::SplitRequest {
+        policy: POLICY.into(),
+        checkpoint: BASE.into(),
+        version: None,
+        off_policy_from: off,
+        val_fraction: 0.2,
+        seed: cfg.seed,
+        actor: "demo".into(),
+    };
+    let on_split = store.create_split(&split_req(vec![])).await?;
+    let off_split = store.create_split(&split_req(vec![(POLICY.into(), ALT.into())])).await?;
+    let art_dir = cfg.out_dir.join("artifacts");
+    let stride = pc.n_exec;
+    let (c_rec, clf) = train_verifier(store, &on_split.id, trainer::Kind::Classifier, cfg, stride, &art_dir).await?;
+    let (q_rec, q) = train_verifier(store, &on_split.id, trainer::Kind::Q, cfg, stride, &art_dir).await?;
+    let (off_rec, off_clf) = train_verifier(store, &off_split.id, trainer::Kind::Classifier, cfg, stride, &art_dir).await?;
+
+    // 4. Steer the unchanged base policy. Every row has its own seed (independent samples).
+    let mut report = Report::new(&base_eps);
+    report.meta = serde_json::json!({
+        "episodes_per_row": n,
+        "store_versions": { "base": v_base, "alt": v_alt },
+        "splits": { "on_policy": on_split.id, "off_policy": off_split.id },
+        "artifacts": { "classifier": c_rec.id, "q": q_rec.id, "off_policy_classifier": off_rec.id },
+        "verifier_metrics": { "classifier": c_rec.config["metrics"]["final"], "q": q_rec.config["metrics"]["final"],
+                              "off_policy_classifier": off_rec.config["metrics"]["final"] },
+        "alt_checkpoint_success": sim::success_rate(&alt_eps).2,
+        "fast_path": clf.backend_name(),
+    });
+    let mut seed = cfg.seed + 1000;
+    let mut keep_for_plot = None;
+    let verifiers: [(&str, &steer::Verifier); 2] = [("C", &clf), ("Q", &q)];
+    for (name, v) in verifiers {
+        for &nn in &cfg.bon_n {
+            seed += 1;
+            let label = format!("{name} x BoN (N={nn})");
+            let eps = eval(&base, Steering::BestOfN { scorer: v, n: nn }, &label, seed)?;
+            report.add(&label, "on-policy", &eps);
+            if name == "C" && keep_for_plot.is_none() {
+                keep_for_plot = Some(eps);
+            }
+        }
+    }
+    for (name, v) in verifiers {
+        for &lambda in &cfg.lambdas {
+            seed += 1;
+            let label = format!("{name} x CG (lambda={lambda})");
+            let eps = eval(&base, Steering::Guided { scorer: v, lambda }, &label, seed)?;
+            report.add(&label, "on-policy", &eps);
+        }
+    }
+    // Flow twin: same verifier, guidance from the second Euler step on.
+    seed += 1;
+    let flow_base = eval(&flow, Steering::None, "flow twin, unsteered", seed)?;
+    report.add("flow twin, unsteered", "-", &flow_base);
+    seed += 1;
+    let nn = cfg.bon_n[0];
+    let eps = eval(&flow, Steering::BestOfN { scorer: &clf, n: nn }, "flow twin, C x BoN", seed)?;
+    report.add(&format!("flow twin, C x BoN (N={nn})"), "on-policy (DDPM rollouts)", &eps);
+    // 6. Off-policy ablation: the verifier trained on the alt checkpoint's rollouts.
+    seed += 1;
+    let eps = eval(&base, Steering::BestOfN { scorer: &off_clf, n: nn }, "off-policy C x BoN", seed)?;
+    report.add(&format!("C x BoN (N={nn})"), "off-policy (alt rollouts)", &eps);
+    seed += 1;
+    let lambda = cfg.lambdas[cfg.lambdas.len() / 2];
+    let eps = eval(&base, Steering::Guided { scorer: &off_clf, lambda }, "off-policy C x CG", seed)?;
+    report.add(&format!("C x CG (lambda={lambda})"), "off-policy (alt rollouts)", &eps);
+
+    // 5. The report and the trajectory figure.
+    let steered = keep_for_plot.context("no best-of-N row")?;
+    sim::plot::plot_panels(
+        &cfg.out_dir.join("trajectories.png"),
+        &env,
+        &[
+            sim::plot::Panel::from_demos("expert demos", &demos, 60),
+            sim::plot::Panel::from_episodes("base policy", &base_eps, 120),
+            sim::plot::Panel::from_episodes(&format!("C x BoN (N={})", cfg.bon_n[0]), &steered, 120),
+        ],
+        360,
+    )?;
+    report.seconds = t0.elapsed().as_secs_f64();
+    report.write(&cfg.out_dir)?;
+    Ok(report)
+}

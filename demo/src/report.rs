@@ -1,0 +1,97 @@
+//! The demo's result table: success rate with its Wilson 95% interval, and the difference to the
+//! base policy with Newcombe's (method 10) 95% interval, as Markdown and JSON.
+
+use anyhow::Result;
+use serde::Serialize;
+use sim::stats::{newcombe_diff, wilson};
+use std::path::Path;
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Row {
+    pub method: String,
+    pub verifier: String,
+    pub successes: u64,
+    pub episodes: u64,
+    pub rate: f64,
+    pub wilson_95: (f64, f64),
+    /// Difference to the base policy and its Newcombe 95% interval (None for the base row).
+    pub diff_to_base: Option<f64>,
+    pub newcombe_95: Option<(f64, f64)>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub rows: Vec<Row>,
+    pub seconds: f64,
+    pub meta: serde_json::Value,
+}
+
+impl Report {
+    pub fn new(base: &[sim::Episode]) -> Self {
+        let (k, n, rate) = sim::success_rate(base);
+        let row = Row {
+            method: "base (DDPM)".into(),
+            verifier: "-".into(),
+            successes: k,
+            episodes: n,
+            rate,
+            wilson_95: wilson(k, n),
+            diff_to_base: None,
+            newcombe_95: None,
+        };
+        Report { rows: vec![row], seconds: 0.0, meta: serde_json::Value::Null }
+    }
+
+    pub fn add(&mut self, method: &str, verifier: &str, eps: &[sim::Episode]) {
+        let base = &self.rows[0];
+        let (k, n, rate) = sim::success_rate(eps);
+        let row = Row {
+            method: method.into(),
+            verifier: verifier.into(),
+            successes: k,
+            episodes: n,
+            rate,
+            wilson_95: wilson(k, n),
+            diff_to_base: Some(rate - base.rate),
+            newcombe_95: Some(newcombe_diff(k, n, base.successes, base.episodes)),
+        };
+        self.rows.push(row);
+    }
+
+    pub fn row(&self, method: &str, verifier_prefix: &str) -> Option<&Row> {
+        self.rows.iter().find(|r| r.method == method && r.verifier.starts_with(verifier_prefix))
+    }
+
+    pub fn markdown(&self) -> String {
+        let pct = |x: f64| format!("{:.1}", 100.0 * x);
+        let mut s = String::from(
+            "| method | verifier | success | 95% CI (Wilson) | Δ to base | 95% CI of Δ (Newcombe) |\n|---|---|---|---|---|---|\n",
+        );
+        for r in &self.rows {
+            s.push_str(&format!(
+                "| {} | {} | {}/{} = {}% | [{}, {}] | {} | {} |\n",
+                r.method,
+                r.verifier,
+                r.successes,
+                r.episodes,
+                pct(r.rate),
+                pct(r.wilson_95.0),
+                pct(r.wilson_95.1),
+                r.diff_to_base.map(|d| format!("{:+.1} pp", 100.0 * d)).unwrap_or_else(|| "-".into()),
+                r.newcombe_95.map(|(lo, hi)| format!("[{:+.1}, {:+.1}]", 100.0 * lo, 100.0 * hi)).unwrap_or_else(|| "-".into()),
+            ));
+        }
+        s
+    }
+
+    pub fn write(&self, dir: &Path) -> Result<()> {
+        let md = format!(
+            "# ufops demo: two-gap navigation\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
+            self.markdown(),
+            self.seconds
+        );
+        std::fs::write(dir.join("report.md"), md)?;
+        std::fs::write(dir.join("report.json"), serde_json::to_vec_pretty(self)?)?;
+        Ok(())
+    }
+}
