@@ -1,0 +1,337 @@
+//! Writes recordings from a temp store with synthetic success/failure episodes and reads the
+//! `.rrd` back with re_log_encoding's decoder: entities, timelines, rows per episode, blueprint.
+//! `check_rrd_with_official_rerun_sdk` also runs `viewer/scripts/check_rrd.sh` (PyPI rerun-sdk).
+
+use arrow::array::RecordBatch;
+use re_sdk::log::{Chunk, LogMsg};
+use re_sdk::StoreKind;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+use store::*;
+use viewer::*;
+
+/// A 2x2 RGB PNG.
+const PNG: [u8; 74] = [
+    137, 80, 78, 71, 13, 10, 26, 10, 0, 0, 0, 13, 73, 72, 68, 82, 0, 0, 0, 2, 0, 0, 0, 2, 8, 2, 0, 0, 0, 253, 212,
+    154, 115, 0, 0, 0, 17, 73, 68, 65, 84, 120, 156, 99, 248, 207, 192, 0, 68, 96, 226, 63, 3, 0, 29, 240, 3, 253,
+    160, 51, 9, 137, 0, 0, 0, 0, 73, 69, 78, 68, 174, 66, 96, 130,
+];
+
+struct Opts {
+    images: bool,
+    video: Option<String>,
+}
+
+/// Success episodes go right (x grows), failures go up and stall; positions are 2-D `pos`
+/// plus a 3-D `eef` and a wide `features` observation that must not be plotted.
+fn episode(i: u32, steps: usize, label: Label, o: &Opts) -> EpisodeInput {
+    let mut pos = Vec::new();
+    let mut eef = Vec::new();
+    for t in 0..steps {
+        let s = t as f32 / steps as f32;
+        match label {
+            Label::Success => pos.extend([s, 0.1 * i as f32]),
+            _ => pos.extend([0.1 * i as f32, s.min(0.5)]),
+        }
+        eef.extend([s, s * 2.0, i as f32]);
+    }
+    EpisodeInput {
+        source_name: format!("ep_{i}"),
+        source_index: i,
+        task: Some("nav".into()),
+        label,
+        label_source: "test".into(),
+        tags: vec![],
+        metadata: serde_json::json!({}),
+        timestamps: (0..steps).map(|t| t as f64 * 0.05).collect(),
+        observations: vec![
+            VectorColumn { name: "pos".into(), dim: 2, values: pos },
+            VectorColumn { name: "eef".into(), dim: 3, values: eef },
+            VectorColumn { name: "features".into(), dim: 80, values: vec![0.0; steps * 80] },
+        ],
+        action: VectorColumn { name: "action".into(), dim: 2, values: (0..steps * 2).map(|k| k as f32).collect() },
+        reward: (0..steps).map(|t| if label == Label::Success && t + 1 == steps { 1.0 } else { 0.0 }).collect(),
+        done: (0..steps).map(|t| t + 1 == steps).collect(),
+        action_chunk: None,
+        images: if o.images {
+            vec![ImageColumn { name: "top".into(), shape: [2, 2, 3], png_frames: vec![PNG.to_vec(); steps] }]
+        } else {
+            vec![]
+        },
+        media: match &o.video {
+            Some(sha) => vec![MediaColumn {
+                name: "observation.images.front".into(),
+                sha256: sha.clone(),
+                timestamps: (0..steps).map(|t| 10.0 + t as f64 * 0.05).collect(),
+            }],
+            None => vec![],
+        },
+    }
+}
+
+/// Labels of the synthetic episodes, by index: 3 successes, 2 failures, 1 unknown.
+const LABELS: [Label; 6] = [Label::Success, Label::Failure, Label::Success, Label::Failure, Label::Success, Label::Unknown];
+
+fn steps_of(i: usize) -> usize {
+    8 + 3 * i
+}
+
+async fn make_store(dir: &Path, o: &Opts) -> Store {
+    let store = Store::open(&StoreConfig::local(dir.join("data"))).await.unwrap();
+    let src = SourceInput {
+        path: "/tmp/synthetic".into(),
+        sha256: sha256_hex(b"viewer-test"),
+        format: "test".into(),
+        size_bytes: 1,
+        metadata: serde_json::json!({}),
+    };
+    let mut w = store.begin_ingest(src, "nav", "ckpt1").await.unwrap();
+    if let Some(sha) = &o.video {
+        let path = dir.join("front.mp4");
+        std::fs::write(&path, fake_mp4()).unwrap();
+        w.add_media(&MediaFile { sha256: sha.clone(), local_path: path, content_type: "video/mp4".into(), size_bytes: 64 })
+            .await
+            .unwrap();
+    }
+    for (i, l) in LABELS.iter().enumerate() {
+        w.add_episode(episode(i as u32, steps_of(i), *l, o)).await.unwrap();
+    }
+    w.commit("synthetic").await.unwrap();
+    store
+}
+
+/// Not a decodable video; enough for references and for the file's structure.
+fn fake_mp4() -> Vec<u8> {
+    let mut v = vec![0, 0, 0, 24];
+    v.extend(b"ftypisom\0\0\x02\0isomiso2");
+    v.resize(64, 0);
+    v
+}
+
+/// Rises to 1 along successes, stays at 0.2 on failures, 0.5 elsewhere.
+struct FakeVerifier;
+impl EpisodeScorer for FakeVerifier {
+    fn score_episode(&self, batch: &RecordBatch) -> Result<Vec<f32>, String> {
+        let n = batch.num_rows();
+        let success = batch
+            .column_by_name("success")
+            .and_then(|c| c.as_any().downcast_ref::<arrow::array::BooleanArray>())
+            .map(|a| if arrow::array::Array::is_valid(a, 0) { Some(a.value(0)) } else { None })
+            .ok_or("no success column")?;
+        Ok((0..n)
+            .map(|t| match success {
+                Some(true) => t as f32 / (n - 1) as f32,
+                Some(false) => 0.2,
+                None => 0.5,
+            })
+            .collect())
+    }
+}
+
+/// What a decoded `.rrd` holds.
+#[derive(Default, Debug)]
+struct Decoded {
+    /// entity → temporal rows (summed over chunks)
+    rows: BTreeMap<String, usize>,
+    /// entity → static rows
+    statics: BTreeMap<String, usize>,
+    /// entity → component names
+    components: BTreeMap<String, BTreeSet<String>>,
+    /// entity → timelines
+    timelines: BTreeMap<String, BTreeSet<String>>,
+    blueprint_chunks: usize,
+    recordings: BTreeSet<String>,
+}
+
+fn decode(bytes: &[u8]) -> Decoded {
+    let mut d = Decoded::default();
+    let it = re_log_encoding::DecoderApp::decode_eager(std::io::BufReader::new(bytes)).expect("an rrd stream");
+    for msg in it {
+        let msg = msg.expect("decodes");
+        let LogMsg::ArrowMsg(store_id, arrow_msg) = &msg else { continue };
+        let chunk = Chunk::from_arrow_msg(arrow_msg).expect("a chunk");
+        if store_id.kind() == StoreKind::Blueprint {
+            d.blueprint_chunks += 1;
+            continue;
+        }
+        d.recordings.insert(format!("{store_id:?}"));
+        let path = chunk.entity_path().to_string();
+        let path = path.trim_start_matches('/').to_string();
+        if chunk.is_static() {
+            *d.statics.entry(path.clone()).or_default() += chunk.num_rows();
+        } else {
+            *d.rows.entry(path.clone()).or_default() += chunk.num_rows();
+            let tl = d.timelines.entry(path.clone()).or_default();
+            for name in chunk.timelines().keys() {
+                tl.insert(name.to_string());
+            }
+        }
+        let comps = d.components.entry(path).or_default();
+        for desc in chunk.component_descriptors() {
+            comps.insert(desc.display_name().to_string());
+        }
+    }
+    d
+}
+
+fn has(d: &Decoded, entity: &str, component_part: &str) -> bool {
+    d.components.get(entity).is_some_and(|c| c.iter().any(|n| n.contains(component_part)))
+}
+
+#[tokio::test]
+async fn recording_has_episodes_timelines_scores_and_blueprint() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = Opts { images: true, video: Some(sha256_hex(&fake_mp4())) };
+    let store = make_store(dir.path(), &o).await;
+    let eps = store.episodes(&EpisodeFilter::default()).await.unwrap();
+    assert_eq!(eps.len(), 6);
+
+    let out = dir.path().join("out/view.rrd");
+    let mut opts = ViewOptions::new("nav", "ckpt1");
+    opts.images = true;
+    opts.image_stride = 2;
+    let report = write_recording(&store, &opts, Some(&FakeVerifier), &out).await.unwrap();
+    assert_eq!((report.episodes, report.success, report.failure, report.unknown), (6, 3, 2, 1));
+    assert_eq!(report.position_dims, vec!["pos[0]", "pos[1]"], "first 2/3-dim observation key");
+    assert_eq!(report.steps, (0..6).map(steps_of).sum::<usize>());
+    assert_eq!(report.videos, 1, "one video object, embedded once");
+    assert_eq!(report.video_frames, report.steps);
+    assert!(report.mean_score_success.unwrap() > report.mean_score_failure.unwrap());
+    // The fake verifier separates late: the gap is largest late in the episodes.
+    let (step, gap) = report.max_separation.unwrap();
+    assert!(step >= steps_of(0) as i64 - 1 && gap > 0.5, "{step} {gap}");
+    assert!(report.separates_from_step.unwrap() > 0);
+
+    let bytes = std::fs::read(&out).unwrap();
+    let d = decode(&bytes);
+    assert_eq!(d.recordings.len(), 1, "one recording store: {:?}", d.recordings);
+    assert!(d.blueprint_chunks > 0, "a blueprint is stored in the file");
+
+    for (i, ep) in eps.iter().enumerate() {
+        let label = LABELS[ep.source_index as usize];
+        assert_eq!(ep.label, label);
+        let base = episode_path(label, &ep.id);
+        let n = steps_of(ep.source_index as usize);
+        assert_eq!(ep.length as usize, n);
+        for e in ["position", "action", "state/pos", "state/eef", "reward", "score", "camera/observation.images.front"] {
+            let path = format!("{base}/{e}");
+            assert_eq!(d.rows.get(&path).copied(), Some(n), "rows of {path} (episode {i})");
+            let tl: Vec<&str> = d.timelines[&path].iter().map(String::as_str).collect();
+            assert_eq!(tl, ["step", "time"], "timelines of {path}");
+        }
+        // Images sampled every 2nd step.
+        assert_eq!(d.rows.get(&format!("{base}/image/top")).copied(), Some(n.div_ceil(2)));
+        assert!(has(&d, &format!("{base}/image/top"), "blob"), "{:?}", d.components.get(&format!("{base}/image/top")));
+        assert_eq!(d.statics.get(&format!("{base}/trajectory")).copied(), Some(1), "one static strip");
+        assert!(has(&d, &format!("{base}/trajectory"), "strips"), "{:?}", d.components.get(&format!("{base}/trajectory")));
+        assert!(has(&d, &format!("{base}/action"), "scalars"));
+        assert!(has(&d, &format!("{base}/camera/observation.images.front"), "timestamp"));
+        assert!(!d.rows.contains_key(&format!("{base}/state/features")), "80-dim key is not plotted");
+    }
+    assert!(d.statics.keys().any(|k| k.starts_with("media/observation.images.front/")), "{:?}", d.statics.keys());
+    // Summary: mean score of successes vs failures per step; failures are shorter than the
+    // longest success, so the success curve is longer.
+    let longest = |l: Label| (0..6).filter(|&i| LABELS[i] == l).map(steps_of).max().unwrap();
+    assert_eq!(d.rows.get("summary/score/success").copied(), Some(longest(Label::Success)));
+    assert_eq!(d.rows.get("summary/score/failure").copied(), Some(longest(Label::Failure)));
+    assert_eq!(
+        d.rows.get("summary/score/gap").copied(),
+        Some(longest(Label::Success).min(longest(Label::Failure)))
+    );
+    assert_eq!(d.timelines["summary/score/gap"].iter().collect::<Vec<_>>(), ["step"]);
+    assert!(d.statics.contains_key("summary/info"));
+    // Per-episode data is sent as whole columns: one chunk per entity and episode, not per row.
+    let path = format!("{}/action", episode_path(eps[0].label, &eps[0].id));
+    assert_eq!(report.entities.iter().filter(|e| **e == path).count(), 1);
+
+    // The in-memory writer produces the same content.
+    let (mem, report2) = recording_bytes(&store, &opts, Some(&FakeVerifier)).await.unwrap();
+    assert_eq!(report2, report);
+    let d2 = decode(&mem);
+    assert_eq!(d2.rows, d.rows);
+    assert_eq!(d2.statics, d.statics);
+}
+
+#[tokio::test]
+async fn split_limit_and_3d_positions() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = make_store(dir.path(), &Opts { images: false, video: None }).await;
+    let split = store
+        .create_split(&SplitRequest {
+            policy: "nav".into(),
+            checkpoint: "ckpt1".into(),
+            version: None,
+            off_policy_from: vec![],
+            val_fraction: 0.3,
+            seed: 1,
+            actor: "test".into(),
+        })
+        .await
+        .unwrap();
+    // Unknown-label episodes are not in splits: 5 labelled episodes.
+    let in_split = store.split_episodes(&split.id).await.unwrap();
+    assert_eq!(in_split.len(), 5);
+
+    let mut opts = ViewOptions::new("nav", "ckpt1");
+    opts.split_id = Some(split.id.clone());
+    opts.position_keys = vec!["eef".into()];
+    opts.max_episodes = Some(3);
+    let (bytes, report) = recording_bytes(&store, &opts, None).await.unwrap();
+    assert_eq!(report.episodes, 3);
+    assert_eq!((report.success, report.failure), (2, 1), "round-robin over labels: S, F, S");
+    assert_eq!(report.position_dims, vec!["eef[0]", "eef[1]", "eef[2]"]);
+    assert!(!report.scored && report.max_separation.is_none());
+    let d = decode(&bytes);
+    let trajectories: Vec<&String> = d.statics.keys().filter(|k| k.ends_with("/trajectory")).collect();
+    assert_eq!(trajectories.len(), 3);
+    for t in trajectories {
+        assert!(has(&d, t, "LineStrips3D"), "{:?}", d.components.get(t));
+    }
+    assert!(!d.rows.keys().any(|k| k.ends_with("/score") || k.starts_with("summary/score")));
+
+    // Picked dims of a wider key, and errors that say what is wrong.
+    opts.position_keys = vec!["eef[0,2]".into()];
+    let (_, r) = recording_bytes(&store, &opts, None).await.unwrap();
+    assert_eq!(r.position_dims, vec!["eef[0]", "eef[2]"]);
+    let err_of = |r: Result<(Vec<u8>, ViewReport), ViewError>| match r {
+        Ok((_, rep)) => panic!("expected an error, got {rep:?}"),
+        Err(e) => e.to_string(),
+    };
+    opts.position_keys = vec!["pos".into(), "eef".into()];
+    let err = err_of(recording_bytes(&store, &opts, None).await);
+    assert!(err.contains("expected 2 or 3"), "{err}");
+    opts.position_keys = vec!["nope".into()];
+    let err = err_of(recording_bytes(&store, &opts, None).await);
+    assert!(err.contains("nope"), "{err}");
+    let err = err_of(recording_bytes(&store, &ViewOptions::new("", ""), None).await);
+    assert!(err.contains("policy and a checkpoint"), "{err}");
+}
+
+/// `viewer/scripts/check_rrd.sh` installs rerun-sdk==0.36.3 from PyPI (once, into a cached venv)
+/// and runs `rerun rrd verify` and `rerun rrd print` on a written recording.
+#[tokio::test]
+async fn check_rrd_with_official_rerun_sdk() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = Opts { images: true, video: Some(sha256_hex(&fake_mp4())) };
+    let store = make_store(dir.path(), &o).await;
+    let out = dir.path().join("view.rrd");
+    let mut opts = ViewOptions::new("nav", "ckpt1");
+    opts.images = true;
+    write_recording(&store, &opts, Some(&FakeVerifier), &out).await.unwrap();
+
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/check_rrd.sh");
+    let res = std::process::Command::new("bash").arg(&script).arg(&out).output().expect("runs bash");
+    let stdout = String::from_utf8_lossy(&res.stdout);
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    if res.status.code() == Some(3) {
+        panic!("check_rrd.sh could not install rerun-sdk=={RERUN_SDK_VERSION} from PyPI:\n{stderr}");
+    }
+    assert!(res.status.success(), "check_rrd.sh failed ({:?}):\nstdout:\n{stdout}\nstderr:\n{stderr}", res.status);
+    assert!(stdout.contains(&format!("rerun-cli {RERUN_SDK_VERSION}")) || stdout.contains(RERUN_SDK_VERSION), "{stdout}");
+    assert!(stdout.contains("episodes/success"), "rrd print lists the episodes:\n{stdout}");
+    assert!(stderr.contains("verified without error"), "rrd verify:\n{stderr}");
+    assert!(stdout.contains("summary/score/gap") && stdout.contains("Blueprint"), "{stdout}");
+    if let Ok(keep) = std::env::var("VIEWER_KEEP_CHECK_OUTPUT") {
+        std::fs::write(keep, format!("{stdout}\n--- stderr\n{stderr}")).unwrap();
+    }
+}
