@@ -1,0 +1,110 @@
+//! Bearer-token authentication (tokens live hashed in the store) and role checks.
+
+use crate::error::ApiError;
+use crate::AppState;
+use axum::extract::{Request, State};
+use axum::http::header;
+use axum::middleware::Next;
+use axum::response::Response;
+use std::collections::HashMap;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+use store::Role;
+
+/// Who is calling: the token's name (recorded as the actor of every write) and its role.
+#[derive(Debug, Clone)]
+pub struct Caller {
+    pub token_id: String,
+    pub name: String,
+    pub role: Role,
+}
+
+impl Caller {
+    /// Fails with 403 unless the caller's role is at least `role`.
+    pub fn require(&self, role: Role) -> Result<(), ApiError> {
+        if self.role >= role {
+            Ok(())
+        } else {
+            Err(ApiError::forbidden(format!(
+                "token {:?} has role {}, this needs {} or above",
+                self.name,
+                self.role.as_str(),
+                role.as_str()
+            )))
+        }
+    }
+}
+
+/// A short-lived cache of verified tokens (keyed by the secret's sha256), so that a busy client
+/// does not cost a catalog read per request. A revoked token stops working within the TTL.
+pub(crate) struct TokenCache {
+    ttl: Duration,
+    map: Mutex<HashMap<String, (Caller, Instant)>>,
+}
+
+impl TokenCache {
+    pub fn new(ttl: Duration) -> Self {
+        TokenCache { ttl, map: Mutex::new(HashMap::new()) }
+    }
+    fn get(&self, key: &str) -> Option<Caller> {
+        let map = self.map.lock().expect("token cache lock");
+        map.get(key).filter(|(_, t)| t.elapsed() < self.ttl).map(|(c, _)| c.clone())
+    }
+    fn put(&self, key: String, caller: Caller) {
+        let mut map = self.map.lock().expect("token cache lock");
+        if map.len() > 10_000 {
+            map.clear();
+        }
+        map.insert(key, (caller, Instant::now()));
+    }
+}
+
+/// Middleware: every route behind it needs `Authorization: Bearer <token>`; puts the [`Caller`]
+/// into the request's extensions.
+pub(crate) async fn require_token(State(state): State<AppState>, mut req: Request, next: Next) -> Result<Response, ApiError> {
+    let value = req
+        .headers()
+        .get(header::AUTHORIZATION)
+        .ok_or_else(|| ApiError::unauthorized("missing Authorization: Bearer <token> header"))?;
+    let value = value.to_str().map_err(|_| ApiError::unauthorized("malformed Authorization header"))?;
+    let secret = value
+        .strip_prefix("Bearer ")
+        .or_else(|| value.strip_prefix("bearer "))
+        .map(str::trim)
+        .filter(|s| !s.is_empty() && s.len() <= 256)
+        .ok_or_else(|| ApiError::unauthorized("expected Authorization: Bearer <token>"))?;
+    let key = store::sha256_hex(secret.as_bytes());
+    let caller = match state.inner.tokens.get(&key) {
+        Some(c) => c,
+        None => {
+            let rec = state
+                .inner
+                .store
+                .verify_token(secret)
+                .await?
+                .ok_or_else(|| ApiError::unauthorized("unknown or revoked token"))?;
+            let c = Caller { token_id: rec.id, name: rec.name, role: rec.role };
+            state.inner.tokens.put(key, c.clone());
+            c
+        }
+    };
+    req.extensions_mut().insert(caller);
+    Ok(next.run(req).await)
+}
+
+/// Route-level middleware: 403 unless the caller (set by [`require_token`]) has at least this
+/// role. Runs before the body is read, so a low-privilege caller learns nothing from validation.
+pub(crate) async fn require_role(State(min): State<Role>, req: Request, next: Next) -> Result<Response, ApiError> {
+    let caller = req
+        .extensions()
+        .get::<Caller>()
+        .ok_or_else(|| ApiError::unauthorized("missing token"))?;
+    caller.require(min)?;
+    Ok(next.run(req).await)
+}
+
+impl TokenCache {
+    pub fn clear(&self) {
+        self.map.lock().expect("token cache lock").clear();
+    }
+}

@@ -1,0 +1,245 @@
+//! The ufops HTTP API (`ufops serve`) and the job worker loop (`ufops worker`).
+//!
+//! This crate owns the HTTP surface only: routing, authentication (bearer tokens verified by the
+//! store) and role checks, request validation and size limits, problem+json errors, the OpenAPI
+//! document (generated from the handlers with utoipa), Prometheus metrics, media range requests,
+//! streamed uploads, and the worker loop that claims jobs and runs them through a [`JobRunner`].
+//! Every rule about data (label revisions, versions, splits, leases, aliases) lives in the
+//! `store` crate, which the CLI uses too; the real job runner (training, ingest) is the binary's.
+
+mod auth;
+mod error;
+mod extract;
+mod media;
+mod metrics;
+mod openapi;
+mod routes;
+mod steps_json;
+mod upload;
+mod worker;
+
+pub use auth::Caller;
+pub use error::{ApiError, Problem};
+pub use media::parse_range;
+pub use openapi::openapi;
+pub use upload::sanitize_filename;
+pub use worker::{run_worker, run_worker_with, JobContext, JobRunner, WorkerOptions};
+
+use axum::extract::DefaultBodyLimit;
+use axum::middleware::from_fn_with_state;
+use axum::routing::{get, post, put};
+use axum::Router;
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+use axum::handler::Handler;
+use store::{Backend, Role, Store};
+
+/// How `ufops serve` runs.
+#[derive(Debug, Clone)]
+pub struct ServeConfig {
+    /// Default `127.0.0.1:8080`; binding elsewhere is explicit.
+    pub addr: SocketAddr,
+    /// Largest JSON request body (default 1 MiB).
+    pub body_limit_bytes: usize,
+    /// Largest upload to `POST /v1/ingest` (default 50 GiB); uploads are streamed to disk.
+    pub upload_limit_bytes: u64,
+    /// Where uploads land (one fresh folder per upload); default `<data_dir>/uploads`.
+    pub upload_dir: PathBuf,
+    /// Run a job worker inside the server (default true).
+    pub run_worker_in_process: bool,
+    /// The in-process worker's id (default `serve-<pid>`).
+    pub worker_id: String,
+    /// The lease of the in-process worker's jobs (default 30 s; heartbeats every third of it).
+    pub worker_lease_ms: i64,
+    /// How long a verified token is trusted without asking the catalog again (default 5 s):
+    /// a revoked token stops working within this time (at once on this server).
+    pub token_cache_ttl: Duration,
+}
+
+impl ServeConfig {
+    /// Defaults, with uploads under `<data_dir>/uploads`.
+    pub fn new(data_dir: &std::path::Path) -> Self {
+        ServeConfig {
+            addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            body_limit_bytes: 1 << 20,
+            upload_limit_bytes: 50 << 30,
+            upload_dir: data_dir.join("uploads"),
+            run_worker_in_process: true,
+            worker_id: format!("serve-{}", std::process::id()),
+            worker_lease_ms: 30_000,
+            token_cache_ttl: Duration::from_secs(5),
+        }
+    }
+}
+
+/// Shared state of the handlers; cheap to clone.
+#[derive(Clone)]
+pub struct AppState {
+    pub(crate) inner: Arc<Inner>,
+}
+
+pub(crate) struct Inner {
+    pub store: Store,
+    pub cfg: ServeConfig,
+    pub metrics: metrics::Metrics,
+    pub tokens: auth::TokenCache,
+    /// SQLite has one writer: queueing label writes here, instead of letting pool connections
+    /// spin on the database lock (SQLite's busy handler sleeps in steps of up to 100 ms),
+    /// keeps write latency flat under contention. `None` on Postgres (row-level locking).
+    pub write_gate: Option<tokio::sync::Mutex<()>>,
+}
+
+impl AppState {
+    pub fn new(store: Store, cfg: ServeConfig) -> Self {
+        let write_gate = (store.backend() == Backend::Sqlite).then(|| tokio::sync::Mutex::new(()));
+        let tokens = auth::TokenCache::new(cfg.token_cache_ttl);
+        AppState { inner: Arc::new(Inner { store, cfg, metrics: Default::default(), tokens, write_gate }) }
+    }
+    pub fn store(&self) -> &Store {
+        &self.inner.store
+    }
+    pub(crate) async fn write_gate(&self) -> Option<tokio::sync::MutexGuard<'_, ()>> {
+        match &self.inner.write_gate {
+            Some(m) => Some(m.lock().await),
+            None => None,
+        }
+    }
+}
+
+/// A route-level role check (runs after the token check, before the body is read).
+macro_rules! need {
+    ($role:expr) => {
+        from_fn_with_state($role, auth::require_role)
+    };
+}
+
+/// The whole HTTP surface: `/healthz` (open), and behind a bearer token `/metrics`,
+/// `/openapi.json` and `/v1/...`.
+pub fn router(state: AppState) -> Router {
+    use routes as r;
+    let body_limit = state.inner.cfg.body_limit_bytes;
+    let authed = Router::new()
+        .route("/metrics", get(r::metrics))
+        .route("/openapi.json", get(openapi::serve_openapi))
+        .route("/v1/policies", get(r::list_policies))
+        .route("/v1/checkpoints", get(r::list_checkpoints))
+        .route("/v1/tasks", get(r::list_tasks))
+        .route("/v1/versions", get(r::list_versions))
+        .route("/v1/versions/{version}", get(r::get_version))
+        .route("/v1/versions/{from}/diff/{to}", get(r::diff_versions))
+        .route("/v1/episodes", get(r::list_episodes))
+        .route("/v1/episodes/{id}", get(r::get_episode))
+        .route("/v1/episodes/{id}/steps", get(r::get_steps))
+        .route("/v1/episodes/{id}/media/{key}", get(r::get_media))
+        .route("/v1/episodes/{id}/label", put(r::put_label.layer(need!(Role::Labeler))))
+        .route("/v1/labels/bulk", post(r::bulk_labels.layer(need!(Role::Labeler))))
+        .route("/v1/label-snapshots", post(r::create_snapshot.layer(need!(Role::Labeler))))
+        .route("/v1/splits", get(r::list_splits).post(r::create_split.layer(need!(Role::Trainer))))
+        .route("/v1/splits/{id}", get(r::get_split))
+        .route("/v1/jobs", get(r::list_jobs).post(r::create_job.layer(need!(Role::Trainer))))
+        .route("/v1/jobs/{id}", get(r::get_job))
+        .route("/v1/jobs/{id}/cancel", post(r::cancel_job.layer(need!(Role::Trainer))))
+        .route("/v1/artifacts", get(r::list_artifacts))
+        .route("/v1/artifacts/{id}", get(r::get_artifact))
+        .route("/v1/artifacts/{id}/files/{name}", get(r::artifact_file))
+        .route("/v1/artifacts/{id}/aliases/{alias}", put(r::set_alias.layer(need!(Role::Trainer))))
+        .route("/v1/policies/{policy}/checkpoints/{checkpoint}/verifiers/{kind_at_alias}", get(r::resolve_verifier))
+        .route(
+            "/v1/policies/{policy}/checkpoints/{checkpoint}/verifiers/{kind_at_alias}/files/{name}",
+            get(r::resolve_verifier_file),
+        )
+        .route("/v1/ingest", post(upload::ingest.layer(need!(Role::Admin))).layer(DefaultBodyLimit::disable()))
+        .route("/v1/gc", post(r::gc.layer(need!(Role::Admin))))
+        .route("/v1/tokens", get(r::list_tokens.layer(need!(Role::Admin))).post(r::create_token.layer(need!(Role::Admin))))
+        .route("/v1/tokens/{id}", axum::routing::delete(r::revoke_token.layer(need!(Role::Admin))))
+        .route_layer(from_fn_with_state(state.clone(), auth::require_token));
+    Router::new()
+        .route("/healthz", get(r::healthz))
+        .merge(authed)
+        .fallback(r::not_found)
+        .layer(DefaultBodyLimit::max(body_limit))
+        .layer(from_fn_with_state(state.clone(), metrics::track))
+        .with_state(state)
+}
+
+/// A server running in the background (for tests and embedding): its bound address and a way
+/// to stop it.
+pub struct RunningServer {
+    pub addr: SocketAddr,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    task: tokio::task::JoinHandle<anyhow::Result<()>>,
+}
+
+impl RunningServer {
+    /// Stops accepting, finishes requests in flight, stops the in-process worker.
+    pub async fn shutdown(mut self) -> anyhow::Result<()> {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        self.task.await?
+    }
+}
+
+/// Binds `cfg.addr` (port 0 picks a free one) and serves in a background task.
+pub async fn spawn(store: Store, cfg: ServeConfig, runner: Arc<dyn JobRunner>) -> anyhow::Result<RunningServer> {
+    let listener = tokio::net::TcpListener::bind(cfg.addr)
+        .await
+        .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", cfg.addr))?;
+    let addr = listener.local_addr()?;
+    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    let task = tokio::spawn(serve_on(listener, store, cfg, runner, async move {
+        let _ = rx.await;
+    }));
+    Ok(RunningServer { addr, stop: Some(tx), task })
+}
+
+/// `ufops serve`: binds `cfg.addr`, prints `listening on http://ADDR`, serves until `shutdown`
+/// resolves (then finishes requests in flight and stops the in-process worker).
+pub async fn serve(
+    store: Store,
+    cfg: ServeConfig,
+    runner: Arc<dyn JobRunner>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> anyhow::Result<()> {
+    let listener = tokio::net::TcpListener::bind(cfg.addr)
+        .await
+        .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", cfg.addr))?;
+    println!("listening on http://{}", listener.local_addr()?);
+    serve_on(listener, store, cfg, runner, shutdown).await
+}
+
+/// Serves on an already bound listener.
+pub async fn serve_on(
+    listener: tokio::net::TcpListener,
+    store: Store,
+    cfg: ServeConfig,
+    runner: Arc<dyn JobRunner>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(&cfg.upload_dir)
+        .map_err(|e| anyhow::anyhow!("cannot create the upload dir {}: {e}", cfg.upload_dir.display()))?;
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let stop_tx = Arc::new(stop_tx);
+    let stop_tx2 = stop_tx.clone();
+    let worker = cfg.run_worker_in_process.then(|| {
+        let mut rx = stop_rx.clone();
+        tokio::spawn(run_worker(store.clone(), runner, cfg.worker_id.clone(), cfg.worker_lease_ms, async move {
+            let _ = rx.wait_for(|s| *s).await;
+        }))
+    });
+    let app = router(AppState::new(store, cfg));
+    let result = axum::serve(listener, app.into_make_service())
+        .with_graceful_shutdown(async move {
+            shutdown.await;
+            let _ = stop_tx2.send(true);
+        })
+        .await;
+    let _ = stop_tx.send(true);
+    if let Some(w) = worker {
+        let _ = w.await;
+    }
+    result.map_err(|e| anyhow::anyhow!("server error: {e}"))
+}

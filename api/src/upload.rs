@@ -1,0 +1,125 @@
+//! `POST /v1/ingest`: the request body (a rollout file or archive) is streamed to a fresh file
+//! under the server's upload dir — never held in memory — hashed on the way, and an `ingest`
+//! job is queued whose spec names the server-side path. The runner does the ingest itself.
+
+use crate::auth::Caller;
+use crate::error::{ApiError, ApiResult, Problem};
+use crate::extract::{check_name, ApiQuery};
+use crate::AppState;
+use axum::body::Body;
+use axum::extract::State;
+use axum::http::StatusCode;
+use axum::{Extension, Json};
+use futures::StreamExt;
+use serde::Deserialize;
+use serde_json::json;
+use sha2::Digest;
+use std::sync::atomic::Ordering;
+use store::Role;
+use tokio::io::AsyncWriteExt;
+use utoipa::IntoParams;
+
+#[derive(Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct IngestQuery {
+    /// The policy the rollouts belong to.
+    policy: String,
+    /// The checkpoint the rollouts belong to.
+    checkpoint: String,
+    /// The uploaded file's name (only its characters A-Z a-z 0-9 . _ - are kept; it tells the
+    /// ingester the format by its extension). Default `upload.bin`.
+    filename: Option<String>,
+    /// The format, if the extension does not tell (`robomimic`, `lerobot`, `mcap`, ...).
+    format: Option<String>,
+}
+
+/// A file name safe to use under our own directory: no separators, no leading dots.
+pub fn sanitize_filename(name: &str) -> String {
+    let base = name.rsplit(['/', '\\']).next().unwrap_or("");
+    let s: String = base
+        .chars()
+        .map(|c| if c.is_ascii_alphanumeric() || c == '.' || c == '_' || c == '-' { c } else { '_' })
+        .collect();
+    let s = s.trim_start_matches('.');
+    let s: String = s.chars().take(100).collect();
+    if s.is_empty() {
+        "upload.bin".into()
+    } else {
+        s
+    }
+}
+
+/// Uploads a rollout file (raw request body) and queues an ingest job (admin).
+#[utoipa::path(post, path = "/v1/ingest", tag = "admin", params(IngestQuery),
+    request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "the file, raw"),
+    responses((status = 202, description = "JobRecord of the queued ingest job", body = Object),
+              (status = 413, body = Problem), (status = 403, body = Problem)))]
+pub async fn ingest(
+    State(s): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    ApiQuery(q): ApiQuery<IngestQuery>,
+    body: Body,
+) -> ApiResult<(StatusCode, Json<store::JobRecord>)> {
+    caller.require(Role::Admin)?;
+    check_name("policy", &q.policy)?;
+    check_name("checkpoint", &q.checkpoint)?;
+    if let Some(f) = &q.format {
+        crate::extract::check_id("format", f)?;
+    }
+    let filename = sanitize_filename(q.filename.as_deref().unwrap_or("upload.bin"));
+    let dir = s.inner.cfg.upload_dir.join(uuid::Uuid::new_v4().simple().to_string());
+    tokio::fs::create_dir_all(&dir)
+        .await
+        .map_err(|e| ApiError::internal(format!("cannot create the upload dir: {e}")))?;
+    let path = dir.join(&filename);
+    let part = dir.join(format!(".{filename}.part"));
+    let result = receive(&s, body, &part).await;
+    let (size, sha) = match result {
+        Ok(v) => v,
+        Err(e) => {
+            let _ = tokio::fs::remove_dir_all(&dir).await;
+            return Err(e);
+        }
+    };
+    tokio::fs::rename(&part, &path).await.map_err(|e| ApiError::internal(format!("cannot place the upload: {e}")))?;
+    let spec = json!({
+        "path": path.display().to_string(),
+        "filename": filename,
+        "policy": q.policy,
+        "checkpoint": q.checkpoint,
+        "format": q.format,
+        "sha256": sha,
+        "size_bytes": size,
+    });
+    let job = s.store().create_job("ingest", &spec, &caller.name).await?;
+    Ok((StatusCode::ACCEPTED, Json(job)))
+}
+
+async fn receive(s: &AppState, body: Body, part: &std::path::Path) -> ApiResult<(u64, String)> {
+    let limit = s.inner.cfg.upload_limit_bytes;
+    let mut file = tokio::fs::File::create(part)
+        .await
+        .map_err(|e| ApiError::internal(format!("cannot create the upload file: {e}")))?;
+    let mut hasher = sha2::Sha256::new();
+    let mut size: u64 = 0;
+    let mut stream = body.into_data_stream();
+    while let Some(chunk) = stream.next().await {
+        let chunk = chunk.map_err(|e| ApiError::bad_request(format!("upload interrupted: {e}")))?;
+        size += chunk.len() as u64;
+        if size > limit {
+            return Err(ApiError::new(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                "too-large",
+                format!("the upload is larger than the server's limit of {limit} bytes"),
+            ));
+        }
+        hasher.update(&chunk);
+        file.write_all(&chunk).await.map_err(|e| ApiError::internal(format!("cannot write the upload: {e}")))?;
+        s.inner.metrics.uploads_bytes.fetch_add(chunk.len() as u64, Ordering::Relaxed);
+    }
+    if size == 0 {
+        return Err(ApiError::bad_request("the upload is empty"));
+    }
+    file.sync_all().await.map_err(|e| ApiError::internal(format!("cannot sync the upload: {e}")))?;
+    Ok((size, hex::encode(hasher.finalize())))
+}
