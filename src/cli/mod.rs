@@ -2,6 +2,9 @@
 
 mod catalog_cmds;
 mod dev;
+mod run_cmds;
+mod serve_cmds;
+mod view_cmd;
 mod store_cmds;
 
 use anyhow::Result;
@@ -91,6 +94,35 @@ pub enum Command {
         #[command(subcommand)]
         command: catalog_cmds::TokenCommand,
     },
+    /// Ingest evaluation rollouts (robomimic HDF5, LeRobot v2.1/v3.0, MCAP) as one new version.
+    Ingest(serve_cmds::IngestArgs),
+    /// Serve the HTTP API (and run queued jobs in-process unless --no-worker).
+    Serve(serve_cmds::ServeArgs),
+    /// Claim and run queued jobs (training, ingest) from the catalog.
+    Worker {
+        #[arg(long)]
+        id: Option<String>,
+        #[arg(long, default_value_t = 30_000)]
+        lease_ms: i64,
+    },
+    /// Train a verifier on a split and publish it as an artifact.
+    Train(run_cmds::TrainArgs),
+    /// Score (obs history, action chunk, t) rows with an artifact (a directory, id or P/C/KIND@ALIAS):
+    /// input JSON {"rows": [{"obs": [...], "action": [...], "t": 3}]}.
+    Score {
+        #[arg(long)]
+        artifact: String,
+        #[arg(long)]
+        input: PathBuf,
+    },
+    /// The paper's pedagogical experiment end to end on this store.
+    Demo {
+        /// A small scale that finishes in about a minute.
+        #[arg(long)]
+        quick: bool,
+    },
+    /// Write a rerun recording (.rrd) of success vs failure trajectories and verifier scores.
+    View(view_cmd::ViewArgs),
     /// Developer tools used by the tests.
     #[command(hide = true)]
     Dev {
@@ -111,6 +143,13 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Split { command } => catalog_cmds::split(&cli.store, command).await,
         Command::Artifacts(a) => catalog_cmds::artifacts(&cli.store, a).await,
         Command::Token { command } => catalog_cmds::token(&cli.store, command).await,
+        Command::Ingest(a) => serve_cmds::ingest(&cli.store, a).await,
+        Command::Serve(a) => serve_cmds::serve(&cli.store, a).await,
+        Command::Worker { id, lease_ms } => serve_cmds::worker(&cli.store, id, lease_ms).await,
+        Command::Train(a) => run_cmds::train(&cli.store, a).await,
+        Command::Score { artifact, input } => run_cmds::score(&cli.store, &artifact, &input).await,
+        Command::Demo { quick } => run_cmds::demo(&cli.store, quick).await,
+        Command::View(a) => view_cmd::view(&cli.store, a).await,
         Command::Dev { command } => dev::run(&cli.store, command).await,
     }
 }

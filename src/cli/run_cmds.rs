@@ -1,0 +1,133 @@
+//! Training, scoring and the demo: wiring of trainer, steer and demo to the store.
+
+use super::{print_json, StoreArgs};
+use anyhow::{Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+
+#[derive(clap::Args, Debug)]
+pub struct TrainArgs {
+    #[arg(long)]
+    pub split: String,
+    /// classifier | q
+    #[arg(long)]
+    pub kind: String,
+    /// Training recipe (.json or .toml; missing fields take the paper's defaults).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Observation keys in order (default: all).
+    #[arg(long, num_args = 1..)]
+    pub obs_keys: Option<Vec<String>>,
+    #[arg(long)]
+    pub obs_history: Option<usize>,
+    #[arg(long)]
+    pub chunk_len: Option<usize>,
+    /// Train only on steps t with t % STRIDE == 0 (where a chunking policy re-planned).
+    #[arg(long)]
+    pub step_stride: Option<usize>,
+    #[arg(long, env = "USER", default_value = "cli")]
+    pub actor: String,
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn parse_kind(s: &str) -> Result<trainer::Kind> {
+    match s {
+        "classifier" => Ok(trainer::Kind::Classifier),
+        "q" => Ok(trainer::Kind::Q),
+        _ => anyhow::bail!("unknown verifier kind {s:?}: classifier or q"),
+    }
+}
+
+pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
+    let store = args.open().await?;
+    let kind = parse_kind(&a.kind)?;
+    let mut config = match &a.config {
+        Some(p) => Some(trainer::TrainConfig::from_file(p)?),
+        None => None,
+    };
+    if let Some(c) = config.as_mut() {
+        c.kind = kind;
+    }
+    let spec = trainer::TrainJobSpec {
+        split_id: a.split.clone(),
+        kind,
+        config,
+        obs_keys: a.obs_keys,
+        obs_history: a.obs_history,
+        chunk_len: a.chunk_len,
+        step_stride: a.step_stride,
+    };
+    let job = store.create_job("train", &serde_json::to_value(&spec)?, &a.actor).await?;
+    let worker = format!("cli-{}", std::process::id());
+    let claimed = store.claim_job(&worker, 3_600_000).await?;
+    anyhow::ensure!(claimed.as_ref().map(|j| j.id.as_str()) == Some(job.id.as_str()), "another queued job was claimed first; run `ufops worker`");
+    let pb = if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        let pb = ProgressBar::new(1);
+        pb.set_style(ProgressStyle::with_template("{bar:30} epoch {pos}/{len} {msg}").expect("template"));
+        pb
+    } else {
+        ProgressBar::hidden()
+    };
+    let pb2 = pb.clone();
+    let observer = Box::new(move |r: &trainer::EpochReport| {
+        pb2.set_length(r.epochs as u64);
+        pb2.set_position(r.epoch as u64);
+        pb2.set_message(format!(
+            "train {:.4} val {:.4}{}",
+            r.train_loss,
+            r.val_loss.unwrap_or(f64::NAN),
+            r.val_auc.map(|x| format!(" auc {x:.3}")).unwrap_or_default()
+        ));
+    });
+    let result = trainer::run_train_job(&store, &spec, Some(&job.id), observer, None).await;
+    pb.finish_and_clear();
+    match result {
+        Ok(rec) => {
+            store.finish_job(&job.id, &worker, Ok(serde_json::json!({ "artifact": rec.id }))).await?;
+            if a.json {
+                return print_json(&rec);
+            }
+            println!("artifact {} ({} for {}/{}), aliases [{}]", rec.id, rec.kind, rec.policy, rec.checkpoint, rec.aliases.join(", "));
+            println!("metrics: {}", rec.config["metrics"]["final"]);
+            Ok(())
+        }
+        Err(e) => {
+            store.finish_job(&job.id, &worker, Err(format!("{e:#}"))).await?;
+            Err(e)
+        }
+    }
+}
+
+pub async fn score(args: &StoreArgs, artifact: &str, input: &PathBuf) -> Result<()> {
+    let dir = PathBuf::from(artifact);
+    let tmp;
+    let dir = if dir.join("manifest.json").exists() {
+        dir
+    } else {
+        let store = args.open().await?;
+        let rec = store.resolve_artifact(artifact).await?;
+        tmp = tempfile::tempdir()?;
+        store.download_artifact(&rec.id, tmp.path()).await?;
+        tmp.path().to_path_buf()
+    };
+    let text = std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?;
+    let scores = trainer::score_json(&dir, &text)?;
+    print_json(&serde_json::json!({ "scores": scores }))
+}
+
+pub async fn demo(args: &StoreArgs, quick: bool) -> Result<()> {
+    let store = args.open().await?;
+    let out = args.data_dir.join("demo");
+    let cfg = if quick { demo::DemoConfig::quick(&out) } else { demo::DemoConfig::full(&out) };
+    eprintln!("ufops demo{}: {} rollouts per row, store {}", if quick { " --quick" } else { "" }, cfg.episodes, store.describe());
+    let report = demo::run(&store, &cfg).await?;
+    println!("{}", report.markdown());
+    println!(
+        "runtime {:.0} s; report: {} and report.json; figure: {}",
+        report.seconds,
+        out.join("report.md").display(),
+        out.join("trajectories.png").display()
+    );
+    Ok(())
+}

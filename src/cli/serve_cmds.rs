@@ -1,0 +1,178 @@
+//! `ingest`, `serve` and `worker`: the ingest crate and the API wired to the store, with the job
+//! runner that executes training and ingest jobs for the API's workers.
+
+use super::StoreArgs;
+use anyhow::Result;
+use futures::future::BoxFuture;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+#[derive(clap::Args, Debug)]
+pub struct IngestArgs {
+    /// A robomimic .hdf5 file, a LeRobot dataset folder, or an .mcap recording.
+    pub path: PathBuf,
+    #[arg(long)]
+    pub policy: String,
+    #[arg(long)]
+    pub checkpoint: String,
+    #[arg(long)]
+    pub task: Option<String>,
+    /// auto | robomimic | lerobot | mcap
+    #[arg(long, default_value = "auto")]
+    pub format: String,
+    /// JSON {"demo_0": true, …} or CSV lines demo_0,true.
+    #[arg(long)]
+    pub success_file: Option<PathBuf>,
+    /// `rewards`: success iff the last reward >= --reward-threshold.
+    #[arg(long)]
+    pub success_from: Option<String>,
+    #[arg(long, default_value_t = 1.0)]
+    pub reward_threshold: f64,
+    /// MCAP topic/field mapping (TOML).
+    #[arg(long)]
+    pub mapping: Option<PathBuf>,
+    /// Ingest what is complete in a truncated recording instead of refusing it.
+    #[arg(long)]
+    pub recover: bool,
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn ingest_options(a: &IngestArgs) -> Result<ingest::IngestOptions> {
+    let success_from_rewards = match a.success_from.as_deref() {
+        None => None,
+        Some("rewards") => Some(a.reward_threshold),
+        Some(other) => anyhow::bail!("--success-from {other:?}: only `rewards` is supported"),
+    };
+    Ok(ingest::IngestOptions {
+        policy: a.policy.clone(),
+        checkpoint: a.checkpoint.clone(),
+        task: a.task.clone(),
+        format: a.format.parse()?,
+        success_file: a.success_file.clone(),
+        success_from_rewards,
+        mapping: a.mapping.clone(),
+        recover: a.recover,
+        progress: !a.json,
+    })
+}
+
+pub async fn ingest(args: &StoreArgs, a: IngestArgs) -> Result<()> {
+    let store = args.open().await?;
+    let opts = ingest_options(&a)?;
+    let r = ingest::ingest(&store, &a.path, &opts).await?;
+    if a.json {
+        return super::print_json(&r);
+    }
+    if r.already_ingested {
+        println!("{} is already in the store (version {}, sha256 {}): nothing to do", a.path.display(), r.version, r.sha256);
+    } else {
+        println!(
+            "version {}: {} episodes, {} steps from {} ({}, {:.1} MB) — labels {:?}",
+            r.version,
+            r.episodes,
+            r.steps,
+            a.path.display(),
+            r.format,
+            r.bytes as f64 / 1e6,
+            r.labels
+        );
+    }
+    Ok(())
+}
+
+/// Runs the API's jobs: `train` through the trainer, `ingest` through the ingest crate.
+pub struct Runner;
+
+fn train_spec(spec: &serde_json::Value) -> Result<trainer::TrainJobSpec, String> {
+    let mut v = spec.clone();
+    if let Some(o) = v.as_object_mut() {
+        // The API records the split's policy/checkpoint for display; the split decides them.
+        o.remove("policy");
+        o.remove("checkpoint");
+        o.retain(|_, x| !x.is_null());
+    }
+    serde_json::from_value(v).map_err(|e| format!("bad training job spec: {e}"))
+}
+
+impl api::JobRunner for Runner {
+    fn run<'a>(
+        &'a self,
+        store: &'a store::Store,
+        job: &'a store::JobRecord,
+        ctx: api::JobContext,
+    ) -> BoxFuture<'a, Result<serde_json::Value, String>> {
+        Box::pin(async move {
+            match job.kind.as_str() {
+                "train" => {
+                    let spec = train_spec(&job.spec)?;
+                    let cancel = Arc::new(AtomicBool::new(false));
+                    let (c2, ctx2) = (cancel.clone(), ctx.clone());
+                    let watcher = tokio::spawn(async move {
+                        ctx2.cancelled().await;
+                        c2.store(true, Ordering::SeqCst);
+                    });
+                    let ctx3 = ctx.clone();
+                    let observer = Box::new(move |r: &trainer::EpochReport| {
+                        ctx3.progress(serde_json::to_value(r).unwrap_or_default());
+                    });
+                    let r = trainer::run_train_job(store, &spec, Some(&job.id), observer, Some(cancel)).await;
+                    watcher.abort();
+                    let rec = r.map_err(|e| format!("{e:#}"))?;
+                    Ok(serde_json::json!({ "artifact_id": rec.id, "metrics": rec.config["metrics"]["final"] }))
+                }
+                "ingest" => {
+                    let s = &job.spec;
+                    let field = |k: &str| s.get(k).and_then(|v| v.as_str()).map(String::from);
+                    let path = field("path").ok_or("ingest job has no path")?;
+                    let opts = ingest::IngestOptions {
+                        policy: field("policy").ok_or("ingest job has no policy")?,
+                        checkpoint: field("checkpoint").ok_or("ingest job has no checkpoint")?,
+                        task: field("task"),
+                        format: field("format").unwrap_or_else(|| "auto".into()).parse().map_err(|e| format!("{e}"))?,
+                        success_file: None,
+                        success_from_rewards: s.get("reward_threshold").and_then(|v| v.as_f64()),
+                        mapping: None,
+                        recover: s.get("recover").and_then(|v| v.as_bool()).unwrap_or(false),
+                        progress: false,
+                    };
+                    let r = ingest::ingest(store, std::path::Path::new(&path), &opts).await.map_err(|e| format!("{e:#}"))?;
+                    serde_json::to_value(&r).map_err(|e| e.to_string())
+                }
+                other => Err(format!("unknown job kind {other:?}")),
+            }
+        })
+    }
+}
+
+#[derive(clap::Args, Debug)]
+pub struct ServeArgs {
+    /// Address to listen on; binding beyond loopback must be asked for explicitly.
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub addr: SocketAddr,
+    /// Do not run jobs in this process (leave them to `ufops worker`).
+    #[arg(long)]
+    pub no_worker: bool,
+}
+
+async fn shutdown_signal() {
+    let _ = tokio::signal::ctrl_c().await;
+}
+
+pub async fn serve(args: &StoreArgs, a: ServeArgs) -> Result<()> {
+    let store = args.open().await?;
+    let mut cfg = api::ServeConfig::new(&args.data_dir);
+    cfg.addr = a.addr;
+    cfg.run_worker_in_process = !a.no_worker;
+    api::serve(store, cfg, Arc::new(Runner), shutdown_signal()).await
+}
+
+pub async fn worker(args: &StoreArgs, id: Option<String>, lease_ms: i64) -> Result<()> {
+    let store = args.open().await?;
+    let id = id.unwrap_or_else(|| format!("worker-{}", std::process::id()));
+    eprintln!("worker {id}: claiming jobs from {}", store.describe());
+    api::run_worker(store, Arc::new(Runner), id, lease_ms, shutdown_signal()).await;
+    Ok(())
+}
