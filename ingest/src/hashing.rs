@@ -1,0 +1,121 @@
+//! Source identity: sha256 of a file, or of a folder (its files in sorted relative-path order:
+//! for each file, the relative path with `/` separators, a NUL byte, the length as u64 LE, then
+//! the contents).
+
+use std::io::Read;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::path::{Path, PathBuf};
+
+use sha2::{Digest, Sha256};
+
+use crate::error::{IngestError, Result};
+
+const BUF: usize = 4 << 20;
+
+/// sha256 (hex) and size of one file.
+pub fn hash_file(path: &Path) -> Result<(String, u64)> {
+    hash_file_progress(path, None)
+}
+
+fn hash_file_progress(path: &Path, progress: Option<&AtomicU64>) -> Result<(String, u64)> {
+    let mut f = std::fs::File::open(path).map_err(|e| IngestError::io(path, e))?;
+    let mut h = Sha256::new();
+    let size = hash_reader_progress(&mut f, &mut h, progress).map_err(|e| IngestError::io(path, e))?;
+    Ok((hex::encode(h.finalize()), size))
+}
+
+fn hash_reader_progress(r: &mut impl Read, h: &mut Sha256, progress: Option<&AtomicU64>) -> std::io::Result<u64> {
+    let mut buf = vec![0u8; BUF];
+    let mut n = 0u64;
+    loop {
+        let k = match r.read(&mut buf) {
+            Ok(0) => break,
+            Ok(k) => k,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        };
+        h.update(&buf[..k]);
+        n += k as u64;
+        if let Some(p) = progress {
+            p.fetch_add(k as u64, Ordering::Relaxed);
+        }
+    }
+    Ok(n)
+}
+
+/// All regular files under `root`, as (relative path with `/`, absolute path), sorted.
+/// Hidden entries (`.git`, `.cache`, ...) are skipped.
+pub fn list_files(root: &Path) -> Result<Vec<(String, PathBuf)>> {
+    let mut out = Vec::new();
+    let mut stack = vec![root.to_path_buf()];
+    while let Some(dir) = stack.pop() {
+        let rd = std::fs::read_dir(&dir).map_err(|e| IngestError::io(&dir, e))?;
+        for ent in rd {
+            let ent = ent.map_err(|e| IngestError::io(&dir, e))?;
+            let name = ent.file_name();
+            if name.to_string_lossy().starts_with('.') {
+                continue;
+            }
+            let p = ent.path();
+            let ft = ent.file_type().map_err(|e| IngestError::io(&p, e))?;
+            let ft = if ft.is_symlink() {
+                std::fs::metadata(&p).map_err(|e| IngestError::io(&p, e))?.file_type()
+            } else {
+                ft
+            };
+            if ft.is_dir() {
+                stack.push(p);
+            } else if ft.is_file() {
+                let rel = p
+                    .strip_prefix(root)
+                    .unwrap_or(&p)
+                    .components()
+                    .map(|c| c.as_os_str().to_string_lossy().into_owned())
+                    .collect::<Vec<_>>()
+                    .join("/");
+                out.push((rel, p));
+            }
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+/// sha256 (hex) and total size of a folder.
+pub fn hash_folder(root: &Path) -> Result<(String, u64)> {
+    hash_folder_progress(root, None)
+}
+
+fn hash_folder_progress(root: &Path, progress: Option<&AtomicU64>) -> Result<(String, u64)> {
+    let files = list_files(root)?;
+    let mut h = Sha256::new();
+    let mut total = 0u64;
+    for (rel, abs) in files {
+        let mut f = std::fs::File::open(&abs).map_err(|e| IngestError::io(&abs, e))?;
+        let len = f.metadata().map_err(|e| IngestError::io(&abs, e))?.len();
+        h.update(rel.as_bytes());
+        h.update([0u8]);
+        h.update(len.to_le_bytes());
+        let n = hash_reader_progress(&mut f, &mut h, progress).map_err(|e| IngestError::io(&abs, e))?;
+        if n != len {
+            return Err(IngestError::invalid(&abs, "file changed while it was being read"));
+        }
+        total += n;
+    }
+    Ok((hex::encode(h.finalize()), total))
+}
+
+/// sha256 and size of a file or a folder.
+pub fn hash_path(path: &Path) -> Result<(String, u64)> {
+    hash_path_progress(path, None)
+}
+
+/// Like [`hash_path`], adding the bytes read so far to `progress`.
+pub fn hash_path_progress(path: &Path, progress: Option<&AtomicU64>) -> Result<(String, u64)> {
+    let md = std::fs::metadata(path).map_err(|e| IngestError::io(path, e))?;
+    if md.is_dir() {
+        hash_folder_progress(path, progress)
+    } else {
+        hash_file_progress(path, progress)
+    }
+}

@@ -1,0 +1,130 @@
+//! ufops ingest: turns a policy's evaluation rollouts (robomimic HDF5, LeRobot v2.1/v3.0 datasets,
+//! MCAP recordings) into one new store version. See `README.md` in this crate.
+//!
+//! Layers:
+//! * format readers ([`robomimic`], [`lerobot`], [`mcapfmt`]) are plain synchronous Rust that push
+//!   a [`sink::SourceMeta`], media files and [`model::EpisodeInput`]s into an [`sink::EpisodeSink`];
+//! * [`read_path`] picks the reader (format detection);
+//! * the async glue ([`ingest`]) runs a reader on a blocking thread, hashes the source on another,
+//!   and forwards everything to the store's `IngestWriter` through a bounded channel, committing
+//!   once at the end (all or nothing).
+
+pub mod dvalue;
+pub mod error;
+pub mod fuzzing;
+pub mod hashing;
+pub mod lerobot;
+pub mod mapping;
+pub mod mcapfmt;
+/// The data types readers produce (the store's own model).
+pub use store::model;
+pub mod pipeline;
+pub mod options;
+pub mod robomimic;
+pub mod ros2msg;
+pub mod sink;
+
+use std::path::Path;
+
+pub use error::IngestError;
+pub use options::{Format, IngestOptions, ReadOptions};
+pub use pipeline::{ingest, IngestReport, LabelCounts};
+
+use error::Result;
+use sink::EpisodeSink;
+
+const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
+const HDF5_MAGIC: &[u8] = b"\x89HDF\r\n\x1a\n";
+
+/// Decides the format of `path` (a LeRobot folder, an HDF5 file, an MCAP file).
+pub fn detect(path: &Path) -> Result<Format> {
+    let md = std::fs::metadata(path).map_err(|e| IngestError::io(path, e))?;
+    if md.is_dir() {
+        if path.join("meta/info.json").is_file() {
+            return Ok(Format::Lerobot);
+        }
+        return Err(IngestError::invalid(
+            path.join("meta/info.json"),
+            "missing: a folder is ingested as a LeRobot dataset, which needs meta/info.json",
+        ));
+    }
+    let mut head = [0u8; 8];
+    use std::io::Read;
+    let mut f = std::fs::File::open(path).map_err(|e| IngestError::io(path, e))?;
+    let n = f.read(&mut head).map_err(|e| IngestError::io(path, e))?;
+    let head = &head[..n];
+    if head.starts_with(MCAP_MAGIC) {
+        return Ok(Format::Mcap);
+    }
+    if head.starts_with(HDF5_MAGIC) || hdf5_pure::is_hdf5(path).unwrap_or(false) {
+        return Ok(Format::Robomimic);
+    }
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+    match ext.as_str() {
+        "mcap" => Err(IngestError::invalid(path, "not an MCAP file (bad magic)")),
+        "hdf5" | "h5" | "he5" => Err(IngestError::invalid(path, "not an HDF5 file (no HDF5 signature)")),
+        _ => Err(IngestError::invalid(
+            path,
+            "unknown format: not an HDF5 file, not an MCAP file, not a LeRobot folder (use --format)",
+        )),
+    }
+}
+
+/// Runs the right reader over `path`, pushing everything into `sink`.
+pub fn read_path(path: &Path, format: Format, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<Format> {
+    Ok(read_path_report(path, format, opts, sink)?.format)
+}
+
+/// What a reader run found besides the episodes.
+#[derive(Debug, Clone)]
+pub struct ReadOutcome {
+    pub format: Format,
+    pub notes: Vec<String>,
+}
+
+/// [`read_path`], also returning notes for the user (e.g. what `--recover` left out).
+///
+/// A panic inside a decoding library (none is known: fuzzing found and worked around the ones in
+/// `mcap` and `parquet`) is turned into an error naming the file, as a last line of defence.
+pub fn read_path_report(path: &Path, format: Format, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<ReadOutcome> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| read_path_inner(path, format, opts, sink))) {
+        Ok(r) => r,
+        Err(p) => {
+            let msg = p
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_else(|| "unknown".into());
+            Err(IngestError::invalid(path, format!("the file is corrupt: a decoder failed ({msg})")))
+        }
+    }
+}
+
+fn read_path_inner(path: &Path, format: Format, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<ReadOutcome> {
+    let format = match format {
+        Format::Auto => detect(path)?,
+        f => f,
+    };
+    let mut notes = Vec::new();
+    match format {
+        Format::Robomimic => robomimic::read_file(path, opts, sink)?,
+        Format::Lerobot => lerobot::read_dir(path, opts, sink)?,
+        Format::Mcap => {
+            let r = mcapfmt::read_file(path, opts, sink)?;
+            if let Some(t) = &r.summary.truncated {
+                notes.push(t.clone());
+            }
+            if !r.incomplete.is_empty() {
+                notes.push(format!("left out (incomplete): {}", r.incomplete.join(", ")));
+            }
+            if !r.skipped_empty.is_empty() {
+                notes.push(format!(
+                    "left out (no action messages): episodes {}",
+                    r.skipped_empty.iter().map(|i| i.to_string()).collect::<Vec<_>>().join(", ")
+                ));
+            }
+        }
+        Format::Auto => unreachable!("resolved above"),
+    }
+    Ok(ReadOutcome { format, notes })
+}

@@ -1,0 +1,531 @@
+//! robomimic HDF5 rollouts: `data/demo_N/{obs/<key>, next_obs/<key>, actions, rewards, dones,
+//! states}`, attributes `data@total`, `data@env_args` (JSON), `demo@num_samples`,
+//! `demo@model_file`, and `mask/<filter>` lists of demo names.
+//!
+//! Read with `hdf5-pure` (no system library). Small files are loaded whole; files above
+//! [`STREAMING_THRESHOLD`] are opened with the streaming backend (bounded memory).
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+
+use hdf5_pure::{AttrValue, DType, Dataset, File, Group};
+use serde_json::{json, Map, Value};
+use sha2::Digest;
+
+use crate::error::{IngestError, Result};
+use crate::model::{EpisodeInput, ImageColumn, Label, VectorColumn};
+use crate::options::ReadOptions;
+use crate::sink::{EpisodeSink, SourceMeta};
+
+/// Files larger than this are read with `File::open_streaming` instead of being loaded whole.
+pub const STREAMING_THRESHOLD: u64 = 2 << 30;
+
+/// Attribute values larger than this (e.g. the ~38 KB MuJoCo `model_file` per demo) are not
+/// copied into episode metadata; their sha256 and length are kept instead.
+const MAX_ATTR_CHARS: usize = 4096;
+
+/// Reads a robomimic file from disk.
+pub fn read_file(path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<()> {
+    let size = std::fs::metadata(path).map_err(|e| IngestError::io(path, e))?.len();
+    check_signature_file(path)?;
+    let file = if size > STREAMING_THRESHOLD {
+        File::open_streaming(path)
+    } else {
+        let bytes = std::fs::read(path).map_err(|e| IngestError::io(path, e))?;
+        File::from_bytes(bytes)
+    }
+    .map_err(|e| IngestError::invalid(path, format!("not a readable HDF5 file: {e}")))?;
+    read_h5(&file, path, opts, sink)
+}
+
+/// Reads a robomimic file held in memory (`name` is used in error messages).
+pub fn read_bytes(
+    name: &Path,
+    bytes: Vec<u8>,
+    opts: &ReadOptions,
+    sink: &mut dyn EpisodeSink,
+) -> Result<()> {
+    if !hdf5_pure::is_hdf5_bytes(&bytes) {
+        return Err(IngestError::invalid(name, "not an HDF5 file (no HDF5 signature)"));
+    }
+    let file = File::from_bytes(bytes)
+        .map_err(|e| IngestError::invalid(name, format!("not a readable HDF5 file: {e}")))?;
+    read_h5(&file, name, opts, sink)
+}
+
+fn check_signature_file(path: &Path) -> Result<()> {
+    match hdf5_pure::is_hdf5(path) {
+        Ok(true) => Ok(()),
+        Ok(false) => Err(IngestError::invalid(path, "not an HDF5 file (no HDF5 signature)")),
+        Err(e) => Err(IngestError::io(path, e)),
+    }
+}
+
+fn h5err(path: &Path, what: impl std::fmt::Display) -> impl FnOnce(hdf5_pure::Error) -> IngestError {
+    let what = what.to_string();
+    let path = path.to_path_buf();
+    move |e| IngestError::invalid(path, format!("{what}: {e}"))
+}
+
+/// Converts an attribute value to JSON.
+fn attr_json(v: &AttrValue) -> Value {
+    if let Some(s) = v.as_str() {
+        return Value::String(s.to_string());
+    }
+    if let Some(ss) = v.as_strings() {
+        return json!(ss);
+    }
+    match v {
+        AttrValue::F32(x) => json!(x),
+        AttrValue::F64(x) => json!(x),
+        AttrValue::F32Array(x) => json!(x),
+        AttrValue::F64Array(x) => json!(x),
+        AttrValue::I8Array(x) => json!(x),
+        AttrValue::I16Array(x) => json!(x),
+        AttrValue::I32Array(x) => json!(x),
+        AttrValue::I64Array(x) => json!(x),
+        AttrValue::U8Array(x) => json!(x),
+        AttrValue::U16Array(x) => json!(x),
+        AttrValue::U32Array(x) => json!(x),
+        AttrValue::U64Array(x) => json!(x),
+        _ => {
+            if let Some(i) = v.as_i64() {
+                json!(i)
+            } else if let Some(u) = v.as_u64() {
+                json!(u)
+            } else if let Some(f) = v.as_f64() {
+                json!(f)
+            } else {
+                Value::String(format!("{v:?}"))
+            }
+        }
+    }
+}
+
+/// Reads the attributes of a group and fails when one cannot be represented (hdf5-pure skips
+/// those silently in `attrs()`) and `required` names it.
+fn group_attrs(
+    g: &Group,
+    path: &Path,
+    where_: &str,
+    required: &[&str],
+) -> Result<HashMap<String, AttrValue>> {
+    let attrs = g.attrs().map_err(h5err(path, format!("cannot read the attributes of {where_}")))?;
+    if !required.is_empty() {
+        let types = g
+            .attr_datatypes()
+            .map_err(h5err(path, format!("cannot read the attributes of {where_}")))?;
+        for r in required {
+            if types.contains_key(*r) && !attrs.contains_key(*r) {
+                return Err(IngestError::invalid(
+                    path,
+                    format!("attribute {where_}@{r} has a datatype that cannot be read"),
+                ));
+            }
+        }
+    }
+    Ok(attrs)
+}
+
+fn demo_index(name: &str) -> Option<u64> {
+    name.rsplit('_').next().and_then(|s| s.parse().ok())
+}
+
+struct DatasetInfo {
+    shape: Vec<u64>,
+    dtype: DType,
+}
+
+fn info(ds: &Dataset, path: &Path, what: &str) -> Result<DatasetInfo> {
+    let shape = ds.shape().map_err(h5err(path, format!("cannot read the shape of {what}")))?;
+    let dtype = ds.dtype().map_err(h5err(path, format!("cannot read the datatype of {what}")))?;
+    Ok(DatasetInfo { shape, dtype })
+}
+
+fn is_numeric(d: &DType) -> bool {
+    matches!(
+        d,
+        DType::F32
+            | DType::F64
+            | DType::I8
+            | DType::I16
+            | DType::I32
+            | DType::I64
+            | DType::U8
+            | DType::U16
+            | DType::U32
+            | DType::U64
+    )
+}
+
+/// Rows x columns of a (T, ...) numeric dataset, read as f32.
+fn read_matrix(ds: &Dataset, path: &Path, what: &str, steps: Option<usize>) -> Result<(usize, usize, Vec<f32>)> {
+    let inf = info(ds, path, what)?;
+    if !is_numeric(&inf.dtype) {
+        return Err(IngestError::invalid(
+            path,
+            format!("{what} has datatype {} (expected a number type)", inf.dtype),
+        ));
+    }
+    if inf.shape.is_empty() {
+        return Err(IngestError::invalid(path, format!("{what} is a scalar (expected one row per step)")));
+    }
+    let rows = inf.shape[0] as usize;
+    let dim: u64 = inf.shape[1..].iter().try_fold(1u64, |a, &b| a.checked_mul(b)).ok_or_else(|| {
+        IngestError::invalid(path, format!("{what} has an impossible shape {:?}", inf.shape))
+    })?;
+    if let Some(t) = steps {
+        if rows != t {
+            return Err(IngestError::invalid(
+                path,
+                format!("{what} has {rows} rows but the demo has {t} steps"),
+            ));
+        }
+    }
+    let values = ds.read_f32().map_err(h5err(path, format!("cannot read {what}")))?;
+    if values.len() as u64 != rows as u64 * dim {
+        return Err(IngestError::invalid(
+            path,
+            format!("{what}: read {} values, shape {:?} says {}", values.len(), inf.shape, rows as u64 * dim),
+        ));
+    }
+    Ok((rows, dim as usize, values))
+}
+
+fn read_env_args(data: &Group, path: &Path) -> Result<(Value, Map<String, Value>)> {
+    let attrs = group_attrs(data, path, "data", &["env_args", "total"])?;
+    let mut extra = Map::new();
+    let env_args = match attrs.get("env_args") {
+        Some(v) => match v.as_str() {
+            Some(s) => serde_json::from_str::<Value>(s).map_err(|e| {
+                IngestError::invalid(path, format!("data@env_args is not valid JSON: {e}"))
+            })?,
+            None => {
+                return Err(IngestError::invalid(path, "data@env_args is not a string"));
+            }
+        },
+        None => Value::Null,
+    };
+    for (k, v) in attrs.iter() {
+        if k != "env_args" {
+            extra.insert(k.clone(), attr_json(v));
+        }
+    }
+    Ok((env_args, extra))
+}
+
+/// Reads `mask/<filter>` lists (demo names as strings) into demo → tags.
+fn read_masks(file: &File, path: &Path) -> Result<HashMap<String, Vec<String>>> {
+    let mut tags: HashMap<String, Vec<String>> = HashMap::new();
+    let Ok(mask) = file.group("mask") else { return Ok(tags) };
+    let names = mask.datasets().map_err(h5err(path, "cannot list mask/"))?;
+    for filter in names {
+        let ds = mask.dataset(&filter).map_err(h5err(path, format!("cannot open mask/{filter}")))?;
+        let demos = ds
+            .read_string()
+            .map_err(h5err(path, format!("mask/{filter} is not a list of demo names")))?;
+        for d in demos {
+            let d = d.trim_end_matches('\0').trim().to_string();
+            tags.entry(d).or_default().push(filter.clone());
+        }
+    }
+    Ok(tags)
+}
+
+fn control_freq(env_args: &Value) -> Option<f64> {
+    let f = env_args
+        .pointer("/env_kwargs/control_freq")
+        .or_else(|| env_args.get("control_freq"))?
+        .as_f64()?;
+    (f.is_finite() && f > 0.0).then_some(f)
+}
+
+fn read_h5(file: &File, path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<()> {
+    let data = file
+        .group("data")
+        .map_err(h5err(path, "no `data` group: not a robomimic file"))?;
+    let (env_args, data_attrs) = read_env_args(&data, path)?;
+    let freq = control_freq(&env_args);
+    let masks = read_masks(file, path)?;
+
+    let mut demos: Vec<String> = data.groups().map_err(h5err(path, "cannot list data/"))?;
+    demos.sort_by(|a, b| match (demo_index(a), demo_index(b)) {
+        (Some(x), Some(y)) => x.cmp(&y).then(a.cmp(b)),
+        (Some(_), None) => std::cmp::Ordering::Less,
+        (None, Some(_)) => std::cmp::Ordering::Greater,
+        (None, None) => a.cmp(b),
+    });
+    if demos.is_empty() {
+        return Err(IngestError::invalid(path, "data/ holds no demo groups"));
+    }
+    let mut meta = Map::new();
+    meta.insert("env_args".into(), env_args.clone());
+    for (k, v) in data_attrs {
+        meta.insert(k, v);
+    }
+    meta.insert("num_demos".into(), json!(demos.len()));
+    if !masks.is_empty() {
+        let mut filters: Vec<&String> = masks.values().flatten().collect();
+        filters.sort();
+        filters.dedup();
+        meta.insert("mask_filters".into(), json!(filters));
+    }
+    if let Some(f) = freq {
+        meta.insert("control_freq".into(), json!(f));
+    }
+    sink.source(SourceMeta { format: "robomimic".into(), metadata: Value::Object(meta) })?;
+
+    let env_name = env_args.get("env_name").and_then(|v| v.as_str()).map(str::to_string);
+    let mut total_steps = 0u64;
+    for (index, name) in demos.iter().enumerate() {
+        let ep = read_demo(file, path, name, index as u32, freq, &masks, env_name.as_deref(), opts)?;
+        total_steps += ep.len() as u64;
+        sink.episode(ep)?;
+    }
+    let _ = total_steps;
+    Ok(())
+}
+
+#[allow(clippy::too_many_arguments)]
+fn read_demo(
+    file: &File,
+    path: &Path,
+    name: &str,
+    index: u32,
+    freq: Option<f64>,
+    masks: &HashMap<String, Vec<String>>,
+    env_name: Option<&str>,
+    opts: &ReadOptions,
+) -> Result<EpisodeInput> {
+    let g = file
+        .group(&format!("data/{name}"))
+        .map_err(h5err(path, format!("cannot open data/{name}")))?;
+    let attrs = group_attrs(&g, path, &format!("data/{name}"), &["num_samples"])?;
+    let members = g.datasets().map_err(h5err(path, format!("cannot list data/{name}")))?;
+    if !members.iter().any(|m| m == "actions") {
+        return Err(IngestError::invalid(path, format!("data/{name} has no `actions` dataset")));
+    }
+    let actions_ds = g.dataset("actions").map_err(h5err(path, format!("cannot open data/{name}/actions")))?;
+    let (steps, adim, actions) = read_matrix(&actions_ds, path, &format!("data/{name}/actions"), None)?;
+    if let Some(n) = attrs.get("num_samples").and_then(|v| v.as_i64()) {
+        if n != steps as i64 {
+            return Err(IngestError::invalid(
+                path,
+                format!("data/{name}@num_samples is {n} but actions has {steps} rows"),
+            ));
+        }
+    }
+
+    let reward: Vec<f32> = if members.iter().any(|m| m == "rewards") {
+        let ds = g.dataset("rewards").map_err(h5err(path, format!("cannot open data/{name}/rewards")))?;
+        let (_, d, v) = read_matrix(&ds, path, &format!("data/{name}/rewards"), Some(steps))?;
+        if d != 1 {
+            return Err(IngestError::invalid(path, format!("data/{name}/rewards is not one value per step")));
+        }
+        v
+    } else {
+        vec![0.0; steps]
+    };
+    let done: Vec<bool> = if members.iter().any(|m| m == "dones") {
+        read_dones(&g, path, name, steps)?
+    } else {
+        let mut d = vec![false; steps];
+        if let Some(l) = d.last_mut() {
+            *l = true;
+        }
+        d
+    };
+
+    // Observations.
+    let mut observations = Vec::new();
+    let mut images = Vec::new();
+    if let Ok(obs) = g.group("obs") {
+        let mut keys = obs.datasets().map_err(h5err(path, format!("cannot list data/{name}/obs")))?;
+        keys.sort();
+        for key in keys {
+            let what = format!("data/{name}/obs/{key}");
+            let ds = obs.dataset(&key).map_err(h5err(path, format!("cannot open {what}")))?;
+            let inf = info(&ds, path, &what)?;
+            if inf.dtype == DType::U8 && inf.shape.len() == 4 {
+                images.push(read_images(&ds, path, &what, &key, &inf.shape, steps)?);
+            } else {
+                let (_, dim, values) = read_matrix(&ds, path, &what, Some(steps))?;
+                observations.push(VectorColumn { name: key, dim, values });
+            }
+        }
+    }
+
+    let timestamps: Vec<f64> = match freq {
+        Some(f) => (0..steps).map(|t| t as f64 / f).collect(),
+        None => (0..steps).map(|t| t as f64).collect(),
+    };
+
+    let (label, label_source) = opts
+        .user_label(name, index, &reward)
+        .unwrap_or((Label::Unknown, String::new()));
+
+    let mut md = Map::new();
+    let mut attr_names: Vec<_> = attrs.keys().cloned().collect();
+    attr_names.sort();
+    for k in attr_names {
+        let v = &attrs[&k];
+        let jv = attr_json(v);
+        match jv {
+            Value::String(s) if s.len() > MAX_ATTR_CHARS => {
+                md.insert(
+                    k,
+                    json!({"sha256": hex::encode(sha2::Sha256::digest(s.as_bytes())), "chars": s.chars().count()}),
+                );
+            }
+            other => {
+                md.insert(k, other);
+            }
+        }
+    }
+    let mut others: BTreeMap<String, Value> = BTreeMap::new();
+    for m in &members {
+        if !matches!(m.as_str(), "actions" | "rewards" | "dones") {
+            if let Ok(ds) = g.dataset(m) {
+                if let Ok(s) = ds.shape() {
+                    others.insert(m.clone(), json!(s));
+                }
+            }
+        }
+    }
+    if !others.is_empty() {
+        md.insert("not_ingested".into(), json!(others));
+    }
+
+    let task = opts.task.clone().or_else(|| env_name.map(str::to_string));
+    let tags = masks.get(name).cloned().unwrap_or_default();
+    Ok(EpisodeInput {
+        source_name: name.to_string(),
+        source_index: index,
+        task,
+        label,
+        label_source,
+        tags,
+        metadata: Value::Object(md),
+        timestamps,
+        observations,
+        action: VectorColumn { name: "action".into(), dim: adim, values: actions },
+        reward,
+        done,
+        action_chunk: None,
+        images,
+        media: Vec::new(),
+    })
+}
+
+fn read_dones(g: &Group, path: &Path, name: &str, steps: usize) -> Result<Vec<bool>> {
+    let what = format!("data/{name}/dones");
+    let ds = g.dataset("dones").map_err(h5err(path, format!("cannot open {what}")))?;
+    let inf = info(&ds, path, &what)?;
+    let rows = inf.shape.first().copied().unwrap_or(0) as usize;
+    if rows != steps || inf.shape.iter().skip(1).any(|&d| d != 1) {
+        return Err(IngestError::invalid(
+            path,
+            format!("{what} has shape {:?} but the demo has {steps} steps", inf.shape),
+        ));
+    }
+    let vals: Vec<bool> = match &inf.dtype {
+        DType::F32 | DType::F64 => {
+            ds.read_f64().map_err(h5err(path, format!("cannot read {what}")))?.into_iter().map(|x| x != 0.0).collect()
+        }
+        DType::Enum(_) => {
+            // bool stored as an HDF5 enum {FALSE=0, TRUE=1} over an integer base.
+            match ds.read_i64() {
+                Ok(v) => v.into_iter().map(|x| x != 0).collect(),
+                Err(_) => {
+                    let raw = ds.read_raw().map_err(h5err(path, format!("cannot read {what}")))?;
+                    if raw.is_empty() || raw.len() % steps.max(1) != 0 {
+                        return Err(IngestError::invalid(path, format!("{what}: unexpected enum storage")));
+                    }
+                    let w = raw.len() / steps.max(1);
+                    raw.chunks(w).map(|c| c.iter().any(|&b| b != 0)).collect()
+                }
+            }
+        }
+        d if is_numeric(d) => {
+            ds.read_i64().map_err(h5err(path, format!("cannot read {what}")))?.into_iter().map(|x| x != 0).collect()
+        }
+        other => {
+            return Err(IngestError::invalid(path, format!("{what} has datatype {other} (expected bool or integer)")));
+        }
+    };
+    if vals.len() != steps {
+        return Err(IngestError::invalid(path, format!("{what}: read {} values for {steps} steps", vals.len())));
+    }
+    Ok(vals)
+}
+
+fn read_images(
+    ds: &Dataset,
+    path: &Path,
+    what: &str,
+    key: &str,
+    shape: &[u64],
+    steps: usize,
+) -> Result<ImageColumn> {
+    let (t, h, w, c) = (shape[0] as usize, shape[1] as usize, shape[2] as usize, shape[3] as usize);
+    if t != steps {
+        return Err(IngestError::invalid(path, format!("{what} has {t} frames but the demo has {steps} steps")));
+    }
+    if !(1..=4).contains(&c) || h == 0 || w == 0 || h > 1 << 15 || w > 1 << 15 {
+        return Err(IngestError::invalid(path, format!("{what}: unsupported image shape {shape:?} (expected T x H x W x C, C in 1..=4)")));
+    }
+    let bytes = ds.read_u8().map_err(h5err(path, format!("cannot read {what}")))?;
+    let frame = h * w * c;
+    if bytes.len() != frame * t {
+        return Err(IngestError::invalid(path, format!("{what}: read {} bytes, shape says {}", bytes.len(), frame * t)));
+    }
+    let png_frames = encode_png_frames(&bytes, t, h, w, c).map_err(|e| IngestError::invalid(path, format!("{what}: {e}")))?;
+    Ok(ImageColumn { name: key.to_string(), shape: [h, w, c], png_frames })
+}
+
+/// PNG-encodes `t` frames of `h x w x c` u8 (fast compression), on two threads when it pays.
+pub fn encode_png_frames(
+    bytes: &[u8],
+    t: usize,
+    h: usize,
+    w: usize,
+    c: usize,
+) -> std::result::Result<Vec<Vec<u8>>, String> {
+    let frame = h * w * c;
+    let enc = |chunk: &[u8]| -> std::result::Result<Vec<Vec<u8>>, String> {
+        chunk.chunks(frame).map(|f| encode_png(f, h, w, c)).collect()
+    };
+    if t >= 8 && frame * t >= 1 << 20 {
+        let half = t / 2;
+        let (a, b) = bytes.split_at(half * frame);
+        let (ra, rb) = std::thread::scope(|s| {
+            let hb = s.spawn(|| enc(b));
+            let ra = enc(a);
+            (ra, hb.join())
+        });
+        let mut out = ra?;
+        out.extend(rb.map_err(|_| "PNG encoder thread panicked".to_string())??);
+        Ok(out)
+    } else {
+        enc(bytes)
+    }
+}
+
+pub fn encode_png(frame: &[u8], h: usize, w: usize, c: usize) -> std::result::Result<Vec<u8>, String> {
+    let mut out = Vec::with_capacity(frame.len() / 2 + 64);
+    {
+        let mut e = png::Encoder::new(&mut out, w as u32, h as u32);
+        e.set_color(match c {
+            1 => png::ColorType::Grayscale,
+            2 => png::ColorType::GrayscaleAlpha,
+            3 => png::ColorType::Rgb,
+            _ => png::ColorType::Rgba,
+        });
+        e.set_depth(png::BitDepth::Eight);
+        e.set_compression(png::Compression::Fast);
+        let mut wr = e.write_header().map_err(|e| format!("PNG encoding failed: {e}"))?;
+        wr.write_image_data(frame).map_err(|e| format!("PNG encoding failed: {e}"))?;
+        wr.finish().map_err(|e| format!("PNG encoding failed: {e}"))?;
+    }
+    Ok(out)
+}

@@ -1,0 +1,67 @@
+//! What a format reader produces: the source's metadata first, then media files and episodes.
+//! Readers are plain synchronous Rust; the async glue in [`crate::pipeline`] runs them on a
+//! blocking thread and forwards what they emit to the store through a bounded channel.
+
+use crate::error::Result;
+use crate::model::{EpisodeInput, MediaFile};
+
+/// What the reader learned about the source before any episode (format + metadata JSON).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SourceMeta {
+    pub format: String,
+    pub metadata: serde_json::Value,
+}
+
+pub trait EpisodeSink {
+    /// Called exactly once, before any media or episode.
+    fn source(&mut self, meta: SourceMeta) -> Result<()>;
+    /// A media file that later episodes reference (by sha256). May be called once per file.
+    fn media(&mut self, file: MediaFile) -> Result<()>;
+    fn episode(&mut self, episode: EpisodeInput) -> Result<()>;
+}
+
+/// A sink that keeps everything in memory (tests, small files, fuzzing).
+#[derive(Debug, Default)]
+pub struct CollectSink {
+    pub source: Option<SourceMeta>,
+    pub media: Vec<MediaFile>,
+    pub episodes: Vec<EpisodeInput>,
+}
+
+impl EpisodeSink for CollectSink {
+    fn source(&mut self, meta: SourceMeta) -> Result<()> {
+        self.source = Some(meta);
+        Ok(())
+    }
+    fn media(&mut self, file: MediaFile) -> Result<()> {
+        self.media.push(file);
+        Ok(())
+    }
+    fn episode(&mut self, episode: EpisodeInput) -> Result<()> {
+        self.episodes.push(episode);
+        Ok(())
+    }
+}
+
+/// A sink that only counts (used by fuzzing and benchmarks of the reader alone).
+#[derive(Debug, Default)]
+pub struct CountSink {
+    pub episodes: usize,
+    pub steps: usize,
+    pub media: usize,
+}
+
+impl EpisodeSink for CountSink {
+    fn source(&mut self, _meta: SourceMeta) -> Result<()> {
+        Ok(())
+    }
+    fn media(&mut self, _file: MediaFile) -> Result<()> {
+        self.media += 1;
+        Ok(())
+    }
+    fn episode(&mut self, episode: EpisodeInput) -> Result<()> {
+        self.episodes += 1;
+        self.steps += episode.len();
+        Ok(())
+    }
+}
