@@ -43,11 +43,11 @@ def main():
         duckdb = None
     if duckdb is not None:
         glob = os.path.join(objects, "steps", "*.parquet")
-        n = duckdb.sql(f"SELECT count(*) FROM read_parquet('{glob}')").fetchone()[0]
+        n = duckdb.sql(f"SELECT count(*) FROM read_parquet('{glob}')").fetchall()[0][0]
         total = sum(e["length"] for e in episodes.values())
         assert n >= total, (n, total)
         lbl = os.path.join(objects, expected["labels_path"])
-        s = duckdb.sql(f"SELECT count(*) FROM read_parquet('{lbl}') WHERE label = 'success'").fetchone()[0]
+        s = duckdb.sql(f"SELECT count(*) FROM read_parquet('{lbl}') WHERE label = 'success'").fetchall()[0][0]
         assert s == sum(1 for e in episodes.values() if e["label"] == "success")
         print(f"duckdb: {n} step rows, {s} successes")
     try:
