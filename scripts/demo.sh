@@ -4,4 +4,5 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 # shellcheck source=scripts/env.sh
 source scripts/env.sh
-cargo run --release --locked --bin ufops -- demo "$@"
+# The dev profile optimises dependencies and the numeric crates and shares its build with the tests.
+cargo run --locked --bin ufops -- demo "$@"
