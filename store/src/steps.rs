@@ -335,8 +335,3 @@ pub fn labels_file(version_hint: i64, rows: &[LabelRow]) -> Result<Vec<u8>, Stor
     w.write(&batch)?;
     Ok(w.into_inner()?)
 }
-
-/// Number of rows of a column that is `Some(true)`; used in checks.
-pub fn count_true(a: &BooleanArray) -> usize {
-    (0..a.len()).filter(|&i| a.is_valid(i) && a.value(i)).count()
-}

@@ -48,6 +48,8 @@ pub struct IngestWriter {
     episodes: Vec<PendingEpisode>,
     ids: HashSet<String>,
     media: HashMap<String, (String, String, i64)>,
+    /// sha256 → object path of the media added so far (what step rows reference).
+    media_paths: HashMap<String, String>,
     max_file_bytes: usize,
 }
 
@@ -86,6 +88,7 @@ impl Store {
             episodes: Vec::new(),
             ids: HashSet::new(),
             media: HashMap::new(),
+            media_paths: HashMap::new(),
             max_file_bytes: MAX_FILE_BYTES,
         })
     }
@@ -131,6 +134,7 @@ impl IngestWriter {
             .unwrap_or("bin");
         let path = format!("media/{}.{ext}", file.sha256);
         self.store.objects().put_content_addressed(&path, Bytes::from(data)).await?;
+        self.media_paths.insert(file.sha256.clone(), path.clone());
         self.media.insert(file.sha256.clone(), (path, file.content_type.clone(), file.size_bytes as i64));
         Ok(())
     }
@@ -148,10 +152,8 @@ impl IngestWriter {
                 ep.source_index, ep.source_name
             )));
         }
-        let media_paths: HashMap<String, String> =
-            self.media.iter().map(|(k, v)| (k.clone(), v.0.clone())).collect();
         let meta = EpisodeMeta { episode_id: &id, policy: &self.policy, checkpoint: &self.checkpoint };
-        let batch = steps::episode_batch(&ep, &meta, &media_paths)?;
+        let batch = steps::episode_batch(&ep, &meta, &self.media_paths)?;
         if self.current.as_ref().is_some_and(|(_, w)| w.schema != batch.schema()) {
             self.finish_file().await?;
         }
