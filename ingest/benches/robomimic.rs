@@ -4,7 +4,8 @@
 //! machine's limit (reading the file + zstd-compressing the output columns, nothing else).
 //!
 //! The input is generated once with `../shared/bench/gen_robomimic.py OUT --demos 1000` into the
-//! target directory (never into git). Env: `UFOPS_BENCH_RUNS` (default 3), `UFOPS_BENCH_FILE`.
+//! target directory (never into git). Env: `UFOPS_BENCH_RUNS` (default 3), `UFOPS_BENCH_FILE`,
+//! `UFOPS_BENCH_INGEST_ONLY` (time the whole ingest only, e.g. under `perf record`).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -64,6 +65,13 @@ fn python_reference(inp: &Path, out: &Path) -> Option<Duration> {
     st.success().then(|| t.elapsed())
 }
 
+/// `/proc/loadavg`'s 1, 5 and 15 minute figures (figures are noisy on a shared machine).
+fn loadavg() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "unknown".into())
+}
+
 fn main() {
     // `cargo bench` passes --bench; `cargo test --benches` passes nothing useful: run only on bench
     if std::env::args().any(|a| a == "--list") {
@@ -77,6 +85,7 @@ fn main() {
     let size = std::fs::metadata(&inp).unwrap().len();
     let mb = size as f64 / 1e6;
     println!("input: {} ({mb:.1} MB), {runs} runs each, medians", inp.display());
+    println!("load average at start: {}", loadavg());
 
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
     let tmp = tempfile::tempdir().unwrap();
@@ -107,6 +116,12 @@ fn main() {
         steps = rep.steps;
         t_ingest.push(d);
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    if std::env::var_os("UFOPS_BENCH_INGEST_ONLY").is_some() {
+        // for profiling (perf record ...): the whole ingest only
+        println!("ufops ingest: {:.3} s median of {runs}", median(t_ingest).as_secs_f64());
+        return;
     }
 
     // 2. the Python reference
@@ -214,5 +229,6 @@ fn main() {
     if let Some(p) = py {
         println!("ratio: ufops ingest is {:.2}x the Python reference's throughput (goal >= 3x)", p / ing);
     }
+    println!("load average at end: {}", loadavg());
     println!("distance to the machine's limit: {:.2}x slower than read+zstd on 1 core, {:.2}x on 2 cores", ing / (fs + z), ing / (fs + z / 2.0));
 }

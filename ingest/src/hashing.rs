@@ -43,6 +43,11 @@ fn hash_reader_progress(r: &mut impl Read, h: &mut Sha256, progress: Option<&Ato
     Ok(n)
 }
 
+/// sha256 (hex) of bytes in memory (a whole file: the same as [`hash_file`] of it).
+pub fn hash_bytes(bytes: &[u8]) -> String {
+    hex::encode(Sha256::digest(bytes))
+}
+
 /// All regular files under `root`, as (relative path with `/`, absolute path), sorted.
 /// Hidden entries (`.git`, `.cache`, ...) are skipped.
 pub fn list_files(root: &Path) -> Result<Vec<(String, PathBuf)>> {

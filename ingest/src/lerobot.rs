@@ -219,6 +219,8 @@ pub(crate) fn guarded<T>(path: &Path, f: impl FnOnce() -> Result<T>) -> Result<T
 
 fn checked_builder_inner<R: ChunkReader + 'static>(path: &Path, r: R) -> Result<ParquetRecordBatchReaderBuilder<R>> {
     let len = r.len();
+    // The parquet crate trusts the element counts in the footer when it allocates: check them first.
+    crate::pqfooter::check(&r).map_err(|e| IngestError::invalid(path, format!("not a readable Parquet file: {e}")))?;
     // The embedded Arrow schema (IPC flatbuffer in the footer) is skipped: the schema derived from
     // the Parquet types is enough here, and arrow-ipc panics on some corrupt ones (fuzzing).
     let opts = ArrowReaderOptions::new().with_skip_arrow_metadata(true);

@@ -20,6 +20,7 @@ pub mod mcapfmt;
 pub use store::model;
 pub mod pipeline;
 pub mod options;
+pub mod pqfooter;
 pub mod robomimic;
 pub mod ros2msg;
 pub mod sink;

@@ -174,6 +174,10 @@ pub struct ReadOptions {
     pub recover: bool,
     pub policy: String,
     pub checkpoint: String,
+    /// Ask the reader to report the source's sha256 ([`crate::sink::EpisodeSink::source_hash`])
+    /// when it can hash bytes it holds anyway (a robomimic file loaded whole), sparing a second
+    /// read of the file. Readers that cannot leave it to the caller.
+    pub hash_source: bool,
 }
 
 impl ReadOptions {
@@ -188,6 +192,7 @@ impl ReadOptions {
             recover: opts.recover,
             policy: opts.policy.clone(),
             checkpoint: opts.checkpoint.clone(),
+            hash_source: false,
         })
     }
 

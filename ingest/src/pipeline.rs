@@ -86,6 +86,7 @@ enum Msg {
     Source(SourceMeta),
     Media(MediaFile),
     Episode(Box<EpisodeInput>),
+    Hash(String, u64),
 }
 
 struct ChannelSink {
@@ -107,6 +108,9 @@ impl EpisodeSink for ChannelSink {
     }
     fn episode(&mut self, episode: EpisodeInput) -> Result<()> {
         self.send(Msg::Episode(Box::new(episode)))
+    }
+    fn source_hash(&mut self, sha256: String, size: u64) -> Result<()> {
+        self.send(Msg::Hash(sha256, size))
     }
 }
 
@@ -160,20 +164,24 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
     if opts.policy.trim().is_empty() || opts.checkpoint.trim().is_empty() {
         return Err(IngestError::Usage("--policy and --checkpoint are required".into()));
     }
-    let read_opts = ReadOptions::from_ingest(opts)?;
+    let mut read_opts = ReadOptions::from_ingest(opts)?;
     let format = match opts.format {
         Format::Auto => crate::detect(path)?,
         f => f,
     };
     let total = source_size(path)?;
 
-    // Hash the source on its own thread while the reader decodes.
+    // Hash the source on its own thread while the reader decodes; a robomimic file read whole is
+    // hashed by its reader from the bytes it already holds (no second read of the file).
     let hashed = Arc::new(AtomicU64::new(0));
-    let hash_task = {
+    read_opts.hash_source = format == Format::Robomimic
+        && std::fs::metadata(path).map(|m| m.is_file()).unwrap_or(false)
+        && total <= crate::robomimic::STREAMING_THRESHOLD;
+    let hash_task = (!read_opts.hash_source).then(|| {
         let p = path.to_path_buf();
         let h = hashed.clone();
         tokio::task::spawn_blocking(move || crate::hashing::hash_path_progress(&p, Some(&h)))
-    };
+    });
 
     let (tx, mut rx) = mpsc::channel::<Msg>(CHANNEL_DEPTH);
     let reader = {
@@ -197,70 +205,94 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
         }
         None => {
             let r = reader.await.map_err(join_err)?;
-            let _ = hash_task.await;
+            if let Some(h) = hash_task {
+                let _ = h.await;
+            }
             return Err(match r {
                 Err(e) => e,
                 Ok(_) => IngestError::invalid(path, "the reader produced nothing"),
             });
         }
     };
-    let (sha256, size) = match hash_task.await.map_err(join_err)? {
-        Ok(x) => x,
-        Err(e) => {
-            drop(rx);
-            let _ = reader.await;
-            return Err(e);
-        }
-    };
-
+    let meta_episodes = meta.metadata.get("num_demos").and_then(|v| v.as_u64());
     let source = SourceInput {
         path: path.display().to_string(),
-        sha256: sha256.clone(),
+        sha256: String::new(),
         format: meta.format.clone(),
-        size_bytes: size,
+        size_bytes: total,
         metadata: meta.metadata,
     };
     let mut report = IngestReport {
         path: path.to_path_buf(),
         format: meta.format,
-        sha256: sha256.clone(),
+        sha256: String::new(),
         version: 0,
         already_ingested: false,
         episodes: 0,
         steps: 0,
         labels: LabelCounts::default(),
-        bytes: size,
+        bytes: total,
         media_files: 0,
         notes: Vec::new(),
     };
-    let mut writer = match store.begin_ingest(source, &opts.policy, &opts.checkpoint).await {
+    // The writer encodes episodes while the hash is still being computed; nothing is written to
+    // object storage before the hash is known (and checked against the store).
+    let mut writer = match store.begin_ingest_unhashed(source, &opts.policy, &opts.checkpoint) {
         Ok(w) => w,
-        Err(store::StoreError::AlreadyIngested { version, .. }) => {
-            drop(rx);
-            let _ = reader.await;
-            progress.finish();
-            report.version = version;
-            report.already_ingested = true;
-            return Ok(report);
-        }
         Err(e) => {
             drop(rx);
             let _ = reader.await;
+            if let Some(h) = hash_task {
+                let _ = h.await;
+            }
             progress.finish();
             return Err(store_err(path, e));
         }
     };
 
+    enum Fed {
+        Done,
+        /// The channel closed without the reader reporting the hash it was asked for.
+        NoHash,
+        AlreadyIngested(i64),
+    }
+    enum Event {
+        Hash(Result<(String, u64)>),
+        Msg(Option<Msg>),
+    }
+    let mut hash_task = hash_task;
+    let mut hash_known = false;
+    // Robomimic: the source's metadata says how many episodes to expect (progress without a
+    // separate hashing pass to count bytes).
+    let expected_episodes = meta_episodes.filter(|&n| n > 0);
     // Feed the writer; on any error abort (nothing becomes visible).
-    let fed: Result<()> = async {
-        while let Some(m) = rx.recv().await {
-            match m {
-                Msg::Source(_) => {}
-                Msg::Media(f) => {
+    let fed: Result<Fed> = async {
+        let mut open = true;
+        while open || hash_task.is_some() {
+            let ev = tokio::select! {
+                biased;
+                h = async { hash_task.as_mut().expect("guarded").await }, if hash_task.is_some() => {
+                    Event::Hash(h.map_err(join_err).and_then(|r| r))
+                }
+                m = rx.recv(), if open => Event::Msg(m),
+            };
+            let (sha256, size) = match ev {
+                Event::Hash(h) => {
+                    hash_task = None;
+                    h?
+                }
+                Event::Msg(Some(Msg::Hash(sha, n))) => (sha, n),
+                Event::Msg(None) => {
+                    open = false;
+                    continue;
+                }
+                Event::Msg(Some(Msg::Source(_))) => continue,
+                Event::Msg(Some(Msg::Media(f))) => {
                     writer.add_media(&f).await.map_err(|e| store_err(path, e))?;
                     report.media_files += 1;
+                    continue;
                 }
-                Msg::Episode(ep) => {
+                Event::Msg(Some(Msg::Episode(ep))) => {
                     report.episodes += 1;
                     report.steps += ep.len() as u64;
                     match ep.label {
@@ -268,21 +300,52 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
                         Label::Failure => report.labels.failure += 1,
                         Label::Unknown => report.labels.unknown += 1,
                     }
-                    writer.add_episode(*ep).await.map_err(|e| store_err(path, e))?;
-                    progress.update(hashed.load(Ordering::Relaxed), report.episodes, report.steps);
+                    writer.push_episode(*ep).await.map_err(|e| store_err(path, e))?;
+                    let pos = match expected_episodes {
+                        Some(n) if hash_task.is_none() => total.saturating_mul(report.episodes as u64) / n,
+                        _ => hashed.load(Ordering::Relaxed),
+                    };
+                    progress.update(pos, report.episodes, report.steps);
+                    continue;
                 }
+            };
+            // The source's hash: check the store for it; from now on files can be written.
+            hash_known = true;
+            report.sha256 = sha256.clone();
+            report.bytes = size;
+            match writer.set_source_hash(&sha256, size).await {
+                Ok(()) => {}
+                Err(store::StoreError::AlreadyIngested { version, .. }) => return Ok(Fed::AlreadyIngested(version)),
+                Err(e) => return Err(store_err(path, e)),
             }
         }
-        Ok(())
+        Ok(if hash_known { Fed::Done } else { Fed::NoHash })
     }
     .await;
     drop(rx);
+    if let Some(h) = hash_task.take() {
+        let _ = h.await;
+    }
     let read_result = reader.await.map_err(join_err);
+    if let Ok(Fed::AlreadyIngested(version)) = fed {
+        progress.finish();
+        let _ = writer.abort().await;
+        report.version = version;
+        report.already_ingested = true;
+        report.episodes = 0;
+        report.steps = 0;
+        report.labels = LabelCounts::default();
+        report.media_files = 0;
+        return Ok(report);
+    }
     let outcome = match (fed, read_result) {
         (Err(e), _) => Err(e),
-        (Ok(()), Err(e)) => Err(e),
-        (Ok(()), Ok(Err(e))) => Err(e),
-        (Ok(()), Ok(Ok(out))) => Ok(out),
+        (Ok(_), Err(e)) => Err(e),
+        (Ok(_), Ok(Err(e))) => Err(e),
+        (Ok(Fed::NoHash), Ok(Ok(_))) => {
+            Err(IngestError::invalid(path, "internal error: the reader did not report the file's hash"))
+        }
+        (Ok(_), Ok(Ok(out))) => Ok(out),
     };
     let outcome = match outcome {
         Ok(o) => o,

@@ -35,7 +35,40 @@ pub fn read_file(path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) ->
         File::from_bytes(bytes)
     }
     .map_err(|e| IngestError::invalid(path, format!("not a readable HDF5 file: {e}")))?;
-    read_h5(&file, path, opts, sink)
+    let bytes = file.as_bytes();
+    if !opts.hash_source || bytes.is_empty() {
+        return read_h5(&file, path, opts, sink, None);
+    }
+    // The whole file is in memory: hash it on a second thread while the demos are decoded
+    // (no second read of the file), and report the hash as soon as it is ready.
+    std::thread::scope(|s| {
+        let (tx, rx) = std::sync::mpsc::channel();
+        s.spawn(move || {
+            let _ = tx.send((crate::hashing::hash_bytes(bytes), bytes.len() as u64));
+        });
+        let mut pending = Some(rx);
+        read_h5(&file, path, opts, sink, Some(&mut pending))?;
+        if let Some(rx) = pending {
+            let (sha, n) = rx.recv().map_err(|_| IngestError::invalid(path, "hashing the file failed"))?;
+            sink.source_hash(sha, n)?;
+        }
+        Ok(())
+    })
+}
+
+type PendingHash = Option<std::sync::mpsc::Receiver<(String, u64)>>;
+
+/// Reports the file's hash to the sink once the hashing thread has it.
+fn poll_hash(pending: &mut Option<&mut PendingHash>, sink: &mut dyn EpisodeSink) -> Result<()> {
+    if let Some(p) = pending.as_deref_mut() {
+        if let Some(rx) = p.as_ref() {
+            if let Ok((sha, n)) = rx.try_recv() {
+                *p = None;
+                sink.source_hash(sha, n)?;
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Reads a robomimic file held in memory (`name` is used in error messages).
@@ -50,7 +83,7 @@ pub fn read_bytes(
     }
     let file = File::from_bytes(bytes)
         .map_err(|e| IngestError::invalid(name, format!("not a readable HDF5 file: {e}")))?;
-    read_h5(&file, name, opts, sink)
+    read_h5(&file, name, opts, sink, None)
 }
 
 fn check_signature_file(path: &Path) -> Result<()> {
@@ -240,7 +273,13 @@ fn control_freq(env_args: &Value) -> Option<f64> {
     (f.is_finite() && f > 0.0).then_some(f)
 }
 
-fn read_h5(file: &File, path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<()> {
+fn read_h5(
+    file: &File,
+    path: &Path,
+    opts: &ReadOptions,
+    sink: &mut dyn EpisodeSink,
+    mut hash: Option<&mut PendingHash>,
+) -> Result<()> {
     let data = file
         .group("data")
         .map_err(h5err(path, "no `data` group: not a robomimic file"))?;
@@ -248,8 +287,10 @@ fn read_h5(file: &File, path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeS
     let freq = control_freq(&env_args);
     let masks = read_masks(file, path)?;
 
-    let mut demos: Vec<String> = data.groups().map_err(h5err(path, "cannot list data/"))?;
-    demos.sort_by(|a, b| match (demo_index(a), demo_index(b)) {
+    // One walk of data/ yields every demo group's handle: looking each one up by name instead
+    // scans data/'s symbol table again per demo (quadratic in the number of demos).
+    let mut demos: Vec<(String, Group)> = data.iter_groups().map_err(h5err(path, "cannot list data/"))?.collect();
+    demos.sort_by(|(a, _), (b, _)| match (demo_index(a), demo_index(b)) {
         (Some(x), Some(y)) => x.cmp(&y).then(a.cmp(b)),
         (Some(_), None) => std::cmp::Ordering::Less,
         (None, Some(_)) => std::cmp::Ordering::Greater,
@@ -277,10 +318,11 @@ fn read_h5(file: &File, path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeS
 
     let env_name = env_args.get("env_name").and_then(|v| v.as_str()).map(str::to_string);
     let mut total_steps = 0u64;
-    for (index, name) in demos.iter().enumerate() {
-        let ep = read_demo(file, path, name, index as u32, freq, &masks, env_name.as_deref(), opts)?;
+    for (index, (name, g)) in demos.iter().enumerate() {
+        let ep = read_demo(g, path, name, index as u32, freq, &masks, env_name.as_deref(), opts)?;
         total_steps += ep.len() as u64;
         sink.episode(ep)?;
+        poll_hash(&mut hash, sink)?;
     }
     let _ = total_steps;
     Ok(())
@@ -288,7 +330,7 @@ fn read_h5(file: &File, path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeS
 
 #[allow(clippy::too_many_arguments)]
 fn read_demo(
-    file: &File,
+    g: &Group,
     path: &Path,
     name: &str,
     index: u32,
@@ -297,10 +339,7 @@ fn read_demo(
     env_name: Option<&str>,
     opts: &ReadOptions,
 ) -> Result<EpisodeInput> {
-    let g = file
-        .group(&format!("data/{name}"))
-        .map_err(h5err(path, format!("cannot open data/{name}")))?;
-    let attrs = group_attrs(&g, path, &format!("data/{name}"), &["num_samples"])?;
+    let attrs = group_attrs(g, path, &format!("data/{name}"), &["num_samples"])?;
     let members = g.datasets().map_err(h5err(path, format!("cannot list data/{name}")))?;
     if !members.iter().any(|m| m == "actions") {
         return Err(IngestError::invalid(path, format!("data/{name} has no `actions` dataset")));
@@ -327,7 +366,7 @@ fn read_demo(
         vec![0.0; steps]
     };
     let done: Vec<bool> = if members.iter().any(|m| m == "dones") {
-        read_dones(&g, path, name, steps)?
+        read_dones(g, path, name, steps)?
     } else {
         let mut d = vec![false; steps];
         if let Some(l) = d.last_mut() {

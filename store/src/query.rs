@@ -34,6 +34,9 @@ pub struct EpisodeRecord {
     pub metadata: serde_json::Value,
     pub data_file: String,
     pub row_group: i64,
+    /// The episode's first row inside `row_group`, and its number of rows.
+    pub row_offset: i64,
+    pub row_count: i64,
     pub version_added: i64,
     pub label: Label,
     pub label_source: String,
@@ -120,7 +123,8 @@ impl Store {
         };
         let mut sql = String::from(
             "SELECT e.id, e.policy, e.checkpoint, e.task, e.source_sha256, e.source_name, e.source_index, \
-             e.length, e.tags, e.metadata, e.data_file, e.row_group, e.version_added, e.created_at, ",
+             e.length, e.tags, e.metadata, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
+             COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, ",
         );
         let mut conds: Vec<String> = Vec::new();
         match filter.version {
@@ -193,7 +197,9 @@ impl Store {
 
     /// The step table of an episode (one record batch).
     pub async fn read_steps(&self, id: &str, version: Option<i64>) -> Result<RecordBatch, StoreError> {
-        let row = sqlx::query("SELECT data_file, row_group, version_added, version_removed FROM episodes WHERE id = $1")
+        let row = sqlx::query(
+            "SELECT data_file, row_group, row_offset, row_count, version_added, version_removed FROM episodes WHERE id = $1",
+        )
             .bind(id)
             .fetch_optional(&self.db().pool)
             .await?
@@ -207,7 +213,16 @@ impl Store {
             return Err(StoreError::not_found("episode", id));
         }
         let data = self.objects().get(&row.s("data_file")?).await?;
-        steps::read_row_group(data, row.i("row_group")? as usize)
+        let range = match (row.oi("row_offset")?, row.oi("row_count")?) {
+            (Some(o), Some(n)) if o >= 0 && n >= 0 => Some((o as usize, n as usize)),
+            // Not backfilled (cannot happen after migration 0003): the whole row group.
+            _ => None,
+        };
+        let rg = row.i("row_group")?;
+        if rg < 0 {
+            return Err(StoreError::Corrupt(format!("episode {id} points at row group {rg}")));
+        }
+        steps::read_rows(data, rg as usize, range)
     }
 
     pub async fn policies(&self) -> Result<Vec<String>, StoreError> {
@@ -264,6 +279,8 @@ fn episode_from_row(r: &sqlx::any::AnyRow) -> Result<EpisodeRecord, StoreError> 
         metadata: serde_json::from_str(&r.s("metadata")?)?,
         data_file: r.s("data_file")?,
         row_group: r.i("row_group")?,
+        row_offset: r.i("row_offset")?,
+        row_count: r.i("row_count")?,
         version_added: r.i("version_added")?,
         label: r.s("label")?.parse()?,
         label_source: r.s("label_source")?,

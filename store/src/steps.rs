@@ -1,6 +1,7 @@
 //! The Parquet layout of episode steps (see store/README.md): one row per step, one
 //! `FixedSizeList<Float32>` column per observation key, the episode's metadata repeated on each
-//! row so the files stand on their own, one row group per episode.
+//! row so the files stand on their own. Episodes follow each other in row groups of up to 1 Mi
+//! rows / 64 MB; the catalog records each one's `(row_group, row_offset, row_count)`.
 
 use crate::{EpisodeInput, Label, StoreError};
 use arrow::array::{
@@ -9,10 +10,14 @@ use arrow::array::{
 };
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
 use bytes::Bytes;
-use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
-use parquet::arrow::ArrowWriter;
-use parquet::basic::{Compression, ZstdLevel};
-use parquet::file::properties::WriterProperties;
+use parquet::arrow::arrow_reader::{ArrowReaderOptions, ParquetRecordBatchReaderBuilder, RowSelection, RowSelector};
+use parquet::arrow::arrow_writer::{compute_leaves, ArrowColumnChunk, ArrowColumnWriter, ArrowRowGroupWriterFactory};
+use parquet::arrow::{add_encoded_arrow_schema_to_metadata, ArrowSchemaConverter, ArrowWriter};
+use parquet::basic::{Compression, ConvertedType, Type as PhysicalType, ZstdLevel};
+use parquet::file::metadata::PageIndexPolicy;
+use parquet::file::properties::{EnabledStatistics, WriterProperties};
+use parquet::file::writer::SerializedFileWriter;
+use parquet::schema::types::SchemaDescriptor;
 use std::collections::HashMap;
 use std::sync::Arc;
 
@@ -141,8 +146,9 @@ pub fn validate(ep: &EpisodeInput) -> Result<(), StoreError> {
     Ok(())
 }
 
-fn fsl(dim: usize, values: &[f32]) -> Result<ArrayRef, StoreError> {
-    let child: ArrayRef = Arc::new(Float32Array::from(values.to_vec()));
+fn fsl(dim: usize, values: Vec<f32>) -> Result<ArrayRef, StoreError> {
+    // `Float32Array::from(Vec)` takes the vector's buffer over: no copy.
+    let child: ArrayRef = Arc::new(Float32Array::from(values));
     Ok(Arc::new(FixedSizeListArray::try_new(f32_item(), dim as i32, child, None)?))
 }
 
@@ -154,19 +160,33 @@ pub fn episode_batch(
 ) -> Result<RecordBatch, StoreError> {
     let n = ep.len();
     let schema = schema_for(ep);
-    let mut cols: Vec<ArrayRef> = vec![
-        Arc::new(StringArray::from(vec![meta.episode_id; n])),
-        Arc::new(Int32Array::from_iter_values(0..n as i32)),
-        Arc::new(Float64Array::from(ep.timestamps.clone())),
-    ];
-    for o in &ep.observations {
-        cols.push(fsl(o.dim, &o.values)?);
+    let mut cols: Vec<ArrayRef> = vec![Arc::new(StringArray::from(vec![meta.episode_id; n]))];
+    cols.extend(episode_columns(ep.clone(), meta.policy, meta.checkpoint, media_paths)?);
+    Ok(RecordBatch::try_new(schema, cols)?)
+}
+
+/// The columns of one episode after `episode_id` (which [`StepsFileWriter`] adds itself, as the
+/// id may only be known once the source's hash is), in [`schema_for`] order. Consumes the episode
+/// so its vectors become Arrow buffers without a copy. Call [`validate`] first.
+pub fn episode_columns(
+    ep: EpisodeInput,
+    policy: &str,
+    checkpoint: &str,
+    media_paths: &HashMap<String, String>,
+) -> Result<Vec<ArrayRef>, StoreError> {
+    let n = ep.len();
+    let label = ep.label.as_bool();
+    let mut cols: Vec<ArrayRef> = Vec::with_capacity(12 + ep.observations.len());
+    cols.push(Arc::new(Int32Array::from_iter_values(0..n as i32)));
+    cols.push(Arc::new(Float64Array::from(ep.timestamps)));
+    for o in ep.observations {
+        cols.push(fsl(o.dim, o.values)?);
     }
-    cols.push(fsl(ep.action.dim, &ep.action.values)?);
-    cols.push(Arc::new(Float32Array::from(ep.reward.clone())));
-    cols.push(Arc::new(BooleanArray::from(ep.done.clone())));
-    if let Some(c) = &ep.action_chunk {
-        cols.push(fsl(c.horizon * c.action_dim, &c.values)?);
+    cols.push(fsl(ep.action.dim, ep.action.values)?);
+    cols.push(Arc::new(Float32Array::from(ep.reward)));
+    cols.push(Arc::new(BooleanArray::from(ep.done)));
+    if let Some(c) = ep.action_chunk {
+        cols.push(fsl(c.horizon * c.action_dim, c.values)?);
     }
     for im in &ep.images {
         let total: usize = im.png_frames.iter().map(|f| f.len()).sum();
@@ -176,7 +196,7 @@ pub fn episode_batch(
         }
         cols.push(Arc::new(b.finish()));
     }
-    for m in &ep.media {
+    for m in ep.media {
         let path = media_paths.get(&m.sha256).ok_or_else(|| {
             StoreError::invalid(format!(
                 "episode {:?} references media {} that was not added to the ingest",
@@ -184,68 +204,288 @@ pub fn episode_batch(
             ))
         })?;
         cols.push(Arc::new(StringArray::from(vec![path.as_str(); n])));
-        cols.push(Arc::new(Float64Array::from(m.timestamps.clone())));
+        cols.push(Arc::new(Float64Array::from(m.timestamps)));
     }
-    cols.push(Arc::new(StringArray::from(vec![meta.policy; n])));
-    cols.push(Arc::new(StringArray::from(vec![meta.checkpoint; n])));
+    cols.push(Arc::new(StringArray::from(vec![policy; n])));
+    cols.push(Arc::new(StringArray::from(vec![checkpoint; n])));
     cols.push(Arc::new(StringArray::from(vec![ep.task.as_deref(); n])));
-    cols.push(Arc::new(BooleanArray::from(vec![ep.label.as_bool(); n])));
+    cols.push(Arc::new(BooleanArray::from(vec![label; n])));
     cols.push(Arc::new(StringArray::from(vec![ep.label_source.as_str(); n])));
-    Ok(RecordBatch::try_new(schema, cols)?)
+    Ok(cols)
+}
+
+/// zstd level of every file the store writes (level 1, like pyarrow's default).
+const ZSTD_LEVEL: i32 = 1;
+
+/// Writer settings for a steps file of this schema: zstd(1); dictionary encoding only where it
+/// pays (the repeated strings), never for float data, whose values hardly repeat (the dictionary
+/// is built, found too large and thrown away at a real cost); chunk statistics for the small
+/// scalar columns (`t`, `episode_id`, …) and none for float vectors and images; no page-level
+/// statistics (the offset index, which lets a reader skip to one episode's pages, is kept).
+pub fn steps_writer_properties(parquet: &SchemaDescriptor) -> WriterProperties {
+    let mut b = WriterProperties::builder()
+        .set_compression(Compression::ZSTD(ZstdLevel::try_new(ZSTD_LEVEL).expect("valid zstd level")))
+        // Row groups are cut by StepsFileWriter itself, between episodes.
+        .set_max_row_group_row_count(None)
+        .set_statistics_enabled(EnabledStatistics::Chunk);
+    for c in parquet.columns() {
+        let float = matches!(c.physical_type(), PhysicalType::FLOAT | PhysicalType::DOUBLE);
+        let vector = c.max_rep_level() > 0;
+        let binary = c.physical_type() == PhysicalType::BYTE_ARRAY && c.converted_type() != ConvertedType::UTF8
+            && c.logical_type_ref().is_none();
+        if float || binary {
+            b = b.set_column_dictionary_enabled(c.path().clone(), false);
+        }
+        if vector || binary {
+            b = b.set_column_statistics_enabled(c.path().clone(), EnabledStatistics::None);
+        }
+    }
+    b.build()
 }
 
 pub fn writer_properties() -> WriterProperties {
     WriterProperties::builder()
-        .set_compression(Compression::ZSTD(ZstdLevel::try_new(1).expect("valid zstd level")))
+        .set_compression(Compression::ZSTD(ZstdLevel::try_new(ZSTD_LEVEL).expect("valid zstd level")))
         .set_max_row_group_row_count(Some(1 << 20))
         .build()
 }
 
-/// A Parquet file being filled in memory, one row group per episode.
+/// A row group is closed (between episodes) once it holds this many rows…
+pub const ROW_GROUP_MAX_ROWS: usize = 1 << 20;
+/// …or this many estimated encoded bytes.
+pub const ROW_GROUP_MAX_BYTES: usize = 64 << 20;
+
+/// Where an episode's rows are in its steps file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RowRange {
+    pub row_group: usize,
+    /// First row of the episode inside its row group.
+    pub offset: usize,
+    pub count: usize,
+}
+
+/// The row group being filled: one column writer per leaf column, the episode id column
+/// (leaf 0) written last, once the episodes' ids are known.
+struct OpenRowGroup {
+    writers: Vec<ArrowColumnWriter>,
+    /// `(source index, rows)` of each episode, in order.
+    episodes: Vec<(u32, usize)>,
+    rows: usize,
+}
+
+/// A row group whose data columns are encoded and whose id column waits for the id prefix.
+struct ClosedRowGroup {
+    id_writer: ArrowColumnWriter,
+    chunks: Vec<ArrowColumnChunk>,
+    episodes: Vec<(u32, usize)>,
+}
+
+/// A Parquet steps file being filled in memory. Several episodes share a row group (cut between
+/// episodes at [`ROW_GROUP_MAX_ROWS`] / [`ROW_GROUP_MAX_BYTES`]); [`Self::write_episode`] says
+/// where each one landed. The `episode_id` column (`<prefix>-<index:05>`) is written when a row
+/// group closes; until the prefix (from the source's sha256) is known, closed row groups wait
+/// in memory, encoded, and are appended to the file by [`Self::set_id_prefix`].
 pub struct StepsFileWriter {
-    writer: ArrowWriter<Vec<u8>>,
+    file: SerializedFileWriter<Vec<u8>>,
+    factory: ArrowRowGroupWriterFactory,
     pub schema: SchemaRef,
+    open: Option<OpenRowGroup>,
+    waiting: Vec<ClosedRowGroup>,
+    waiting_bytes: usize,
+    id_prefix: Option<String>,
     pub rows: usize,
     pub row_groups: usize,
 }
 
 impl StepsFileWriter {
     pub fn new(schema: SchemaRef) -> Result<Self, StoreError> {
-        let writer = ArrowWriter::try_new(Vec::with_capacity(1 << 20), schema.clone(), Some(writer_properties()))?;
-        Ok(StepsFileWriter { writer, schema, rows: 0, row_groups: 0 })
+        let parquet = ArrowSchemaConverter::new().convert(&schema)?;
+        let mut props = steps_writer_properties(&parquet);
+        add_encoded_arrow_schema_to_metadata(&schema, &mut props);
+        let file = SerializedFileWriter::new(Vec::with_capacity(1 << 20), parquet.root_schema_ptr(), Arc::new(props))?;
+        let factory = ArrowRowGroupWriterFactory::new(&file, schema.clone());
+        Ok(StepsFileWriter {
+            file,
+            factory,
+            schema,
+            open: None,
+            waiting: Vec::new(),
+            waiting_bytes: 0,
+            id_prefix: None,
+            rows: 0,
+            row_groups: 0,
+        })
     }
 
-    /// Appends one episode as its own row group; returns the row-group index.
-    pub fn write_episode(&mut self, batch: &RecordBatch) -> Result<usize, StoreError> {
-        self.writer.write(batch)?;
-        self.writer.flush()?;
-        self.rows += batch.num_rows();
-        self.row_groups += 1;
-        Ok(self.row_groups - 1)
+    /// The id prefix (`<source sha256[:12]>`) when known up front.
+    pub fn with_id_prefix(mut self, prefix: &str) -> Self {
+        self.id_prefix = Some(prefix.to_string());
+        self
     }
 
+    /// Sets the id prefix and writes the row groups that were waiting for it.
+    pub fn set_id_prefix(&mut self, prefix: &str) -> Result<(), StoreError> {
+        self.id_prefix = Some(prefix.to_string());
+        for rg in std::mem::take(&mut self.waiting) {
+            self.append_row_group(rg)?;
+        }
+        self.waiting_bytes = 0;
+        Ok(())
+    }
+
+    /// Appends one episode: `columns` are its columns after `episode_id` (see
+    /// [`episode_columns`]), `index` its source index. Returns where its rows are.
+    pub fn write_episode(&mut self, index: u32, columns: &[ArrayRef]) -> Result<RowRange, StoreError> {
+        let fields = self.schema.fields();
+        if columns.len() + 1 != fields.len() {
+            return Err(StoreError::invalid(format!(
+                "episode has {} columns, the steps file has {}",
+                columns.len() + 1,
+                fields.len()
+            )));
+        }
+        let n = columns.first().map(|c| c.len()).unwrap_or(0);
+        if self.open.is_none() {
+            let writers = self.factory.create_column_writers(self.row_groups)?;
+            self.open = Some(OpenRowGroup { writers, episodes: Vec::new(), rows: 0 });
+            self.row_groups += 1;
+        }
+        let rg = self.open.as_mut().expect("row group just opened");
+        // Leaf 0 is episode_id (written at close); every other field is one leaf here, but map
+        // fields to leaves in order anyway.
+        let mut leaf = 1;
+        for (field, col) in fields.iter().skip(1).zip(columns) {
+            if col.len() != n || col.data_type() != field.data_type() {
+                return Err(StoreError::invalid(format!(
+                    "column {:?}: {} rows of {}, expected {n} of {}",
+                    field.name(),
+                    col.len(),
+                    col.data_type(),
+                    field.data_type()
+                )));
+            }
+            for l in compute_leaves(field, col)? {
+                let w = rg.writers.get_mut(leaf).ok_or_else(|| StoreError::invalid("schema leaf mismatch"))?;
+                w.write(&l)?;
+                leaf += 1;
+            }
+        }
+        let range = RowRange { row_group: self.row_groups - 1, offset: rg.rows, count: n };
+        rg.episodes.push((index, n));
+        rg.rows += n;
+        self.rows += n;
+        let full = rg.rows >= ROW_GROUP_MAX_ROWS
+            || rg.writers.iter().map(|w| w.get_estimated_total_bytes()).sum::<usize>() >= ROW_GROUP_MAX_BYTES;
+        if full {
+            self.close_row_group()?;
+        }
+        Ok(range)
+    }
+
+    fn close_row_group(&mut self) -> Result<(), StoreError> {
+        let Some(rg) = self.open.take() else { return Ok(()) };
+        let mut writers = rg.writers.into_iter();
+        let id_writer = writers.next().ok_or_else(|| StoreError::invalid("steps schema has no columns"))?;
+        let chunks = writers.map(|w| w.close()).collect::<Result<Vec<_>, _>>()?;
+        let closed = ClosedRowGroup { id_writer, chunks, episodes: rg.episodes };
+        if self.id_prefix.is_some() && self.waiting.is_empty() {
+            self.append_row_group(closed)
+        } else {
+            self.waiting_bytes += closed.chunks.iter().map(|c| c.close().bytes_written as usize).sum::<usize>();
+            self.waiting.push(closed);
+            Ok(())
+        }
+    }
+
+    fn append_row_group(&mut self, rg: ClosedRowGroup) -> Result<(), StoreError> {
+        let prefix = self.id_prefix.as_deref().ok_or_else(|| StoreError::invalid("episode ids are not known yet"))?;
+        let mut id_writer = rg.id_writer;
+        let field = self.schema.field(0);
+        for (index, n) in &rg.episodes {
+            let id = episode_id(prefix, *index);
+            let col: ArrayRef = Arc::new(StringArray::from(vec![id.as_str(); *n]));
+            for l in compute_leaves(field, &col)? {
+                id_writer.write(&l)?;
+            }
+        }
+        let mut w = self.file.next_row_group()?;
+        id_writer.close()?.append_to_row_group(&mut w)?;
+        for c in rg.chunks {
+            c.append_to_row_group(&mut w)?;
+        }
+        w.close()?;
+        Ok(())
+    }
+
+    /// Encoded bytes so far (written, waiting, and an estimate for the open row group).
     pub fn bytes_written(&self) -> usize {
-        self.writer.bytes_written() + self.writer.in_progress_size()
+        self.file.bytes_written()
+            + self.waiting_bytes
+            + self.open.as_ref().map_or(0, |rg| rg.writers.iter().map(|w| w.get_estimated_total_bytes()).sum())
     }
 
-    pub fn finish(self) -> Result<Vec<u8>, StoreError> {
-        Ok(self.writer.into_inner()?)
+    /// Closes the file (the id prefix must be known) and returns its bytes.
+    pub fn finish(mut self) -> Result<Vec<u8>, StoreError> {
+        self.close_row_group()?;
+        if !self.waiting.is_empty() {
+            return Err(StoreError::invalid("steps file finished before its episode ids were known"));
+        }
+        Ok(self.file.into_inner()?)
     }
 }
 
-/// Reads one row group (one episode) of a steps file.
+/// An episode's id: `<source sha256[:12]>-<index:05>`.
+pub fn episode_id(prefix: &str, index: u32) -> String {
+    format!("{prefix}-{index:05}")
+}
+
+/// Reads one row group (one episode, in stores written before row ranges) of a steps file.
 pub fn read_row_group(data: Bytes, row_group: usize) -> Result<RecordBatch, StoreError> {
-    let builder = ParquetRecordBatchReaderBuilder::try_new(data)?;
+    read_rows(data, row_group, None)
+}
+
+/// Reads `range = (offset, count)` rows of a row group (all of it for `None`), skipping the pages
+/// before and after them (the offset index says where pages start).
+pub fn read_rows(data: Bytes, row_group: usize, range: Option<(usize, usize)>) -> Result<RecordBatch, StoreError> {
+    let opts = ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Optional);
+    let builder = ParquetRecordBatchReaderBuilder::try_new_with_options(data, opts)?;
     let n_groups = builder.metadata().num_row_groups();
     if row_group >= n_groups {
         return Err(StoreError::Corrupt(format!(
             "steps file has {n_groups} row groups, episode points at {row_group}"
         )));
     }
+    let rg_rows = builder.metadata().row_group(row_group).num_rows().max(0) as usize;
     let schema = builder.schema().clone();
-    let reader = builder.with_row_groups(vec![row_group]).with_batch_size(1 << 20).build()?;
+    let mut builder = builder.with_row_groups(vec![row_group]).with_batch_size(1 << 20);
+    let expect = match range {
+        None => rg_rows,
+        Some((offset, count)) => {
+            if offset.checked_add(count).is_none_or(|end| end > rg_rows) {
+                return Err(StoreError::Corrupt(format!(
+                    "row group {row_group} has {rg_rows} rows, episode points at rows {offset}..{}",
+                    offset.saturating_add(count)
+                )));
+            }
+            let mut sel = Vec::with_capacity(3);
+            if offset > 0 {
+                sel.push(RowSelector::skip(offset));
+            }
+            sel.push(RowSelector::select(count));
+            if offset + count < rg_rows {
+                sel.push(RowSelector::skip(rg_rows - offset - count));
+            }
+            builder = builder.with_row_selection(RowSelection::from(sel));
+            count
+        }
+    };
+    let reader = builder.build()?;
     let batches: Vec<RecordBatch> = reader.collect::<Result<_, _>>()?;
-    Ok(arrow::compute::concat_batches(&schema, &batches)?)
+    let batch = arrow::compute::concat_batches(&schema, &batches)?;
+    if batch.num_rows() != expect {
+        return Err(StoreError::Corrupt(format!("read {} rows, expected {expect}", batch.num_rows())));
+    }
+    Ok(batch)
 }
 
 /// A float vector column of a steps batch as `(dim, row-major values)`.
@@ -294,6 +534,9 @@ pub struct LabelRow {
     pub revision: i64,
     pub data_file: String,
     pub row_group: i64,
+    /// The episode's first row inside its row group, and its number of rows.
+    pub row_offset: i64,
+    pub row_count: i64,
 }
 
 pub fn labels_file(version_hint: i64, rows: &[LabelRow]) -> Result<Vec<u8>, StoreError> {
@@ -311,6 +554,8 @@ pub fn labels_file(version_hint: i64, rows: &[LabelRow]) -> Result<Vec<u8>, Stor
             Field::new("label_revision", DataType::Int64, false),
             Field::new("data_file", DataType::Utf8, false),
             Field::new("row_group", DataType::Int64, false),
+            Field::new("row_offset", DataType::Int64, false),
+            Field::new("row_count", DataType::Int64, false),
         ])
         .with_metadata(HashMap::from([
             ("ufops.schema_version".to_string(), SCHEMA_VERSION.to_string()),
@@ -329,9 +574,52 @@ pub fn labels_file(version_hint: i64, rows: &[LabelRow]) -> Result<Vec<u8>, Stor
         Arc::new(Int64Array::from_iter_values(rows.iter().map(|r| r.revision))),
         Arc::new(StringArray::from_iter_values(rows.iter().map(|r| r.data_file.as_str()))),
         Arc::new(Int64Array::from_iter_values(rows.iter().map(|r| r.row_group))),
+        Arc::new(Int64Array::from_iter_values(rows.iter().map(|r| r.row_offset))),
+        Arc::new(Int64Array::from_iter_values(rows.iter().map(|r| r.row_count))),
     ];
     let batch = RecordBatch::try_new(schema.clone(), cols)?;
     let mut w = ArrowWriter::try_new(Vec::new(), schema, Some(writer_properties()))?;
     w.write(&batch)?;
     Ok(w.into_inner()?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn batch(first: i32, n: i32) -> RecordBatch {
+        let a: ArrayRef = Arc::new(Int32Array::from_iter_values(first..first + n));
+        RecordBatch::try_from_iter([("t", a)]).unwrap()
+    }
+
+    fn ints(b: &RecordBatch) -> Vec<i32> {
+        b.column(0).as_any().downcast_ref::<Int32Array>().unwrap().values().to_vec()
+    }
+
+    /// Files of stores before row ranges (one row group per episode) read whole; row ranges read
+    /// exactly their rows, across page boundaries; a range past the row group is an error.
+    #[test]
+    fn row_groups_and_row_ranges() {
+        let b0 = batch(0, 5);
+        let mut w = ArrowWriter::try_new(Vec::new(), b0.schema(), Some(writer_properties())).unwrap();
+        w.write(&b0).unwrap();
+        w.flush().unwrap();
+        w.write(&batch(100, 3)).unwrap();
+        w.flush().unwrap();
+        let old = Bytes::from(w.into_inner().unwrap());
+        assert_eq!(ints(&read_row_group(old.clone(), 1).unwrap()), vec![100, 101, 102]);
+        assert!(read_row_group(old, 2).is_err());
+
+        let props = WriterProperties::builder().set_data_page_row_count_limit(64).set_write_batch_size(64).build();
+        let big = batch(0, 10_000);
+        let mut w = ArrowWriter::try_new(Vec::new(), big.schema(), Some(props)).unwrap();
+        w.write(&big).unwrap();
+        let data = Bytes::from(w.into_inner().unwrap());
+        for (off, n) in [(0, 1), (0, 10_000), (63, 2), (5_000, 777), (9_999, 1)] {
+            let got = ints(&read_rows(data.clone(), 0, Some((off, n))).unwrap());
+            assert_eq!(got, (off as i32..(off + n) as i32).collect::<Vec<_>>(), "{off}+{n}");
+        }
+        assert!(read_rows(data.clone(), 0, Some((9_999, 2))).is_err());
+        assert!(read_rows(data, 0, Some((usize::MAX, 2))).is_err());
+    }
 }

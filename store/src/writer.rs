@@ -3,7 +3,7 @@
 //! unreferenced objects, which `gc` removes.
 
 use crate::catalog::{insert_rows, RowExt, Tx, Val};
-use crate::steps::{self, EpisodeMeta, StepsFileWriter};
+use crate::steps::{self, StepsFileWriter};
 use crate::{now_rfc3339, EpisodeInput, Label, MediaFile, SourceInput, Store, StoreError};
 use bytes::Bytes;
 use std::collections::{HashMap, HashSet};
@@ -18,15 +18,14 @@ pub struct CommitInfo {
 }
 
 struct PendingEpisode {
-    id: String,
     source_name: String,
-    source_index: i64,
+    source_index: u32,
     task: Option<String>,
     length: i64,
     tags: String,
     metadata: String,
     data_file: String,
-    row_group: i64,
+    range: steps::RowRange,
     label: Label,
     label_source: String,
 }
@@ -43,10 +42,14 @@ pub struct IngestWriter {
     source: SourceInput,
     policy: String,
     checkpoint: String,
+    /// `<source sha256[:12]>`, the episode id prefix, once the source's hash is known.
+    id_prefix: Option<String>,
     current: Option<(String, StepsFileWriter)>,
+    /// Files complete but for their episode ids (the schema changed before the hash was known).
+    parked: Vec<(String, StepsFileWriter)>,
     files: Vec<WrittenFile>,
     episodes: Vec<PendingEpisode>,
-    ids: HashSet<String>,
+    indexes: HashSet<u32>,
     media: HashMap<String, (String, String, i64)>,
     /// sha256 → object path of the media added so far (what step rows reference).
     media_paths: HashMap<String, String>,
@@ -62,31 +65,57 @@ pub(crate) fn check_name(what: &str, s: &str) -> Result<(), StoreError> {
     Ok(())
 }
 
+fn check_sha256(sha256: &str) -> Result<(), StoreError> {
+    if sha256.len() != 64 || !sha256.chars().all(|c| c.is_ascii_hexdigit()) {
+        return Err(StoreError::invalid(format!("source sha256 {sha256:?} is not 64 hex digits")));
+    }
+    Ok(())
+}
+
 impl Store {
-    /// Starts an ingest of one source into a new version.
+    /// Starts an ingest of one source (its sha256 known) into a new version.
     pub async fn begin_ingest(
         &self,
         source: SourceInput,
         policy: &str,
         checkpoint: &str,
     ) -> Result<IngestWriter, StoreError> {
-        check_name("policy", policy)?;
-        check_name("checkpoint", checkpoint)?;
-        if source.sha256.len() != 64 || !source.sha256.chars().all(|c| c.is_ascii_hexdigit()) {
-            return Err(StoreError::invalid(format!("source sha256 {:?} is not 64 hex digits", source.sha256)));
-        }
+        check_sha256(&source.sha256)?;
         if let Some(version) = self.source_version(&source.sha256).await? {
             return Err(StoreError::AlreadyIngested { sha256: source.sha256, version });
         }
+        let sha256 = source.sha256.clone();
+        let mut w = self.begin_ingest_unhashed(source, policy, checkpoint)?;
+        w.id_prefix = Some(sha256[..12].to_string());
+        w.source.sha256 = sha256;
+        Ok(w)
+    }
+
+    /// Starts an ingest whose source hash is still being computed (`source.sha256` is ignored):
+    /// episodes are encoded meanwhile with [`IngestWriter::push_episode`], and
+    /// [`IngestWriter::set_source_hash`] must be called before the commit. Nothing is written to
+    /// object storage before the hash is known, so a source that is already in the store costs
+    /// no writes.
+    pub fn begin_ingest_unhashed(
+        &self,
+        mut source: SourceInput,
+        policy: &str,
+        checkpoint: &str,
+    ) -> Result<IngestWriter, StoreError> {
+        check_name("policy", policy)?;
+        check_name("checkpoint", checkpoint)?;
+        source.sha256.clear();
         Ok(IngestWriter {
             store: self.clone(),
             source,
             policy: policy.to_string(),
             checkpoint: checkpoint.to_string(),
+            id_prefix: None,
             current: None,
+            parked: Vec::new(),
             files: Vec::new(),
             episodes: Vec::new(),
-            ids: HashSet::new(),
+            indexes: HashSet::new(),
             media: HashMap::new(),
             media_paths: HashMap::new(),
             max_file_bytes: MAX_FILE_BYTES,
@@ -108,6 +137,34 @@ impl IngestWriter {
     pub fn with_max_file_bytes(mut self, bytes: usize) -> Self {
         self.max_file_bytes = bytes.max(1);
         self
+    }
+
+    /// Supplies the source's sha256 and size (see [`Store::begin_ingest_unhashed`]). Fails with
+    /// [`StoreError::AlreadyIngested`] when a version already holds this content; the writer
+    /// should then be dropped (nothing was written).
+    pub async fn set_source_hash(&mut self, sha256: &str, size_bytes: u64) -> Result<(), StoreError> {
+        check_sha256(sha256)?;
+        if !self.source.sha256.is_empty() && self.source.sha256 != sha256 {
+            return Err(StoreError::invalid("the source's sha256 was already set to another value"));
+        }
+        if let Some(version) = self.store.source_version(sha256).await? {
+            return Err(StoreError::AlreadyIngested { sha256: sha256.to_string(), version });
+        }
+        self.source.sha256 = sha256.to_string();
+        self.source.size_bytes = size_bytes;
+        let prefix = sha256[..12].to_string();
+        self.id_prefix = Some(prefix.clone());
+        for (path, mut w) in std::mem::take(&mut self.parked) {
+            w.set_id_prefix(&prefix)?;
+            self.put_file(path, w).await?;
+        }
+        if let Some((_, w)) = self.current.as_mut() {
+            w.set_id_prefix(&prefix)?;
+            if w.bytes_written() > self.max_file_bytes {
+                self.finish_file().await?;
+            }
+        }
+        Ok(())
     }
 
     /// Copies a media file into object storage under its sha256 (stored once).
@@ -139,57 +196,81 @@ impl IngestWriter {
         Ok(())
     }
 
-    /// Appends one episode (written to the current Parquet file as its own row group).
+    /// Appends one episode and returns its id (the source's sha256 must be known: see
+    /// [`Self::push_episode`] otherwise).
     pub async fn add_episode(&mut self, ep: EpisodeInput) -> Result<String, StoreError> {
+        let Some(prefix) = self.id_prefix.clone() else {
+            return Err(StoreError::invalid("episode ids are not known before the source's sha256: use push_episode"));
+        };
+        let index = ep.source_index;
+        self.push_episode(ep).await?;
+        Ok(steps::episode_id(&prefix, index))
+    }
+
+    /// Appends one episode to the current Parquet file (episodes share row groups).
+    pub async fn push_episode(&mut self, ep: EpisodeInput) -> Result<(), StoreError> {
         steps::validate(&ep)?;
         if let Some(t) = &ep.task {
             check_name("task", t)?;
         }
-        let id = format!("{}-{:05}", &self.source.sha256[..12], ep.source_index);
-        if !self.ids.insert(id.clone()) {
+        if !self.indexes.insert(ep.source_index) {
             return Err(StoreError::invalid(format!(
                 "episode index {} ({:?}) appears twice in the source",
                 ep.source_index, ep.source_name
             )));
         }
-        let meta = EpisodeMeta { episode_id: &id, policy: &self.policy, checkpoint: &self.checkpoint };
-        let batch = steps::episode_batch(&ep, &meta, &self.media_paths)?;
-        if self.current.as_ref().is_some_and(|(_, w)| w.schema != batch.schema()) {
+        let schema = steps::schema_for(&ep);
+        if self.current.as_ref().is_some_and(|(_, w)| w.schema != schema) {
             self.finish_file().await?;
         }
         if self.current.is_none() {
             let path = format!("steps/{}.parquet", uuid::Uuid::new_v4());
-            self.current = Some((path, StepsFileWriter::new(batch.schema())?));
+            let mut w = StepsFileWriter::new(schema)?;
+            if let Some(p) = &self.id_prefix {
+                w = w.with_id_prefix(p);
+            }
+            self.current = Some((path, w));
         }
-        let (path, w) = self.current.as_mut().expect("writer just created");
-        let row_group = w.write_episode(&batch)?;
-        self.episodes.push(PendingEpisode {
-            id: id.clone(),
+        let pending = PendingEpisode {
             source_name: ep.source_name.clone(),
-            source_index: ep.source_index as i64,
+            source_index: ep.source_index,
             task: ep.task.clone(),
             length: ep.len() as i64,
             tags: serde_json::to_string(&ep.tags)?,
             metadata: serde_json::to_string(&ep.metadata)?,
-            data_file: path.clone(),
-            row_group: row_group as i64,
+            data_file: String::new(),
+            range: steps::RowRange { row_group: 0, offset: 0, count: 0 },
             label: ep.label,
             label_source: ep.label_source.clone(),
-        });
-        if w.bytes_written() > self.max_file_bytes {
+        };
+        let index = ep.source_index;
+        let cols = steps::episode_columns(ep, &self.policy, &self.checkpoint, &self.media_paths)?;
+        let (path, w) = self.current.as_mut().expect("writer just created");
+        let range = w.write_episode(index, &cols)?;
+        self.episodes.push(PendingEpisode { data_file: path.clone(), range, ..pending });
+        if w.bytes_written() > self.max_file_bytes && self.id_prefix.is_some() {
             self.finish_file().await?;
         }
-        Ok(id)
+        Ok(())
     }
 
     async fn finish_file(&mut self) -> Result<(), StoreError> {
         if let Some((path, w)) = self.current.take() {
-            let rows = w.rows as i64;
-            let data = w.finish()?;
-            let size = data.len() as i64;
-            self.store.objects().put_new(&path, Bytes::from(data)).await?;
-            self.files.push(WrittenFile { path, size, rows });
+            if self.id_prefix.is_some() {
+                self.put_file(path, w).await?;
+            } else {
+                self.parked.push((path, w));
+            }
         }
+        Ok(())
+    }
+
+    async fn put_file(&mut self, path: String, w: StepsFileWriter) -> Result<(), StoreError> {
+        let rows = w.rows as i64;
+        let data = w.finish()?;
+        let size = data.len() as i64;
+        self.store.objects().put_new(&path, Bytes::from(data)).await?;
+        self.files.push(WrittenFile { path, size, rows });
         Ok(())
     }
 
@@ -206,6 +287,9 @@ impl IngestWriter {
                 self.source.path
             )));
         }
+        let Some(prefix) = self.id_prefix.clone() else {
+            return Err(StoreError::invalid("commit before the source's sha256 was set"));
+        };
         self.finish_file().await?;
         let store = self.store.clone();
         let mut tx = store.db().begin_version_write().await?;
@@ -265,23 +349,27 @@ impl IngestWriter {
             "ON CONFLICT DO NOTHING",
         )
         .await?;
+        let ids: Vec<String> = self.episodes.iter().map(|e| steps::episode_id(&prefix, e.source_index)).collect();
         let ep_rows: Vec<Vec<Val>> = self
             .episodes
             .iter()
-            .map(|e| {
+            .zip(&ids)
+            .map(|(e, id)| {
                 vec![
-                    e.id.as_str().into(),
+                    id.as_str().into(),
                     self.policy.as_str().into(),
                     self.checkpoint.as_str().into(),
                     e.task.clone().into(),
                     self.source.sha256.as_str().into(),
                     e.source_name.as_str().into(),
-                    e.source_index.into(),
+                    (e.source_index as i64).into(),
                     e.length.into(),
                     e.tags.as_str().into(),
                     e.metadata.as_str().into(),
                     e.data_file.as_str().into(),
-                    e.row_group.into(),
+                    (e.range.row_group as i64).into(),
+                    (e.range.offset as i64).into(),
+                    (e.range.count as i64).into(),
                     version.into(),
                     e.label.as_str().into(),
                     e.label_source.as_str().into(),
@@ -297,8 +385,8 @@ impl IngestWriter {
             "episodes",
             &[
                 "id", "policy", "checkpoint", "task", "source_sha256", "source_name", "source_index", "length",
-                "tags", "metadata", "data_file", "row_group", "version_added", "label", "label_source",
-                "label_revision", "label_actor", "label_updated_at", "created_at",
+                "tags", "metadata", "data_file", "row_group", "row_offset", "row_count", "version_added", "label",
+                "label_source", "label_revision", "label_actor", "label_updated_at", "created_at",
             ],
             ep_rows,
             "",
@@ -307,9 +395,10 @@ impl IngestWriter {
         let ev_rows: Vec<Vec<Val>> = self
             .episodes
             .iter()
-            .map(|e| {
+            .zip(&ids)
+            .map(|(e, id)| {
                 vec![
-                    e.id.as_str().into(),
+                    id.as_str().into(),
                     1i64.into(),
                     Val::OS(None),
                     e.label.as_str().into(),
@@ -387,7 +476,8 @@ pub(crate) async fn finish_version(store: &Store, mut tx: Tx, head: VersionHead)
     .await?;
     let rows = sqlx::query(
         "SELECT e.id, e.policy, e.checkpoint, e.task, e.length, l.label, l.label_source, l.revision, \
-         e.data_file, e.row_group FROM version_labels l JOIN episodes e ON e.id = l.episode_id \
+         e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
+         COALESCE(e.row_count, e.length) AS row_count FROM version_labels l JOIN episodes e ON e.id = l.episode_id \
          WHERE l.version = $1 ORDER BY e.id",
     )
     .bind(v)
@@ -406,6 +496,8 @@ pub(crate) async fn finish_version(store: &Store, mut tx: Tx, head: VersionHead)
             revision: r.i("revision")?,
             data_file: r.s("data_file")?,
             row_group: r.i("row_group")?,
+            row_offset: r.i("row_offset")?,
+            row_count: r.i("row_count")?,
         });
     }
     let changed = sqlx::query(
@@ -458,4 +550,118 @@ pub(crate) async fn finish_version(store: &Store, mut tx: Tx, head: VersionHead)
     }
     tx.commit().await?;
     Ok(v)
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::*;
+    use arrow::array::{Array, Int32Array, StringArray};
+
+    fn episode(i: u32, steps: usize, obs_dim: usize) -> EpisodeInput {
+        EpisodeInput {
+            source_name: format!("demo_{i}"),
+            source_index: i,
+            task: Some("reach".into()),
+            label: if i % 2 == 0 { Label::Success } else { Label::Failure },
+            label_source: "test".into(),
+            tags: vec![],
+            metadata: serde_json::json!({}),
+            timestamps: (0..steps).map(|t| t as f64).collect(),
+            observations: vec![VectorColumn {
+                name: "pos".into(),
+                dim: obs_dim,
+                values: (0..steps * obs_dim).map(|k| k as f32 + i as f32 * 1000.0).collect(),
+            }],
+            action: VectorColumn { name: "action".into(), dim: 2, values: vec![i as f32; steps * 2] },
+            reward: vec![0.0; steps],
+            done: (0..steps).map(|t| t + 1 == steps).collect(),
+            action_chunk: None,
+            images: vec![],
+            media: vec![],
+        }
+    }
+
+    fn source(tag: &str) -> SourceInput {
+        SourceInput {
+            path: tag.into(),
+            sha256: String::new(),
+            format: "test".into(),
+            size_bytes: 1,
+            metadata: serde_json::json!({}),
+        }
+    }
+
+    fn steps_files(dir: &std::path::Path) -> usize {
+        std::fs::read_dir(dir.join("objects/steps")).map(|d| d.count()).unwrap_or(0)
+    }
+
+    async fn check_episode(store: &Store, id: &str, i: u32, steps: usize, obs_dim: usize) {
+        let b = store.read_steps(id, None).await.unwrap();
+        assert_eq!(b.num_rows(), steps, "{id}");
+        let ids = b.column_by_name("episode_id").unwrap().as_any().downcast_ref::<StringArray>().unwrap();
+        assert!((0..ids.len()).all(|k| ids.value(k) == id), "{id}");
+        let t = b.column_by_name("t").unwrap().as_any().downcast_ref::<Int32Array>().unwrap();
+        assert_eq!(t.values().to_vec(), (0..steps as i32).collect::<Vec<_>>());
+        let (dim, pos) = crate::steps::vector_column(&b, "obs.pos").unwrap();
+        assert_eq!(dim, obs_dim);
+        assert_eq!(pos, (0..steps * obs_dim).map(|k| k as f32 + i as f32 * 1000.0).collect::<Vec<_>>());
+    }
+
+    /// Episodes share row groups, files roll over and the schema changes while the hash is not
+    /// known yet: nothing is written before `set_source_hash`, and every episode reads back.
+    #[tokio::test]
+    async fn unhashed_ingest_shares_row_groups_and_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(&StoreConfig::local(dir.path())).await.unwrap();
+        let mut w = store.begin_ingest_unhashed(source("a"), "pol", "c1").unwrap().with_max_file_bytes(4000);
+        let shape = |i: u32| (3 + (i as usize * 7) % 40, if i < 30 { 2 } else { 3 });
+        for i in 0..60 {
+            let (steps, dim) = shape(i);
+            w.push_episode(episode(i, steps, dim)).await.unwrap();
+        }
+        assert!(w.add_episode(episode(99, 3, 2)).await.is_err(), "ids are not known yet");
+        assert_eq!(steps_files(dir.path()), 0, "nothing written before the hash is known");
+        let sha = sha256_hex(b"a");
+        w.set_source_hash(&sha, 123).await.unwrap();
+        assert!(steps_files(dir.path()) > 1, "files finished once the hash is known");
+        w.push_episode(episode(60, 5, 3)).await.unwrap();
+        let info = w.commit("t").await.unwrap();
+        assert_eq!(info.episodes, 61);
+        let eps = store.episodes(&EpisodeFilter::default()).await.unwrap();
+        assert_eq!(eps.len(), 61);
+        let shared = eps.iter().filter(|e| e.row_offset > 0).count();
+        assert!(shared > 10, "episodes share row groups ({shared} not first in theirs)");
+        for e in &eps {
+            let i = e.source_index as u32;
+            assert_eq!(e.id, format!("{}-{i:05}", &sha[..12]));
+            assert_eq!(e.row_count, e.length);
+            let (steps, dim) = if i == 60 { (5, 3) } else { shape(i) };
+            check_episode(&store, &e.id, i, steps, dim).await;
+        }
+        let src = store.source_version(&sha).await.unwrap();
+        assert_eq!(src, Some(info.version));
+    }
+
+    /// The same content again: refused as soon as the hash is set, and nothing is written.
+    #[tokio::test]
+    async fn same_hash_is_refused_before_anything_is_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(&StoreConfig::local(dir.path())).await.unwrap();
+        let sha = sha256_hex(b"b");
+        let mut w = store.begin_ingest_unhashed(source("b"), "pol", "c1").unwrap();
+        w.push_episode(episode(0, 4, 2)).await.unwrap();
+        w.set_source_hash(&sha, 1).await.unwrap();
+        let v = w.commit("t").await.unwrap().version;
+        let before = steps_files(dir.path());
+        let mut w = store.begin_ingest_unhashed(source("b again"), "pol", "c1").unwrap().with_max_file_bytes(1);
+        for i in 0..5 {
+            w.push_episode(episode(i, 4, 2)).await.unwrap();
+        }
+        match w.set_source_hash(&sha, 1).await {
+            Err(StoreError::AlreadyIngested { version, .. }) => assert_eq!(version, v),
+            other => panic!("expected AlreadyIngested, got {:?}", other.err()),
+        }
+        assert_eq!(steps_files(dir.path()), before);
+        assert_eq!(store.head_version().await.unwrap(), v);
+    }
 }

@@ -28,6 +28,7 @@ def main():
         assert row["label_revision"] == e["label_revision"]
 
         steps = pq.ParquetFile(os.path.join(objects, row["data_file"])).read_row_group(row["row_group"])
+        steps = steps.slice(row["row_offset"], row["row_count"])
         assert steps.num_rows == e["length"], (steps.num_rows, e["length"])
         assert set(steps.column("episode_id").to_pylist()) == {e["id"]}
         assert steps.column("t").to_pylist() == list(range(e["length"]))

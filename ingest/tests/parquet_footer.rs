@@ -1,0 +1,47 @@
+//! Regression test for the fuzz finding "a corrupt Parquet footer makes the parquet crate reserve
+//! ~9 GB": `data/corrupt_footer_huge_list.parquet` (36 bytes) is a footer whose row-group list
+//! claims 10^8 elements. The LeRobot reader must refuse it with an error, and no single allocation
+//! may come anywhere near that size (a counting global allocator records the largest request).
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+struct Largest;
+
+static LARGEST: AtomicUsize = AtomicUsize::new(0);
+
+unsafe impl GlobalAlloc for Largest {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        LARGEST.fetch_max(layout.size(), Ordering::Relaxed);
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        LARGEST.fetch_max(layout.size(), Ordering::Relaxed);
+        unsafe { System.alloc_zeroed(layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        LARGEST.fetch_max(new_size, Ordering::Relaxed);
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static ALLOC: Largest = Largest;
+
+#[test]
+fn corrupt_footer_list_count_is_refused_without_a_huge_allocation() {
+    let data = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/corrupt_footer_huge_list.parquet")).unwrap();
+    LARGEST.store(0, Ordering::Relaxed);
+    let err = ingest::lerobot::fuzz_entry(b"", &data).unwrap_err().to_string();
+    let largest = LARGEST.load(Ordering::Relaxed);
+    assert!(largest < 64 << 20, "largest allocation while reading: {largest} bytes ({err})");
+    assert!(err.contains("Parquet"), "{err}");
+    assert!(err.contains("list of 100000000 elements"), "{err}");
+    // The fuzz target body as a whole (info.json part empty, then the file) stays bounded too.
+    ingest::fuzzing::lerobot_bytes(&[&b"{}\0"[..], &data].concat());
+    let largest = LARGEST.load(Ordering::Relaxed);
+    assert!(largest < 64 << 20, "largest allocation in the fuzz body: {largest} bytes");
+}
