@@ -294,10 +294,8 @@ pub async fn put_label(
     let expect = if_match(&headers)?;
     let update =
         LabelUpdate { episode_id: id, label: parse_label(&body.label)?, expect_revision: Some(expect), note: body.note };
-    let change = {
-        let _gate = s.write_gate().await;
-        s.store().set_label(update, &caller.name, "human").await
-    };
+    // SQLite: group-committed with concurrent PUTs (one transaction per batch, one outcome each).
+    let change = crate::label_writer::set_label(&s, update, &caller.name).await;
     let change = s.count_label_result(change)?;
     let rev = change.revision;
     let mut resp = Json(change).into_response();

@@ -3,7 +3,7 @@
 
 use crate::catalog::{RowExt, Tx};
 use crate::writer::{finish_version, next_version, VersionHead};
-use crate::{now_rfc3339, CommitInfo, Label, Store, StoreError};
+use crate::{now_rfc3339, Backend, CommitInfo, Label, Store, StoreError};
 use serde::Serialize;
 
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -56,13 +56,54 @@ impl Store {
         if updates.is_empty() {
             return Ok(Vec::new());
         }
+        let backend = self.backend();
         let mut tx = self.db().begin_write().await?;
         let mut out = Vec::with_capacity(updates.len());
         for u in updates {
-            out.push(apply_one(&mut tx, &u, actor, source).await?);
+            out.push(apply_one(&mut tx, backend, &u, actor, source).await?);
         }
         tx.commit().await?;
         Ok(out)
+    }
+
+    /// Group commit: many independent label writes `(update, actor)` in ONE transaction, each
+    /// with its own outcome. An item that fails on its own (stale revision → `LabelConflict`,
+    /// unknown episode, invalid note or actor) writes nothing and does not affect the others;
+    /// the rest commit together, each with its audit event. Items run in the given order
+    /// (on Postgres sorted by episode id, stably, so two batches lock rows in the same order),
+    /// so two writes to one episode in a batch behave as if sent one after the other.
+    /// `Err` (a catalog error) means nothing was committed.
+    pub async fn set_labels_each(
+        &self,
+        items: Vec<(LabelUpdate, String)>,
+        source: &str,
+    ) -> Result<Vec<Result<LabelChange, StoreError>>, StoreError> {
+        if items.is_empty() {
+            return Ok(Vec::new());
+        }
+        let backend = self.backend();
+        let mut order: Vec<usize> = (0..items.len()).collect();
+        if backend == Backend::Postgres {
+            order.sort_by(|&a, &b| items[a].0.episode_id.cmp(&items[b].0.episode_id));
+        }
+        let mut out: Vec<Option<Result<LabelChange, StoreError>>> = (0..items.len()).map(|_| None).collect();
+        let mut tx = self.db().begin_write().await?;
+        for i in order {
+            let (u, actor) = &items[i];
+            let r = match crate::writer::check_name("actor", actor) {
+                Ok(()) => apply_one(&mut tx, backend, u, actor, source).await,
+                Err(e) => Err(e),
+            };
+            match r {
+                Err(e) if !item_error(&e) => return Err(e),
+                r => out[i] = Some(r),
+            }
+        }
+        tx.commit().await?;
+        Ok(out
+            .into_iter()
+            .map(|o| o.unwrap_or_else(|| Err(StoreError::Corrupt("label write without an outcome".into()))))
+            .collect())
     }
 
     /// Every label event of an episode, oldest first.
@@ -152,79 +193,146 @@ impl Store {
     }
 }
 
-async fn apply_one(tx: &mut Tx, u: &LabelUpdate, actor: &str, source: &str) -> Result<LabelChange, StoreError> {
+/// One label write on SQLite, as one multi-statement query (one hand-off to sqlx's connection
+/// thread, whatever the outcome): read the episode's current label state; insert the audit event
+/// from that row only if the revision matches (`RETURNING` its revision and old label); move the
+/// episode row on under the same condition, tied to the insert by `changes() = 1`. The
+/// transaction holds the database write lock (`BEGIN IMMEDIATE`), so the three statements see the
+/// same row. The `kind` column tells the result rows apart.
+const SQLITE_APPLY: &str = "\
+SELECT 'current' AS kind, label_revision AS revision, label AS old_label, label_actor, label_updated_at \
+FROM episodes WHERE id = $1 AND version_removed IS NULL; \
+INSERT INTO label_events (episode_id, revision, old_label, new_label, source, actor, note, created_at) \
+SELECT id, label_revision + 1, label, $2, $3, $4, $6, $5 FROM episodes \
+WHERE id = $1 AND version_removed IS NULL AND ($7 IS NULL OR label_revision = $7) \
+RETURNING 'event' AS kind, revision, old_label; \
+UPDATE episodes SET label = $2, label_source = $3, label_revision = label_revision + 1, label_actor = $4, \
+label_updated_at = $5 \
+WHERE id = $1 AND version_removed IS NULL AND ($7 IS NULL OR label_revision = $7) AND changes() = 1 \
+RETURNING 'episode' AS kind, label_revision AS revision";
+
+/// One label write on Postgres, in one statement: lock the episode row (`FOR UPDATE` re-reads the
+/// newest committed version under READ COMMITTED) and return its state; move it on if the
+/// revision matches; insert the audit event with the old label from the locked row. A conflict
+/// writes nothing and raises no error, so the transaction stays usable for the next item.
+const POSTGRES_APPLY: &str = "\
+WITH cur AS (SELECT id, label, label_revision, label_actor, label_updated_at FROM episodes \
+WHERE id = $1 AND version_removed IS NULL FOR UPDATE), \
+upd AS (UPDATE episodes e SET label = $2, label_source = $3, label_revision = e.label_revision + 1, \
+label_actor = $4, label_updated_at = $5 FROM cur \
+WHERE e.id = cur.id AND ($7::BIGINT IS NULL OR e.label_revision = $7::BIGINT) \
+RETURNING e.id, e.label_revision, cur.label AS old_label), \
+ev AS (INSERT INTO label_events (episode_id, revision, old_label, new_label, source, actor, note, created_at) \
+SELECT id, label_revision, old_label, $2, $3, $4, $6, $5 FROM upd RETURNING revision, old_label) \
+SELECT 'current' AS kind, cur.label_revision AS revision, cur.label AS old_label, cur.label_actor, \
+cur.label_updated_at, ev.revision AS event_revision, ev.old_label AS event_old_label \
+FROM cur LEFT JOIN ev ON TRUE";
+
+/// Whether a failed label write concerns only that item (a group commit records it and goes on
+/// with the others): nothing was written for it. Catalog errors abort the whole transaction.
+fn item_error(e: &StoreError) -> bool {
+    matches!(
+        e,
+        StoreError::Invalid(_) | StoreError::NotFound { .. } | StoreError::LabelConflict { .. } | StoreError::Conflict(_)
+    )
+}
+
+/// Applies one label change inside `tx` in one round trip. On success the episode row and its
+/// audit event are written; on an item error (invalid note, unknown episode, stale revision)
+/// nothing is.
+async fn apply_one(
+    tx: &mut Tx,
+    backend: Backend,
+    u: &LabelUpdate,
+    actor: &str,
+    source: &str,
+) -> Result<LabelChange, StoreError> {
     if let Some(n) = &u.note {
         if n.len() > 4000 {
             return Err(StoreError::invalid("label note is longer than 4000 bytes"));
         }
     }
-    let row = sqlx::query(
-        "SELECT label, label_revision, label_actor, label_updated_at FROM episodes \
-         WHERE id = $1 AND version_removed IS NULL",
-    )
-    .bind(&u.episode_id)
-    .fetch_optional(&mut **tx)
-    .await?
-    .ok_or_else(|| StoreError::not_found("episode", u.episode_id.clone()))?;
-    let current: Label = row.s("label")?.parse()?;
-    let revision = row.i("label_revision")?;
-    let conflict = |revision: i64, label: Label, actor: String, at: String, expected: i64| StoreError::LabelConflict {
-        episode_id: u.episode_id.clone(),
-        expected,
-        revision,
-        label,
-        actor,
-        at,
+    let now = now_rfc3339();
+    let sql = match backend {
+        Backend::Sqlite => SQLITE_APPLY,
+        Backend::Postgres => POSTGRES_APPLY,
     };
-    if let Some(expected) = u.expect_revision {
-        if expected != revision {
-            return Err(conflict(revision, current, row.s("label_actor")?, row.s("label_updated_at")?, expected));
+    // `fetch_all`, not `fetch_optional`: on SQLite every statement of the query must run.
+    let rows = sqlx::query(sql)
+        .bind(&u.episode_id)
+        .bind(u.label.as_str())
+        .bind(source)
+        .bind(actor)
+        .bind(&now)
+        .bind(u.note.clone())
+        .bind(u.expect_revision)
+        .fetch_all(&mut **tx)
+        .await?;
+    // (revision, label, actor, at) before the write; the event's (revision, old label); the
+    // episode's new revision.
+    let mut current: Option<(i64, String, String, String)> = None;
+    let mut event: Option<(i64, Option<String>)> = None;
+    let mut episode_revision: Option<i64> = None;
+    for r in &rows {
+        match r.s("kind")?.as_str() {
+            "current" => {
+                current = Some((r.i("revision")?, r.s("old_label")?, r.s("label_actor")?, r.s("label_updated_at")?));
+                if backend == Backend::Postgres {
+                    // One statement: the event exists only if the episode row was updated.
+                    if let Some(rev) = r.oi("event_revision")? {
+                        event = Some((rev, r.os("event_old_label")?));
+                        episode_revision = Some(rev);
+                    }
+                }
+            }
+            "event" => event = Some((r.i("revision")?, r.os("old_label")?)),
+            _ => episode_revision = Some(r.i("revision")?),
         }
     }
-    let now = now_rfc3339();
-    let new_rev = revision + 1;
-    let updated = sqlx::query(
-        "UPDATE episodes SET label = $1, label_source = $2, label_revision = $3, label_actor = $4, \
-         label_updated_at = $5 WHERE id = $6 AND label_revision = $7",
-    )
-    .bind(u.label.as_str())
-    .bind(source)
-    .bind(new_rev)
-    .bind(actor)
-    .bind(&now)
-    .bind(&u.episode_id)
-    .bind(revision)
-    .execute(&mut **tx)
-    .await?;
-    if updated.rows_affected() != 1 {
-        // Someone else moved the revision between our read and our write (Postgres).
-        return Err(StoreError::Conflict(format!(
-            "episode {} was relabeled concurrently; reload and retry",
-            u.episode_id
-        )));
+    let Some((revision, label, set_by, set_at)) = current else {
+        if event.is_some() || episode_revision.is_some() {
+            return Err(inconsistent(u));
+        }
+        return Err(StoreError::not_found("episode", u.episode_id.clone()));
+    };
+    let current_label: Label = label.parse()?;
+    match (event, episode_revision) {
+        (Some((rev, old)), Some(ep_rev))
+            if rev == ep_rev && rev == revision + 1 && old.as_deref() == Some(current_label.as_str()) =>
+        {
+            Ok(LabelChange {
+                episode_id: u.episode_id.clone(),
+                old_label: current_label,
+                label: u.label,
+                revision: rev,
+                actor: actor.to_string(),
+                changed: current_label != u.label,
+            })
+        }
+        (None, None) => match u.expect_revision {
+            Some(expected) if expected != revision => Err(StoreError::LabelConflict {
+                episode_id: u.episode_id.clone(),
+                expected,
+                revision,
+                label: current_label,
+                actor: set_by,
+                at: set_at,
+            }),
+            // Matched when read but not written: cannot happen under the row lock / write lock;
+            // report a retryable conflict rather than guess.
+            _ => Err(StoreError::Conflict(format!(
+                "episode {} was relabeled concurrently; reload and retry",
+                u.episode_id
+            ))),
+        },
+        // Half a write: impossible under the lock, but never let it commit.
+        _ => Err(inconsistent(u)),
     }
-    sqlx::query(
-        "INSERT INTO label_events (episode_id, revision, old_label, new_label, source, actor, note, created_at) \
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
-    )
-    .bind(&u.episode_id)
-    .bind(new_rev)
-    .bind(current.as_str())
-    .bind(u.label.as_str())
-    .bind(source)
-    .bind(actor)
-    .bind(u.note.clone())
-    .bind(&now)
-    .execute(&mut **tx)
-    .await?;
-    Ok(LabelChange {
-        episode_id: u.episode_id.clone(),
-        old_label: current,
-        label: u.label,
-        revision: new_rev,
-        actor: actor.to_string(),
-        changed: current != u.label,
-    })
+}
+
+/// Not an item error: the whole transaction is rolled back.
+fn inconsistent(u: &LabelUpdate) -> StoreError {
+    StoreError::Corrupt(format!("label write on {} updated the event log and the episode inconsistently", u.episode_id))
 }
 
 fn event_from_row(r: &sqlx::any::AnyRow) -> Result<LabelEvent, StoreError> {
@@ -238,4 +346,174 @@ fn event_from_row(r: &sqlx::any::AnyRow) -> Result<LabelEvent, StoreError> {
         note: r.os("note")?,
         created_at: r.s("created_at")?,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::*;
+
+    async fn store_with_episodes(db: Backend, dir: &std::path::Path) -> (Store, Vec<String>) {
+        let cfg = match db {
+            Backend::Sqlite => StoreConfig::local(dir),
+            Backend::Postgres => StoreConfig {
+                data_dir: dir.into(),
+                database_url: Some(create_test_schema("labels").await.expect("the Postgres tests need a server")),
+                object_store_url: None,
+            },
+        };
+        let store = Store::open(&cfg).await.unwrap();
+        let src = SourceInput {
+            path: "/tmp/labels-test".into(),
+            sha256: sha256_hex(b"labels-test"),
+            format: "test".into(),
+            size_bytes: 1,
+            metadata: serde_json::json!({}),
+        };
+        let mut w = store.begin_ingest(src, "pol", "c1").await.unwrap();
+        let mut ids = Vec::new();
+        for i in 0..3u32 {
+            ids.push(
+                w.add_episode(EpisodeInput {
+                    source_name: format!("ep{i}"),
+                    source_index: i,
+                    task: None,
+                    label: if i % 2 == 0 { Label::Success } else { Label::Failure },
+                    label_source: "test".into(),
+                    tags: vec![],
+                    metadata: serde_json::json!({}),
+                    timestamps: vec![0.0, 0.1],
+                    observations: vec![VectorColumn { name: "pos".into(), dim: 1, values: vec![0.0, 1.0] }],
+                    action: VectorColumn { name: "action".into(), dim: 1, values: vec![0.0, 1.0] },
+                    reward: vec![0.0, 1.0],
+                    done: vec![false, true],
+                    action_chunk: None,
+                    images: vec![],
+                    media: vec![],
+                })
+                .await
+                .unwrap(),
+            );
+        }
+        w.commit("labels test").await.unwrap();
+        (store, ids)
+    }
+
+    fn upd(id: &str, label: Label, expect: Option<i64>) -> LabelUpdate {
+        LabelUpdate { episode_id: id.to_string(), label, expect_revision: expect, note: Some(label.as_str().to_string()) }
+    }
+
+    async fn group_commit_keeps_per_item_outcomes(db: Backend) {
+        let dir = tempfile::tempdir().unwrap();
+        let (store, ids) = store_with_episodes(db, dir.path()).await;
+        let (a, b, c) = (&ids[0], &ids[1], &ids[2]);
+        let mut long = upd(c, Label::Failure, None);
+        long.note = Some("x".repeat(4001));
+        let items = vec![
+            (upd(a, Label::Failure, Some(1)), "alice".to_string()),
+            (upd(b, Label::Success, Some(7)), "bob".to_string()),
+            (upd("no-such-episode", Label::Success, Some(1)), "bob".to_string()),
+            (upd(a, Label::Unknown, Some(2)), "bob".to_string()),
+            (upd(a, Label::Success, Some(2)), "carol".to_string()),
+            (upd(c, Label::Failure, None), " bad actor".to_string()),
+            (long, "carol".to_string()),
+            (upd(c, Label::Failure, None), "carol".to_string()),
+        ];
+        let out = store.set_labels_each(items, "human").await.unwrap();
+        assert_eq!(out.len(), 8);
+        let ok = |i: usize| out[i].as_ref().unwrap_or_else(|e| panic!("item {i}: {e}")).clone();
+        assert_eq!((ok(0).old_label, ok(0).label, ok(0).revision, ok(0).changed), (Label::Success, Label::Failure, 2, true));
+        match &out[1] {
+            Err(StoreError::LabelConflict { expected, revision, label, actor, at, .. }) => {
+                let eb = store.episode(b, None).await.unwrap();
+                assert_eq!((*expected, *revision, *label), (7, 1, Label::Failure));
+                assert_eq!((actor, at), (&eb.label_actor, &eb.label_updated_at));
+            }
+            other => panic!("item 1: {other:?}"),
+        }
+        assert!(matches!(out[2], Err(StoreError::NotFound { .. })), "{:?}", out[2]);
+        // Items of one batch apply in order: the second write to `a` sees the first.
+        assert_eq!((ok(3).old_label, ok(3).revision, ok(3).actor.as_str()), (Label::Failure, 3, "bob"));
+        match &out[4] {
+            Err(StoreError::LabelConflict { expected: 2, revision: 3, label: Label::Unknown, actor, .. }) => {
+                assert_eq!(actor, "bob")
+            }
+            other => panic!("item 4: {other:?}"),
+        }
+        assert!(matches!(out[5], Err(StoreError::Invalid(_))), "{:?}", out[5]);
+        assert!(matches!(out[6], Err(StoreError::Invalid(_))), "{:?}", out[6]);
+        assert_eq!((ok(7).old_label, ok(7).label, ok(7).revision, ok(7).changed), (Label::Success, Label::Failure, 2, true));
+
+        // The audit log holds exactly the applied writes, chained old → new.
+        let ha = store.label_history(a).await.unwrap();
+        let got: Vec<_> = ha.iter().map(|e| (e.revision, e.old_label, e.new_label, e.actor.as_str())).collect();
+        assert_eq!(got[1..], [(2, Some(Label::Success), Label::Failure, "alice"), (3, Some(Label::Failure), Label::Unknown, "bob")]);
+        assert_eq!(ha[2].note.as_deref(), Some("unknown"));
+        assert_eq!(store.label_history(b).await.unwrap().len(), 1);
+        assert_eq!(store.label_history(c).await.unwrap().len(), 2);
+        let ea = store.episode(a, None).await.unwrap();
+        assert_eq!((ea.label, ea.label_revision, ea.label_actor.as_str()), (Label::Unknown, 3, "bob"));
+
+        // Bulk labeling stays all-or-nothing: one stale item and nothing is written.
+        let bulk = vec![upd(b, Label::Success, Some(1)), upd(c, Label::Success, Some(1))];
+        assert!(matches!(store.set_labels(bulk, "dave", "human").await, Err(StoreError::LabelConflict { .. })));
+        assert_eq!(store.episode(b, None).await.unwrap().label_revision, 1);
+        assert_eq!(store.label_history(b).await.unwrap().len(), 1);
+        let bulk = vec![upd(b, Label::Success, Some(1)), upd(c, Label::Success, Some(2))];
+        let done = store.set_labels(bulk, "dave", "human").await.unwrap();
+        assert_eq!(done.iter().map(|c| c.revision).collect::<Vec<_>>(), [2, 3]);
+        assert!(store.set_labels_each(vec![], "human").await.unwrap().is_empty());
+    }
+
+    /// Many concurrent unconditional writers on one episode: revisions stay dense and every
+    /// event starts from the label the previous one set (the old label is read under the lock).
+    async fn concurrent_writers_chain_the_log(db: Backend) {
+        let dir = tempfile::tempdir().unwrap();
+        let (store, ids) = store_with_episodes(db, dir.path()).await;
+        let id = ids[0].clone();
+        let mut tasks = Vec::new();
+        for t in 0..8u32 {
+            let store = store.clone();
+            let id = id.clone();
+            tasks.push(tokio::spawn(async move {
+                for k in 0..10u32 {
+                    let label = [Label::Success, Label::Failure, Label::Unknown][((t + k) % 3) as usize];
+                    if k % 2 == 0 {
+                        store.set_label(upd(&id, label, None), &format!("w{t}"), "human").await.unwrap();
+                    } else {
+                        let items = vec![(upd(&id, label, None), format!("w{t}"))];
+                        let out = store.set_labels_each(items, "human").await.unwrap();
+                        out.into_iter().next().unwrap().unwrap();
+                    }
+                }
+            }));
+        }
+        for t in tasks {
+            t.await.unwrap();
+        }
+        let h = store.label_history(&id).await.unwrap();
+        assert_eq!(h.len(), 81);
+        for (i, w) in h.windows(2).enumerate() {
+            assert_eq!(w[1].revision, i as i64 + 2);
+            assert_eq!(w[1].old_label, Some(w[0].new_label), "event {} does not start from the previous label", w[1].revision);
+        }
+        let e = store.episode(&id, None).await.unwrap();
+        assert_eq!((e.label, e.label_revision), (h[80].new_label, 81));
+    }
+
+    #[tokio::test]
+    async fn group_commit_sqlite() {
+        group_commit_keeps_per_item_outcomes(Backend::Sqlite).await;
+    }
+    #[tokio::test]
+    async fn group_commit_postgres() {
+        group_commit_keeps_per_item_outcomes(Backend::Postgres).await;
+    }
+    #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+    async fn concurrent_label_writers_sqlite() {
+        concurrent_writers_chain_the_log(Backend::Sqlite).await;
+    }
+    #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+    async fn concurrent_label_writers_postgres() {
+        concurrent_writers_chain_the_log(Backend::Postgres).await;
+    }
 }
