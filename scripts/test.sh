@@ -6,4 +6,6 @@ cd "$(dirname "$0")/.."
 source scripts/env.sh
 ensure_python_deps
 ensure_postgres
+ensure_browser
+export UFOPS_REQUIRE_BROWSER=1
 cargo test --workspace --locked "$@"

@@ -59,20 +59,26 @@ impl TokenCache {
     }
 }
 
-/// Middleware: every route behind it needs `Authorization: Bearer <token>`; puts the [`Caller`]
-/// into the request's extensions.
-pub(crate) async fn require_token(State(state): State<AppState>, mut req: Request, next: Next) -> Result<Response, ApiError> {
-    let value = req
-        .headers()
-        .get(header::AUTHORIZATION)
-        .ok_or_else(|| ApiError::unauthorized("missing Authorization: Bearer <token> header"))?;
+/// Middleware: every route behind it needs `Authorization: Bearer <token>` (or the web page's
+/// session cookie, see `session.rs`); puts the [`Caller`] into the request's extensions.
+pub(crate) async fn require_token(State(state): State<AppState>, req: Request, next: Next) -> Result<Response, ApiError> {
+    // No Authorization header: the web page's session cookie (with its CSRF rule), if any.
+    let Some(value) = req.headers().get(header::AUTHORIZATION) else {
+        let secret = crate::session::secret_from_cookie(&state, &req)?;
+        return authenticate(&state, &secret, req, next).await;
+    };
     let value = value.to_str().map_err(|_| ApiError::unauthorized("malformed Authorization header"))?;
     let secret = value
         .strip_prefix("Bearer ")
         .or_else(|| value.strip_prefix("bearer "))
         .map(str::trim)
         .filter(|s| !s.is_empty() && s.len() <= 256)
-        .ok_or_else(|| ApiError::unauthorized("expected Authorization: Bearer <token>"))?;
+        .ok_or_else(|| ApiError::unauthorized("expected Authorization: Bearer <token>"))?
+        .to_string();
+    authenticate(&state, &secret, req, next).await
+}
+
+async fn authenticate(state: &AppState, secret: &str, mut req: Request, next: Next) -> Result<Response, ApiError> {
     let key = store::sha256_hex(secret.as_bytes());
     let caller = match state.inner.tokens.get(&key) {
         Some(c) => c,

@@ -10,10 +10,12 @@
 mod auth;
 mod error;
 mod extract;
+mod label_writer;
 mod media;
 mod metrics;
 mod openapi;
 mod routes;
+mod session;
 mod steps_json;
 mod upload;
 mod worker;
@@ -86,17 +88,21 @@ pub(crate) struct Inner {
     pub cfg: ServeConfig,
     pub metrics: metrics::Metrics,
     pub tokens: auth::TokenCache,
+    /// Signed-in sessions of the labeling page (`session.rs`).
+    pub sessions: session::Sessions,
     /// SQLite has one writer: queueing label writes here, instead of letting pool connections
     /// spin on the database lock (SQLite's busy handler sleeps in steps of up to 100 ms),
     /// keeps write latency flat under contention. `None` on Postgres (row-level locking).
     pub write_gate: Option<tokio::sync::Mutex<()>>,
+    /// Group commit of label PUTs on SQLite (`label_writer.rs`).
+    pub label_writer: label_writer::LabelWriter,
 }
 
 impl AppState {
     pub fn new(store: Store, cfg: ServeConfig) -> Self {
         let write_gate = (store.backend() == Backend::Sqlite).then(|| tokio::sync::Mutex::new(()));
         let tokens = auth::TokenCache::new(cfg.token_cache_ttl);
-        AppState { inner: Arc::new(Inner { store, cfg, metrics: Default::default(), tokens, write_gate }) }
+        AppState { inner: Arc::new(Inner { store, cfg, metrics: Default::default(), tokens, sessions: Default::default(), write_gate, label_writer: Default::default() }) }
     }
     pub fn store(&self) -> &Store {
         &self.inner.store
@@ -117,7 +123,8 @@ macro_rules! need {
 }
 
 /// The whole HTTP surface: `/healthz` (open), and behind a bearer token `/metrics`,
-/// `/openapi.json` and `/v1/...`.
+/// `/openapi.json` and `/v1/...`; the labeling page (`/`, `/ui/...`, open static assets from the
+/// `web` crate) and its sign-in `/ui/session` (cookie sessions, `session.rs`).
 pub fn router(state: AppState) -> Router {
     use routes as r;
     let body_limit = state.inner.cfg.body_limit_bytes;
@@ -159,6 +166,8 @@ pub fn router(state: AppState) -> Router {
     Router::new()
         .route("/healthz", get(r::healthz))
         .merge(authed)
+        .merge(session::routes(state.clone()))
+        .merge(web::router::<AppState>())
         .fallback(r::not_found)
         .layer(DefaultBodyLimit::max(body_limit))
         .layer(from_fn_with_state(state.clone(), metrics::track))

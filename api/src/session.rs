@@ -1,0 +1,241 @@
+//! Browser sessions for the labeling page: `POST /ui/session {token}` checks an API token and
+//! sets an `HttpOnly; SameSite=Strict` cookie holding a random session id; the server keeps
+//! `id → token secret` in memory (never sent back to the browser), so a session stops working
+//! when its token is revoked (within the token cache's TTL). `GET /ui/session` says who is
+//! signed in, `DELETE /ui/session` signs out (forgets the id, clears the cookie).
+//!
+//! CSRF: the cookie is `SameSite=Strict`, and every cookie-authenticated request with an unsafe
+//! method (and the sign-in itself) must carry `X-Ufops-UI: 1` — a custom header a cross-site form
+//! cannot send and cross-site scripts cannot add without a CORS preflight this server never
+//! grants — and, when the browser sends `Origin`, it must match `Host`.
+//!
+//! These routes are the page's own, outside the bearer-token API and its OpenAPI document.
+
+use crate::auth::Caller;
+use crate::error::{ApiError, ApiResult};
+use crate::extract::ApiJson;
+use crate::AppState;
+use axum::extract::{Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::routing::post;
+use axum::{Json, Router};
+use serde::Deserialize;
+use serde_json::json;
+use std::collections::HashMap;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+/// The session cookie's name.
+pub const COOKIE: &str = "ufops_session";
+/// The header cookie-authenticated unsafe requests must carry (value `1`).
+pub const CSRF_HEADER: &str = "x-ufops-ui";
+/// A session ends after this long without a request…
+const IDLE: Duration = Duration::from_secs(12 * 3600);
+/// …and at the latest this long after sign-in.
+const MAX_AGE: Duration = Duration::from_secs(7 * 24 * 3600);
+const MAX_SESSIONS: usize = 10_000;
+
+struct Session {
+    secret: String,
+    created: Instant,
+    last_seen: Instant,
+}
+
+/// The server's sessions (in memory: a restart signs everyone out).
+#[derive(Default)]
+pub(crate) struct Sessions {
+    map: Mutex<HashMap<String, Session>>,
+}
+
+impl Sessions {
+    fn create(&self, secret: String) -> String {
+        // Two v4 UUIDs from the OS random source: 244 random bits.
+        let id = format!("{}{}", uuid::Uuid::new_v4().simple(), uuid::Uuid::new_v4().simple());
+        let now = Instant::now();
+        let mut map = self.map.lock().unwrap_or_else(|e| e.into_inner());
+        if map.len() >= MAX_SESSIONS {
+            map.retain(|_, s| now.duration_since(s.last_seen) < IDLE && now.duration_since(s.created) < MAX_AGE);
+            if map.len() >= MAX_SESSIONS {
+                // Drop the least recently used tenth.
+                let mut by_age: Vec<(Instant, String)> = map.iter().map(|(k, s)| (s.last_seen, k.clone())).collect();
+                by_age.sort();
+                for (_, k) in by_age.into_iter().take(MAX_SESSIONS / 10) {
+                    map.remove(&k);
+                }
+            }
+        }
+        map.insert(id.clone(), Session { secret, created: now, last_seen: now });
+        id
+    }
+
+    /// The token secret behind a live session id (and marks it used).
+    fn secret(&self, id: &str) -> Option<String> {
+        let now = Instant::now();
+        let mut map = self.map.lock().unwrap_or_else(|e| e.into_inner());
+        let s = map.get_mut(id)?;
+        if now.duration_since(s.last_seen) >= IDLE || now.duration_since(s.created) >= MAX_AGE {
+            map.remove(id);
+            return None;
+        }
+        s.last_seen = now;
+        Some(s.secret.clone())
+    }
+
+    fn remove(&self, id: &str) {
+        self.map.lock().unwrap_or_else(|e| e.into_inner()).remove(id);
+    }
+}
+
+/// The value of our cookie in a `Cookie` header, if any.
+fn cookie_value(headers: &HeaderMap) -> Option<String> {
+    headers
+        .get_all(header::COOKIE)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(';'))
+        .filter_map(|kv| kv.trim().split_once('='))
+        .find(|(k, _)| *k == COOKIE)
+        .map(|(_, v)| v.trim().to_string())
+        .filter(|v| !v.is_empty() && v.len() <= 128 && v.bytes().all(|b| b.is_ascii_alphanumeric()))
+}
+
+fn is_safe(m: &Method) -> bool {
+    matches!(*m, Method::GET | Method::HEAD | Method::OPTIONS)
+}
+
+/// The CSRF rule for cookie-authenticated unsafe requests (see the module docs).
+fn check_csrf(headers: &HeaderMap) -> ApiResult<()> {
+    let marked = headers.get(CSRF_HEADER).and_then(|v| v.to_str().ok()).is_some_and(|v| v.trim() == "1");
+    if !marked {
+        return Err(ApiError::forbidden(format!(
+            "a request authenticated by the session cookie that changes data must carry the header {CSRF_HEADER}: 1"
+        )));
+    }
+    if let Some(origin) = headers.get(header::ORIGIN) {
+        let origin = origin.to_str().unwrap_or("");
+        let host = headers.get(header::HOST).and_then(|v| v.to_str().ok()).unwrap_or("");
+        let origin_host = origin.split_once("://").map(|(_, h)| h).unwrap_or("");
+        if host.is_empty() || origin_host != host {
+            return Err(ApiError::forbidden(format!("cross-origin request from {origin:?} refused")));
+        }
+    }
+    Ok(())
+}
+
+/// For [`crate::auth::require_token`] when the request has no `Authorization` header: the token
+/// secret of the request's session cookie, after the CSRF check for unsafe methods.
+pub(crate) fn secret_from_cookie(state: &AppState, req: &Request) -> ApiResult<String> {
+    let id = cookie_value(req.headers()).ok_or_else(|| {
+        ApiError::unauthorized("missing Authorization: Bearer <token> header (or a signed-in session cookie)")
+    })?;
+    let secret = state
+        .inner
+        .sessions
+        .secret(&id)
+        .ok_or_else(|| ApiError::unauthorized("the session has ended; sign in again"))?;
+    if !is_safe(req.method()) {
+        check_csrf(req.headers())?;
+    }
+    Ok(secret)
+}
+
+fn set_cookie(value: &str, max_age: u64) -> HeaderValue {
+    HeaderValue::from_str(&format!("{COOKIE}={value}; Path=/; HttpOnly; SameSite=Strict; Max-Age={max_age}"))
+        .unwrap_or_else(|_| HeaderValue::from_static("ufops_session=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0"))
+}
+
+fn who(c: &Caller) -> serde_json::Value {
+    json!({"name": c.name, "role": c.role.as_str(), "token_id": c.token_id})
+}
+
+#[derive(Deserialize)]
+pub(crate) struct SignIn {
+    token: String,
+}
+
+/// `POST /ui/session {token}` → 200 `{name, role, token_id}` + the cookie; 401 for a bad token.
+async fn sign_in(State(s): State<AppState>, headers: HeaderMap, ApiJson(body): ApiJson<SignIn>) -> ApiResult<Response> {
+    check_csrf(&headers)?;
+    let secret = body.token.trim().to_string();
+    if secret.is_empty() || secret.len() > 256 {
+        return Err(ApiError::unauthorized("unknown or revoked token"));
+    }
+    let rec = s
+        .store()
+        .verify_token(&secret)
+        .await?
+        .ok_or_else(|| ApiError::unauthorized("unknown or revoked token"))?;
+    let caller = Caller { token_id: rec.id, name: rec.name, role: rec.role };
+    let id = s.inner.sessions.create(secret);
+    let mut resp = Json(who(&caller)).into_response();
+    resp.headers_mut().insert(header::SET_COOKIE, set_cookie(&id, MAX_AGE.as_secs()));
+    resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    Ok(resp)
+}
+
+/// `GET /ui/session` → who is signed in (through the cookie or a bearer token), 401 otherwise.
+async fn whoami(axum::Extension(caller): axum::Extension<Caller>) -> Response {
+    let mut resp = Json(who(&caller)).into_response();
+    resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    resp
+}
+
+/// `DELETE /ui/session` → 204, the session forgotten and the cookie cleared (also when there
+/// was none).
+async fn sign_out(State(s): State<AppState>, headers: HeaderMap) -> ApiResult<Response> {
+    check_csrf(&headers)?;
+    if let Some(id) = cookie_value(&headers) {
+        s.inner.sessions.remove(&id);
+    }
+    let mut resp = StatusCode::NO_CONTENT.into_response();
+    resp.headers_mut().insert(header::SET_COOKIE, set_cookie("", 0));
+    Ok(resp)
+}
+
+/// The session routes: sign-in and sign-out are open (they check the token / CSRF themselves);
+/// `GET /ui/session` sits behind the token middleware.
+pub(crate) fn routes(state: AppState) -> Router<AppState> {
+    use axum::handler::Handler;
+    let authed_whoami = whoami.layer(axum::middleware::from_fn_with_state(state, crate::auth::require_token));
+    Router::new().route("/ui/session", post(sign_in).delete(sign_out).get(authed_whoami))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cookie_parsing() {
+        let mut h = HeaderMap::new();
+        h.insert(header::COOKIE, HeaderValue::from_static("a=b; ufops_session=abc123 ; c=d"));
+        assert_eq!(cookie_value(&h).as_deref(), Some("abc123"));
+        h.insert(header::COOKIE, HeaderValue::from_static("ufops_session=../x"));
+        assert_eq!(cookie_value(&h), None);
+        h.remove(header::COOKIE);
+        assert_eq!(cookie_value(&h), None);
+    }
+
+    #[test]
+    fn csrf_rule() {
+        let mut h = HeaderMap::new();
+        assert!(check_csrf(&h).is_err());
+        h.insert(CSRF_HEADER, HeaderValue::from_static("1"));
+        assert!(check_csrf(&h).is_ok());
+        h.insert(header::HOST, HeaderValue::from_static("127.0.0.1:8080"));
+        h.insert(header::ORIGIN, HeaderValue::from_static("http://127.0.0.1:8080"));
+        assert!(check_csrf(&h).is_ok());
+        h.insert(header::ORIGIN, HeaderValue::from_static("http://evil.example"));
+        assert!(check_csrf(&h).is_err());
+    }
+
+    #[test]
+    fn sessions_expire_and_sign_out() {
+        let s = Sessions::default();
+        let id = s.create("secret".into());
+        assert_eq!(id.len(), 64);
+        assert_eq!(s.secret(&id).as_deref(), Some("secret"));
+        s.remove(&id);
+        assert_eq!(s.secret(&id), None);
+    }
+}
