@@ -114,6 +114,12 @@ pub enum Command {
         artifact: String,
         #[arg(long)]
         input: PathBuf,
+        /// Fetch the artifact from a `ufops serve` API (http://HOST:PORT) instead of the store.
+        #[arg(long)]
+        api: Option<String>,
+        /// Bearer token for --api (role viewer or above).
+        #[arg(long, env = "UFOPS_TOKEN", hide_env_values = true)]
+        token: Option<String>,
     },
     /// The paper's pedagogical experiment end to end on this store.
     Demo {
@@ -147,7 +153,9 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Serve(a) => serve_cmds::serve(&cli.store, a).await,
         Command::Worker { id, lease_ms } => serve_cmds::worker(&cli.store, id, lease_ms).await,
         Command::Train(a) => run_cmds::train(&cli.store, a).await,
-        Command::Score { artifact, input } => run_cmds::score(&cli.store, &artifact, &input).await,
+        Command::Score { artifact, input, api, token } => {
+            run_cmds::score(&cli.store, &artifact, &input, api.as_deref(), token.as_deref()).await
+        }
         Command::Demo { quick } => run_cmds::demo(&cli.store, quick).await,
         Command::View(a) => view_cmd::view(&cli.store, a).await,
         Command::Dev { command } => dev::run(&cli.store, command).await,

@@ -99,10 +99,18 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
     }
 }
 
-pub async fn score(args: &StoreArgs, artifact: &str, input: &PathBuf) -> Result<()> {
+pub async fn score(args: &StoreArgs, artifact: &str, input: &PathBuf, api: Option<&str>, token: Option<&str>) -> Result<()> {
     let dir = PathBuf::from(artifact);
     let tmp;
-    let dir = if dir.join("manifest.json").exists() {
+    let dir = if let Some(base) = api {
+        let token = token.context("--api needs a token: --token or UFOPS_TOKEN")?;
+        let src = steer::http::ApiSource::new(base, token);
+        let reference = artifact.to_string();
+        let fetched = tokio::task::spawn_blocking(move || steer::http::fetch_artifact(&src, &reference)).await??;
+        tmp = tempfile::tempdir()?;
+        fetched.write_to(tmp.path())?;
+        tmp.path().to_path_buf()
+    } else if dir.join("manifest.json").exists() {
         dir
     } else {
         let store = args.open().await?;

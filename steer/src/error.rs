@@ -6,6 +6,8 @@ use thiserror::Error;
 pub enum SteerError {
     #[error("i/o error on {path}: {source}")]
     Io { path: String, source: std::io::Error },
+    #[error("fetching the artifact failed: {0}")]
+    Http(String),
     #[error("manifest.json is invalid: {0}")]
     Manifest(String),
     #[error("sha256 mismatch for {file}: manifest says {expected}, file has {actual}")]

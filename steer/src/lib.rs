@@ -7,11 +7,14 @@
 //! implements for their own model ([`NoisePredictor`] for DDPM, [`VelocityField`] for flow
 //! matching) with the [`DdpmSchedule`]; and the steering strategies of the paper: best-of-N
 //! (Algorithm 1), classifier guidance for DDPM (Algorithm 2) and guidance for flow policies.
+//! With the `http` feature it also loads an artifact from a `ufops serve` API ([`http::ApiSource`]).
 //! It does not own training (the `trainer` crate) or storage (the `store` crate).
 
 pub mod config;
 pub mod error;
 pub mod fast;
+#[cfg(feature = "http")]
+pub mod http;
 pub mod policy;
 pub mod reference;
 pub mod sample;

@@ -142,6 +142,11 @@ impl Verifier {
     pub fn kind(&self) -> Kind {
         self.config.kind()
     }
+    #[cfg_attr(not(feature = "http"), allow(dead_code))]
+    pub(crate) fn set_id(&mut self, id: String) {
+        self.id = Some(id);
+    }
+
     /// The artifact id (when loaded through a manifest).
     pub fn id(&self) -> Option<&str> {
         self.id.as_deref()

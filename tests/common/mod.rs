@@ -1,6 +1,8 @@
 //! Helpers for the end-to-end tests: run the real `ufops` binary against a store.
 #![allow(dead_code)]
 
+pub mod seaweedfs;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -13,11 +15,14 @@ pub fn bin() -> PathBuf {
 pub struct Target {
     pub data_dir: PathBuf,
     pub database_url: Option<String>,
+    /// `s3://bucket/prefix` (with `env` holding the endpoint and keys); None: the local directory.
+    pub object_store: Option<String>,
+    pub env: Vec<(&'static str, String)>,
 }
 
 impl Target {
     pub fn sqlite(dir: &Path) -> Target {
-        Target { data_dir: dir.to_path_buf(), database_url: None }
+        Target { data_dir: dir.to_path_buf(), database_url: None, object_store: None, env: Vec::new() }
     }
 
     pub fn command(&self) -> Command {
@@ -27,6 +32,10 @@ impl Target {
             c.arg("--database-url").arg(u);
         }
         c.env_remove("UFOPS_DATABASE_URL").env_remove("UFOPS_OBJECT_STORE").env("CI", "true");
+        if let Some(o) = &self.object_store {
+            c.arg("--object-store").arg(o);
+        }
+        c.envs(self.env.iter().map(|(k, v)| (*k, v.as_str())));
         c
     }
 
@@ -60,7 +69,7 @@ pub fn postgres_target(dir: &Path) -> Target {
     let url = rt
         .block_on(store::create_test_schema("e2e"))
         .expect("the Postgres tests need the server at 127.0.0.1:5432 (UFOPS_TEST_POSTGRES)");
-    Target { data_dir: dir.to_path_buf(), database_url: Some(url) }
+    Target { data_dir: dir.to_path_buf(), database_url: Some(url), object_store: None, env: Vec::new() }
 }
 
 /// Every file under the local object directory, relative to it.
