@@ -206,14 +206,10 @@ fn checked_builder<R: ChunkReader + 'static>(path: &Path, r: R) -> Result<Parque
 pub(crate) fn guarded<T>(path: &Path, f: impl FnOnce() -> Result<T>) -> Result<T> {
     match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
         Ok(r) => r,
-        Err(p) => {
-            let msg = p
-                .downcast_ref::<String>()
-                .cloned()
-                .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
-                .unwrap_or_else(|| "unknown".into());
-            Err(IngestError::invalid(path, format!("corrupt Parquet data: the parquet decoder failed ({msg})")))
-        }
+        Err(p) => Err(IngestError::invalid(
+            path,
+            format!("corrupt Parquet data: the parquet decoder failed ({})", crate::panic_message(p.as_ref())),
+        )),
     }
 }
 

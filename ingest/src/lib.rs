@@ -90,15 +90,20 @@ pub struct ReadOutcome {
 pub fn read_path_report(path: &Path, format: Format, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<ReadOutcome> {
     match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| read_path_inner(path, format, opts, sink))) {
         Ok(r) => r,
-        Err(p) => {
-            let msg = p
-                .downcast_ref::<String>()
-                .cloned()
-                .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
-                .unwrap_or_else(|| "unknown".into());
-            Err(IngestError::invalid(path, format!("the file is corrupt: a decoder failed ({msg})")))
-        }
+        Err(p) => Err(IngestError::invalid(
+            path,
+            format!("the file is corrupt: a decoder failed ({})", panic_message(p.as_ref())),
+        )),
     }
+}
+
+/// The text of a caught panic's payload.
+pub(crate) fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<String>()
+        .cloned()
+        .or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string()))
+        .unwrap_or_else(|| "unknown".into())
 }
 
 fn read_path_inner(path: &Path, format: Format, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<ReadOutcome> {

@@ -128,11 +128,17 @@ impl SeaweedFs {
         ]
     }
 
+    /// The last lines of the server's output, for failure messages.
     pub fn log(&self) -> String {
-        let read = |n: &str| std::fs::read_to_string(self._dir.path().join(n)).unwrap_or_default();
-        let (out, err) = (read("weed.log"), read("weed.err"));
-        let tail = |s: &str| s.lines().rev().take(20).collect::<Vec<_>>().into_iter().rev().collect::<Vec<_>>().join("\n");
-        format!("{}\n{}", tail(&out), tail(&err))
+        ["weed.log", "weed.err"]
+            .iter()
+            .map(|n| {
+                let text = std::fs::read_to_string(self._dir.path().join(n)).unwrap_or_default();
+                let lines: Vec<&str> = text.lines().collect();
+                lines[lines.len().saturating_sub(20)..].join("\n")
+            })
+            .collect::<Vec<_>>()
+            .join("\n")
     }
 }
 
