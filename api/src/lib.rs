@@ -29,7 +29,7 @@ pub use worker::{run_worker, run_worker_with, JobContext, JobRunner, WorkerOptio
 
 use axum::extract::DefaultBodyLimit;
 use axum::middleware::from_fn_with_state;
-use axum::routing::{get, post, put};
+use axum::routing::{get, post};
 use axum::Router;
 use std::future::Future;
 use std::net::SocketAddr;
@@ -115,53 +115,20 @@ impl AppState {
     }
 }
 
-/// A route-level role check (runs after the token check, before the body is read).
-macro_rules! need {
-    ($role:expr) => {
-        from_fn_with_state($role, auth::require_role)
-    };
-}
-
 /// The whole HTTP surface: `/healthz` (open), and behind a bearer token `/metrics`,
-/// `/openapi.json` and `/v1/...`; the labeling page (`/`, `/ui/...`, open static assets from the
-/// `web` crate) and its sign-in `/ui/session` (cookie sessions, `session.rs`).
+/// `/openapi.json` and `/v1/...` (one router per resource, `routes/`); the labeling page (`/`,
+/// `/ui/...`, open static assets from the `web` crate) and its sign-in `/ui/session` (cookie
+/// sessions, `session.rs`).
 pub fn router(state: AppState) -> Router {
     use routes as r;
     let body_limit = state.inner.cfg.body_limit_bytes;
-    let authed = Router::new()
-        .route("/metrics", get(r::metrics))
+    let authed = r::authed_routes()
         .route("/openapi.json", get(openapi::serve_openapi))
-        .route("/v1/policies", get(r::list_policies))
-        .route("/v1/checkpoints", get(r::list_checkpoints))
-        .route("/v1/tasks", get(r::list_tasks))
-        .route("/v1/versions", get(r::list_versions))
-        .route("/v1/versions/{version}", get(r::get_version))
-        .route("/v1/versions/{from}/diff/{to}", get(r::diff_versions))
-        .route("/v1/episodes", get(r::list_episodes))
-        .route("/v1/episodes/{id}", get(r::get_episode))
-        .route("/v1/episodes/{id}/steps", get(r::get_steps))
-        .route("/v1/episodes/{id}/media/{key}", get(r::get_media))
-        .route("/v1/episodes/{id}/label", put(r::put_label.layer(need!(Role::Labeler))))
-        .route("/v1/labels/bulk", post(r::bulk_labels.layer(need!(Role::Labeler))))
-        .route("/v1/label-snapshots", post(r::create_snapshot.layer(need!(Role::Labeler))))
-        .route("/v1/splits", get(r::list_splits).post(r::create_split.layer(need!(Role::Trainer))))
-        .route("/v1/splits/{id}", get(r::get_split))
-        .route("/v1/jobs", get(r::list_jobs).post(r::create_job.layer(need!(Role::Trainer))))
-        .route("/v1/jobs/{id}", get(r::get_job))
-        .route("/v1/jobs/{id}/cancel", post(r::cancel_job.layer(need!(Role::Trainer))))
-        .route("/v1/artifacts", get(r::list_artifacts))
-        .route("/v1/artifacts/{id}", get(r::get_artifact))
-        .route("/v1/artifacts/{id}/files/{name}", get(r::artifact_file))
-        .route("/v1/artifacts/{id}/aliases/{alias}", put(r::set_alias.layer(need!(Role::Trainer))))
-        .route("/v1/policies/{policy}/checkpoints/{checkpoint}/verifiers/{kind_at_alias}", get(r::resolve_verifier))
         .route(
-            "/v1/policies/{policy}/checkpoints/{checkpoint}/verifiers/{kind_at_alias}/files/{name}",
-            get(r::resolve_verifier_file),
+            "/v1/ingest",
+            post(upload::ingest.layer(from_fn_with_state(Role::Admin, auth::require_role)))
+                .layer(DefaultBodyLimit::disable()),
         )
-        .route("/v1/ingest", post(upload::ingest.layer(need!(Role::Admin))).layer(DefaultBodyLimit::disable()))
-        .route("/v1/gc", post(r::gc.layer(need!(Role::Admin))))
-        .route("/v1/tokens", get(r::list_tokens.layer(need!(Role::Admin))).post(r::create_token.layer(need!(Role::Admin))))
-        .route("/v1/tokens/{id}", axum::routing::delete(r::revoke_token.layer(need!(Role::Admin))))
         .route_layer(from_fn_with_state(state.clone(), auth::require_token));
     Router::new()
         .route("/healthz", get(r::healthz))

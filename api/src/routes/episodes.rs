@@ -1,0 +1,167 @@
+//! Episodes: listing with filters and cursor pagination, one episode with its label history,
+//! its step table (JSON or Arrow IPC) and its media (range requests).
+
+use super::*;
+
+/// The routes of this resource (behind the token check).
+pub(crate) fn router() -> Router<AppState> {
+    Router::new()
+        .route("/v1/episodes", get(list_episodes))
+        .route("/v1/episodes/{id}", get(get_episode))
+        .route("/v1/episodes/{id}/steps", get(get_steps))
+        .route("/v1/episodes/{id}/media/{key}", get(get_media))
+}
+
+#[derive(Deserialize, IntoParams, Default)]
+#[into_params(parameter_in = Query)]
+pub struct EpisodeQuery {
+    policy: Option<String>,
+    checkpoint: Option<String>,
+    task: Option<String>,
+    /// `success`, `failure` or `unknown`.
+    label: Option<String>,
+    label_source: Option<String>,
+    tag: Option<String>,
+    /// Read the store as of this version (labels frozen in it); default: now.
+    version: Option<i64>,
+    /// Cursor: the `next_cursor` of the previous page.
+    after: Option<String>,
+    /// Page size, 1-1000 (default 100).
+    limit: Option<i64>,
+    /// Sort order; only `id` (ascending, the cursor order) is supported.
+    sort: Option<String>,
+}
+
+#[derive(Serialize, ToSchema)]
+pub struct EpisodePage {
+    #[schema(value_type = Vec<Object>)]
+    episodes: Vec<store::EpisodeRecord>,
+    /// Pass as `after` for the next page; absent on the last page.
+    next_cursor: Option<String>,
+}
+
+/// Lists episodes with filters and cursor pagination.
+#[utoipa::path(get, path = "/v1/episodes", tag = "episodes", params(EpisodeQuery),
+    responses((status = 200, body = EpisodePage), (status = 400, body = Problem), (status = 401, body = Problem)))]
+pub async fn list_episodes(State(s): State<AppState>, ApiQuery(q): ApiQuery<EpisodeQuery>) -> ApiResult<Json<EpisodePage>> {
+    match q.sort.as_deref() {
+        None | Some("id") => {}
+        Some(other) => {
+            return Err(ApiError::bad_request(format!("unsupported sort {other:?}: only \"id\" (the cursor order)")))
+        }
+    }
+    let limit = q.limit.unwrap_or(100);
+    if !(1..=1000).contains(&limit) {
+        return Err(ApiError::bad_request(format!("limit {limit} must be in 1..=1000")));
+    }
+    if let Some(a) = &q.after {
+        check_id("cursor", a)?;
+    }
+    let filter = EpisodeFilter {
+        version: q.version,
+        id: None,
+        policy: q.policy,
+        checkpoint: q.checkpoint,
+        task: q.task,
+        label: q.label.as_deref().map(parse_label).transpose()?,
+        label_source: q.label_source,
+        tag: q.tag,
+        after: q.after,
+        limit: Some(limit + 1),
+    };
+    let mut episodes = s.store().episodes(&filter).await?;
+    let next_cursor = if episodes.len() as i64 > limit {
+        episodes.truncate(limit as usize);
+        episodes.last().map(|e| e.id.clone())
+    } else {
+        None
+    };
+    Ok(Json(EpisodePage { episodes, next_cursor }))
+}
+
+#[derive(Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct VersionQuery {
+    /// As of this version; default: now.
+    version: Option<i64>,
+}
+
+/// An episode: metadata, current label (its revision is also the `ETag`) and label history.
+#[utoipa::path(get, path = "/v1/episodes/{id}", tag = "episodes",
+    params(("id" = String, Path), VersionQuery),
+    responses((status = 200, description = "{episode, history}", body = Object), (status = 404, body = Problem)))]
+pub async fn get_episode(
+    State(s): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+    ApiQuery(q): ApiQuery<VersionQuery>,
+) -> ApiResult<Response> {
+    check_id("episode id", &id)?;
+    let ep = s.store().episode(&id, q.version).await?;
+    let history = s.store().label_history(&id).await?;
+    let rev = ep.label_revision;
+    let mut resp = Json(json!({"episode": ep, "history": history})).into_response();
+    resp.headers_mut().insert(header::ETAG, etag(rev));
+    Ok(resp)
+}
+
+/// The step table: JSON (columnar) or, with `Accept: application/vnd.apache.arrow.stream`, Arrow IPC.
+#[utoipa::path(get, path = "/v1/episodes/{id}/steps", tag = "episodes",
+    params(("id" = String, Path), VersionQuery),
+    responses(
+        (status = 200, description = "columnar JSON {episode_id, num_rows, columns, omitted}", body = Object,
+         content_type = "application/json"),
+        (status = 200, description = "Arrow IPC stream", content_type = "application/vnd.apache.arrow.stream"),
+        (status = 404, body = Problem)))]
+pub async fn get_steps(
+    State(s): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+    ApiQuery(q): ApiQuery<VersionQuery>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    check_id("episode id", &id)?;
+    let batch = s.store().read_steps(&id, q.version).await?;
+    let wants_arrow = headers
+        .get(header::ACCEPT)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|a| a.split(',').any(|p| p.trim().starts_with(ARROW_STREAM)));
+    if wants_arrow {
+        let mut buf = Vec::new();
+        {
+            let mut w = arrow::ipc::writer::StreamWriter::try_new(&mut buf, &batch.schema())
+                .map_err(|e| ApiError::internal(e.to_string()))?;
+            w.write(&batch).map_err(|e| ApiError::internal(e.to_string()))?;
+            w.finish().map_err(|e| ApiError::internal(e.to_string()))?;
+        }
+        return Ok(([(header::CONTENT_TYPE, ARROW_STREAM)], buf).into_response());
+    }
+    let (columns, omitted) = crate::steps_json::columns(&batch);
+    Ok(Json(json!({"episode_id": id, "num_rows": batch.num_rows(), "columns": columns, "omitted": omitted}))
+        .into_response())
+}
+
+/// The episode's video `key` (a `media.<key>.path` column of its steps), with HTTP range requests.
+#[utoipa::path(get, path = "/v1/episodes/{id}/media/{key}", tag = "episodes",
+    params(("id" = String, Path), ("key" = String, Path), ("Range" = Option<String>, Header)),
+    responses((status = 200, description = "the whole file"), (status = 206, description = "a byte range"),
+              (status = 416, body = Problem), (status = 404, body = Problem)))]
+pub async fn get_media(
+    State(s): State<AppState>,
+    ApiPath((id, key)): ApiPath<(String, String)>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    check_id("episode id", &id)?;
+    check_id("media key", &key)?;
+    let batch = s.store().read_steps(&id, None).await?;
+    let col = batch
+        .column_by_name(&format!("{}{key}.path", store::steps::MEDIA_PREFIX))
+        .ok_or_else(|| ApiError::not_found(format!("episode {id} has no media {key:?}")))?;
+    let paths = col
+        .as_any()
+        .downcast_ref::<arrow::array::StringArray>()
+        .ok_or_else(|| ApiError::internal("media path column is not utf8"))?;
+    if arrow::array::Array::is_empty(paths) || arrow::array::Array::is_null(paths, 0) {
+        return Err(ApiError::not_found(format!("episode {id} has no media {key:?}")));
+    }
+    let path = paths.value(0).to_string();
+    crate::media::serve_object(s.store(), &path, headers.get(header::RANGE)).await
+}

@@ -1,0 +1,35 @@
+//! Infrastructure routes: liveness, Prometheus metrics, the 404 fallback.
+
+use super::*;
+
+/// The routes of this resource (behind the token check).
+pub(crate) fn router() -> Router<AppState> {
+    Router::new()
+        .route("/metrics", get(metrics))
+}
+
+/// Liveness (no token needed).
+#[utoipa::path(get, path = "/healthz", tag = "infra", security(()),
+    responses((status = 200, description = "ok")))]
+pub async fn healthz() -> Json<Value> {
+    Json(json!({"status": "ok"}))
+}
+
+/// Prometheus metrics (text format).
+#[utoipa::path(get, path = "/metrics", tag = "infra",
+    responses((status = 200, description = "Prometheus text", content_type = "text/plain")))]
+pub async fn metrics(State(s): State<AppState>) -> ApiResult<Response> {
+    let mut by_state = std::collections::BTreeMap::new();
+    for st in ["queued", "running", "succeeded", "failed", "cancelled"] {
+        by_state.insert(st.to_string(), 0u64);
+    }
+    for j in s.store().jobs(None).await? {
+        *by_state.entry(j.state.as_str().to_string()).or_insert(0) += 1;
+    }
+    let text = s.inner.metrics.render(&by_state);
+    Ok(([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response())
+}
+
+pub async fn not_found() -> ApiError {
+    ApiError::not_found("no such route")
+}

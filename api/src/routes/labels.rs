@@ -1,0 +1,154 @@
+//! Labels: one write with If-Match (group-committed on SQLite), bulk writes, label snapshots.
+
+use super::*;
+
+/// The routes of this resource (behind the token check).
+pub(crate) fn router() -> Router<AppState> {
+    Router::new()
+        .route("/v1/episodes/{id}/label", put(put_label.layer(need!(Role::Labeler))))
+        .route("/v1/labels/bulk", post(bulk_labels.layer(need!(Role::Labeler))))
+        .route("/v1/label-snapshots", post(create_snapshot.layer(need!(Role::Labeler))))
+}
+
+#[derive(Deserialize, ToSchema)]
+pub struct LabelRequest {
+    /// `success`, `failure` or `unknown`.
+    label: String,
+    note: Option<String>,
+}
+
+fn if_match(headers: &HeaderMap) -> ApiResult<i64> {
+    let v = headers.get(header::IF_MATCH).ok_or_else(|| {
+        ApiError::new(
+            StatusCode::PRECONDITION_REQUIRED,
+            "if-match-required",
+            "PUT a label with If-Match: <label revision> (the ETag of GET /v1/episodes/{id})",
+        )
+    })?;
+    let s = v.to_str().unwrap_or("").trim();
+    let s = s.strip_prefix("W/").unwrap_or(s).trim_matches('"');
+    s.parse::<i64>()
+        .map_err(|_| ApiError::bad_request(format!("If-Match {s:?} is not a label revision (an integer)")))
+}
+
+/// Sets an episode's label; `If-Match: <revision>` is required, a stale revision gets 409 with
+/// the current label, its revision and who set it when.
+#[utoipa::path(put, path = "/v1/episodes/{id}/label", tag = "labels",
+    params(("id" = String, Path), ("If-Match" = String, Header, description = "the label revision you read")),
+    request_body = LabelRequest,
+    responses((status = 200, description = "LabelChange; ETag = the new revision", body = Object),
+              (status = 409, body = Problem), (status = 428, body = Problem), (status = 403, body = Problem)))]
+pub async fn put_label(
+    State(s): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    ApiPath(id): ApiPath<String>,
+    headers: HeaderMap,
+    ApiJson(body): ApiJson<LabelRequest>,
+) -> ApiResult<Response> {
+    caller.require(Role::Labeler)?;
+    check_id("episode id", &id)?;
+    let expect = if_match(&headers)?;
+    let update =
+        LabelUpdate { episode_id: id, label: parse_label(&body.label)?, expect_revision: Some(expect), note: body.note };
+    // SQLite: group-committed with concurrent PUTs (one transaction per batch, one outcome each).
+    let change = crate::label_writer::set_label(&s, update, &caller.name).await;
+    let change = s.count_label_result(change)?;
+    let rev = change.revision;
+    let mut resp = Json(change).into_response();
+    resp.headers_mut().insert(header::ETAG, etag(rev));
+    Ok(resp)
+}
+
+#[derive(Deserialize, ToSchema)]
+pub struct BulkLabelItem {
+    episode_id: String,
+    label: String,
+    /// Fail the whole request unless the episode is at this revision.
+    expect_revision: Option<i64>,
+    note: Option<String>,
+}
+
+#[derive(Deserialize, ToSchema)]
+pub struct BulkLabelRequest {
+    updates: Vec<BulkLabelItem>,
+}
+
+/// Labels many episodes in one transaction: all succeed or none does.
+#[utoipa::path(post, path = "/v1/labels/bulk", tag = "labels", request_body = BulkLabelRequest,
+    responses((status = 200, description = "LabelChange list", body = Vec<Object>), (status = 409, body = Problem),
+              (status = 404, body = Problem), (status = 403, body = Problem)))]
+pub async fn bulk_labels(
+    State(s): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    ApiJson(body): ApiJson<BulkLabelRequest>,
+) -> ApiResult<Json<Vec<store::LabelChange>>> {
+    caller.require(Role::Labeler)?;
+    if body.updates.len() > 10_000 {
+        return Err(ApiError::bad_request("at most 10000 updates per request"));
+    }
+    let mut updates = Vec::with_capacity(body.updates.len());
+    for u in body.updates {
+        check_id("episode id", &u.episode_id)?;
+        updates.push(LabelUpdate {
+            episode_id: u.episode_id,
+            label: parse_label(&u.label)?,
+            expect_revision: u.expect_revision,
+            note: u.note,
+        });
+    }
+    let changes = {
+        let _gate = s.write_gate().await;
+        s.store().set_labels(updates, &caller.name, "human").await
+    };
+    let changes = s.count_labels_result(changes)?;
+    Ok(Json(changes))
+}
+
+#[derive(Deserialize, ToSchema, Default)]
+pub struct SnapshotRequest {
+    message: Option<String>,
+}
+
+/// Freezes the current labels into a new version.
+#[utoipa::path(post, path = "/v1/label-snapshots", tag = "labels", request_body = SnapshotRequest,
+    responses((status = 201, description = "{version, episodes}", body = Object), (status = 403, body = Problem)))]
+pub async fn create_snapshot(
+    State(s): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    ApiJson(body): ApiJson<SnapshotRequest>,
+) -> ApiResult<(StatusCode, Json<store::CommitInfo>)> {
+    caller.require(Role::Labeler)?;
+    let msg = body.message.unwrap_or_else(|| "label snapshot".into());
+    if msg.len() > 4000 {
+        return Err(ApiError::bad_request("message is longer than 4000 bytes"));
+    }
+    let info = {
+        let _gate = s.write_gate().await;
+        s.store().snapshot_labels(&caller.name, &msg).await?
+    };
+    Ok((StatusCode::CREATED, Json(info)))
+}
+
+impl AppState {
+    fn count_label_result(&self, r: Result<store::LabelChange, store::StoreError>) -> ApiResult<store::LabelChange> {
+        self.count_labels_result(r.map(|c| vec![c])).map(|mut v| v.remove(0))
+    }
+    fn count_labels_result(
+        &self,
+        r: Result<Vec<store::LabelChange>, store::StoreError>,
+    ) -> ApiResult<Vec<store::LabelChange>> {
+        let m = &self.inner.metrics;
+        match r {
+            Ok(v) => {
+                m.label_writes.fetch_add(v.len() as u64, Ordering::Relaxed);
+                Ok(v)
+            }
+            Err(e) => {
+                if matches!(e, store::StoreError::LabelConflict { .. } | store::StoreError::Conflict(_)) {
+                    m.label_conflicts.fetch_add(1, Ordering::Relaxed);
+                }
+                Err(e.into())
+            }
+        }
+    }
+}
