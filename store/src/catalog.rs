@@ -28,11 +28,13 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/sqlite/0001_store.sql")),
     (2, "splits_artifacts_jobs", include_str!("../../migrations/sqlite/0002_splits_artifacts_jobs.sql")),
     (3, "episode_row_ranges", include_str!("../../migrations/sqlite/0003_episode_row_ranges.sql")),
+    (5, "episode_media", include_str!("../../migrations/sqlite/0005_episode_media.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
     (2, "splits_artifacts_jobs", include_str!("../../migrations/postgres/0002_splits_artifacts_jobs.sql")),
     (3, "episode_row_ranges", include_str!("../../migrations/postgres/0003_episode_row_ranges.sql")),
+    (5, "episode_media", include_str!("../../migrations/postgres/0005_episode_media.sql")),
 ];
 
 fn migrator(backend: Backend) -> Migrator {
@@ -190,6 +192,13 @@ pub(crate) enum Val {
     I(i64),
     S(String),
     OS(Option<String>),
+    F(f64),
+}
+
+impl From<f64> for Val {
+    fn from(v: f64) -> Self {
+        Val::F(v)
+    }
 }
 
 impl From<i64> for Val {
@@ -221,6 +230,7 @@ pub(crate) fn bind_val<'q>(
         Val::I(x) => q.bind(x),
         Val::S(x) => q.bind(x),
         Val::OS(x) => q.bind(x),
+        Val::F(x) => q.bind(x),
     }
 }
 

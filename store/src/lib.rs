@@ -14,6 +14,8 @@ mod labels;
 pub mod model;
 mod objects;
 mod query;
+mod read;
+mod media;
 mod splits;
 pub mod steps;
 mod tokens;
@@ -26,7 +28,10 @@ pub use gc::GcReport;
 pub use jobs::{JobRecord, JobState};
 pub use labels::{LabelChange, LabelEvent, LabelUpdate};
 pub use model::*;
+pub use media::EpisodeMedia;
+pub use objects::FetchCounts;
 pub use query::{EpisodeFilter, EpisodeRecord, VersionDiff, VersionInfo};
+pub use read::{EpisodeLocation, EpisodeSteps, StepsReadError, StepsStream};
 pub use splits::{SplitEpisode, SplitRecord, SplitRequest};
 pub use tokens::{Role, TokenRecord};
 pub use writer::{CommitInfo, IngestWriter};
@@ -60,6 +65,8 @@ struct Inner {
     db: catalog::Catalog,
     objects: objects::Objects,
     data_dir: PathBuf,
+    /// Steps files' footers and offset indexes, fetched once per file.
+    meta_cache: read::MetaCache,
 }
 
 impl Store {
@@ -79,7 +86,8 @@ impl Store {
         };
         let db = catalog::Catalog::connect(&url).await?;
         let objects = objects::Objects::open(config)?;
-        Ok(Store { inner: Arc::new(Inner { db, objects, data_dir: config.data_dir.clone() }) })
+        let meta_cache = read::MetaCache::default();
+        Ok(Store { inner: Arc::new(Inner { db, objects, data_dir: config.data_dir.clone(), meta_cache }) })
     }
 
     pub fn backend(&self) -> Backend {
@@ -107,6 +115,11 @@ impl Store {
         range: std::ops::Range<u64>,
     ) -> Result<bytes::Bytes, StoreError> {
         self.inner.objects.get_range(path, range).await
+    }
+
+    /// Read requests made to the object store and bytes fetched since the store was opened.
+    pub fn fetch_counts(&self) -> FetchCounts {
+        self.inner.objects.fetch_counts()
     }
 
     /// Size in bytes of an object.

@@ -1,8 +1,7 @@
-//! Reads: versions, episodes (now or at any past version), their steps, and version diffs.
+//! Reads: versions, episodes (now or at any past version) and version diffs (steps: read.rs).
 
 use crate::catalog::{bind_val, RowExt, Val};
-use crate::{steps, Label, Store, StoreError};
-use arrow::array::RecordBatch;
+use crate::{Label, Store, StoreError};
 use serde::Serialize;
 
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -193,36 +192,6 @@ impl Store {
     pub async fn episode(&self, id: &str, version: Option<i64>) -> Result<EpisodeRecord, StoreError> {
         let filter = EpisodeFilter { version, id: Some(id.to_string()), ..Default::default() };
         self.episodes(&filter).await?.pop().ok_or_else(|| StoreError::not_found("episode", id))
-    }
-
-    /// The step table of an episode (one record batch).
-    pub async fn read_steps(&self, id: &str, version: Option<i64>) -> Result<RecordBatch, StoreError> {
-        let row = sqlx::query(
-            "SELECT data_file, row_group, row_offset, row_count, version_added, version_removed FROM episodes WHERE id = $1",
-        )
-            .bind(id)
-            .fetch_optional(&self.db().pool)
-            .await?
-            .ok_or_else(|| StoreError::not_found("episode", id))?;
-        let removed = row.oi("version_removed")?;
-        let visible = match version {
-            None => removed.is_none(),
-            Some(v) => row.i("version_added")? <= v && removed.is_none_or(|r| r > v),
-        };
-        if !visible {
-            return Err(StoreError::not_found("episode", id));
-        }
-        let data = self.objects().get(&row.s("data_file")?).await?;
-        let range = match (row.oi("row_offset")?, row.oi("row_count")?) {
-            (Some(o), Some(n)) if o >= 0 && n >= 0 => Some((o as usize, n as usize)),
-            // Not backfilled (cannot happen after migration 0003): the whole row group.
-            _ => None,
-        };
-        let rg = row.i("row_group")?;
-        if rg < 0 {
-            return Err(StoreError::Corrupt(format!("episode {id} points at row group {rg}")));
-        }
-        steps::read_rows(data, rg as usize, range)
     }
 
     pub async fn policies(&self) -> Result<Vec<String>, StoreError> {

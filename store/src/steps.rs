@@ -5,7 +5,7 @@
 
 use crate::{EpisodeInput, Label, StoreError};
 use arrow::array::{
-    Array, ArrayRef, BinaryBuilder, BooleanArray, FixedSizeListArray, Float32Array, Float64Array,
+    Array, ArrayRef, BinaryArray, BinaryBuilder, BooleanArray, FixedSizeListArray, Float32Array, Float64Array,
     Int32Array, RecordBatch, StringArray,
 };
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
@@ -221,12 +221,17 @@ const ZSTD_LEVEL: i32 = 1;
 /// pays (the repeated strings), never for float data, whose values hardly repeat (the dictionary
 /// is built, found too large and thrown away at a real cost); chunk statistics for the small
 /// scalar columns (`t`, `episode_id`, …) and none for float vectors and images; no page-level
-/// statistics (the offset index, which lets a reader skip to one episode's pages, is kept).
+/// statistics. Pages are cut by [`StepsFileWriter`] between episodes (one page per `write` call:
+/// a row-count limit of 1 closes the page after each call, and a call is never split into
+/// mini-batches), so the offset index points at each episode's own pages and reading one episode
+/// fetches its bytes and no one else's (store/README.md, "Read path").
 pub fn steps_writer_properties(parquet: &SchemaDescriptor) -> WriterProperties {
     let mut b = WriterProperties::builder()
         .set_compression(Compression::ZSTD(ZstdLevel::try_new(ZSTD_LEVEL).expect("valid zstd level")))
         // Row groups are cut by StepsFileWriter itself, between episodes.
         .set_max_row_group_row_count(None)
+        .set_data_page_row_count_limit(1)
+        .set_write_batch_size(1 << 30)
         .set_statistics_enabled(EnabledStatistics::Chunk);
     for c in parquet.columns() {
         let float = matches!(c.physical_type(), PhysicalType::FLOAT | PhysicalType::DOUBLE);
@@ -248,6 +253,38 @@ pub fn writer_properties() -> WriterProperties {
         .set_compression(Compression::ZSTD(ZstdLevel::try_new(ZSTD_LEVEL).expect("valid zstd level")))
         .set_max_row_group_row_count(Some(1 << 20))
         .build()
+}
+
+/// A page holds one episode's values of one column, or this many uncompressed bytes of them when
+/// the episode is larger (long episodes, images): small enough to decode one at a time, large
+/// enough that page headers and index entries stay a small fraction of the file.
+pub const PAGE_MAX_BYTES: usize = 1 << 20;
+
+/// Where the pages of one episode's column start and end: `(first row, rows)` of each, at most
+/// [`PAGE_MAX_BYTES`] of values apiece (at least one row).
+fn page_cuts(col: &dyn Array) -> Vec<(usize, usize)> {
+    let n = col.len();
+    let mut cuts = Vec::new();
+    if let Some(bin) = col.as_any().downcast_ref::<BinaryArray>() {
+        let offsets = bin.value_offsets();
+        let mut start = 0;
+        for end in 1..=n {
+            if (offsets[end] - offsets[start]) as usize >= PAGE_MAX_BYTES || end == n {
+                cuts.push((start, end - start));
+                start = end;
+            }
+        }
+        return cuts;
+    }
+    let bytes = col.to_data().get_slice_memory_size().unwrap_or(n * 8);
+    let rows = (PAGE_MAX_BYTES / (bytes / n.max(1)).max(1)).max(1);
+    let mut start = 0;
+    while start < n {
+        let len = rows.min(n - start);
+        cuts.push((start, len));
+        start += len;
+    }
+    cuts
 }
 
 /// A row group is closed (between episodes) once it holds this many rows…
@@ -352,7 +389,7 @@ impl StepsFileWriter {
         }
         let rg = self.open.as_mut().expect("row group just opened");
         // Leaf 0 is episode_id (written at close); every other field is one leaf here, but map
-        // fields to leaves in order anyway.
+        // fields to leaves in order anyway. Each `write` is one page (see steps_writer_properties).
         let mut leaf = 1;
         for (field, col) in fields.iter().skip(1).zip(columns) {
             if col.len() != n || col.data_type() != field.data_type() {
@@ -364,11 +401,16 @@ impl StepsFileWriter {
                     field.data_type()
                 )));
             }
-            for l in compute_leaves(field, col)? {
-                let w = rg.writers.get_mut(leaf).ok_or_else(|| StoreError::invalid("schema leaf mismatch"))?;
-                w.write(&l)?;
-                leaf += 1;
+            let mut leaves = 0;
+            for (first, rows) in page_cuts(col.as_ref()) {
+                let page = col.slice(first, rows);
+                for (k, l) in compute_leaves(field, &page)?.into_iter().enumerate() {
+                    let w = rg.writers.get_mut(leaf + k).ok_or_else(|| StoreError::invalid("schema leaf mismatch"))?;
+                    w.write(&l)?;
+                    leaves = leaves.max(k + 1);
+                }
             }
+            leaf += leaves;
         }
         let range = RowRange { row_group: self.row_groups - 1, offset: rg.rows, count: n };
         rg.episodes.push((index, n));

@@ -28,6 +28,8 @@ struct PendingEpisode {
     range: steps::RowRange,
     label: Label,
     label_source: String,
+    /// `(key, video object, first and last frame time)` of each camera (catalog `episode_media`).
+    media: Vec<(String, String, f64, f64)>,
 }
 
 struct WrittenFile {
@@ -242,6 +244,16 @@ impl IngestWriter {
             range: steps::RowRange { row_group: 0, offset: 0, count: 0 },
             label: ep.label,
             label_source: ep.label_source.clone(),
+            media: ep
+                .media
+                .iter()
+                .filter_map(|m| {
+                    let path = self.media_paths.get(&m.sha256)?;
+                    let first = m.timestamps.first().copied().unwrap_or(0.0);
+                    let last = m.timestamps.last().copied().unwrap_or(first);
+                    Some((m.name.clone(), path.clone(), first, last))
+                })
+                .collect(),
         };
         let index = ep.source_index;
         let cols = steps::episode_columns(ep, &self.policy, &self.checkpoint, &self.media_paths)?;
@@ -328,10 +340,12 @@ impl IngestWriter {
         insert_rows(
             &mut tx,
             "data_files",
-            &["path", "kind", "size_bytes", "num_rows", "version_added"],
+            &["path", "kind", "size_bytes", "num_rows", "version_added", "media_indexed"],
             self.files
                 .iter()
-                .map(|f| vec![f.path.as_str().into(), "steps".into(), f.size.into(), f.rows.into(), version.into()])
+                .map(|f| {
+                    vec![f.path.as_str().into(), "steps".into(), f.size.into(), f.rows.into(), version.into(), 1i64.into()]
+                })
                 .collect(),
             "",
         )
@@ -389,6 +403,24 @@ impl IngestWriter {
                 "label_source", "label_revision", "label_actor", "label_updated_at", "created_at",
             ],
             ep_rows,
+            "",
+        )
+        .await?;
+        let media_rows: Vec<Vec<Val>> = self
+            .episodes
+            .iter()
+            .zip(&ids)
+            .flat_map(|(e, id)| {
+                e.media.iter().map(move |(key, path, first, last)| {
+                    vec![id.as_str().into(), key.as_str().into(), path.as_str().into(), (*first).into(), (*last).into()]
+                })
+            })
+            .collect();
+        insert_rows(
+            &mut tx,
+            "episode_media",
+            &["episode_id", "media_key", "path", "start_seconds", "end_seconds"],
+            media_rows,
             "",
         )
         .await?;
