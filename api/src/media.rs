@@ -49,8 +49,17 @@ pub fn parse_range(value: &str, size: u64) -> Result<Option<(u64, u64)>, ()> {
     Ok(Some((start, end)))
 }
 
-pub async fn serve_object(store: &Store, path: &str, range: Option<&HeaderValue>) -> ApiResult<Response> {
-    let size = store.object_size(path).await?;
+/// Serves `path` (its size from the catalog when known, else asked of the object store).
+pub async fn serve_object(
+    store: &Store,
+    path: &str,
+    known_size: Option<u64>,
+    range: Option<&HeaderValue>,
+) -> ApiResult<Response> {
+    let size = match known_size {
+        Some(s) => s,
+        None => store.object_size(path).await?,
+    };
     let ctype = content_type(path);
     let range = match range.and_then(|v| v.to_str().ok()) {
         None => None,

@@ -1,5 +1,5 @@
 //! Prometheus text metrics, hand-rolled: request counts by route and status, request latency
-//! sums, label writes, and (read at scrape time) jobs by state.
+//! sums, label writes, and (read at scrape time) jobs by state and the object store's reads.
 
 use crate::AppState;
 use axum::extract::{MatchedPath, Request, State};
@@ -21,8 +21,15 @@ pub(crate) struct Metrics {
 }
 
 impl Metrics {
-    pub fn render(&self, jobs: &BTreeMap<String, u64>) -> String {
+    pub fn render(&self, jobs: &BTreeMap<String, u64>, objects: store::FetchCounts) -> String {
         let mut out = String::new();
+        out.push_str("# HELP ufops_object_store_requests_total Read requests made to the object store.\n");
+        out.push_str("# TYPE ufops_object_store_requests_total counter\n");
+        let _ = writeln!(out, "ufops_object_store_requests_total{{method=\"GET\"}} {}", objects.get_requests);
+        let _ = writeln!(out, "ufops_object_store_requests_total{{method=\"HEAD\"}} {}", objects.head_requests);
+        out.push_str("# HELP ufops_object_store_fetched_bytes_total Bytes returned by object store reads.\n");
+        out.push_str("# TYPE ufops_object_store_fetched_bytes_total counter\n");
+        let _ = writeln!(out, "ufops_object_store_fetched_bytes_total {}", objects.bytes_fetched);
         out.push_str("# HELP ufops_http_requests_total HTTP requests by method, route and status.\n");
         out.push_str("# TYPE ufops_http_requests_total counter\n");
         let reqs = self.requests.lock().expect("metrics lock").clone();

@@ -98,23 +98,48 @@ async fn verify(args: &StoreArgs) -> Result<()> {
             Ok(Ok(b)) if b.metadata().file_metadata().num_rows() == v.episode_count => {}
             _ => problems.push(format!("version {}: label snapshot {} unreadable or wrong size", v.version, v.labels_path)),
         }
+        // Every episode of the version, read in one pass grouped by steps file.
+        let mut locations = Vec::with_capacity(eps.len());
         for e in &eps {
-            match store.read_steps(&e.id, Some(v.version)).await {
-                Ok(batch) => {
+            match store::EpisodeLocation::try_from(e) {
+                Ok(l) => locations.push(l),
+                Err(err) => problems.push(format!("episode {} in version {}: {err}", e.id, v.version)),
+            }
+        }
+        let mut read = vec![false; locations.len()];
+        let by_id: std::collections::HashMap<&str, &store::EpisodeRecord> = eps.iter().map(|e| (e.id.as_str(), e)).collect();
+        let mut steps = store.read_episodes(locations.clone());
+        while let Some(item) = steps.next().await {
+            match item {
+                Ok(got) => {
+                    read[got.index] = true;
+                    let e = by_id[locations[got.index].episode_id.as_str()];
+                    let batch = got.steps;
                     let ids = batch.column_by_name("episode_id").and_then(|c| c.as_any().downcast_ref::<StringArray>().cloned());
                     let ok_ids = ids.is_some_and(|a| (0..a.len()).all(|k| a.value(k) == e.id));
                     if batch.num_rows() as i64 != e.length || !ok_ids {
                         problems.push(format!("episode {} in version {}: {} rows, expected {}", e.id, v.version, batch.num_rows(), e.length));
                     }
                 }
-                Err(err) => problems.push(format!("episode {} in version {}: {err}", e.id, v.version)),
+                Err(err) => {
+                    for &i in &err.indexes {
+                        read[i] = true;
+                        problems.push(format!("episode {} in version {}: {}", locations[i].episode_id, v.version, err.error));
+                    }
+                }
             }
-            checked += 1;
         }
+        for (i, done) in read.iter().enumerate() {
+            if !done {
+                problems.push(format!("episode {} in version {}: not read", locations[i].episode_id, v.version));
+            }
+        }
+        checked += eps.len();
     }
     let referenced = store.referenced_objects().await?.len();
     super::print_json(&serde_json::json!({
         "versions": versions.len(), "episodes_checked": checked, "referenced_objects": referenced, "problems": problems,
+        "object_store": store.fetch_counts(),
     }))?;
     if !problems.is_empty() {
         anyhow::bail!("{} problems in the store", problems.len());

@@ -7,7 +7,6 @@ use crate::catalog::{insert_rows, RowExt, Val};
 use crate::steps::MEDIA_PREFIX;
 use crate::{EpisodeLocation, Store, StoreError};
 use arrow::array::{Array, Float64Array, StringArray};
-use futures::StreamExt;
 
 /// Where one camera's frames of an episode live.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]

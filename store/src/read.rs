@@ -109,6 +109,13 @@ pub struct StepsStream {
     task: tokio::task::JoinHandle<()>,
 }
 
+impl StepsStream {
+    /// The next episode read (or failure); `None` once every job is done.
+    pub async fn next(&mut self) -> Option<Result<EpisodeSteps, StepsReadError>> {
+        self.rx.recv().await
+    }
+}
+
 impl futures::Stream for StepsStream {
     type Item = Result<EpisodeSteps, StepsReadError>;
     fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Self::Item>> {
@@ -611,7 +618,6 @@ pub(crate) mod tests {
     use super::*;
     use crate::*;
     use arrow::array::{Array, Int32Array, StringArray};
-    use futures::StreamExt;
 
     pub(crate) fn episode(i: u32, steps: usize) -> EpisodeInput {
         EpisodeInput {

@@ -70,22 +70,39 @@ fn episode_from_steps(
 pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<SplitData> {
     let split = store.split(&spec.split_id).await?;
     let members = store.split_episodes(&split.id).await?;
+    // Only labeled episodes train; all of them are read in one pass grouped by steps file (each
+    // row group once), then put back in the split's order so training stays deterministic.
+    let labeled: Vec<(&store::SplitEpisode, bool)> =
+        members.iter().filter_map(|m| m.label.as_bool().map(|s| (m, s))).collect();
+    let ids: Vec<String> = labeled.iter().map(|(m, _)| m.episode_id.clone()).collect();
+    let locations = store.locate_episodes(&ids, Some(split.version)).await?;
+    let keys: Option<Vec<String>> = match (&spec.obs_keys, members.first()) {
+        (Some(k), _) => Some(k.clone()),
+        // As before: the observation columns of the split's first episode.
+        (None, Some(first)) => {
+            let at = store.locate_episodes(std::slice::from_ref(&first.episode_id), Some(split.version)).await?;
+            let schema = store.steps_schema(&at[0].data_file).await?;
+            Some(store::steps::observation_keys(schema.as_ref()).into_iter().map(|(k, _)| k).collect())
+        }
+        (None, None) => None,
+    };
+    let mut episodes: Vec<Option<Episode>> = (0..labeled.len()).map(|_| None).collect();
+    {
+        let wanted = keys.clone().unwrap_or_default();
+        let mut stream = store.read_episodes(locations);
+        while let Some(item) = stream.next().await {
+            let item = item?;
+            let (m, success) = labeled[item.index];
+            episodes[item.index] = Some(episode_from_steps(&m.episode_id, success, &item.steps, &wanted)?);
+        }
+    }
     let mut train = Vec::new();
     let mut val = Vec::new();
-    let mut keys: Option<Vec<String>> = spec.obs_keys.clone();
     let mut dims: Vec<usize> = Vec::new();
     let mut chunk_len = None;
     let mut action_dim = 0;
-    for m in &members {
-        let batch = store.read_steps(&m.episode_id, Some(split.version)).await?;
-        let keys = keys.get_or_insert_with(|| {
-            store::steps::observation_keys(batch.schema().as_ref()).into_iter().map(|(k, _)| k).collect()
-        });
-        let success = match m.label.as_bool() {
-            Some(b) => b,
-            None => continue,
-        };
-        let ep = episode_from_steps(&m.episode_id, success, &batch, keys)?;
+    for ((m, _), ep) in labeled.iter().zip(episodes) {
+        let ep = ep.with_context(|| format!("episode {} was not read", m.episode_id))?;
         if dims.is_empty() {
             dims = ep.obs.iter().map(|o| o.dim).collect();
             action_dim = ep.action_dim;

@@ -404,10 +404,6 @@ async fn record(
     scorer: Option<&dyn EpisodeScorer>,
 ) -> Result<ViewReport, ViewError> {
     let episodes = select_episodes(store, opts).await?;
-    let version = match (&opts.split_id, opts.version) {
-        (Some(s), None) => Some(store.split(s).await?.version),
-        (_, v) => v,
-    };
     let mut report = ViewReport { scored: scorer.is_some(), ..Default::default() };
     let mut out = Out { rec, entities: HashSet::new() };
     let mut logged: Vec<EpisodeEntities> = Vec::new();
@@ -417,8 +413,25 @@ async fn record(
     let mut pos_dims: Option<usize> = None;
     let stride = opts.image_stride.max(1);
 
-    for ep in &episodes {
-        let batch = store.read_steps(&ep.id, version).await?;
+    // The episodes' steps are read in one pass grouped by steps file (each row group once); they
+    // are logged in the listing's order, so arrivals from later files wait in `arrived`.
+    let locations =
+        episodes.iter().map(store::EpisodeLocation::try_from).collect::<Result<Vec<_>, StoreError>>()?;
+    let mut steps = store.read_episodes(locations);
+    let mut arrived: HashMap<usize, arrow::array::RecordBatch> = HashMap::new();
+    for (i, ep) in episodes.iter().enumerate() {
+        let batch = loop {
+            if let Some(b) = arrived.remove(&i) {
+                break b;
+            }
+            match steps.next().await {
+                Some(item) => {
+                    let item = item.map_err(StoreError::from)?;
+                    arrived.insert(item.index, item.steps);
+                }
+                None => return Err(StoreError::Corrupt(format!("episode {} was not read", ep.id)).into()),
+            }
+        };
         let n = batch.num_rows();
         if n == 0 {
             continue;

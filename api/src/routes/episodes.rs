@@ -139,7 +139,8 @@ pub async fn get_steps(
         .into_response())
 }
 
-/// The episode's video `key` (a `media.<key>.path` column of its steps), with HTTP range requests.
+/// The episode's video `key` (a `media.<key>.path` column of its steps, found in the catalog), with
+/// HTTP range requests: a range is fetched from the object store as asked, nothing more.
 #[utoipa::path(get, path = "/v1/episodes/{id}/media/{key}", tag = "episodes",
     params(("id" = String, Path), ("key" = String, Path), ("Range" = Option<String>, Header)),
     responses((status = 200, description = "the whole file"), (status = 206, description = "a byte range"),
@@ -151,17 +152,7 @@ pub async fn get_media(
 ) -> ApiResult<Response> {
     check_id("episode id", &id)?;
     check_id("media key", &key)?;
-    let batch = s.store().read_steps(&id, None).await?;
-    let col = batch
-        .column_by_name(&format!("{}{key}.path", store::steps::MEDIA_PREFIX))
-        .ok_or_else(|| ApiError::not_found(format!("episode {id} has no media {key:?}")))?;
-    let paths = col
-        .as_any()
-        .downcast_ref::<arrow::array::StringArray>()
-        .ok_or_else(|| ApiError::internal("media path column is not utf8"))?;
-    if arrow::array::Array::is_empty(paths) || arrow::array::Array::is_null(paths, 0) {
-        return Err(ApiError::not_found(format!("episode {id} has no media {key:?}")));
-    }
-    let path = paths.value(0).to_string();
-    crate::media::serve_object(s.store(), &path, headers.get(header::RANGE)).await
+    // The catalog says where the video is (and its size): no steps file, no HEAD request.
+    let m = s.store().episode_media(&id, &key).await?;
+    crate::media::serve_object(s.store(), &m.path, m.size_bytes, headers.get(header::RANGE)).await
 }

@@ -26,7 +26,7 @@ pub async fn metrics(State(s): State<AppState>) -> ApiResult<Response> {
     for j in s.store().jobs(None).await? {
         *by_state.entry(j.state.as_str().to_string()).or_insert(0) += 1;
     }
-    let text = s.inner.metrics.render(&by_state);
+    let text = s.inner.metrics.render(&by_state, s.store().fetch_counts());
     Ok(([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response())
 }
 
