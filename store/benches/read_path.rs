@@ -6,13 +6,15 @@
 //!   vectors as the trainer keeps them) with `Store::read_episodes`, next to the time of reading the
 //!   store's steps files once sequentially (each file fetched whole and decoded, one after the
 //!   other, single-threaded) and of fetching their bytes only, in the same run; medians of 3;
+//! * one episode at a time (`read_steps`): bytes and requests per episode;
 //! * the old path (`read_steps` per episode as it was: fetch the whole data file, decode the rows)
 //!   on the 5,000 store, on a sample of episodes scaled to the split (`READ_PATH_OLD_FULL=1`: all);
 //! * the same split loaded from S3 (SeaweedFS started as the tests start it; `READ_PATH_S3=0`
 //!   skips): bytes and requests counted in the object-store client against the size of the steps
 //!   files the split touches.
 //!
-//! `cargo bench -p store --bench read_path` (`READ_PATH_SIZES=5000` to run one size).
+//! `cargo bench -p store --bench read_path` (`READ_PATH_SIZES=5000` to run one size,
+//! `READ_PATH_OLD=0` to skip the old path, `READ_PATH_DIR` for where the stores are made).
 
 #[path = "../../tests/common/seaweedfs.rs"]
 #[allow(dead_code)]
@@ -207,7 +209,32 @@ async fn local(n: u32, root: &std::path::Path) {
         load / seq,
         load / raw
     );
-    if n == 5000 {
+    // One episode at a time (the labeling page's steps): bytes fetched per episode, footers cached.
+    let members = store.split_episodes(&split.id).await.unwrap();
+    let sample: Vec<String> = members.iter().step_by(25).map(|m| m.episode_id.clone()).collect();
+    for id in sample.iter().take(3) {
+        store.read_steps(id, Some(split.version)).await.unwrap(); // footers into the cache
+    }
+    let before = store.fetch_counts();
+    let (t, rows) = timed(async {
+        let mut rows = 0;
+        for id in &sample {
+            rows += store.read_steps(id, Some(split.version)).await.unwrap().num_rows();
+        }
+        rows
+    })
+    .await;
+    let got = store.fetch_counts().since(before);
+    let share = bytes as f64 / shape.1 as f64 * rows as f64 / sample.len() as f64;
+    println!(
+        "  one episode (read_steps, {} episodes): {:.2} ms, {:.1} KB and {:.1} requests each; its share of the files {:.1} KB",
+        sample.len(),
+        t * 1e3 / sample.len() as f64,
+        got.bytes_fetched as f64 / 1e3 / sample.len() as f64,
+        got.get_requests as f64 / sample.len() as f64,
+        share / 1e3
+    );
+    if n == 5000 && std::env::var("READ_PATH_OLD").map_or(true, |v| v != "0") {
         let members = store.split_episodes(&split.id).await.unwrap();
         let ids: Vec<String> = members.iter().map(|m| m.episode_id.clone()).collect();
         let locs = store.locate_episodes(&ids, Some(split.version)).await.unwrap();
@@ -263,7 +290,9 @@ fn main() {
         .split(',')
         .map(|s| s.trim().parse().expect("READ_PATH_SIZES: numbers"))
         .collect();
-    let root = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("read_path");
+    let root = std::env::var("READ_PATH_DIR")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|_| std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("read_path"));
     let with_s3 = std::env::var("READ_PATH_S3").map_or(true, |v| v != "0");
     // The S3 client is configured from the environment: set it before any other thread runs.
     let server = with_s3.then(seaweedfs::SeaweedFs::start);
