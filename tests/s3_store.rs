@@ -114,3 +114,110 @@ fn bad_s3_credentials_fail_cleanly() {
     assert!(!err.contains("panicked"), "{err}");
     assert!(t.json(&["versions", "--json"]).as_array().unwrap().is_empty());
 }
+
+/// One HTTP/1.1 GET (`Connection: close`): the status line, the headers (lower-case names) and the body.
+fn http_get(url: &str, path: &str, headers: &[(&str, &str)]) -> (String, Vec<(String, String)>, Vec<u8>) {
+    use std::io::{Read, Write};
+    let addr = url.trim_start_matches("http://").trim_end_matches('/');
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    let mut req = format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n");
+    for (k, v) in headers {
+        req.push_str(&format!("{k}: {v}\r\n"));
+    }
+    req.push_str("\r\n");
+    s.write_all(req.as_bytes()).unwrap();
+    let mut raw = Vec::new();
+    s.read_to_end(&mut raw).unwrap();
+    let end = raw.windows(4).position(|w| w == b"\r\n\r\n").expect("a complete response");
+    let head = String::from_utf8_lossy(&raw[..end]).into_owned();
+    let mut lines = head.lines();
+    let status = lines.next().unwrap_or_default().to_string();
+    let hdrs = lines
+        .filter_map(|l| l.split_once(':').map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string())))
+        .collect();
+    (status, hdrs, raw[end + 4..].to_vec())
+}
+
+/// `ufops_object_store_*` counters of a running server: (GET requests, HEAD requests, bytes).
+fn object_reads(url: &str, token: &str) -> (u64, u64, u64) {
+    let auth = format!("Bearer {token}");
+    let (status, _, body) = http_get(url, "/metrics", &[("Authorization", &auth)]);
+    assert!(status.contains(" 200"), "{status}");
+    let text = String::from_utf8(body).unwrap();
+    let value = |name: &str| -> u64 {
+        let line = text.lines().find(|l| l.starts_with(name)).unwrap_or_else(|| panic!("no {name} in /metrics"));
+        line.rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    (
+        value("ufops_object_store_requests_total{method=\"GET\"}"),
+        value("ufops_object_store_requests_total{method=\"HEAD\"}"),
+        value("ufops_object_store_fetched_bytes_total"),
+    )
+}
+
+/// The labeling page's video requests: a Range request is answered from exactly that range of
+/// the video object in S3 (one GET, the range's bytes, no HEAD, no steps file), and the bytes are
+/// the video's own.
+#[test]
+fn video_range_request_fetches_only_its_range() {
+    use std::io::{BufRead, BufReader};
+    let dir = tempfile::tempdir().unwrap();
+    let s3 = seaweedfs::SeaweedFs::start();
+    let t = s3_target(dir.path(), &s3, "media");
+    t.ok(&["init"]);
+    let fixture = shared_fixtures().join("lerobot/v30_eval_video");
+    t.ok(&["ingest", fixture.to_str().unwrap(), "--policy", "arm", "--checkpoint", "c1"]);
+    let episodes = t.json(&["episodes", "--json"]);
+    let id = episodes[3]["id"].as_str().unwrap().to_string();
+    let token = t.json(&["token", "create", "--name", "labeler", "--role", "labeler", "--json"]);
+    let token = token["token"].as_str().unwrap().to_string();
+    let mut child = t
+        .command()
+        .args(["serve", "--addr", "127.0.0.1:0", "--no-worker"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    struct Kill(std::process::Child);
+    impl Drop for Kill {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let _server = Kill(child);
+    let url = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("unexpected: {line:?}")).to_string();
+    let auth = format!("Bearer {token}");
+    // LeRobot keys lose their `observation.` prefix in the store.
+    let media = format!("/v1/episodes/{id}/media/images.front");
+
+    let before = object_reads(&url, &token);
+    let (status, headers, body) = http_get(&url, &media, &[("Authorization", &auth), ("Range", "bytes=100-1099")]);
+    let after = object_reads(&url, &token);
+    assert!(status.contains(" 206"), "{status}: {}", String::from_utf8_lossy(&body));
+    let range = headers.iter().find(|(k, _)| k == "content-range").map(|(_, v)| v.clone()).unwrap();
+    assert!(range.starts_with("bytes 100-1099/"), "{range}");
+    assert_eq!(body.len(), 1000);
+    let (gets, heads, bytes) = (after.0 - before.0, after.1 - before.1, after.2 - before.2);
+    assert_eq!((gets, heads, bytes), (1, 0, 1000), "GETs, HEADs and bytes fetched from S3 for a 1000-byte range");
+
+    // The same bytes as the video file itself.
+    let size: u64 = range.rsplit('/').next().unwrap().parse().unwrap();
+    let candidates: Vec<Vec<u8>> = walk(&fixture.join("videos"))
+        .into_iter()
+        .filter(|p| std::fs::metadata(p).unwrap().len() == size)
+        .map(|p| std::fs::read(p).unwrap())
+        .collect();
+    assert!(!candidates.is_empty(), "no video of {size} bytes in the fixture");
+    assert!(candidates.iter().any(|v| v[100..1100] == body[..]), "the range is the video's bytes 100-1099");
+}
+
+fn walk(p: &std::path::Path) -> Vec<std::path::PathBuf> {
+    if p.is_dir() {
+        std::fs::read_dir(p).unwrap().flat_map(|e| walk(&e.unwrap().path())).collect()
+    } else {
+        vec![p.to_path_buf()]
+    }
+}
