@@ -16,7 +16,7 @@ use utoipa::{Modify, OpenApi};
         routes::healthz, routes::metrics, serve_openapi,
         routes::list_policies, routes::list_checkpoints, routes::list_tasks,
         routes::list_versions, routes::get_version, routes::diff_versions,
-        routes::list_episodes, routes::get_episode, routes::get_steps, routes::get_media,
+        routes::list_episodes, routes::episode_counts, routes::get_episode, routes::get_steps, routes::get_media,
         routes::put_label, routes::bulk_labels, routes::create_snapshot,
         routes::create_split, routes::list_splits, routes::get_split,
         routes::create_job, routes::list_jobs, routes::get_job, routes::cancel_job,

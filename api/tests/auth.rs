@@ -32,6 +32,7 @@ async fn authorization_matrix() {
         (Method::GET, "/v1/versions/1".into(), None, Need::Viewer),
         (Method::GET, "/v1/versions/1/diff/1".into(), None, Need::Viewer),
         (Method::GET, "/v1/episodes".into(), None, Need::Viewer),
+        (Method::GET, "/v1/episodes/counts".into(), None, Need::Viewer),
         (Method::GET, format!("/v1/episodes/{ep}"), None, Need::Viewer),
         (Method::GET, format!("/v1/episodes/{ep}/steps"), None, Need::Viewer),
         (Method::GET, format!("/v1/episodes/{ep}/media/front"), None, Need::Viewer),
@@ -137,7 +138,7 @@ fn templatize(p: &str) -> String {
     for (i, s) in segs.iter().enumerate() {
         let prev = if i > 0 { segs[i - 1] } else { "" };
         let t = match prev {
-            "episodes" => "{id}",
+            "episodes" if *s != "counts" => "{id}",
             "versions" => "{version}",
             "diff" => "{to}",
             "splits" | "jobs" | "artifacts" | "tokens" if !s.is_empty() => "{id}",

@@ -42,6 +42,10 @@ pub struct EpisodesArgs {
     pub success: Option<String>,
     #[arg(long)]
     pub tag: Option<String>,
+    /// Only episodes whose id sorts after this one (the next page: pass the last id shown).
+    #[arg(long)]
+    pub after: Option<String>,
+    /// At most this many episodes (a page, in id order).
     #[arg(long)]
     pub limit: Option<i64>,
     #[arg(long)]
@@ -58,6 +62,7 @@ pub async fn episodes(args: &StoreArgs, a: EpisodesArgs) -> Result<()> {
         task: a.task,
         label,
         tag: a.tag,
+        after: a.after,
         limit: a.limit,
         ..Default::default()
     };
@@ -81,6 +86,11 @@ pub async fn episodes(args: &StoreArgs, a: EpisodesArgs) -> Result<()> {
     let s = eps.iter().filter(|e| e.label == Label::Success).count();
     let f = eps.iter().filter(|e| e.label == Label::Failure).count();
     println!("{} episodes: {s} success, {f} failure, {} unknown", eps.len(), eps.len() - s - f);
+    if let (Some(n), Some(last)) = (a.limit, eps.last()) {
+        if eps.len() as i64 == n {
+            println!("next page: --after {}", last.id);
+        }
+    }
     Ok(())
 }
 

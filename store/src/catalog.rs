@@ -28,12 +28,14 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/sqlite/0001_store.sql")),
     (2, "splits_artifacts_jobs", include_str!("../../migrations/sqlite/0002_splits_artifacts_jobs.sql")),
     (3, "episode_row_ranges", include_str!("../../migrations/sqlite/0003_episode_row_ranges.sql")),
+    (4, "catalog_indexes_and_counts", include_str!("../../migrations/sqlite/0004_catalog_indexes_and_counts.sql")),
     (5, "episode_media", include_str!("../../migrations/sqlite/0005_episode_media.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
     (2, "splits_artifacts_jobs", include_str!("../../migrations/postgres/0002_splits_artifacts_jobs.sql")),
     (3, "episode_row_ranges", include_str!("../../migrations/postgres/0003_episode_row_ranges.sql")),
+    (4, "catalog_indexes_and_counts", include_str!("../../migrations/postgres/0004_catalog_indexes_and_counts.sql")),
     (5, "episode_media", include_str!("../../migrations/postgres/0005_episode_media.sql")),
 ];
 
@@ -315,5 +317,61 @@ mod tests {
         assert_eq!(r.try_get::<i64, _>("row_group").unwrap(), 3);
         assert_eq!(r.try_get::<i64, _>("row_offset").unwrap(), 0);
         assert_eq!(r.try_get::<i64, _>("row_count").unwrap(), 7);
+    }
+
+    /// Migration 0004 fills the maintained counts from the rows already there: the visible
+    /// episodes now (a removed one and a task-less one included), and each version's frozen labels.
+    #[tokio::test]
+    async fn migration_0004_backfills_counts() {
+        let dir = tempfile::tempdir().unwrap();
+        let url = format!("sqlite://{}/catalog.sqlite?mode=rwc", dir.path().display());
+        sqlx::any::install_default_drivers();
+        let pool = AnyPoolOptions::new().max_connections(1).connect(&url).await.unwrap();
+        migrator_of(&SQLITE_MIGRATIONS[..3]).run(&pool).await.unwrap();
+        sqlx::query("PRAGMA foreign_keys = OFF").execute(&pool).await.unwrap();
+        // (id, task, label now, removed in, label frozen in version 1)
+        let rows = [
+            ("e-1", Some("reach"), "success", None, "unknown"),
+            ("e-2", Some("reach"), "unknown", None, "unknown"),
+            ("e-3", None, "failure", None, "failure"),
+            ("e-4", Some("reach"), "success", Some(2), "success"),
+        ];
+        for (id, task, label, removed, frozen) in rows {
+            sqlx::query(
+                "INSERT INTO episodes (id, policy, checkpoint, task, source_sha256, source_name, source_index, length, \
+                 tags, metadata, data_file, row_group, row_offset, row_count, version_added, version_removed, label, \
+                 label_source, label_revision, label_actor, label_updated_at, created_at) VALUES ($1, 'p', 'c', $2, 'x', \
+                 'demo', 0, 1, '[]', '{}', 'steps/a.parquet', 0, 0, 1, 1, $3, $4, 'test', 1, 'ingest', 'now', 'now')",
+            )
+            .bind(id)
+            .bind(task)
+            .bind(removed)
+            .bind(label)
+            .execute(&pool)
+            .await
+            .unwrap();
+            sqlx::query("INSERT INTO version_labels (version, episode_id, label, label_source, revision) VALUES (1, $1, $2, 'test', 1)")
+                .bind(id)
+                .bind(frozen)
+                .execute(&pool)
+                .await
+                .unwrap();
+        }
+        pool.close().await;
+        let cat = Catalog::connect(&url).await.unwrap();
+        let read = |sql: &'static str| {
+            let pool = cat.pool.clone();
+            async move {
+                let rows = sqlx::query(sql).fetch_all(&pool).await.unwrap();
+                rows.iter()
+                    .map(|r| (r.try_get::<String, _>("task").unwrap(), r.try_get::<String, _>("label").unwrap(), r.try_get::<i64, _>("n").unwrap()))
+                    .collect::<Vec<_>>()
+            }
+        };
+        let now = read("SELECT task, label, SUM(n) AS n FROM episode_counts GROUP BY task, label ORDER BY task, label").await;
+        let s = |t: &str, l: &str, n: i64| (t.to_string(), l.to_string(), n);
+        assert_eq!(now, [s("", "failure", 1), s("reach", "success", 1), s("reach", "unknown", 1)]);
+        let v1 = read("SELECT task, label, n FROM version_counts WHERE version = 1 ORDER BY task, label").await;
+        assert_eq!(v1, [s("", "failure", 1), s("reach", "success", 1), s("reach", "unknown", 2)]);
     }
 }

@@ -2,6 +2,7 @@
 //! current label is the latest event; optimistic concurrency via the expected revision.
 
 use crate::catalog::{RowExt, Tx};
+use crate::counts::CountDeltas;
 use crate::writer::{finish_version, next_version, VersionHead};
 use crate::{now_rfc3339, Backend, CommitInfo, Label, Store, StoreError};
 use serde::Serialize;
@@ -59,9 +60,11 @@ impl Store {
         let backend = self.backend();
         let mut tx = self.db().begin_write().await?;
         let mut out = Vec::with_capacity(updates.len());
+        let mut counts = CountDeltas::default();
         for u in updates {
-            out.push(apply_one(&mut tx, backend, &u, actor, source).await?);
+            out.push(apply_one(&mut tx, backend, &u, actor, source, &mut counts).await?);
         }
+        counts.apply(&mut tx, backend).await?;
         tx.commit().await?;
         Ok(out)
     }
@@ -88,10 +91,11 @@ impl Store {
         }
         let mut out: Vec<Option<Result<LabelChange, StoreError>>> = (0..items.len()).map(|_| None).collect();
         let mut tx = self.db().begin_write().await?;
+        let mut counts = CountDeltas::default();
         for i in order {
             let (u, actor) = &items[i];
             let r = match crate::writer::check_name("actor", actor) {
-                Ok(()) => apply_one(&mut tx, backend, u, actor, source).await,
+                Ok(()) => apply_one(&mut tx, backend, u, actor, source, &mut counts).await,
                 Err(e) => Err(e),
             };
             match r {
@@ -99,6 +103,7 @@ impl Store {
                 r => out[i] = Some(r),
             }
         }
+        counts.apply(&mut tx, backend).await?;
         tx.commit().await?;
         Ok(out
             .into_iter()
@@ -147,7 +152,7 @@ impl Store {
             episodes_added: 0,
             episodes_removed: 0,
         };
-        finish_version(self, tx, head).await?;
+        finish_version(self, tx, head, CountDeltas::default()).await?;
         let info = self.version(version).await?;
         Ok(CommitInfo { version, episodes: info.episode_count as usize })
     }
@@ -168,15 +173,20 @@ impl Store {
     pub async fn delete_episodes(&self, ids: &[String], actor: &str, message: &str) -> Result<CommitInfo, StoreError> {
         let mut tx = self.db().begin_version_write().await?;
         let version = next_version(&mut tx).await?;
+        let mut counts = CountDeltas::default();
         for id in ids {
-            let r = sqlx::query("UPDATE episodes SET version_removed = $1 WHERE id = $2 AND version_removed IS NULL")
-                .bind(version)
-                .bind(id)
-                .execute(&mut *tx)
-                .await?;
-            if r.rows_affected() != 1 {
-                return Err(StoreError::not_found("episode", id.clone()));
-            }
+            // The label as of the row lock: a label write either committed before (its label is
+            // read here) or finds the episode gone.
+            let r = sqlx::query(
+                "UPDATE episodes SET version_removed = $1 WHERE id = $2 AND version_removed IS NULL \
+                 RETURNING policy, checkpoint, task, label",
+            )
+            .bind(version)
+            .bind(id)
+            .fetch_optional(&mut *tx)
+            .await?
+            .ok_or_else(|| StoreError::not_found("episode", id.clone()))?;
+            counts.add(&r.s("policy")?, &r.s("checkpoint")?, r.os("task")?.as_deref(), r.s("label")?.parse()?, -1);
         }
         let head = VersionHead {
             version,
@@ -187,7 +197,7 @@ impl Store {
             episodes_added: 0,
             episodes_removed: ids.len() as i64,
         };
-        finish_version(self, tx, head).await?;
+        finish_version(self, tx, head, counts).await?;
         let info = self.version(version).await?;
         Ok(CommitInfo { version, episodes: info.episode_count as usize })
     }
@@ -200,8 +210,8 @@ impl Store {
 /// transaction holds the database write lock (`BEGIN IMMEDIATE`), so the three statements see the
 /// same row. The `kind` column tells the result rows apart.
 const SQLITE_APPLY: &str = "\
-SELECT 'current' AS kind, label_revision AS revision, label AS old_label, label_actor, label_updated_at \
-FROM episodes WHERE id = $1 AND version_removed IS NULL; \
+SELECT 'current' AS kind, label_revision AS revision, label AS old_label, label_actor, label_updated_at, \
+policy, checkpoint, task FROM episodes WHERE id = $1 AND version_removed IS NULL; \
 INSERT INTO label_events (episode_id, revision, old_label, new_label, source, actor, note, created_at) \
 SELECT id, label_revision + 1, label, $2, $3, $4, $6, $5 FROM episodes \
 WHERE id = $1 AND version_removed IS NULL AND ($7 IS NULL OR label_revision = $7) \
@@ -216,7 +226,7 @@ RETURNING 'episode' AS kind, label_revision AS revision";
 /// revision matches; insert the audit event with the old label from the locked row. A conflict
 /// writes nothing and raises no error, so the transaction stays usable for the next item.
 const POSTGRES_APPLY: &str = "\
-WITH cur AS (SELECT id, label, label_revision, label_actor, label_updated_at FROM episodes \
+WITH cur AS (SELECT id, label, label_revision, label_actor, label_updated_at, policy, checkpoint, task FROM episodes \
 WHERE id = $1 AND version_removed IS NULL FOR UPDATE), \
 upd AS (UPDATE episodes e SET label = $2, label_source = $3, label_revision = e.label_revision + 1, \
 label_actor = $4, label_updated_at = $5 FROM cur \
@@ -225,7 +235,8 @@ RETURNING e.id, e.label_revision, cur.label AS old_label), \
 ev AS (INSERT INTO label_events (episode_id, revision, old_label, new_label, source, actor, note, created_at) \
 SELECT id, label_revision, old_label, $2, $3, $4, $6, $5 FROM upd RETURNING revision, old_label) \
 SELECT 'current' AS kind, cur.label_revision AS revision, cur.label AS old_label, cur.label_actor, \
-cur.label_updated_at, ev.revision AS event_revision, ev.old_label AS event_old_label \
+cur.label_updated_at, cur.policy, cur.checkpoint, cur.task, ev.revision AS event_revision, \
+ev.old_label AS event_old_label \
 FROM cur LEFT JOIN ev ON TRUE";
 
 /// Whether a failed label write concerns only that item (a group commit records it and goes on
@@ -238,14 +249,15 @@ fn item_error(e: &StoreError) -> bool {
 }
 
 /// Applies one label change inside `tx` in one round trip. On success the episode row and its
-/// audit event are written; on an item error (invalid note, unknown episode, stale revision)
-/// nothing is.
+/// audit event are written and the count change is added to `counts` (applied by the caller
+/// before it commits); on an item error (invalid note, unknown episode, stale revision) nothing is.
 async fn apply_one(
     tx: &mut Tx,
     backend: Backend,
     u: &LabelUpdate,
     actor: &str,
     source: &str,
+    counts: &mut CountDeltas,
 ) -> Result<LabelChange, StoreError> {
     if let Some(n) = &u.note {
         if n.len() > 4000 {
@@ -271,12 +283,15 @@ async fn apply_one(
     // (revision, label, actor, at) before the write; the event's (revision, old label); the
     // episode's new revision.
     let mut current: Option<(i64, String, String, String)> = None;
+    // (policy, checkpoint, task): which counts the write moves.
+    let mut group: Option<(String, String, Option<String>)> = None;
     let mut event: Option<(i64, Option<String>)> = None;
     let mut episode_revision: Option<i64> = None;
     for r in &rows {
         match r.s("kind")?.as_str() {
             "current" => {
                 current = Some((r.i("revision")?, r.s("old_label")?, r.s("label_actor")?, r.s("label_updated_at")?));
+                group = Some((r.s("policy")?, r.s("checkpoint")?, r.os("task")?));
                 if backend == Backend::Postgres {
                     // One statement: the event exists only if the episode row was updated.
                     if let Some(rev) = r.oi("event_revision")? {
@@ -300,6 +315,8 @@ async fn apply_one(
         (Some((rev, old)), Some(ep_rev))
             if rev == ep_rev && rev == revision + 1 && old.as_deref() == Some(current_label.as_str()) =>
         {
+            let (policy, checkpoint, task) = group.ok_or_else(|| inconsistent(u))?;
+            counts.relabel(&policy, &checkpoint, task.as_deref(), current_label, u.label);
             Ok(LabelChange {
                 episode_id: u.episode_id.clone(),
                 old_label: current_label,

@@ -7,6 +7,7 @@
 
 mod artifacts;
 mod catalog;
+mod counts;
 mod error;
 mod gc;
 mod jobs;
@@ -23,6 +24,7 @@ mod writer;
 
 pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
 pub use catalog::{migration_names, Backend};
+pub use counts::{CountFilter, LabelCounts};
 pub use error::StoreError;
 pub use gc::GcReport;
 pub use jobs::{JobRecord, JobState};

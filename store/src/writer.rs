@@ -3,6 +3,7 @@
 //! unreferenced objects, which `gc` removes.
 
 use crate::catalog::{insert_rows, RowExt, Tx, Val};
+use crate::counts::{insert_version_counts, CountDeltas};
 use crate::steps::{self, StepsFileWriter};
 use crate::{now_rfc3339, EpisodeInput, Label, MediaFile, SourceInput, Store, StoreError};
 use bytes::Bytes;
@@ -450,6 +451,10 @@ impl IngestWriter {
         )
         .await?;
         let n = self.episodes.len();
+        let mut counts = CountDeltas::default();
+        for e in &self.episodes {
+            counts.add(&self.policy, &self.checkpoint, e.task.as_deref(), e.label, 1);
+        }
         let head = VersionHead {
             version,
             kind: "ingest",
@@ -459,7 +464,7 @@ impl IngestWriter {
             episodes_added: n as i64,
             episodes_removed: 0,
         };
-        finish_version(&store, tx, head).await?;
+        finish_version(&store, tx, head, counts).await?;
         Ok(CommitInfo { version, episodes: n })
     }
 }
@@ -495,9 +500,15 @@ pub(crate) struct VersionHead {
     pub episodes_removed: i64,
 }
 
-/// Freezes the current labels of every visible episode into the version, writes the label
-/// snapshot file, records the version row and moves the head — then commits.
-pub(crate) async fn finish_version(store: &Store, mut tx: Tx, head: VersionHead) -> Result<i64, StoreError> {
+/// Freezes the current labels of every visible episode into the version (and their counts),
+/// writes the label snapshot file, records the version row, adds the write's `counts` deltas to
+/// the maintained counts and moves the head — then commits.
+pub(crate) async fn finish_version(
+    store: &Store,
+    mut tx: Tx,
+    head: VersionHead,
+    counts: CountDeltas,
+) -> Result<i64, StoreError> {
     let v = head.version;
     sqlx::query(
         "INSERT INTO version_labels (version, episode_id, label, label_source, revision) \
@@ -532,6 +543,8 @@ pub(crate) async fn finish_version(store: &Store, mut tx: Tx, head: VersionHead)
             row_count: r.i("row_count")?,
         });
     }
+    let frozen = label_rows.iter().map(|r| (r.policy.as_str(), r.checkpoint.as_str(), r.task.as_deref(), r.label));
+    insert_version_counts(&mut tx, v, frozen).await?;
     let changed = sqlx::query(
         "SELECT COUNT(*) AS n FROM version_labels a JOIN version_labels b \
          ON b.episode_id = a.episode_id AND b.version = $2 WHERE a.version = $1 AND a.revision <> b.revision",
@@ -572,6 +585,8 @@ pub(crate) async fn finish_version(store: &Store, mut tx: Tx, head: VersionHead)
     .bind(label_rows.len() as i64)
     .execute(&mut *tx)
     .await?;
+    // Last: on Postgres the counter rows stay locked until the commit.
+    counts.apply(&mut tx, store.backend()).await?;
     let moved = sqlx::query("UPDATE store_head SET version = $1 WHERE id = 1 AND version = $2")
         .bind(v)
         .bind(v - 1)

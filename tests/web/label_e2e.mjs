@@ -50,7 +50,14 @@ try {
   // (the browser logs every 4xx the test provokes — 401 before sign-in, 409, 403 — as "Failed to load resource")
   a.on('console', (m) => { if (m.type() === 'error' && !m.text().startsWith('Failed to load resource')) consoleErrors.push(m.text()); });
   a.on('pageerror', (e) => consoleErrors.push(String(e)));
-  await a.goto(`${URL}/ui/#policy=toy-dp`);
+  // Every episode list and count the page asks for: it pages (here 3 at a time) and counts on
+  // the server; it never reads the whole campaign.
+  const apiCalls = [];
+  a.on('request', (r) => {
+    const u = new globalThis.URL(r.url());
+    if (u.pathname.startsWith('/v1/episodes') && !u.pathname.includes('/media/')) apiCalls.push(u.pathname + u.search);
+  });
+  await a.goto(`${URL}/ui/#policy=toy-dp&pagesize=3`);
   await a.waitForSelector('#signin:not([hidden])');
   await shot(a, '01-sign-in');
   // a wrong token is refused
@@ -73,11 +80,14 @@ try {
     plots: document.querySelectorAll('#plots .uplot').length,
     counts: document.getElementById('counts').textContent,
     progress: document.getElementById('progress-text').textContent,
+    loaded: window.ufops.state.queue.length,
   }));
   log('first episode', JSON.stringify(first));
   check(first.videos.length >= 1 && first.videos.every((v) => v.rs >= 3 && v.w > 0), 'the first episode\'s video is playable');
   check(first.plots >= 2, 'action and state plots are drawn');
   check(/unknown 8/.test(first.counts), `counts per state: ${first.counts}`);
+  check(first.progress.startsWith('0 / 8'), `progress before labeling: ${first.progress}`);
+  check(first.loaded === 3, `one page of 3 loaded at first (${first.loaded})`);
   await shot(a, '02-queue-and-episode');
 
   // the player: frame stepping and play/pause keep the cameras and the plot cursor on the frame
@@ -111,7 +121,7 @@ try {
     check(nextLabel === 'unknown', `auto-advanced to an unlabeled episode (${after} is ${nextLabel})`);
     log(`pressed ${key} on ${before} → auto-advanced to ${after} in ${wallMs[wallMs.length - 1]} ms`);
   }
-  await a.waitForFunction(() => window.ufops.state.all.every((e) => !e.pending));
+  await a.waitForFunction(() => window.ufops.state.queue.every((e) => !e.pending));
   // in-page: from the keydown event's timestamp to every video of the next episode at
   // readyState >= 3 on its first frame, with its plots drawn
   const inPageMs = await a.evaluate(() => window.ufops.metrics.advances.map((x) => x.ms));
@@ -121,6 +131,11 @@ try {
   await shot(a, '04-three-labeled');
   const progress = await a.textContent('#progress-text');
   check(progress.startsWith('3 / 8'), `progress bar: ${progress}`);
+  const loaded = await a.evaluate(() => window.ufops.state.queue.length);
+  check(loaded > 3, `the queue loaded more pages as the labeler moved (${loaded} loaded)`);
+  const lists = apiCalls.filter((u) => /^\/v1\/episodes\?/.test(u));
+  check(lists.length >= 2 && lists.every((u) => /[?&]limit=3(&|$)/.test(u)), `pages of 3: ${lists.join(' ')}`);
+  check(apiCalls.some((u) => u.startsWith('/v1/episodes/counts?')), `counts from the server: ${apiCalls.join(' ')}`);
 
   // ---------------------------------------------------------------- a conflict from a second session
   const stale = await a.evaluate(() => document.body.dataset.ready);
@@ -131,7 +146,7 @@ try {
   await b.keyboard.press('Enter');
   await b.waitForFunction((id) => document.body.dataset.ready === id, stale, { timeout: 20000 });
   await b.keyboard.press('f');
-  await b.waitForFunction(() => window.ufops.state.all.every((e) => !e.pending));
+  await b.waitForFunction(() => window.ufops.state.queue.every((e) => !e.pending));
   await shot(b, '05-bob-labeled-failure');
   // A still shows the old revision and says success
   await a.keyboard.press('s');
@@ -147,7 +162,7 @@ try {
   await a.keyboard.press('Enter');
   await a.waitForFunction(() => !document.getElementById('conflict').open);
   await a.waitForFunction((id) => {
-    const e = window.ufops.state.all.find((x) => x.id === id);
+    const e = window.ufops.state.queue.find((x) => x.id === id);
     return e && !e.pending && e.label === 'success';
   }, stale, { timeout: 10000 });
   result.conflict = { episode_id: stale, first: { actor: 'bob', label: 'failure' }, final: { actor: 'alice', label: 'success' } };
@@ -177,6 +192,14 @@ try {
   await a.waitForFunction(() => /2 episodes labeled failure/.test(document.getElementById('bulk-status').textContent));
   for (const id of bulkIds) result.labeled.push({ episode_id: id, label: 'failure', bulk: true });
   await shot(a, '08-bulk');
+  // The counts and progress shown are the server's, after every write of this session.
+  const server = await a.evaluate(async () => (await fetch('/v1/episodes/counts?policy=toy-dp')).json());
+  check(server.total === 8 && server.unknown === 8 - result.labeled.length, `server counts: ${JSON.stringify(server)}`);
+  const want = `success ${server.success} failure ${server.failure} unknown ${server.unknown}`;
+  await a.waitForFunction((w) => document.getElementById('counts').textContent.replace(/\s+/g, ' ').trim() === w, want, { timeout: 10000 });
+  const shown = await a.textContent('#progress-text');
+  check(shown.startsWith(`${server.success + server.failure} / 8`), `progress after bulk: ${shown}`);
+  result.counts = server;
 
   // ---------------------------------------------------------------- low-dim episode: plots and trajectory sketch
   await a.goto(`${URL}/ui/#policy=lowdim`);

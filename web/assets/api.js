@@ -47,18 +47,13 @@ export const episode = (id) => call('GET', `/v1/episodes/${encodeURIComponent(id
 export const steps = (id) => call('GET', `/v1/episodes/${encodeURIComponent(id)}/steps`);
 export const mediaUrl = (id, key) => `/v1/episodes/${encodeURIComponent(id)}/media/${encodeURIComponent(key)}`;
 
-/** Every episode matching the filters (follows the cursor; pages of 1000). */
-export async function allEpisodes(filters) {
-  const out = [];
-  let after;
-  for (let i = 0; i < 1000; i++) {
-    const page = await call('GET', `/v1/episodes${q({ ...filters, limit: 1000, after })}`);
-    out.push(...page.episodes);
-    if (!page.next_cursor) break;
-    after = page.next_cursor;
-  }
-  return out;
-}
+/** One page of episodes matching the filters, in id order; `after` is the previous page's
+ *  `next_cursor` (keyset pages: fast at any depth, no repeats while labels change). */
+export const episodesPage = (filters, after, limit) =>
+  call('GET', `/v1/episodes${q({ ...filters, limit, after })}`);
+
+/** Episodes per label state and their total, counted by the server (kept with every write). */
+export const counts = (filters) => call('GET', `/v1/episodes/counts${q(filters)}`);
 
 /** PUT a label against the revision the labeler saw; 409 → ApiError with the current label. */
 export const putLabel = (id, label, revision, note) =>

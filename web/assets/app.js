@@ -1,6 +1,10 @@
 // The labeling page: sign-in, the queue (filters, counts, campaign progress, bulk labels), the
 // episode view (synced cameras, plots, metadata, history), keyboard labeling with auto-advance
 // and prefetching, and conflict resolution. Plain ES modules, no build step.
+//
+// The queue is fetched a page at a time as the labeler moves through it (keyset pages of
+// /v1/episodes), and the counts and progress bar come from /v1/episodes/counts: the page never
+// reads every episode of a campaign, whatever its size.
 
 import * as api from './api.js';
 import { Player, prepare, dispose } from './player.js';
@@ -12,8 +16,14 @@ const LABELS = ['success', 'failure', 'unknown'];
 const S = {
   me: null,
   filters: { policy: '', checkpoint: '', task: '', label: '' },
-  all: [],          // episodes matching policy/checkpoint/task (for counts)
-  queue: [],        // the shown order (label filter applied; unknown first by default)
+  pageSize: 100,    // episodes per page of the queue (`#pagesize=N`)
+  queue: [],        // the loaded part of the queue, in order (unknown first by default)
+  seen: new Set(),  // ids in `queue`
+  pager: null,      // where the next page of the queue comes from
+  queueSeq: 0,
+  counts: { total: 0, success: 0, failure: 0, unknown: 0 }, // server counts, adjusted locally
+  pendingWrites: 0, // label writes in flight (server counts are taken only without any)
+  writeGen: 0,
   idx: -1,
   cur: null,        // the prepared episode on screen
   cache: new Map(), // id -> prepared episode (prefetch)
@@ -81,11 +91,14 @@ function readHash() {
   const h = new URLSearchParams(location.hash.slice(1));
   for (const k of Object.keys(S.filters)) S.filters[k] = h.get(k) || '';
   S.hashEpisode = h.get('ep') || '';
+  const n = Number(h.get('pagesize'));
+  S.pageSize = Number.isInteger(n) && n >= 1 && n <= 1000 ? n : 100;
 }
 
 function writeHash() {
   const h = new URLSearchParams();
   for (const [k, v] of Object.entries(S.filters)) if (v) h.set(k, v);
+  if (S.pageSize !== 100) h.set('pagesize', S.pageSize);
   if (S.cur) h.set('ep', S.cur.id);
   history.replaceState(null, '', `#${h}`);
 }
@@ -106,11 +119,20 @@ async function loadFilters() {
   S.filters.task = $('f-task').value;
 }
 
+/** Starts the queue over for the current filters: counts, the first page, the episode to show. */
 async function loadQueue(focusId) {
-  const { policy, checkpoint, task } = S.filters;
-  S.all = await api.allEpisodes({ policy, checkpoint, task });
-  orderQueue();
+  const seq = ++S.queueSeq;
+  const { policy, checkpoint, task, label } = S.filters;
+  S.queue = [];
+  S.seen = new Set();
+  S.idx = -1;
   S.selected.clear();
+  $('queue-list').replaceChildren();
+  // "all, unknown first": every unknown episode, then every episode not shown yet.
+  S.pager = { base: { policy, checkpoint, task }, phases: label ? [label] : ['unknown', ''], phase: 0, after: undefined, done: false, loading: null };
+  await Promise.all([refreshCounts(), loadMore()]);
+  if (seq !== S.queueSeq) return;
+  if (focusId && !S.seen.has(focusId)) await addFocus(focusId);
   renderQueue();
   renderCounts();
   let i = focusId ? S.queue.findIndex((e) => e.id === focusId) : -1;
@@ -120,11 +142,73 @@ async function loadQueue(focusId) {
   else showEmpty();
 }
 
-function orderQueue() {
-  const want = S.filters.label;
-  const list = want ? S.all.filter((e) => e.label === want) : [...S.all];
-  if (!want) list.sort((a, b) => (a.label === 'unknown' ? 0 : 1) - (b.label === 'unknown' ? 0 : 1) || (a.id < b.id ? -1 : a.id > b.id ? 1 : 0));
-  S.queue = list;
+/** The episode of the link (`#ep=`), first in the queue when it matches the filters but is not on the first page. */
+async function addFocus(id) {
+  try {
+    const ep = (await api.episode(id)).episode;
+    const f = S.filters;
+    const matches = ['policy', 'checkpoint', 'task', 'label'].every((k) => !f[k] || ep[k] === f[k]);
+    if (matches && !S.seen.has(id)) { S.seen.add(id); S.queue.unshift(ep); }
+  } catch { /* not there (any more): start at the first unlabeled one */ }
+}
+
+/** Fetches the queue's next page (one at a time); resolves to the number of episodes added. */
+function loadMore() {
+  const pg = S.pager;
+  if (!pg || pg.done) return Promise.resolve(0);
+  if (pg.loading) return pg.loading;
+  pg.loading = (async () => {
+    try {
+      const label = pg.phases[pg.phase] || undefined;
+      const page = await api.episodesPage({ ...pg.base, label }, pg.after, S.pageSize);
+      if (pg !== S.pager) return 0;
+      const from = S.queue.length;
+      for (const e of page.episodes) {
+        if (!S.seen.has(e.id)) { S.seen.add(e.id); S.queue.push(e); }
+      }
+      if (page.next_cursor) pg.after = page.next_cursor;
+      else if (pg.phase + 1 < pg.phases.length) { pg.phase += 1; pg.after = undefined; }
+      else pg.done = true;
+      appendRows(from);
+      return S.queue.length - from;
+    } finally {
+      pg.loading = null;
+    }
+  })();
+  return pg.loading;
+}
+
+/** Keeps a quarter of a page loaded ahead of entry i, so moving on never waits for the server. */
+function loadAhead(i) {
+  if (S.pager && !S.pager.done && S.queue.length - 1 - i < Math.max(2, S.pageSize >> 2)) {
+    loadMore().catch((e) => status($('ep-status'), `cannot load more of the queue: ${e.message}`, 'error'));
+  }
+}
+
+/** The server's counts for the filters (taken only while none of our writes is in flight). */
+async function refreshCounts() {
+  const gen = S.writeGen;
+  const seq = S.queueSeq;
+  try {
+    const c = await api.counts(S.pager ? S.pager.base : {});
+    if (seq !== S.queueSeq) return;
+    if (gen !== S.writeGen || S.pendingWrites > 0) { scheduleCounts(); return; }
+    S.counts = c;
+    renderCounts();
+  } catch { /* keep what is shown; the next write asks again */ }
+}
+
+let countsTimer = null;
+function scheduleCounts() {
+  clearTimeout(countsTimer);
+  countsTimer = setTimeout(refreshCounts, 300);
+}
+
+/** A label change seen here, reflected in the counts at once (the server's figures follow). */
+function countMove(from, to) {
+  if (from === to) return;
+  if (S.counts[from] !== undefined) S.counts[from] -= 1;
+  if (S.counts[to] !== undefined) S.counts[to] += 1;
 }
 
 function epName(e) {
@@ -132,15 +216,24 @@ function epName(e) {
   return `${e.source_name || e.policy} #${ix}`;
 }
 
-function renderQueue() {
-  const ol = $('queue-list');
-  const rows = S.queue.map((e, i) => `<li data-i="${i}" data-id="${esc(e.id)}" class="${i === S.idx ? 'current' : ''}">
+function rowHtml(e, i) {
+  return `<li data-i="${i}" data-id="${esc(e.id)}" class="${i === S.idx ? 'current' : ''}">
       <input type="checkbox" tabindex="-1" ${S.selected.has(e.id) ? 'checked' : ''} aria-label="select">
       <span class="name">${esc(epName(e))}</span>
       <span class="sub">${esc(e.checkpoint)} · ${e.length} steps</span>
-      <span class="badge ${esc(e.label)}">${esc(e.label)}</span></li>`);
-  ol.innerHTML = rows.join('');
+      <span class="badge ${esc(e.label)}">${esc(e.label)}</span></li>`;
+}
+
+function renderQueue() {
+  $('queue-list').innerHTML = S.queue.map(rowHtml).join('');
   $('selected-count').textContent = `${S.selected.size} selected`;
+}
+
+/** Adds the rows of queue entries from `from` on (a page just loaded). */
+function appendRows(from) {
+  const ol = $('queue-list');
+  if (ol.children.length !== from) { renderQueue(); return; }
+  ol.insertAdjacentHTML('beforeend', S.queue.slice(from).map((e, k) => rowHtml(e, from + k)).join(''));
 }
 
 function updateRow(i) {
@@ -155,9 +248,8 @@ function updateRow(i) {
 }
 
 function renderCounts() {
-  const c = { success: 0, failure: 0, unknown: 0 };
-  for (const e of S.all) c[e.label] = (c[e.label] || 0) + 1;
-  const total = S.all.length;
+  const c = S.counts;
+  const total = c.total;
   const done = c.success + c.failure;
   $('counts').innerHTML = LABELS.map((l) => `<span class="badge ${l}" data-count="${l}">${l} ${c[l]}</span>`).join(' ');
   $('progress-fill').style.width = total ? `${(100 * done) / total}%` : '0';
@@ -188,13 +280,26 @@ function trimCache(keep) {
   }
 }
 
+const todo = (i) => S.queue[i].label === 'unknown' && !S.queue[i].pending;
+
+/** The next unlabeled entry among those loaded, wrapping around. */
 function nextUnlabeled(from) {
   const n = S.queue.length;
   for (let k = 1; k < n; k++) {
     const i = (from + k) % n;
-    if (S.queue[i].label === 'unknown' && !S.queue[i].pending) return i;
+    if (todo(i)) return i;
   }
   return -1;
+}
+
+/** The next unlabeled entry after `from`, loading a few more pages if none is loaded; then wraps. */
+async function findNextUnlabeled(from) {
+  for (let pages = 0; ; pages++) {
+    for (let i = from + 1; i < S.queue.length; i++) if (todo(i)) return i;
+    if (!S.pager || S.pager.done || pages >= 5) break;
+    await loadMore();
+  }
+  return nextUnlabeled(from);
 }
 
 /** Shows queue entry i; `t0` (performance.now() of a verdict key) is measured to "playable". */
@@ -209,6 +314,7 @@ async function show(i, t0) {
   if (li) li.scrollIntoView({ block: 'nearest' });
   const e = S.queue[i];
   const p = prepared(e.id);
+  loadAhead(i);
   document.body.dataset.ready = '';
   status($('ep-status'), 'loading…');
   await p.loaded;
@@ -261,9 +367,10 @@ async function refreshDetail(p) {
 }
 
 function syncRecord(ep) {
-  for (const list of [S.all, S.queue]) {
-    const r = list.find((x) => x.id === ep.id);
-    if (r && !r.pending) Object.assign(r, { label: ep.label, label_revision: ep.label_revision, label_actor: ep.label_actor });
+  const r = S.queue.find((x) => x.id === ep.id);
+  if (r && !r.pending) {
+    countMove(r.label, ep.label);
+    Object.assign(r, { label: ep.label, label_revision: ep.label_revision, label_actor: ep.label_actor });
   }
   const i = S.queue.findIndex((x) => x.id === ep.id);
   if (i >= 0) updateRow(i);
@@ -301,9 +408,9 @@ function renderEpisode(p) {
 // ------------------------------------------------------------------ labeling
 
 function setLocal(id, label, revision, actor, pending) {
-  for (const list of [S.all, S.queue]) {
-    const r = list.find((x) => x.id === id);
-    if (!r) continue;
+  const r = S.queue.find((x) => x.id === id);
+  if (r) {
+    countMove(r.label, label);
     r.label = label;
     if (revision !== undefined) r.label_revision = revision;
     if (actor !== undefined) r.label_actor = actor;
@@ -327,16 +434,25 @@ function verdict(label, t0) {
   const revision = ep.label_revision;
   setLocal(ep.id, label, undefined, undefined, true);
   save(p, label, revision, note, before);
-  const next = nextUnlabeled(S.idx);
-  if (next >= 0) show(next, t0);
-  else {
-    renderEpisode(p);
-    status($('ep-status'), 'every episode in this queue is labeled', 'ok');
-  }
+  const from = S.idx;
+  let next = -1;
+  for (let i = from + 1; i < S.queue.length && next < 0; i++) if (todo(i)) next = i;
+  if (next >= 0) { show(next, t0); return; }
+  // None loaded ahead (the prefetch keeps some): fetch on.
+  findNextUnlabeled(from).then((i) => {
+    if (S.cur !== p) return;
+    if (i >= 0 && i !== S.idx) show(i, t0);
+    else {
+      renderEpisode(p);
+      status($('ep-status'), 'every episode in this queue is labeled', 'ok');
+    }
+  });
 }
 
 async function save(p, label, revision, note, before) {
   const id = p.id;
+  S.pendingWrites += 1;
+  S.writeGen += 1;
   try {
     const ch = await api.putLabel(id, label, revision, note);
     setLocal(id, ch.label, ch.revision, ch.actor, false);
@@ -354,6 +470,9 @@ async function save(p, label, revision, note, before) {
       setLocal(id, before.label, undefined, undefined, false);
       status($('ep-status'), `label of ${id} not saved: ${e.message}`, 'error');
     }
+  } finally {
+    S.pendingWrites -= 1;
+    scheduleCounts();
   }
 }
 
@@ -404,9 +523,11 @@ async function bulk(label) {
   const ids = [...S.selected];
   if (!ids.length) { status($('bulk-status'), 'select episodes first (click the boxes or press x)', 'error'); return; }
   const updates = ids.map((id) => {
-    const r = S.all.find((x) => x.id === id);
+    const r = S.queue.find((x) => x.id === id);
     return { episode_id: id, label, expect_revision: r ? r.label_revision : undefined };
   });
+  S.pendingWrites += 1;
+  S.writeGen += 1;
   try {
     const changes = await api.bulkLabel(updates);
     for (const ch of changes) setLocal(ch.episode_id, ch.label, ch.revision, ch.actor, false);
@@ -419,6 +540,9 @@ async function bulk(label) {
     const who = pr.set_by ? ` (${pr.episode_id} is now ${pr.current_label}, set by ${pr.set_by}); nothing was changed — the list is reloaded` : '';
     status($('bulk-status'), `bulk label refused: ${e.message}${who}`, 'error');
     if (e.status === 409) await loadQueue(S.cur && S.cur.id);
+  } finally {
+    S.pendingWrites -= 1;
+    scheduleCounts();
   }
 }
 
@@ -481,8 +605,7 @@ function wire() {
     $(`f-${k}`).addEventListener('change', async (ev) => {
       S.filters[k] = ev.target.value;
       if (k === 'policy') { S.filters.checkpoint = ''; await loadFilters(); }
-      if (k === 'label') { orderQueue(); renderQueue(); const i = S.queue.findIndex((e) => S.cur && e.id === S.cur.id); S.idx = -1; await show(i >= 0 ? i : 0); return; }
-      await loadQueue();
+      await loadQueue(k === 'label' && S.cur ? S.cur.id : undefined);
     });
   }
   $('queue-list').addEventListener('click', (ev) => {

@@ -1,5 +1,5 @@
-//! Episodes: listing with filters and cursor pagination, one episode with its label history,
-//! its step table (JSON or Arrow IPC) and its media (range requests).
+//! Episodes: listing with filters and cursor pagination, counts per label state, one episode
+//! with its label history, its step table (JSON or Arrow IPC) and its media (range requests).
 
 use super::*;
 
@@ -7,6 +7,7 @@ use super::*;
 pub(crate) fn router() -> Router<AppState> {
     Router::new()
         .route("/v1/episodes", get(list_episodes))
+        .route("/v1/episodes/counts", get(episode_counts))
         .route("/v1/episodes/{id}", get(get_episode))
         .route("/v1/episodes/{id}/steps", get(get_steps))
         .route("/v1/episodes/{id}/media/{key}", get(get_media))
@@ -40,7 +41,9 @@ pub struct EpisodePage {
     next_cursor: Option<String>,
 }
 
-/// Lists episodes with filters and cursor pagination.
+/// Lists episodes with filters, in id order, a page at a time: pass the page's `next_cursor` as
+/// `after` for the next one. Pages are keyset pages, so they stay fast at any depth and, while
+/// labels change, never repeat an episode nor skip one that still matches the filters.
 #[utoipa::path(get, path = "/v1/episodes", tag = "episodes", params(EpisodeQuery),
     responses((status = 200, body = EpisodePage), (status = 400, body = Problem), (status = 401, body = Problem)))]
 pub async fn list_episodes(State(s): State<AppState>, ApiQuery(q): ApiQuery<EpisodeQuery>) -> ApiResult<Json<EpisodePage>> {
@@ -77,6 +80,37 @@ pub async fn list_episodes(State(s): State<AppState>, ApiQuery(q): ApiQuery<Epis
         None
     };
     Ok(Json(EpisodePage { episodes, next_cursor }))
+}
+
+#[derive(Deserialize, IntoParams, Default)]
+#[into_params(parameter_in = Query)]
+pub struct CountsQuery {
+    policy: Option<String>,
+    checkpoint: Option<String>,
+    task: Option<String>,
+    /// Count the labels frozen in this version; default: now.
+    version: Option<i64>,
+}
+
+/// Episodes per label state and their total.
+#[derive(Serialize, ToSchema)]
+pub struct EpisodeCounts {
+    total: i64,
+    success: i64,
+    failure: i64,
+    unknown: i64,
+}
+
+/// Counts the episodes matching `policy`, `checkpoint` and `task` per label state (the labeling
+/// page's progress bar). The counts are maintained with every label write and version, so this
+/// reads a few rows whatever the catalog's size.
+#[utoipa::path(get, path = "/v1/episodes/counts", tag = "episodes", params(CountsQuery),
+    responses((status = 200, body = EpisodeCounts), (status = 400, body = Problem), (status = 401, body = Problem),
+              (status = 404, description = "no such version", body = Problem)))]
+pub async fn episode_counts(State(s): State<AppState>, ApiQuery(q): ApiQuery<CountsQuery>) -> ApiResult<Json<EpisodeCounts>> {
+    let filter = store::CountFilter { version: q.version, policy: q.policy, checkpoint: q.checkpoint, task: q.task };
+    let c = s.store().episode_counts(&filter).await?;
+    Ok(Json(EpisodeCounts { total: c.total, success: c.success, failure: c.failure, unknown: c.unknown }))
 }
 
 #[derive(Deserialize, IntoParams)]
