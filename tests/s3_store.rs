@@ -19,9 +19,9 @@ fn postgres_and_s3_store_end_to_end() {
     let t = s3_target(dir.path(), &s3, "e2e");
     t.ok(&["init"]);
 
-    let fixture = shared_fixtures().join("lerobot/v30_eval_video");
+    let fixture = fixtures().join("lerobot/v30_eval_video");
     let expected: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(shared_fixtures().join("lerobot/v30_eval_video.expected.json")).unwrap())
+        serde_json::from_slice(&std::fs::read(fixtures().join("lerobot/v30_eval_video.expected.json")).unwrap())
             .unwrap();
     let fixture_s = fixture.to_str().unwrap();
     t.ok(&["ingest", fixture_s, "--policy", "arm", "--checkpoint", "c1"]);

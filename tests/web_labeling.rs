@@ -154,7 +154,7 @@ fn labeling_page_in_headless_chromium() {
         );
         return;
     }
-    let fixtures = common::shared_fixtures().join("lerobot");
+    let fixtures = common::fixtures().join("lerobot");
     let dir = tempfile::tempdir().unwrap();
     let t = Target::sqlite(dir.path());
     t.ok(&["init"]);

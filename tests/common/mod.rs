@@ -93,8 +93,9 @@ pub fn object_files(data_dir: &Path) -> Vec<String> {
     out
 }
 
-pub fn shared_fixtures() -> PathBuf {
+/// The fixtures: `$UFOPS_FIXTURES`, else the repository's own `fixtures/` (see its README).
+pub fn fixtures() -> PathBuf {
     std::env::var("UFOPS_FIXTURES")
         .map(PathBuf::from)
-        .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"))
+        .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures"))
 }
