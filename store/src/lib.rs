@@ -16,6 +16,8 @@ mod objects;
 mod query;
 mod splits;
 pub mod steps;
+#[doc(hidden)]
+pub mod test_support;
 mod tokens;
 mod writer;
 

@@ -222,6 +222,9 @@ async fn sqlite_store_behaviour() {
 
 #[tokio::test]
 async fn postgres_store_behaviour() {
+    if !store::test_support::require_postgres() {
+        return;
+    }
     let dir = tempfile::tempdir().unwrap();
     versions_labels_time_travel(open_postgres(dir.path()).await).await;
 }
