@@ -7,5 +7,7 @@ source scripts/env.sh
 ensure_python_deps
 ensure_postgres
 ensure_browser
-export UFOPS_REQUIRE_BROWSER=1
+# Every test that needs an external tool fails when it is missing (instead of skipping):
+# store::test_support::require reads these switches.
+export UFOPS_REQUIRE_PYTHON=1 UFOPS_REQUIRE_S3=1 UFOPS_REQUIRE_POSTGRES=1 UFOPS_REQUIRE_BROWSER=1
 cargo test --workspace --locked "$@"

@@ -141,20 +141,11 @@ fn token(t: &Target, name: &str, role: &str) -> String {
 #[test]
 fn labeling_page_in_headless_chromium() {
     let missing = missing_prerequisites();
-    if !missing.is_empty() {
-        let msg = format!("the labeling-page browser test needs: {}", missing.join("; "));
-        if std::env::var("UFOPS_REQUIRE_BROWSER").as_deref() == Ok("1") {
-            panic!("{msg} (UFOPS_REQUIRE_BROWSER=1; `source scripts/env.sh && ensure_browser` installs them)");
-        }
-        // Straight to stderr (not eprintln!, which the test harness captures): a skip must be seen.
-        let bar = "!".repeat(78);
-        let _ = writeln!(
-            std::io::stderr(),
-            "\n{bar}\n!! SKIPPED web_labeling: {msg}\n!! (scripts/test.sh installs them and makes this a failure instead)\n{bar}\n"
-        );
+    let probe = if missing.is_empty() { Ok(()) } else { Err(missing.join("; ")) };
+    if !store::test_support::require(store::test_support::Tool::Browser, probe) {
         return;
     }
-    let fixtures = common::shared_fixtures().join("lerobot");
+    let fixtures = common::fixtures().join("lerobot");
     let dir = tempfile::tempdir().unwrap();
     let t = Target::sqlite(dir.path());
     t.ok(&["init"]);

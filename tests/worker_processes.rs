@@ -76,7 +76,7 @@ fn epoch_of(job: &JobRecord) -> Option<u64> {
 #[test]
 fn two_worker_processes_on_postgres_run_each_job_once_and_retry_a_killed_workers_job() {
     let dir = tempfile::tempdir().unwrap();
-    let target = postgres_target(&dir.path().join("data"));
+    let Some(target) = postgres_target(&dir.path().join("data")) else { return };
     target.ok(&["init"]);
     target.ok(&["dev", "synth", "--seed", "7", "--episodes", "24", "--steps", "60", "--policy", "pol", "--checkpoint", "c1"]);
     let split = target.json(&["split", "create", "--policy", "pol", "--checkpoint", "c1", "--val-fraction", "0.25", "--json"]);

@@ -275,6 +275,9 @@ async fn full_flow_sqlite() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn full_flow_postgres() {
+    if !store::test_support::require_postgres() {
+        return;
+    }
     full_flow(Db::Postgres).await;
 }
 

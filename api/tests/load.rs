@@ -17,6 +17,9 @@ async fn concurrent_labelers_lose_no_updates_sqlite() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn concurrent_labelers_lose_no_updates_postgres() {
+    if !store::test_support::require_postgres() {
+        return;
+    }
     let r = run_label_load(Db::Postgres, 16, 32, Duration::from_millis(2500)).await;
     r.print();
     assert!(r.writes > 50, "too few writes: {r:?}");
@@ -84,5 +87,8 @@ async fn racing_puts_have_one_winner_sqlite() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn racing_puts_have_one_winner_postgres() {
+    if !store::test_support::require_postgres() {
+        return;
+    }
     racing_puts_one_winner(Db::Postgres).await;
 }

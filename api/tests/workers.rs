@@ -21,6 +21,9 @@ fn opts(id: &str) -> api::WorkerOptions {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn two_workers_on_postgres_run_each_job_once_and_retry_a_killed_workers_job() {
+    if !store::test_support::require_postgres() {
+        return;
+    }
     let dir = tempfile::tempdir().unwrap();
     let store = common::open_store(Db::Postgres, dir.path()).await;
     let runner = TestRunner::new(100);

@@ -3,7 +3,7 @@
 //! side with the Python reference (h5py + pyarrow, zstd) run in the same process tree, plus the
 //! machine's limit (reading the file + zstd-compressing the output columns, nothing else).
 //!
-//! The input is generated once with `../shared/bench/gen_robomimic.py OUT --demos 1000` into the
+//! The input is generated once with `bench/reference/gen_robomimic.py OUT --demos 1000` into the
 //! target directory (never into git). Env: `UFOPS_BENCH_RUNS` (default 3), `UFOPS_BENCH_FILE`,
 //! `UFOPS_BENCH_INGEST_ONLY` (time the whole ingest only, e.g. under `perf record`).
 
@@ -14,8 +14,9 @@ use std::time::{Duration, Instant};
 use ingest::sink::{CollectSink, CountSink};
 use ingest::{Format, IngestOptions, ReadOptions};
 
-fn shared() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared")
+/// The Python reference scripts (bench/reference/README.md).
+fn reference_script(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../bench/reference").join(name)
 }
 
 fn target_dir() -> PathBuf {
@@ -41,7 +42,7 @@ fn input() -> Option<PathBuf> {
     std::fs::create_dir_all(&dir).ok()?;
     eprintln!("generating {} (python3 gen_robomimic.py --demos 1000) ...", p.display());
     let st = Command::new("python3")
-        .arg(shared().join("bench/gen_robomimic.py"))
+        .arg(reference_script("gen_robomimic.py"))
         .arg(&p)
         .args(["--demos", "1000"])
         .status()
@@ -56,7 +57,7 @@ fn input() -> Option<PathBuf> {
 fn python_reference(inp: &Path, out: &Path) -> Option<Duration> {
     let t = Instant::now();
     let st = Command::new("python3")
-        .arg(shared().join("bench/py_convert_robomimic.py"))
+        .arg(reference_script("py_convert_robomimic.py"))
         .arg(inp)
         .arg(out)
         .stdout(std::process::Stdio::null())

@@ -6,7 +6,7 @@ set -euo pipefail
 cd "$(dirname "$0")"
 SECS="${1:-60}"; shift || true
 TARGETS=("$@"); [ ${#TARGETS[@]} -eq 0 ] && TARGETS=(robomimic lerobot mcap cdr)
-FIX="${UFOPS_FIXTURES:-$(cd ../../.. && pwd)/shared/fixtures}"
+FIX="${UFOPS_FIXTURES:-$(cd ../.. && pwd)/fixtures}"
 command -v cargo-fuzz >/dev/null || cargo install cargo-fuzz
 export RUSTC_BOOTSTRAP=1
 # a target dir of its own (sanitizer builds do not mix with normal ones)

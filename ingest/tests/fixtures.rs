@@ -1,4 +1,4 @@
-//! Every fixture in ../shared/fixtures against its expected.json (readers only, no store).
+//! Every fixture in the repository's fixtures/ against its expected.json (readers only, no store).
 
 mod common;
 

@@ -523,6 +523,9 @@ mod tests {
     }
     #[tokio::test]
     async fn group_commit_postgres() {
+        if !crate::test_support::require_postgres() {
+            return;
+        }
         group_commit_keeps_per_item_outcomes(Backend::Postgres).await;
     }
     #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
@@ -531,6 +534,9 @@ mod tests {
     }
     #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
     async fn concurrent_label_writers_postgres() {
+        if !crate::test_support::require_postgres() {
+            return;
+        }
         concurrent_writers_chain_the_log(Backend::Postgres).await;
     }
 }

@@ -19,6 +19,8 @@ mod read;
 mod media;
 mod splits;
 pub mod steps;
+#[doc(hidden)]
+pub mod test_support;
 mod tokens;
 mod writer;
 

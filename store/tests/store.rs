@@ -222,22 +222,92 @@ async fn sqlite_store_behaviour() {
 
 #[tokio::test]
 async fn postgres_store_behaviour() {
+    if !store::test_support::require_postgres() {
+        return;
+    }
     let dir = tempfile::tempdir().unwrap();
     versions_labels_time_travel(open_postgres(dir.path()).await).await;
+}
+
+/// Every file under the local object directory, relative to it (`steps/…`, `media/…`).
+fn object_files(data_dir: &std::path::Path) -> std::collections::BTreeSet<String> {
+    fn walk(root: &std::path::Path, dir: &std::path::Path, out: &mut std::collections::BTreeSet<String>) {
+        for e in std::fs::read_dir(dir).unwrap().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                walk(root, &p, out);
+            } else {
+                out.insert(p.strip_prefix(root).unwrap().to_string_lossy().into_owned());
+            }
+        }
+    }
+    let mut out = std::collections::BTreeSet::new();
+    let root = data_dir.join("objects");
+    if root.exists() {
+        walk(&root, &root, &mut out);
+    }
+    out
 }
 
 #[tokio::test]
 async fn aborted_ingest_is_invisible_and_collected() {
     let dir = tempfile::tempdir().unwrap();
     let store = open_sqlite(dir.path()).await;
-    ingest(&store, "keep", "c", 2).await;
-    let mut w = store.begin_ingest(source("drop"), "pol", "c").await.unwrap();
-    for i in 0..3 {
-        w.add_episode(episode(i, 4, Label::Unknown)).await.unwrap();
+    // A video file for an ingest, and its media file record.
+    let video = |seed: u32| {
+        let bytes: Vec<u8> = (0..50_000u32).map(|i| (i.wrapping_mul(2654435761).wrapping_add(seed) >> 11) as u8).collect();
+        let path = dir.path().join(format!("front-{seed}.mp4"));
+        std::fs::write(&path, &bytes).unwrap();
+        MediaFile { sha256: sha256_hex(&bytes), local_path: path, content_type: "video/mp4".into(), size_bytes: bytes.len() as u64 }
+    };
+    // An episode of 4 steps that shows `media`.
+    let with_video = |i: u32, label: Label, media: &MediaFile| {
+        let mut ep = episode(i, 4, label);
+        ep.media = vec![MediaColumn { name: "front".into(), sha256: media.sha256.clone(), timestamps: ep.timestamps.clone() }];
+        ep
+    };
+    // A committed ingest with its own video: gc must keep all of it.
+    let kept_video = video(1);
+    let mut w = store.begin_ingest(source("keep"), "pol", "c").await.unwrap();
+    w.add_media(&kept_video).await.unwrap();
+    for i in 0..2 {
+        w.add_episode(with_video(i, Label::Success, &kept_video)).await.unwrap();
     }
+    w.commit("kept").await.unwrap();
+    let kept_ids: Vec<String> = store.episodes(&EpisodeFilter::default()).await.unwrap().into_iter().map(|e| e.id).collect();
+    let committed = object_files(dir.path());
+    assert!(committed.contains(&format!("media/{}.mp4", kept_video.sha256)), "{committed:?}");
+
+    // An ingest that writes data files (one per episode: a 1-byte roll-over) and another video
+    // before it gives up.
+    let dropped_video = video(2);
+    let mut w = store.begin_ingest(source("drop"), "pol", "c").await.unwrap().with_max_file_bytes(1);
+    w.add_media(&dropped_video).await.unwrap();
+    let mut dropped_ids = Vec::new();
+    for i in 0..3 {
+        dropped_ids.push(w.add_episode(with_video(i, Label::Unknown, &dropped_video)).await.unwrap());
+    }
+    let video_sha = dropped_video.sha256.clone();
+    let orphans: std::collections::BTreeSet<String> = object_files(dir.path()).difference(&committed).cloned().collect();
+    let video_object = format!("media/{video_sha}.mp4");
+    assert!(orphans.contains(&video_object), "the video was written: {orphans:?}");
+    let data_files = orphans.iter().filter(|p| p.starts_with("steps/") && p.ends_with(".parquet")).count();
+    assert_eq!(data_files, 3, "one data file per episode was written before the abort: {orphans:?}");
+    assert_eq!(orphans.len(), 4, "{orphans:?}");
     w.abort().await.unwrap();
+
+    // Invisible: no new version, none of its episodes, its source not recorded.
     assert_eq!(store.head_version().await.unwrap(), 1);
-    assert_eq!(store.episodes(&EpisodeFilter::default()).await.unwrap().len(), 2);
+    let ids: Vec<String> = store.episodes(&EpisodeFilter::default()).await.unwrap().into_iter().map(|e| e.id).collect();
+    assert_eq!(ids, kept_ids);
+    for id in &dropped_ids {
+        assert!(store.episode(id, None).await.is_err(), "{id} is visible");
+        assert!(store.read_steps(id, None).await.is_err(), "{id}'s steps are readable");
+    }
+    assert_eq!(store.source_version(&sha256_hex(b"drop")).await.unwrap(), None);
+    let referenced = store.referenced_objects().await.unwrap();
+    assert!(orphans.iter().all(|o| !referenced.contains(o)), "an aborted object is referenced");
+
     // Bad input is refused with a message and changes nothing.
     let mut w = store.begin_ingest(source("bad"), "pol", "c").await.unwrap();
     let mut ep = episode(0, 4, Label::Success);
@@ -245,10 +315,26 @@ async fn aborted_ingest_is_invisible_and_collected() {
     let err = w.add_episode(ep).await.unwrap_err().to_string();
     assert!(err.contains("reward"), "{err}");
     assert_eq!(store.head_version().await.unwrap(), 1);
+
+    // Within the grace period (a writer may still be in flight) gc keeps everything.
     let r = store.gc(3600, false).await.unwrap();
-    assert!(r.deleted.is_empty(), "young orphans are kept");
+    assert!(r.deleted.is_empty(), "young orphans are kept: {:?}", r.deleted);
+    assert_eq!(r.kept_recent, orphans.len());
+    assert_eq!(object_files(dir.path()), committed.union(&orphans).cloned().collect());
+
+    // After it, gc removes exactly the aborted ingest's objects (a dry run first lists them).
+    tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    let dry = store.gc(0, true).await.unwrap();
+    assert_eq!(dry.deleted.iter().cloned().collect::<std::collections::BTreeSet<_>>(), orphans);
+    assert_eq!(object_files(dir.path()), committed.union(&orphans).cloned().collect(), "a dry run deletes nothing");
     let r = store.gc(0, false).await.unwrap();
-    assert_eq!(r.deleted.len(), 0, "abort wrote nothing (one open file not yet flushed)");
+    assert_eq!(r.deleted.iter().cloned().collect::<std::collections::BTreeSet<_>>(), orphans);
+    assert_eq!(r.deleted.len(), orphans.len());
+    assert_eq!(object_files(dir.path()), committed, "only the aborted ingest's objects went");
+    for id in &kept_ids {
+        assert!(store.read_steps(id, None).await.unwrap().num_rows() > 0);
+    }
+    assert!(store.gc(0, false).await.unwrap().deleted.is_empty());
 }
 
 #[test]

@@ -64,12 +64,17 @@ impl Target {
     }
 }
 
-pub fn postgres_target(dir: &Path) -> Target {
+/// A store with a Postgres catalog on a fresh schema; None (after a skip notice) when the test
+/// Postgres is unreachable and `UFOPS_REQUIRE_POSTGRES` is not set (set: the test fails).
+pub fn postgres_target(dir: &Path) -> Option<Target> {
+    if !store::test_support::require_postgres() {
+        return None;
+    }
     let rt = tokio::runtime::Runtime::new().unwrap();
     let url = rt
         .block_on(store::create_test_schema("e2e"))
         .expect("the Postgres tests need the server at 127.0.0.1:5432 (UFOPS_TEST_POSTGRES)");
-    Target { data_dir: dir.to_path_buf(), database_url: Some(url), object_store: None, env: Vec::new() }
+    Some(Target { data_dir: dir.to_path_buf(), database_url: Some(url), object_store: None, env: Vec::new() })
 }
 
 /// Every file under the local object directory, relative to it.
@@ -93,8 +98,9 @@ pub fn object_files(data_dir: &Path) -> Vec<String> {
     out
 }
 
-pub fn shared_fixtures() -> PathBuf {
+/// The fixtures: `$UFOPS_FIXTURES`, else the repository's own `fixtures/` (see its README).
+pub fn fixtures() -> PathBuf {
     std::env::var("UFOPS_FIXTURES")
         .map(PathBuf::from)
-        .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures"))
+        .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures"))
 }

@@ -39,6 +39,18 @@ fn weed_binary() -> PathBuf {
 }
 
 impl SeaweedFs {
+    /// [`SeaweedFs::start`] when the `weed` binary runs; None (after a skip notice) when it does
+    /// not and `UFOPS_REQUIRE_S3` is not set (set: the test fails).
+    pub fn start_if_available() -> Option<SeaweedFs> {
+        let weed = weed_binary();
+        let probe = match Command::new(&weed).arg("version").output() {
+            Ok(o) if o.status.success() => Ok(()),
+            Ok(o) => Err(format!("a working SeaweedFS `weed` ({} version: {})", weed.display(), o.status)),
+            Err(e) => Err(format!("the SeaweedFS `weed` binary ({}: {e})", weed.display())),
+        };
+        store::test_support::require(store::test_support::Tool::S3, probe).then(Self::start)
+    }
+
     /// Starts a server and waits until its S3 gateway answers. Free ports are picked before the
     /// server binds them, so another process may take one in between: a server that dies while
     /// starting is retried on fresh ports.

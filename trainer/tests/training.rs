@@ -126,12 +126,62 @@ fn cancel_flag_stops_training() {
 
 #[test]
 fn early_stopping_and_no_validation_set() {
-    let eps = common::action_task(6, 20, 1);
-    let cfg = TrainConfig { epochs: 50, batch_size: 32, early_stopping_patience: Some(0), ..Default::default() };
-    let r = trainer::train(&eps, &common::action_task(4, 20, 9), &common::action_spec(), &cfg).unwrap();
-    assert!(r.metrics.epochs_run < 50 && r.metrics.early_stopped);
-    let r = trainer::train(&eps, &[], &common::action_spec(), &TrainConfig { epochs: 2, ..cfg }).unwrap();
-    assert!(r.metrics.val_auc.is_none() && r.metrics.best_val_loss.is_some());
+    // Two of twelve training episodes carry the wrong label: the model first learns the rule
+    // (validation loss falls), then memorises the flipped ones (it rises again), so there is a
+    // real best epoch, reached through epochs that did not improve.
+    let mut eps = common::action_task(12, 20, 1);
+    for e in eps.iter_mut().take(2) {
+        e.success = !e.success;
+    }
+    let val = common::action_task(8, 20, 9);
+    let spec = common::action_spec();
+    let mut cfg = TrainConfig { epochs: 30, batch_size: 32, seed: 5, ..Default::default() };
+    cfg.optimizer.lr = 3e-3;
+    // The reference: every epoch, no early stopping (the same trajectory: patience draws nothing).
+    let full = trainer::train(&eps, &val, &spec, &cfg).unwrap();
+    assert!(!full.metrics.early_stopped && full.metrics.epochs_run == 30);
+    let losses: Vec<f64> = full.history.iter().map(|h| h.val_loss.unwrap()).collect();
+    // (best epoch, last epoch) of a run with patience p: it stops p epochs after the best so far.
+    let expected_stop = |p: usize| {
+        let (mut best_loss, mut best) = (f64::INFINITY, 0);
+        for (i, &l) in losses.iter().enumerate() {
+            if l < best_loss {
+                (best_loss, best) = (l, i + 1);
+            }
+            if i + 1 - best >= p {
+                return (best, i + 1);
+            }
+        }
+        (best, losses.len())
+    };
+    let mut runs = Vec::new();
+    for p in [2, 3] {
+        let r = trainer::train(&eps, &val, &spec, &TrainConfig { early_stopping_patience: Some(p), ..cfg.clone() }).unwrap();
+        let (best, last) = expected_stop(p);
+        assert!(r.metrics.early_stopped && last < cfg.epochs, "patience {p}: ran every epoch");
+        assert_eq!((r.metrics.best_epoch, r.metrics.epochs_run), (best, last), "patience {p}, val losses {losses:?}");
+        assert_eq!(last - best, p, "patience {p}: stops exactly {p} epochs after the best");
+        let seen: Vec<f64> = r.history.iter().map(|h| h.val_loss.unwrap()).collect();
+        assert_eq!(seen.as_slice(), &losses[..last], "patience {p}: another trajectory");
+        assert_eq!(r.metrics.best_val_loss, Some(losses[best - 1]));
+        assert!(r.history[best - 1].best && r.history[best..].iter().all(|h| !h.best));
+        runs.push(r);
+    }
+    // Not the trivial case: patience 3 rode out a worse stretch that stopped patience 2, and found
+    // a better epoch after it.
+    assert!(runs[1].metrics.best_epoch > runs[0].metrics.epochs_run, "{losses:?}");
+    // The best epoch's weights are kept, not the last ones: the patience-3 run (stopped at its
+    // best + 3) and the full run (30 epochs) share only their best epoch.
+    assert_eq!(full.metrics.best_epoch, runs[1].metrics.best_epoch, "{losses:?}");
+    assert!(runs[1].params == full.params, "patience 3 did not keep epoch {}'s weights", full.metrics.best_epoch);
+    assert!(runs[0].params != full.params, "patience 2 kept weights it never reached");
+
+    // No validation set: the best epoch is chosen by the training loss.
+    let r = trainer::train(&eps, &[], &spec, &TrainConfig { epochs: 4, ..cfg }).unwrap();
+    assert!(r.metrics.val_auc.is_none() && r.history.iter().all(|h| h.val_loss.is_none()));
+    let min_train = r.history.iter().map(|h| h.train_loss).fold(f64::INFINITY, f64::min);
+    assert_eq!(r.metrics.best_val_loss, Some(min_train));
+    assert_eq!(r.history[r.metrics.best_epoch - 1].train_loss, min_train);
 }
 
 #[test]

@@ -1,12 +1,12 @@
 #![allow(dead_code)]
 use std::path::PathBuf;
 
-/// The shared fixtures: `$UFOPS_FIXTURES`, else `<repo>/../shared/fixtures`.
+/// The fixtures: `$UFOPS_FIXTURES`, else the repository's own `fixtures/` (see its README).
 pub fn fixtures() -> PathBuf {
     if let Ok(p) = std::env::var("UFOPS_FIXTURES") {
         return PathBuf::from(p);
     }
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/fixtures")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fixtures")
 }
 
 pub fn expected(rel: &str) -> serde_json::Value {

@@ -1,0 +1,165 @@
+//! Test support for every crate's tests (hidden from the docs): tests that need an external tool
+//! (Python packages, SeaweedFS, Postgres, a browser) ask [`require`] first. A missing tool is a
+//! failure when its switch (`UFOPS_REQUIRE_PYTHON`, `_S3`, `_POSTGRES`, `_BROWSER`) is set, as
+//! `scripts/test.sh` does; otherwise the test is skipped with a notice nobody can miss.
+
+use std::io::Write;
+use std::net::{TcpStream, ToSocketAddrs};
+use std::process::Command;
+use std::time::Duration;
+
+/// An external tool some tests need.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Tool {
+    /// python3 with the interop packages (numpy, pyarrow, duckdb, safetensors, ...).
+    Python,
+    /// The SeaweedFS `weed` binary (the S3 server of the scale-out tests).
+    S3,
+    /// The Postgres server of the tests ([`crate::test_postgres_base`]).
+    Postgres,
+    /// Chromium, node and playwright-core (the labeling page's browser test).
+    Browser,
+}
+
+impl Tool {
+    /// The env switch that turns a missing tool into a failure.
+    pub fn switch(self) -> &'static str {
+        match self {
+            Tool::Python => "UFOPS_REQUIRE_PYTHON",
+            Tool::S3 => "UFOPS_REQUIRE_S3",
+            Tool::Postgres => "UFOPS_REQUIRE_POSTGRES",
+            Tool::Browser => "UFOPS_REQUIRE_BROWSER",
+        }
+    }
+
+    fn how_to_get(self) -> &'static str {
+        match self {
+            Tool::Python | Tool::S3 => {
+                "`python3 -m pip install -r tests/python/requirements.txt` (scripts/test.sh does it)"
+            }
+            Tool::Postgres => {
+                "a Postgres server at 127.0.0.1:5432 with database `test` and trust auth, or \
+                 UFOPS_TEST_POSTGRES=postgres://USER@HOST:PORT/DB (`source scripts/env.sh && ensure_postgres` starts a local one)"
+            }
+            Tool::Browser => "`source scripts/env.sh && ensure_browser` installs them",
+        }
+    }
+
+    /// Whether the switch is set (to anything but empty or `0`).
+    pub fn required(self) -> bool {
+        std::env::var(self.switch()).is_ok_and(|v| !v.is_empty() && v != "0")
+    }
+}
+
+/// `true`: the tool is there, run the test. When `probe` says what is missing: panics if the
+/// tool's switch is set, else prints a skip notice (straight to stderr, which the test harness
+/// does not capture) and returns `false` — the caller then returns.
+pub fn require(tool: Tool, probe: Result<(), String>) -> bool {
+    match verdict(tool, tool.required(), probe) {
+        Verdict::Run => true,
+        Verdict::Fail(msg) => panic!("{msg}"),
+        Verdict::Skip(msg) => {
+            let bar = "!".repeat(78);
+            let _ = writeln!(std::io::stderr(), "\n{bar}\n!! SKIPPED {msg}\n{bar}\n");
+            false
+        }
+    }
+}
+
+#[derive(Debug, PartialEq)]
+enum Verdict {
+    Run,
+    Skip(String),
+    Fail(String),
+}
+
+fn verdict(tool: Tool, required: bool, probe: Result<(), String>) -> Verdict {
+    let Err(missing) = probe else { return Verdict::Run };
+    let test = std::thread::current().name().filter(|n| *n != "main").unwrap_or("this test").to_string();
+    let msg = format!("{test} needs {missing}; to get it: {}", tool.how_to_get());
+    if required {
+        Verdict::Fail(format!("{msg} ({}=1: a missing tool is a failure)", tool.switch()))
+    } else {
+        Verdict::Skip(format!("{msg}\n!! (scripts/test.sh sets {}=1, which makes this a failure)", tool.switch()))
+    }
+}
+
+/// [`require`] for python3 able to import every module in `modules`.
+pub fn require_python(modules: &[&str]) -> bool {
+    require(Tool::Python, python_modules(modules))
+}
+
+/// [`require`] for the tests' Postgres server.
+pub fn require_postgres() -> bool {
+    require(Tool::Postgres, postgres_reachable())
+}
+
+/// Ok when `python3` imports every module in `modules`.
+pub fn python_modules(modules: &[&str]) -> Result<(), String> {
+    let what = format!("python3 with {}", modules.join(", "));
+    let code = modules.iter().map(|m| format!("import {m}")).collect::<Vec<_>>().join("; ");
+    match Command::new("python3").args(["-c", &code]).output() {
+        Err(e) => Err(format!("{what} (cannot run python3: {e})")),
+        Ok(o) if !o.status.success() => {
+            let err = String::from_utf8_lossy(&o.stderr);
+            Err(format!("{what} ({})", err.lines().last().unwrap_or("import failed").trim()))
+        }
+        Ok(_) => Ok(()),
+    }
+}
+
+/// Ok when something accepts TCP connections at the test Postgres URL's host and port (a wrong
+/// database or role still fails the test itself, with the server's message).
+pub fn postgres_reachable() -> Result<(), String> {
+    let url = crate::test_postgres_base();
+    let addr = host_port(&url);
+    let what = format!("the Postgres server at {addr}");
+    let addrs = addr.to_socket_addrs().map_err(|e| format!("{what} (cannot resolve: {e})"))?.collect::<Vec<_>>();
+    let mut last = String::from("no address");
+    for a in addrs {
+        match TcpStream::connect_timeout(&a, Duration::from_secs(2)) {
+            Ok(_) => return Ok(()),
+            Err(e) => last = e.to_string(),
+        }
+    }
+    Err(format!("{what} ({last})"))
+}
+
+/// `host:port` of a `postgres://user:pw@host:port/db?opts` URL (port 5432 when absent).
+fn host_port(url: &str) -> String {
+    let rest = url.split_once("://").map_or(url, |(_, r)| r);
+    let authority = rest.split(['/', '?']).next().unwrap_or("");
+    let host = authority.rsplit_once('@').map_or(authority, |(_, h)| h);
+    let host = if host.is_empty() { "localhost" } else { host };
+    // `[::1]:5433`, `[::1]`, `db:5433`, `db`
+    let has_port = host.rsplit_once(':').is_some_and(|(h, p)| !p.is_empty() && p.bytes().all(|b| b.is_ascii_digit()) && (!h.contains(':') || h.ends_with(']')));
+    if has_port {
+        host.to_string()
+    } else {
+        format!("{host}:5432")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn postgres_host_and_port() {
+        assert_eq!(host_port("postgres://postgres@127.0.0.1:5432/test"), "127.0.0.1:5432");
+        assert_eq!(host_port("postgres://u:p%40w@db.example/x?sslmode=disable"), "db.example:5432");
+        assert_eq!(host_port("postgresql://[::1]:5433/test"), "[::1]:5433");
+        assert_eq!(host_port("postgres:///test"), "localhost:5432");
+    }
+
+    #[test]
+    fn missing_tool_skips_or_fails_by_its_switch() {
+        assert_eq!(verdict(Tool::S3, true, Ok(())), Verdict::Run);
+        let Verdict::Skip(msg) = verdict(Tool::S3, false, Err("the weed binary".into())) else { panic!() };
+        assert!(msg.contains("needs the weed binary") && msg.contains("UFOPS_REQUIRE_S3=1"), "{msg}");
+        let Verdict::Fail(msg) = verdict(Tool::S3, true, Err("the weed binary".into())) else { panic!() };
+        assert!(msg.contains("needs the weed binary") && msg.contains("requirements.txt"), "{msg}");
+        // libtest names each test's thread after the test
+        assert!(msg.contains("missing_tool_skips_or_fails_by_its_switch") || msg.starts_with("this test"), "{msg}");
+    }
+}
