@@ -162,10 +162,10 @@ fn object_reads(url: &str, token: &str) -> (u64, u64, u64) {
 fn video_range_request_fetches_only_its_range() {
     use std::io::{BufRead, BufReader};
     let dir = tempfile::tempdir().unwrap();
-    let s3 = seaweedfs::SeaweedFs::start();
-    let t = s3_target(dir.path(), &s3, "media");
+    let Some(s3) = seaweedfs::SeaweedFs::start_if_available() else { return };
+    let Some(t) = s3_target(dir.path(), &s3, "media") else { return };
     t.ok(&["init"]);
-    let fixture = shared_fixtures().join("lerobot/v30_eval_video");
+    let fixture = fixtures().join("lerobot/v30_eval_video");
     t.ok(&["ingest", fixture.to_str().unwrap(), "--policy", "arm", "--checkpoint", "c1"]);
     let episodes = t.json(&["episodes", "--json"]);
     let id = episodes[3]["id"].as_str().unwrap().to_string();
