@@ -8,4 +8,6 @@ ensure_python_deps
 ensure_postgres
 ensure_browser
 export UFOPS_REQUIRE_BROWSER=1
+# The numpy reference of the verifier (trainer/tests/parity.rs, tests/verifier_parity.rs) must run.
+export UFOPS_REQUIRE_PYTHON=1
 cargo test --workspace --locked "$@"
