@@ -1,6 +1,8 @@
 //! The robot side pulls a verifier from `ufops serve` by alias: the steering client's HTTP loader
-//! gets the same artifact, bit for bit, as a download from the store, and `ufops score --api`
-//! scores exactly like `ufops score` on the store; bad tokens and unknown aliases are clear errors.
+//! gets the same artifact, bit for bit, as a download from the store; the robot's scores and
+//! gradients (steer, over HTTP) equal what `ufops score` prints from the store and from the API,
+//! and the trainer's candle graph (an independent implementation); bad tokens and unknown
+//! aliases are clear errors.
 
 mod common;
 use common::*;
@@ -52,35 +54,60 @@ fn verifier_loads_over_http_like_from_the_store() {
     for (name, bytes) in &fetched.files {
         assert_eq!(bytes, &std::fs::read(local.join(name)).unwrap(), "{name} differs from the store's copy");
     }
-    let remote = steer::Verifier::load_http(&src, "synth/ckpt-0/classifier@latest").unwrap();
+    let remote = steer::http::load_verifier(&src, "synth/ckpt-0/classifier@latest").unwrap();
     let from_dir = steer::Verifier::load_dir(&local).unwrap();
     assert_eq!(remote.id(), from_dir.id());
     // By id as well.
-    let by_id = steer::Verifier::load_http(&src, remote.id().unwrap()).unwrap();
+    let by_id = steer::http::load_verifier(&src, remote.id().unwrap()).unwrap();
     assert_eq!(by_id.id(), remote.id());
 
-    // Same scores through the CLI, local and remote.
-    let c = remote.config();
-    let rows: Vec<_> = (0..5)
-        .map(|i| {
-            let obs: Vec<f32> = (0..c.obs_dim()).map(|k| ((i * 7 + k) as f32 * 0.37).sin()).collect();
-            let action: Vec<f32> = (0..c.act_dim()).map(|k| ((i * 3 + k) as f32 * 0.21).cos()).collect();
-            serde_json::json!({"obs": obs, "action": action, "t": i * 4})
+    // The robot's scores and gradients (steer's Scorer, loaded over HTTP)...
+    let (od, ad) = (remote.obs_dim(), remote.act_dim());
+    let n = 5;
+    let obs: Vec<f32> = (0..n * od).map(|k| (k as f32 * 0.37).sin()).collect();
+    let act: Vec<f32> = (0..n * ad).map(|k| (k as f32 * 0.21).cos()).collect();
+    let steps: Vec<u32> = (0..n as u32).map(|i| i * 4).collect();
+    let robot = steer::Scorer::score_batch(&remote, &obs, &steps, &act, 1).unwrap();
+    let robot_grad = steer::Scorer::grad_batch(&remote, &obs, &steps, &act).unwrap();
+    let rows: Vec<trainer::ScoreRow> = (0..n)
+        .map(|i| trainer::ScoreRow {
+            obs: obs[i * od..(i + 1) * od].to_vec(),
+            action: act[i * ad..(i + 1) * ad].to_vec(),
+            t: steps[i] as f64,
+            extras: Default::default(),
         })
         .collect();
     let input = dir.path().join("rows.json");
     std::fs::write(&input, serde_json::json!({ "rows": rows }).to_string()).unwrap();
     let input_s = input.to_str().unwrap();
-    let a = t.json(&["score", "--artifact", "synth/ckpt-0/classifier@latest", "--input", input_s]);
-    let b = t.json(&["score", "--artifact", "synth/ckpt-0/classifier@latest", "--input", input_s, "--api", &url, "--token", &token]);
-    assert_eq!(a, b);
-    assert_eq!(a["scores"].as_array().unwrap().len(), 5);
+    // ...equal `ufops score` on the store and through the API...
+    let a = t.json(&["score", "--artifact", "synth/ckpt-0/classifier@latest", "--input", input_s, "--grad"]);
+    let b = t.json(&["score", "--artifact", "synth/ckpt-0/classifier@latest", "--input", input_s, "--grad", "--api", &url, "--token", &token]);
+    // ...and the trainer's candle graph with autograd (an independent implementation).
+    let (candle, candle_grad) = trainer::load_artifact(&local).unwrap().candle_scores_and_grads(&rows).unwrap();
+    let floats = |v: &serde_json::Value| -> Vec<f32> { v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect() };
+    for (name, scores, grads) in [
+        ("ufops score", floats(&a["scores"]), a["grads"].as_array().unwrap().iter().flat_map(|g| floats(g)).collect::<Vec<_>>()),
+        ("ufops score --api", floats(&b["scores"]), b["grads"].as_array().unwrap().iter().flat_map(|g| floats(g)).collect()),
+        ("candle", candle.clone(), candle_grad.iter().flatten().copied().collect()),
+    ] {
+        assert_eq!(scores.len(), n, "{name}");
+        for (x, y) in scores.iter().zip(&robot) {
+            assert!((x - y).abs() <= 1e-5, "{name}: score {x} vs robot {y}");
+        }
+        assert_eq!(grads.len(), n * ad, "{name}");
+        for (x, y) in grads.iter().zip(&robot_grad) {
+            assert!((x - y).abs() <= 1e-5 * y.abs().max(1.0), "{name}: gradient {x} vs robot {y}");
+        }
+    }
+    assert!(robot_grad.iter().any(|g| g.abs() > 1e-4), "the gradient is trivially zero");
+    assert_eq!(a["artifact"], remote.id().unwrap());
 
     // A wrong token and an unknown alias: clear errors, nothing loaded.
     let bad = steer::http::ApiSource::new(&url, "not-a-token");
-    let err = steer::Verifier::load_http(&bad, "synth/ckpt-0/classifier@latest").err().unwrap().to_string();
+    let err = steer::http::load_verifier(&bad, "synth/ckpt-0/classifier@latest").err().unwrap().to_string();
     assert!(err.contains("401"), "{err}");
-    let err = steer::Verifier::load_http(&src, "synth/ckpt-0/classifier@nope").err().unwrap().to_string();
+    let err = steer::http::load_verifier(&src, "synth/ckpt-0/classifier@nope").err().unwrap().to_string();
     assert!(err.contains("404") && err.contains("nope"), "{err}");
     let out = t.run(&["score", "--artifact", "synth/ckpt-0/q@latest", "--input", input_s, "--api", &url, "--token", &token]);
     assert!(!out.status.success());

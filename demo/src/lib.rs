@@ -146,9 +146,18 @@ async fn train_verifier(
     kind: trainer::Kind,
     cfg: &DemoConfig,
     stride: usize,
+    action_space: &trainer::ActionSpace,
     artifacts_dir: &Path,
 ) -> Result<(store::ArtifactRecord, steer::Verifier)> {
-    let mut tc = trainer::TrainConfig { kind, epochs: cfg.verifier_epochs, seed: cfg.seed, ..Default::default() };
+    // The verifier takes chunks in the policy's normalised space (velocity / max_speed), as in
+    // the paper; the stored rollouts hold raw velocities, so the trainer gets the normaliser.
+    let mut tc = trainer::TrainConfig {
+        kind,
+        epochs: cfg.verifier_epochs,
+        seed: cfg.seed,
+        action_space: action_space.clone(),
+        ..Default::default()
+    };
     tc.early_stopping_patience = Some(30);
     let spec = trainer::TrainJobSpec {
         split_id: split_id.to_string(),
@@ -231,9 +240,12 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     let off_split = store.create_split(&split_req(vec![(POLICY.into(), ALT.into())])).await?;
     let art_dir = cfg.out_dir.join("artifacts");
     let stride = pc.n_exec;
-    let (c_rec, clf) = train_verifier(store, &on_split.id, trainer::Kind::Classifier, cfg, stride, &art_dir).await?;
-    let (q_rec, q) = train_verifier(store, &on_split.id, trainer::Kind::Q, cfg, stride, &art_dir).await?;
-    let (off_rec, off_clf) = train_verifier(store, &off_split.id, trainer::Kind::Classifier, cfg, stride, &art_dir).await?;
+    let norm = pc.action_normalizer();
+    let space = trainer::ActionSpace::policy(norm.scale, norm.offset);
+    let (c_rec, clf) = train_verifier(store, &on_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir).await?;
+    let (q_rec, q) = train_verifier(store, &on_split.id, trainer::Kind::Q, cfg, stride, &space, &art_dir).await?;
+    let (off_rec, off_clf) =
+        train_verifier(store, &off_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir).await?;
 
     // 4. Steer the unchanged base policy. Every row has its own seed (independent samples).
     let mut report = Report::new(&base_eps);

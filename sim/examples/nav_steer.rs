@@ -1,6 +1,5 @@
 //! Quick end-to-end check of the steering plumbing on the navigation task, with a HAND-MADE scorer
-//! (no training: it prefers chunks that head for the wide gap), and with a random-weights
-//! `steer::Verifier` of the nav dimensions to exercise the artifact path. Not a verifier trainer.
+//! (no training: it prefers chunks that head for the wide gap). Not a verifier trainer.
 //! `cargo run -p sim --example nav_steer -- [episodes]`
 use sim::rollout::summary;
 use sim::*;
@@ -17,6 +16,10 @@ impl Scorer for WideGapScorer {
     }
     fn act_dim(&self) -> usize {
         16
+    }
+    /// It reasons in raw velocities (it sums the chunk's dy).
+    fn takes_policy_space(&self) -> bool {
+        false
     }
     fn score_batch(&self, obs: &[f32], t: &[u32], c: &[f32], n: usize) -> SResult<Vec<f32>> {
         Ok((0..t.len() * n)

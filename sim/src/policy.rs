@@ -51,6 +51,12 @@ impl Default for PolicyConfig {
 }
 
 impl PolicyConfig {
+    /// The policy's action normaliser, `raw velocity = x * max_speed`, per action dimension:
+    /// the samplers apply it, and the trainer takes it to put stored velocities into the
+    /// policy's space (`trainer::TrainConfig::action_space`).
+    pub fn action_normalizer(&self) -> ActionAffine {
+        ActionAffine { scale: vec![self.max_speed; 2], offset: vec![0.0; 2] }
+    }
     /// Observation = previous and current position (oldest first).
     pub fn obs_dim(&self) -> usize {
         4
@@ -242,6 +248,11 @@ fn train_mlp(cfg: &PolicyConfig, tc: &TrainConfig, demos: &[Demo], obj: &Objecti
 /// Something that samples raw action chunks for a batch of observations, optionally guided.
 pub trait ChunkPolicy {
     fn config(&self) -> &PolicyConfig;
+    /// The map from the policy's normalised sample space to raw actions (`raw = x * max_speed`);
+    /// the verifier is trained and queried in that space (see [`PolicyConfig::action_normalizer`]).
+    fn sample_space(&self) -> ActionAffine {
+        self.config().action_normalizer()
+    }
     /// One raw chunk (`horizon * 2` velocities) per observation row (`obs` is `B * 4`).
     fn sample_chunks(&self, obs: &[f32], guidance: Option<&Guidance>, rng: &mut ChaCha8Rng) -> steer::Result<Vec<f32>>;
     fn name(&self) -> &'static str;
@@ -283,8 +294,8 @@ fn to_steer<E: std::fmt::Display>(e: E) -> steer::SteerError {
 fn run_mlp(mlp: &Mlp, cfg: &PolicyConfig, obs: &[f32], x: &[f32], tval: f32) -> steer::Result<Vec<f32>> {
     let b = obs.len() / cfg.obs_dim();
     let inp = build_input(cfg, obs, x, &vec![tval; b]).map_err(to_steer)?;
-    let out = mlp.forward(&inp)?;
-    Ok(out.flatten_all()?.to_vec1::<f32>()?)
+    let out = mlp.forward(&inp).map_err(to_steer)?;
+    out.flatten_all().and_then(|o| o.to_vec1::<f32>()).map_err(to_steer)
 }
 
 impl NoisePredictor for DiffusionPolicy {
@@ -308,7 +319,7 @@ impl NoisePredictor for DiffusionPolicy {
         Some(1.0)
     }
     fn action_affine(&self) -> Option<ActionAffine> {
-        Some(ActionAffine { scale: vec![self.cfg.max_speed; 2], offset: vec![0.0; 2] })
+        Some(self.cfg.action_normalizer())
     }
 }
 
@@ -375,7 +386,7 @@ impl VelocityField for FlowPolicy {
         Some(1.0)
     }
     fn action_affine(&self) -> Option<ActionAffine> {
-        Some(ActionAffine { scale: vec![self.cfg.max_speed; 2], offset: vec![0.0; 2] })
+        Some(self.cfg.action_normalizer())
     }
 }
 

@@ -6,7 +6,7 @@ use anyhow::Result;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-use steer::{best_of_n, Guidance, Scorer};
+use steer::{best_of_n_raw, Guidance, Scorer};
 
 /// How chunks are chosen at each re-planning step.
 #[derive(Clone, Copy)]
@@ -131,7 +131,8 @@ pub fn rollout(
                     }
                 }
                 let cands = policy.sample_chunks(&rep, None, &mut pol_rng)?;
-                best_of_n(scorer, &verifier_obs(scorer), &ts, &cands, n)?.chunks
+                let space = policy.sample_space();
+                best_of_n_raw(scorer, Some(&space), &verifier_obs(scorer), &ts, &cands, n)?.chunks
             }
             Steering::Guided { scorer, lambda } => {
                 let vo = verifier_obs(scorer);

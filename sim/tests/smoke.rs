@@ -3,7 +3,8 @@ use rand_chacha::ChaCha8Rng;
 use sim::env::Gap;
 use sim::plot::{plot_panels, Panel};
 use sim::*;
-use steer::testutil::RandomSpec;
+use steer::verifier::testutil::RandomSpec;
+use steer::verifier::ArtifactFiles;
 use steer::Verifier;
 
 #[test]
@@ -44,8 +45,8 @@ fn policies_train_sample_and_roll_out_with_every_steering() {
     assert!(ddpm.train_loss.is_finite() && flow.train_loss.is_finite());
     // a random-weights verifier with the nav dimensions, through the artifact path
     let dir = tempfile::tempdir().unwrap();
-    let (cfg, w) = RandomSpec::nav().build(&mut ChaCha8Rng::seed_from_u64(1));
-    steer::testutil::write_artifact(dir.path(), &cfg, &w).unwrap();
+    let (cfg, w) = RandomSpec::nav().build(1);
+    ArtifactFiles::build(&cfg, &w).unwrap().write_dir(dir.path()).unwrap();
     let v = Verifier::load_dir(dir.path()).unwrap();
     let small = EnvConfig { max_steps: 24, ..env.clone() };
     for p in [&ddpm as &dyn ChunkPolicy, &flow as &dyn ChunkPolicy] {

@@ -108,12 +108,19 @@ pub enum Command {
     /// Train a verifier on a split and publish it as an artifact.
     Train(run_cmds::TrainArgs),
     /// Score (obs history, action chunk, t) rows with an artifact (a directory, id or P/C/KIND@ALIAS):
-    /// input JSON {"rows": [{"obs": [...], "action": [...], "t": 3}]}.
+    /// input JSON {"rows": [{"obs": [...], "action": [...], "t": 3}]}; the action chunk in the
+    /// artifact's action space (the policy's normalised space; see --raw-actions).
     Score {
         #[arg(long)]
         artifact: String,
         #[arg(long)]
         input: PathBuf,
+        /// Also print each row's guidance gradient (d log C / d action, or d Q / d action).
+        #[arg(long)]
+        grad: bool,
+        /// The rows' actions are raw: map them into the artifact's action space first.
+        #[arg(long)]
+        raw_actions: bool,
         /// Fetch the artifact from a `ufops serve` API (http://HOST:PORT) instead of the store.
         #[arg(long)]
         api: Option<String>,
@@ -153,8 +160,9 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Serve(a) => serve_cmds::serve(&cli.store, a).await,
         Command::Worker { id, lease_ms } => serve_cmds::worker(&cli.store, id, lease_ms).await,
         Command::Train(a) => run_cmds::train(&cli.store, a).await,
-        Command::Score { artifact, input, api, token } => {
-            run_cmds::score(&cli.store, &artifact, &input, api.as_deref(), token.as_deref()).await
+        Command::Score { artifact, input, api, token, grad, raw_actions } => {
+            let opts = run_cmds::ScoreOptions { grad, raw_actions };
+            run_cmds::score(&cli.store, &artifact, &input, api.as_deref(), token.as_deref(), opts).await
         }
         Command::Demo { quick } => run_cmds::demo(&cli.store, quick).await,
         Command::View(a) => view_cmd::view(&cli.store, a).await,

@@ -25,6 +25,16 @@ pub struct TrainArgs {
     /// Train only on steps t with t % STRIDE == 0 (where a chunking policy re-planned).
     #[arg(long)]
     pub step_stride: Option<usize>,
+    /// The policy's action normaliser, raw = x * SCALE + OFFSET, one value per action dimension:
+    /// the verifier takes chunks in the policy's normalised space (the default, identity when
+    /// not given). Overrides the config's `action_space`.
+    #[arg(long, num_args = 1.., conflicts_with = "standardize_actions")]
+    pub action_scale: Option<Vec<f32>>,
+    #[arg(long, num_args = 1.., requires = "action_scale")]
+    pub action_offset: Option<Vec<f32>>,
+    /// Feed raw chunks standardised with train-set statistics instead (the older recipe).
+    #[arg(long)]
+    pub standardize_actions: bool,
     #[arg(long, env = "USER", default_value = "cli")]
     pub actor: String,
     #[arg(long)]
@@ -46,6 +56,17 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
         Some(p) => Some(trainer::TrainConfig::from_file(p)?),
         None => None,
     };
+    if a.action_scale.is_some() || a.standardize_actions {
+        let c = config.get_or_insert_with(|| trainer::TrainConfig { kind, ..Default::default() });
+        c.action_space = match &a.action_scale {
+            Some(scale) => {
+                let offset = a.action_offset.clone().unwrap_or_else(|| vec![0.0; scale.len()]);
+                anyhow::ensure!(offset.len() == scale.len(), "--action-offset needs one value per --action-scale value");
+                trainer::ActionSpace::policy(scale.clone(), offset)
+            }
+            None => trainer::ActionSpace::Standardized,
+        };
+    }
     if let Some(c) = config.as_mut() {
         c.kind = kind;
     }
@@ -99,29 +120,45 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
     }
 }
 
-pub async fn score(args: &StoreArgs, artifact: &str, input: &PathBuf, api: Option<&str>, token: Option<&str>) -> Result<()> {
+/// What `ufops score` does besides scoring.
+pub struct ScoreOptions {
+    /// Also print the guidance gradient of each row.
+    pub grad: bool,
+    /// Rows carry raw actions: map them into the artifact's action space first.
+    pub raw_actions: bool,
+}
+
+/// Scores rows with an artifact through the verifier core: from `ufops serve` (`--api`), a
+/// directory, or the store (id or POLICY/CHECKPOINT/KIND@ALIAS).
+pub async fn score(args: &StoreArgs, artifact: &str, input: &PathBuf, api: Option<&str>, token: Option<&str>, opts: ScoreOptions) -> Result<()> {
     let dir = PathBuf::from(artifact);
-    let tmp;
-    let dir = if let Some(base) = api {
+    let v = if let Some(base) = api {
         let token = token.context("--api needs a token: --token or UFOPS_TOKEN")?;
         let src = steer::http::ApiSource::new(base, token);
         let reference = artifact.to_string();
-        let fetched = tokio::task::spawn_blocking(move || steer::http::fetch_artifact(&src, &reference)).await??;
-        tmp = tempfile::tempdir()?;
-        fetched.write_to(tmp.path())?;
-        tmp.path().to_path_buf()
-    } else if dir.join("manifest.json").exists() {
-        dir
+        tokio::task::spawn_blocking(move || steer::http::load_verifier(&src, &reference)).await??
+    } else if dir.join(verifier::MANIFEST_FILE).exists() {
+        verifier::Verifier::load_dir(&dir)?
     } else {
         let store = args.open().await?;
         let rec = store.resolve_artifact(artifact).await?;
-        tmp = tempfile::tempdir()?;
+        let tmp = tempfile::tempdir()?;
         store.download_artifact(&rec.id, tmp.path()).await?;
-        tmp.path().to_path_buf()
+        verifier::Verifier::load_dir(tmp.path())?
     };
     let text = std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?;
-    let scores = trainer::score_json(&dir, &text)?;
-    print_json(&serde_json::json!({ "scores": scores }))
+    let mut rows = trainer::parse_rows(&text)?;
+    if opts.raw_actions {
+        let space = &v.config().input.action_space;
+        let a = v.config().input.layout.action_dim;
+        rows.iter_mut().for_each(|r| space.raw_to_input(&mut r.action, a));
+    }
+    let scores = trainer::score_rows(&v, &rows)?;
+    let mut out = serde_json::json!({ "artifact": v.id(), "scores": scores });
+    if opts.grad {
+        out["grads"] = serde_json::to_value(trainer::grad_rows(&v, &rows)?)?;
+    }
+    print_json(&out)
 }
 
 pub async fn demo(args: &StoreArgs, quick: bool) -> Result<()> {

@@ -30,21 +30,12 @@ pub struct ViewArgs {
     pub out: PathBuf,
 }
 
-/// Scores episodes with a trainer artifact (the reference forward pass).
-pub struct ArtifactScorer(pub trainer::Artifact);
-
-impl viewer::EpisodeScorer for ArtifactScorer {
-    fn score_episode(&self, batch: &arrow::array::RecordBatch) -> Result<Vec<f32>, String> {
-        trainer::score_steps(&self.0, batch).map_err(|e| format!("{e:#}"))
-    }
-}
-
-/// Loads an artifact from the store into a temporary directory (sha256-checked).
-pub async fn load_artifact(store: &store::Store, reference: &str) -> Result<(trainer::Artifact, tempfile::TempDir)> {
+/// Loads a verifier from the store through a temporary directory (every sha256 checked).
+pub async fn load_verifier(store: &store::Store, reference: &str) -> Result<verifier::Verifier> {
     let rec = store.resolve_artifact(reference).await?;
     let dir = tempfile::tempdir()?;
     store.download_artifact(&rec.id, dir.path()).await?;
-    Ok((trainer::load_artifact(dir.path())?, dir))
+    Ok(verifier::Verifier::load_dir(dir.path())?)
 }
 
 pub async fn view(args: &StoreArgs, a: ViewArgs) -> Result<()> {
@@ -56,17 +47,11 @@ pub async fn view(args: &StoreArgs, a: ViewArgs) -> Result<()> {
     opts.position_keys = a.position_keys;
     opts.images = a.images;
     let scorer = match &a.artifact {
-        Some(r) => Some(load_artifact(&store, r).await?),
+        Some(r) => Some(viewer::VerifierScorer(load_verifier(&store, r).await?)),
         None => None,
     };
-    let scorer = scorer.map(|(art, dir)| (ArtifactScorer(art), dir));
-    let report = viewer::write_recording(
-        &store,
-        &opts,
-        scorer.as_ref().map(|(s, _)| s as &dyn viewer::EpisodeScorer),
-        &a.out,
-    )
-    .await?;
+    let report =
+        viewer::write_recording(&store, &opts, scorer.as_ref().map(|s| s as &dyn viewer::EpisodeScorer), &a.out).await?;
     println!(
         "{}: {} episodes ({} success, {} failure, {} unknown), {} steps",
         a.out.display(),

@@ -7,8 +7,8 @@
 //! download is refused, never loaded.
 
 use crate::error::{Result, SteerError};
-use crate::verifier::{artifact_id, Manifest, Verifier};
 use std::time::Duration;
+use verifier::{artifact_id, is_plain_name, Manifest, Verifier, VerifierError, MANIFEST_FILE};
 
 /// Largest file accepted from the server (a low-dim verifier is a few MB).
 const MAX_FILE_BYTES: u64 = 1 << 30;
@@ -32,7 +32,7 @@ impl ApiSource {
 }
 
 fn is_plain(s: &str) -> bool {
-    !s.is_empty() && s.len() <= 200 && s.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.@".contains(&b)) && s != ".." && s != "."
+    is_plain_name(s)
 }
 
 /// The API path of the artifact record: `POLICY/CHECKPOINT/KIND@ALIAS` → the alias route,
@@ -100,12 +100,24 @@ impl FetchedArtifact {
         self.files.iter().find(|(n, _)| n == name).map(|(_, b)| b.as_slice())
     }
 
+    /// The verifier, loaded through the core from the fetched (and re-checked) files.
+    pub fn verifier(&self) -> Result<Verifier> {
+        let manifest = self.file(MANIFEST_FILE).ok_or_else(|| SteerError::Http("no manifest.json fetched".into()))?;
+        let v = Verifier::load_with(manifest, |name| {
+            self.file(name)
+                .map(<[u8]>::to_vec)
+                .ok_or_else(|| VerifierError::Fetch { file: name.into(), message: "not fetched".into() })
+        })?;
+        Ok(v)
+    }
+
     /// Writes the files into `dir` (an artifact directory [`Verifier::load_dir`] reads).
     pub fn write_to(&self, dir: &std::path::Path) -> Result<()> {
-        std::fs::create_dir_all(dir).map_err(|e| SteerError::Io { path: dir.display().to_string(), source: e })?;
+        let io = |p: &std::path::Path, e: std::io::Error| VerifierError::Io { path: p.display().to_string(), source: e };
+        std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
         for (name, bytes) in &self.files {
             let p = dir.join(name);
-            std::fs::write(&p, bytes).map_err(|e| SteerError::Io { path: p.display().to_string(), source: e })?;
+            std::fs::write(&p, bytes).map_err(|e| io(&p, e))?;
         }
         Ok(())
     }
@@ -130,17 +142,15 @@ pub fn fetch_artifact(src: &ApiSource, reference: &str) -> Result<FetchedArtifac
         .filter(|id| is_plain(id))
         .ok_or_else(|| SteerError::Http(format!("{path}: the artifact record has no valid id")))?
         .to_string();
-    let manifest = client.get(&format!("/v1/artifacts/{id}/files/manifest.json"))?;
+    let manifest = client.get(&format!("/v1/artifacts/{id}/files/{MANIFEST_FILE}"))?;
     let actual = artifact_id(&manifest);
     if actual != id {
-        return Err(SteerError::HashMismatch { file: "manifest.json".into(), expected: id, actual });
+        return Err(VerifierError::HashMismatch { file: MANIFEST_FILE.into(), expected: id, actual }.into());
     }
+    // The core's checks: schema, plain file names, each file's sha256.
     let m = Manifest::parse(&manifest)?;
-    let mut files = vec![("manifest.json".to_string(), manifest.clone())];
+    let mut files = vec![(MANIFEST_FILE.to_string(), manifest.clone())];
     for name in m.files.keys() {
-        if !is_plain(name) || name == "manifest.json" {
-            return Err(SteerError::Manifest(format!("file name {name:?} is not a plain name")));
-        }
         let bytes = client.get(&format!("/v1/artifacts/{id}/files/{name}"))?;
         m.check(name, &bytes)?;
         files.push((name.clone(), bytes));
@@ -148,18 +158,9 @@ pub fn fetch_artifact(src: &ApiSource, reference: &str) -> Result<FetchedArtifac
     Ok(FetchedArtifact { id, files })
 }
 
-impl Verifier {
-    /// Loads a verifier from a ufops API (see [`fetch_artifact`]).
-    pub fn load_http(src: &ApiSource, reference: &str) -> Result<Verifier> {
-        let a = fetch_artifact(src, reference)?;
-        let missing = |f: &str| SteerError::Manifest(format!("files does not list {f}"));
-        let mut v = Verifier::from_bytes(
-            a.file("config.json").ok_or_else(|| missing("config.json"))?,
-            a.file("model.safetensors").ok_or_else(|| missing("model.safetensors"))?,
-        )?;
-        v.set_id(a.id);
-        Ok(v)
-    }
+/// Loads a verifier from a ufops API (see [`fetch_artifact`]).
+pub fn load_verifier(src: &ApiSource, reference: &str) -> Result<Verifier> {
+    fetch_artifact(src, reference)?.verifier()
 }
 
 #[cfg(test)]
@@ -182,7 +183,7 @@ mod tests {
     fn unreachable_server_is_a_clear_error() {
         // Port 9 (discard) on loopback: nothing listens there on our machines.
         let src = ApiSource { timeout: Duration::from_secs(2), ..ApiSource::new("http://127.0.0.1:9", "t") };
-        match Verifier::load_http(&src, "p/c/classifier@latest") {
+        match load_verifier(&src, "p/c/classifier@latest") {
             Err(SteerError::Http(msg)) => assert!(msg.contains("127.0.0.1:9"), "{msg}"),
             Err(e) => panic!("unexpected error {e}"),
             Ok(_) => panic!("loaded from nowhere"),

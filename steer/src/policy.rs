@@ -3,8 +3,11 @@ use crate::error::Result;
 use crate::schedule::DdpmSchedule;
 
 /// Per-dimension affine map from the policy's sample space to raw actions:
-/// `raw = x * scale + offset` (e.g. a [-1, 1] normaliser). The verifier sees raw chunks, and its
-/// gradient is mapped back by the chain rule (`d/dx = scale * d/draw`).
+/// `raw = x * scale + offset` (e.g. a [-1, 1] normaliser); `scale` and `offset` have one entry
+/// per action dimension and repeat over the chunk. A verifier trained in the policy's space (the
+/// paper's choice) sees `x` itself; one trained on raw actions sees `raw`, and its gradient is
+/// mapped back by the chain rule (`d/dx = scale * d/draw`). The trainer takes the same normaliser
+/// (`TrainConfig::action_space`) so it can put stored raw actions into the policy's space.
 #[derive(Debug, Clone)]
 pub struct ActionAffine {
     pub scale: Vec<f32>,
@@ -12,10 +15,18 @@ pub struct ActionAffine {
 }
 
 impl ActionAffine {
+    /// Sample space to raw actions, in place.
     pub fn apply(&self, x: &mut [f32]) {
         let d = self.scale.len();
         for (i, v) in x.iter_mut().enumerate() {
             *v = *v * self.scale[i % d] + self.offset[i % d];
+        }
+    }
+    /// Raw actions to the sample space, in place (the inverse of [`Self::apply`]).
+    pub fn invert(&self, raw: &mut [f32]) {
+        let d = self.scale.len();
+        for (i, v) in raw.iter_mut().enumerate() {
+            *v = (*v - self.offset[i % d]) / self.scale[i % d];
         }
     }
 }

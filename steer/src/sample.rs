@@ -47,17 +47,28 @@ fn check_guidance(g: &Guidance, b: usize, ad: usize) -> Result<()> {
     Ok(())
 }
 
-/// x0 += lambda * d/dx log C(raw(x0)) (chain rule through the affine map).
+/// `x0 += lambda * grad`, where `grad` is d log C / d x0 (classifier) or d Q / d x0. A scorer
+/// in the policy's sample space takes x̂0 as it is (the paper's Algorithm 2); a scorer of raw
+/// actions gets `raw(x0)` and its gradient is mapped back by the chain rule through the affine.
 fn guide_x0(g: &Guidance, aff: &Option<ActionAffine>, x0: &mut [f32]) -> Result<()> {
-    let mut raw = x0.to_vec();
-    if let Some(a) = aff {
-        a.apply(&mut raw);
+    let grad = match aff {
+        Some(a) if !g.scorer.takes_policy_space() => {
+            let mut raw = x0.to_vec();
+            a.apply(&mut raw);
+            let mut gr = g.scorer.grad_batch(g.obs, g.t, &raw)?;
+            let d = a.scale.len();
+            for (i, v) in gr.iter_mut().enumerate() {
+                *v *= a.scale[i % d];
+            }
+            gr
+        }
+        _ => g.scorer.grad_batch(g.obs, g.t, x0)?,
+    };
+    if grad.len() != x0.len() {
+        return Err(SteerError::Model(format!("scorer returned {} gradient values, expected {}", grad.len(), x0.len())));
     }
-    let grad = g.scorer.grad_batch(g.obs, g.t, &raw)?;
-    let d = aff.as_ref().map(|a| a.scale.len()).unwrap_or(1);
-    for (i, (x, gr)) in x0.iter_mut().zip(grad).enumerate() {
-        let s = aff.as_ref().map(|a| a.scale[i % d]).unwrap_or(1.0);
-        *x += g.lambda * s * gr;
+    for (x, gr) in x0.iter_mut().zip(grad) {
+        *x += g.lambda * gr;
     }
     Ok(())
 }
@@ -112,10 +123,11 @@ fn ddpm_impl<P: NoisePredictor + ?Sized, R: Rng + ?Sized>(
         let (sa, s1a) = (ab.sqrt() as f32, (1.0 - ab).sqrt() as f32);
         // Tweedie: x0_hat = (a_k - sqrt(1 - ab_k) eps) / sqrt(ab_k)
         let mut x0: Vec<f32> = x.iter().zip(&eps).map(|(a, e)| (a - s1a * e) / sa).collect();
+        // diffusers' clip_sample acts on the model's x̂0; Algorithm 2 then adds the gradient
+        // step and uses the perturbed x̂0 as it is (no second clip).
         clip(&mut x0, clip_c);
         if let Some(g) = guidance {
             guide_x0(g, &aff, &mut x0)?;
-            clip(&mut x0, clip_c);
         }
         // Standard DDPM posterior mean
         //   mu_k = sqrt(ab_{k-1}) beta_k / (1 - ab_k) * x0_hat + sqrt(alpha_k) (1 - ab_{k-1}) / (1 - ab_k) * a_k.
@@ -219,14 +231,45 @@ pub struct BestOfN {
 }
 
 /// Best-of-N (Algorithm 1): score `n` candidates per group (`candidates` is `B * n * act_dim`,
-/// group-major, e.g. from [`ddpm_sample`] with each observation repeated `n` times) and keep the
-/// argmax of each group.
+/// group-major, in the space the scorer takes) and keep the argmax of each group.
 pub fn best_of_n(scorer: &dyn Scorer, obs: &[f32], t: &[u32], candidates: &[f32], n: usize) -> Result<BestOfN> {
-    let ad = scorer.act_dim();
     let scores = scorer.score_batch(obs, t, candidates, n)?;
-    let mut index = Vec::with_capacity(t.len());
-    let mut chunks = Vec::with_capacity(t.len() * ad);
-    for g in 0..t.len() {
+    pick(scorer.act_dim(), scores, t.len(), candidates, n)
+}
+
+/// Best-of-N on raw candidates as the samplers return them (e.g. from [`ddpm_sample`] with each
+/// observation repeated `n` times): a scorer in the policy's space scores them mapped back
+/// through the policy's `affine`; the chosen chunks are returned raw.
+pub fn best_of_n_raw(
+    scorer: &dyn Scorer,
+    affine: Option<&ActionAffine>,
+    obs: &[f32],
+    t: &[u32],
+    raw_candidates: &[f32],
+    n: usize,
+) -> Result<BestOfN> {
+    let scores = match affine {
+        Some(a) if scorer.takes_policy_space() => {
+            let mut x = raw_candidates.to_vec();
+            a.invert(&mut x);
+            scorer.score_batch(obs, t, &x, n)?
+        }
+        _ => scorer.score_batch(obs, t, raw_candidates, n)?,
+    };
+    pick(scorer.act_dim(), scores, t.len(), raw_candidates, n)
+}
+
+fn pick(ad: usize, scores: Vec<f32>, b: usize, candidates: &[f32], n: usize) -> Result<BestOfN> {
+    if scores.len() != b * n || candidates.len() != b * n * ad {
+        return Err(SteerError::Input(format!(
+            "{} scores and {} candidate values for {b} groups of {n} chunks of {ad}",
+            scores.len(),
+            candidates.len()
+        )));
+    }
+    let mut index = Vec::with_capacity(b);
+    let mut chunks = Vec::with_capacity(b * ad);
+    for g in 0..b {
         let i = select_best(&scores[g * n..(g + 1) * n]);
         index.push(i);
         chunks.extend_from_slice(&candidates[(g * n + i) * ad..(g * n + i + 1) * ad]);

@@ -191,3 +191,92 @@ fn best_of_n_picks_the_argmax() {
     assert_eq!(select_best(&[f32::NAN, 0.1, 0.3, 0.3]), 2);
     assert_eq!(select_best(&[-1.0]), 0);
 }
+
+/// Algorithm 2 adds the gradient step to x̂0 and uses it as it is: the clip the policy applies to
+/// its own x̂0 (diffusers' clip_sample) is not applied again after the step.
+#[test]
+fn ddpm_guidance_does_not_clip_after_the_gradient_step() {
+    // K = 1: alpha_bar_0 = 1, so the posterior mean is x̂0 itself and there is no noise.
+    let p = LinEps { sched: DdpmSchedule::from_betas(vec![0.3]), c: vec![0.5], ad: 1, clip: Some(1.0) };
+    let q = Quad { target: vec![5.0] };
+    let lam = 0.5f64;
+    let g = Guidance { scorer: &q, obs: &[0.0], t: &[0], lambda: lam as f32 };
+    let out = ddpm_sample_guided(&p, &[0.3], &g, &mut ChaCha8Rng::seed_from_u64(3)).unwrap();
+    let a1: f64 = rand::Rng::sample::<f32, _>(&mut ChaCha8Rng::seed_from_u64(3), rand_distr::StandardNormal) as f64;
+    let eps = 0.5 * a1 + 0.1 * 0.3;
+    let x0 = ((a1 - 0.3f64.sqrt() * eps) / 0.7f64.sqrt()).clamp(-1.0, 1.0);
+    let want = x0 + lam * (5.0 - x0);
+    assert!((out[0] as f64 - want).abs() < 1e-5, "{} vs {want}", out[0]);
+    assert!(out[0] > 1.0, "the guided x̂0 was clipped again: {}", out[0]);
+}
+
+/// A raw-action scorer (older verifiers) with a policy affine: the gradient is taken at
+/// raw(x̂0) and mapped back by the chain rule; a policy-space scorer gets x̂0 itself.
+#[test]
+fn guidance_takes_the_gradient_in_the_space_the_scorer_takes() {
+    struct Affine(LinEps);
+    impl NoisePredictor for Affine {
+        fn obs_dim(&self) -> usize {
+            self.0.obs_dim()
+        }
+        fn act_dim(&self) -> usize {
+            self.0.act_dim()
+        }
+        fn schedule(&self) -> &DdpmSchedule {
+            self.0.schedule()
+        }
+        fn predict_noise(&self, obs: &[f32], a: &[f32], k: usize) -> Result<Vec<f32>> {
+            self.0.predict_noise(obs, a, k)
+        }
+        fn action_affine(&self) -> Option<steer::ActionAffine> {
+            Some(steer::ActionAffine { scale: vec![2.0], offset: vec![1.0] })
+        }
+    }
+    struct RawQuad(Quad);
+    impl Scorer for RawQuad {
+        fn obs_dim(&self) -> usize {
+            1
+        }
+        fn act_dim(&self) -> usize {
+            1
+        }
+        fn takes_policy_space(&self) -> bool {
+            false
+        }
+        fn score_batch(&self, o: &[f32], t: &[u32], c: &[f32], n: usize) -> Result<Vec<f32>> {
+            self.0.score_batch(o, t, c, n)
+        }
+        fn grad_batch(&self, o: &[f32], t: &[u32], c: &[f32]) -> Result<Vec<f32>> {
+            self.0.grad_batch(o, t, c)
+        }
+    }
+    let p = Affine(LinEps { sched: DdpmSchedule::from_betas(vec![0.3]), c: vec![0.5], ad: 1, clip: None });
+    let lam = 0.1f64;
+    let a1: f64 = rand::Rng::sample::<f32, _>(&mut ChaCha8Rng::seed_from_u64(4), rand_distr::StandardNormal) as f64;
+    let x0 = (a1 - 0.3f64.sqrt() * (0.5 * a1 + 0.03)) / 0.7f64.sqrt();
+    // Raw scorer, target 3 in raw units: d/dx log C(2x + 1) = 2 * (3 - (2 x0 + 1)).
+    let raw = RawQuad(Quad { target: vec![3.0] });
+    let g = Guidance { scorer: &raw, obs: &[0.0], t: &[0], lambda: lam as f32 };
+    let out = ddpm_sample_guided(&p, &[0.3], &g, &mut ChaCha8Rng::seed_from_u64(4)).unwrap();
+    let want = 2.0 * (x0 + lam * 2.0 * (3.0 - (2.0 * x0 + 1.0))) + 1.0;
+    assert!((out[0] as f64 - want).abs() < 1e-4, "raw scorer: {} vs {want}", out[0]);
+    // Policy-space scorer, target 1 in sample units: d/dx log C(x) = 1 - x0.
+    let pol = Quad { target: vec![1.0] };
+    let g = Guidance { scorer: &pol, obs: &[0.0], t: &[0], lambda: lam as f32 };
+    let out = ddpm_sample_guided(&p, &[0.3], &g, &mut ChaCha8Rng::seed_from_u64(4)).unwrap();
+    let want = 2.0 * (x0 + lam * (1.0 - x0)) + 1.0;
+    assert!((out[0] as f64 - want).abs() < 1e-4, "policy-space scorer: {} vs {want}", out[0]);
+}
+
+#[test]
+fn best_of_n_on_raw_candidates_scores_them_in_the_policy_space() {
+    // Policy space x = (raw - 1) / 2; the scorer prefers x near 0.5, i.e. raw near 2.
+    let q = Quad { target: vec![0.5] };
+    let aff = steer::ActionAffine { scale: vec![2.0], offset: vec![1.0] };
+    let raw = [0.5f32, 2.1, 1.5, 3.0];
+    let r = steer::best_of_n_raw(&q, Some(&aff), &[0.0], &[0], &raw, 4).unwrap();
+    assert_eq!(r.index, vec![1]);
+    assert_eq!(r.chunks, vec![2.1]);
+    // Scored as they are, the same scorer would pick raw 0.5.
+    assert_eq!(best_of_n(&q, &[0.0], &[0], &raw, 4).unwrap().index, vec![0]);
+}

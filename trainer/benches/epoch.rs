@@ -1,8 +1,10 @@
 //! Training throughput on synthetic Square-sized data (302,400 samples, obs 46, action chunk 160,
-//! the paper's low-dim contrastive classifier, batch 1024). Run: `cargo bench -p trainer`.
+//! the paper's low-dim contrastive classifier, batch 1024), and the PyTorch peer measured in the
+//! same run (`/work/shared/bench/torch_verifier_epoch.py`, or `UFOPS_TORCH_EPOCH_SCRIPT`; skipped
+//! when torch is not importable). Run: `cargo bench -p trainer`.
 //! Env: `UFOPS_BENCH_SAMPLES` (default 302400), `UFOPS_BENCH_EPOCHS` (default 2),
 //! `UFOPS_BENCH_BACKENDS` (default "fast", comma list of fast,candle), `UFOPS_BENCH_THREADS`
-//! (default "1,2").
+//! (default "1,2"), `UFOPS_BENCH_NO_TORCH` (skip the peer).
 
 use std::time::Instant;
 
@@ -22,6 +24,31 @@ fn cpu_seconds() -> Option<f64> {
     let f: Vec<&str> = rest.split_whitespace().collect();
     let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
     Some(ticks / 100.0)
+}
+
+/// Samples/s of the PyTorch peer (one thread) at its median epoch time, taken like ours (sorted
+/// epoch times, index len/2), parsed from its "N samples/s" lines.
+fn torch_peer(n: usize, epochs: usize) -> Option<f64> {
+    let script = std::env::var("UFOPS_TORCH_EPOCH_SCRIPT").unwrap_or_else(|_| "/work/shared/bench/torch_verifier_epoch.py".into());
+    if !std::path::Path::new(&script).exists() {
+        return None;
+    }
+    let out = std::process::Command::new("python3")
+        .arg(&script)
+        .args(["--threads", "1", "--samples", &n.to_string(), "--epochs", &epochs.max(2).to_string()])
+        .output()
+        .ok()?;
+    if !out.status.success() {
+        eprintln!("torch peer failed: {}", String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or(""));
+        return None;
+    }
+    let mut times: Vec<f64> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .filter_map(|l| l.split(", ").nth(1)?.split_whitespace().next()?.parse::<f64>().ok())
+        .map(|rate| n as f64 / rate)
+        .collect();
+    times.sort_by(|a, b| a.total_cmp(b));
+    times.get(times.len() / 2).map(|t| n as f64 / t)
 }
 
 fn main() {
@@ -48,6 +75,7 @@ fn main() {
         extra_inputs: vec![],
     };
     println!("synthetic Square-sized data: {n} samples, obs {od}, act {ad}, batch 1024, {epochs} epochs");
+    let mut fast_1thread = None;
     for b in backends.split(',') {
         for th in threads.split(',') {
             let th: usize = th.trim().parse().unwrap();
@@ -97,6 +125,9 @@ fn main() {
                 Some(c) => format!(", CPU time {:.3} s/epoch ({:.0} samples per CPU-second)", c, n as f64 / c),
                 None => String::new(),
             };
+            if backend == Backend::Fast && th == 1 {
+                fast_1thread = Some(n as f64 / med);
+            }
             println!(
                 "backend={:<6} threads={th}: best {:.3} s/epoch ({:.0} samples/s), median {:.3} s/epoch ({:.0} samples/s), final train loss {:.4}{cpu_txt}",
                 b.trim(),
@@ -107,5 +138,17 @@ fn main() {
                 r.metrics.final_train_loss
             );
         }
+    }
+    if std::env::var_os("UFOPS_BENCH_NO_TORCH").is_some() {
+        return;
+    }
+    match torch_peer(n, epochs) {
+        Some(torch) => {
+            println!("torch eager threads=1: median {torch:.0} samples/s");
+            if let Some(fast) = fast_1thread {
+                println!("fast / torch (1 thread, medians, same run): {:.2}x", fast / torch);
+            }
+        }
+        None => println!("(PyTorch peer not run: python3 with torch or the script unavailable)"),
     }
 }

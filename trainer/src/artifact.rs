@@ -1,98 +1,21 @@
-//! Verifier artifacts (see ARTIFACT.md): `model.safetensors` + `config.json` + `manifest.json`
-//! in a directory, content-addressed by the sha256 of `manifest.json`. Writing, verified loading,
-//! and the reference scorer (`ufops score`).
+//! Verifier artifacts (see ARTIFACT.md): the trainer writes them, and scores rows with them,
+//! through the `verifier` core — its format types, its file writer and its forward pass — so
+//! `ufops score`, the viewer and the robot run one implementation.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, ensure, Context, Result};
-use candle_core::{Device, Tensor};
+use anyhow::{ensure, Context, Result};
 use rand::SeedableRng;
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 
-use crate::data::{time_embedding_into, ExtraInputSpec, InputSpec, Normalization, ObsKey};
-use crate::loss::sigmoid;
-use crate::model::{
-    params_from_tensors, params_to_tensors, Architecture, CandleModel, Kind, ModelSpec, ParamSet,
-    Variant,
-};
+use crate::model::{CandleModel, Kind, ModelSpec, ParamSet};
 use crate::train::Trained;
 
-pub const SCHEMA_VERSION: u32 = 1;
-pub const CONFIG_FILE: &str = "config.json";
-pub const MODEL_FILE: &str = "model.safetensors";
-pub const MANIFEST_FILE: &str = "manifest.json";
-
-/// `config.json`'s `input` object.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct InputConfig {
-    pub obs_keys: Vec<ObsKey>,
-    pub obs_history: usize,
-    pub chunk_len: usize,
-    pub action_dim: usize,
-    pub obs_dim: usize,
-    pub act_dim: usize,
-    /// Same as `architecture.t_embed_dim` (repeated for convenience).
-    pub t_embed_dim: usize,
-    /// Extra inputs (extension): where each comes from; the model side is in `architecture`.
-    #[serde(default)]
-    pub extra_inputs: Vec<ExtraInputSpec>,
-    pub obs_mean: Vec<f32>,
-    pub obs_std: Vec<f32>,
-    pub act_mean: Vec<f32>,
-    pub act_std: Vec<f32>,
-}
-
-/// `config.json`.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ArtifactConfig {
-    pub schema_version: u32,
-    pub kind: Kind,
-    pub architecture: Architecture,
-    pub input: InputConfig,
-    /// Q only (null for the classifier).
-    pub gamma: Option<f64>,
-    pub hyperparameters: serde_json::Value,
-    pub metrics: serde_json::Value,
-    pub lineage: serde_json::Value,
-}
-
-impl ArtifactConfig {
-    pub fn model_spec(&self) -> ModelSpec {
-        ModelSpec {
-            kind: self.kind,
-            arch: self.architecture.clone(),
-            obs_dim: self.input.obs_dim,
-            act_dim: self.input.act_dim,
-        }
-    }
-    pub fn input_spec(&self) -> InputSpec {
-        InputSpec {
-            obs_keys: self.input.obs_keys.clone(),
-            obs_history: self.input.obs_history,
-            chunk_len: self.input.chunk_len,
-            action_dim: self.input.action_dim,
-            t_embed_dim: self.input.t_embed_dim,
-            extra_inputs: self.input.extra_inputs.clone(),
-        }
-    }
-    pub fn normalization(&self) -> Normalization {
-        Normalization {
-            obs_mean: self.input.obs_mean.clone(),
-            obs_std: self.input.obs_std.clone(),
-            act_mean: self.input.act_mean.clone(),
-            act_std: self.input.act_std.clone(),
-        }
-    }
-}
-
-/// `manifest.json`.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Manifest {
-    pub schema_version: u32,
-    pub files: BTreeMap<String, String>,
-}
+pub use verifier::{
+    artifact_id, sha256_hex, ActionSpace, ArtifactConfig, ArtifactFiles, InputConfig, Manifest, Verifier, CONFIG_FILE,
+    MANIFEST_FILE, MODEL_FILE, SCHEMA_VERSION,
+};
 
 /// What [`write_artifact`] wrote.
 #[derive(Clone, Debug, PartialEq)]
@@ -103,35 +26,28 @@ pub struct ArtifactInfo {
     pub manifest: Manifest,
 }
 
-pub fn sha256_hex(bytes: &[u8]) -> String {
-    hex::encode(Sha256::digest(bytes))
-}
-
-/// The artifact id of manifest bytes.
-pub fn artifact_id(manifest_bytes: &[u8]) -> String {
-    sha256_hex(manifest_bytes)[..16].to_string()
+/// The model spec an artifact's configuration describes.
+pub fn model_spec(cfg: &ArtifactConfig) -> ModelSpec {
+    ModelSpec { kind: cfg.kind, arch: cfg.architecture.clone(), obs_dim: cfg.input.obs_dim, act_dim: cfg.input.act_dim }
 }
 
 /// Build `config.json` for a trained model.
 pub fn artifact_config(t: &Trained, lineage: serde_json::Value) -> Result<ArtifactConfig> {
-    let i = &t.input;
+    let mut layout = t.input.clone();
+    layout.t_embed_dim = t.spec.arch.t_embed_dim;
     Ok(ArtifactConfig {
         schema_version: SCHEMA_VERSION,
         kind: t.spec.kind,
         architecture: t.spec.arch.clone(),
         input: InputConfig {
-            obs_keys: i.obs_keys.clone(),
-            obs_history: i.obs_history,
-            chunk_len: i.chunk_len,
-            action_dim: i.action_dim,
-            obs_dim: i.obs_dim(),
-            act_dim: i.act_dim(),
-            t_embed_dim: i.t_embed_dim,
-            extra_inputs: i.extra_inputs.clone(),
+            obs_dim: layout.obs_dim(),
+            act_dim: layout.act_dim(),
+            layout,
             obs_mean: t.norm.obs_mean.clone(),
             obs_std: t.norm.obs_std.clone(),
             act_mean: t.norm.act_mean.clone(),
             act_std: t.norm.act_std.clone(),
+            action_space: t.action_space.clone(),
         },
         gamma: (t.spec.kind == Kind::Q).then_some(t.config.gamma),
         hyperparameters: serde_json::to_value(&t.config)?,
@@ -150,80 +66,115 @@ pub fn write_artifact(dir: &Path, trained: &Trained, lineage: serde_json::Value)
     write_parts(dir, &cfg, &trained.params)
 }
 
-/// Write an artifact from its parts.
+/// Write an artifact from its parts (through the core's writer).
 pub fn write_parts(dir: &Path, cfg: &ArtifactConfig, params: &ParamSet) -> Result<ArtifactInfo> {
-    cfg.model_spec().check_params(params)?;
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let model_path = dir.join(MODEL_FILE);
-    candle_core::safetensors::save(&params_to_tensors(params)?, &model_path)?;
-    let model_bytes = std::fs::read(&model_path)?;
-    let mut config_bytes = serde_json::to_vec_pretty(cfg)?;
-    config_bytes.push(b'\n');
-    std::fs::write(dir.join(CONFIG_FILE), &config_bytes)?;
-    let manifest = Manifest {
-        schema_version: SCHEMA_VERSION,
-        files: BTreeMap::from([
-            (CONFIG_FILE.to_string(), sha256_hex(&config_bytes)),
-            (MODEL_FILE.to_string(), sha256_hex(&model_bytes)),
-        ]),
-    };
-    let mut manifest_bytes = serde_json::to_vec_pretty(&manifest)?;
-    manifest_bytes.push(b'\n');
-    std::fs::write(dir.join(MANIFEST_FILE), &manifest_bytes)?;
-    Ok(ArtifactInfo { id: artifact_id(&manifest_bytes), dir: dir.to_path_buf(), manifest })
+    model_spec(cfg).check_params(params)?;
+    let files = ArtifactFiles::build(cfg, &params.to_weights()?)?;
+    files.write_dir(dir).with_context(|| format!("writing the artifact into {}", dir.display()))?;
+    let manifest = Manifest::parse(&files.manifest)?;
+    Ok(ArtifactInfo { id: files.id, dir: dir.to_path_buf(), manifest })
 }
 
-/// A loaded, verified artifact with its reference (candle) model.
+/// A loaded, checked artifact: its configuration, parameters and the core's verifier.
 pub struct Artifact {
     pub id: String,
     pub dir: PathBuf,
     pub config: ArtifactConfig,
     pub spec: ModelSpec,
     pub params: ParamSet,
-    pub model: CandleModel,
+    pub verifier: Verifier,
 }
 
-/// Load an artifact directory: check the manifest's sha256s, the schema version and variant,
-/// and rebuild the candle model. Spectral norm is already folded into the stored weights, so
-/// the model is rebuilt without it.
+/// Load an artifact directory through the core (every sha256 checked, schema, variant,
+/// tensors).
 pub fn load_artifact(dir: &Path) -> Result<Artifact> {
-    let manifest_bytes = std::fs::read(dir.join(MANIFEST_FILE))
-        .with_context(|| format!("reading {}", dir.join(MANIFEST_FILE).display()))?;
-    let manifest: Manifest = serde_json::from_slice(&manifest_bytes).context("parsing manifest.json")?;
-    ensure!(manifest.schema_version == SCHEMA_VERSION, "unknown schema_version {}", manifest.schema_version);
-    for f in [CONFIG_FILE, MODEL_FILE] {
-        let want = manifest.files.get(f).with_context(|| format!("manifest lists no {f}"))?;
-        let bytes = std::fs::read(dir.join(f)).with_context(|| format!("reading {f}"))?;
-        let got = sha256_hex(&bytes);
-        ensure!(&got == want, "sha256 mismatch for {f}: manifest {want}, file {got}");
-    }
-    let raw: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join(CONFIG_FILE))?)?;
-    match raw.get("schema_version").and_then(|v| v.as_u64()) {
-        Some(v) if v == SCHEMA_VERSION as u64 => {}
-        other => bail!("unknown config schema_version {other:?}"),
-    }
-    match raw.pointer("/architecture/variant").and_then(|v| v.as_str()) {
-        Some("lowdim") | Some("features") => {}
-        other => bail!("unknown architecture variant {other:?}"),
-    }
-    let config: ArtifactConfig = serde_json::from_value(raw).context("parsing config.json")?;
-    let spec = config.model_spec();
-    let tensors = candle_core::safetensors::load(dir.join(MODEL_FILE), &Device::Cpu)?;
-    let params = params_from_tensors(&spec, &tensors)?;
-    let mut model_spec = spec.clone();
-    model_spec.arch.spectral_norm = false; // weights are stored already divided by sigma
-    let model = CandleModel::new(&model_spec, &params, &mut rand_chacha::ChaCha8Rng::seed_from_u64(0))?;
-    Ok(Artifact { id: artifact_id(&manifest_bytes), dir: dir.to_path_buf(), config, spec, params, model })
+    let a = verifier::Artifact::load_dir(dir)?;
+    let spec = model_spec(&a.config);
+    let params = ParamSet::from_weights(&spec, &a.weights)?;
+    let verifier = a.verifier()?;
+    Ok(Artifact {
+        id: a.id.context("an artifact loaded from a directory has an id")?,
+        dir: dir.to_path_buf(),
+        config: a.config,
+        spec,
+        params,
+        verifier,
+    })
 }
 
-/// One row to score (raw, un-normalised values).
+impl Artifact {
+    /// Scores: classifier `sigmoid(logit)`, Q the value.
+    pub fn score(&self, rows: &[ScoreRow]) -> Result<Vec<f32>> {
+        score_rows(&self.verifier, rows)
+    }
+
+    /// The candle graph of these weights (spectral norm already folded in), for comparisons
+    /// with the core's forward pass and gradient.
+    pub fn candle_model(&self) -> Result<CandleModel> {
+        let mut spec = self.spec.clone();
+        spec.arch.spectral_norm = false; // weights are stored already divided by sigma
+        CandleModel::new(&spec, &self.params, &mut rand_chacha::ChaCha8Rng::seed_from_u64(0))
+    }
+
+    /// Scores and guidance gradients of rows from the candle training graph and its autograd:
+    /// an implementation independent of the core's, to check it against.
+    pub fn candle_scores_and_grads(&self, rows: &[ScoreRow]) -> Result<(Vec<f32>, Vec<Vec<f32>>)> {
+        use candle_core::{Tensor, Var};
+        let model = self.candle_model()?;
+        let (mut obs, extras, t, act) = batch(&self.verifier, rows)?;
+        let i = &self.config.input;
+        let (n, ad, td) = (rows.len(), i.act_dim, self.config.architecture.t_embed_dim);
+        for row in obs.chunks_exact_mut(i.obs_dim) {
+            for ((v, m), s) in row.iter_mut().zip(&i.obs_mean).zip(&i.obs_std) {
+                *v = (*v - m) / s;
+            }
+        }
+        let dev = model.device().clone();
+        let chunk = Var::from_tensor(&Tensor::from_slice(&act, (n, ad), &dev)?)?;
+        let mean = Tensor::from_slice(&i.act_mean, ad, &dev)?;
+        let std = Tensor::from_slice(&i.act_std, ad, &dev)?;
+        let mut temb = vec![0f32; n * td];
+        for (r, &tt) in t.iter().enumerate() {
+            verifier::time_embedding_into(tt as f64, &mut temb[r * td..(r + 1) * td]);
+        }
+        let bt = crate::model::BatchTensors {
+            obs: Tensor::from_slice(&obs, (n, i.obs_dim), &dev)?,
+            act: chunk.as_tensor().broadcast_sub(&mean)?.broadcast_div(&std)?,
+            temb: Tensor::from_vec(temb, (n, td), &dev)?,
+            extras: extras
+                .iter()
+                .zip(self.verifier.extra_inputs())
+                .map(|(x, (_, d))| Tensor::from_slice(x, (n, d), &dev))
+                .collect::<candle_core::Result<_>>()?,
+        };
+        let (y, _) = model.forward(&bt, &Default::default())?;
+        let objective = match self.config.kind {
+            // log sigmoid(y) = -relu(-y) - log(1 + exp(-|y|))
+            Kind::Classifier => (y.neg()?.relu()?.neg()? - y.abs()?.neg()?.exp()?.affine(1.0, 1.0)?.log()?)?,
+            Kind::Q => y.clone(),
+        };
+        let grads = objective.sum_all()?.backward()?;
+        let g = grads.get(chunk.as_tensor()).context("no gradient for the action chunk")?;
+        let g: Vec<f32> = g.flatten_all()?.to_vec1()?;
+        let y: Vec<f32> = y.to_vec1()?;
+        let scores = match self.config.kind {
+            Kind::Classifier => y.into_iter().map(verifier::sigmoid).collect(),
+            Kind::Q => y,
+        };
+        Ok((scores, g.chunks(ad.max(1)).map(<[f32]>::to_vec).collect()))
+    }
+}
+
+/// One row to score: the verifier's inputs.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ScoreRow {
-    /// `obs_dim` floats: the `T_o` most recent observations, oldest first.
+    /// `obs_dim` floats: the `T_o` most recent observations, oldest first (raw: the artifact
+    /// standardises them).
     pub obs: Vec<f32>,
-    /// `act_dim` floats: the action chunk, row-major `H x A`.
+    /// `act_dim` floats: the action chunk, row-major `H x A`, in the space the artifact takes
+    /// (`input.action_space`: the policy's normalised space, or raw for older artifacts).
     pub action: Vec<f32>,
-    /// Episode step.
+    /// Episode step (a whole number >= 0).
     pub t: f64,
     /// Extra inputs by name (only for artifacts with extra inputs).
     #[serde(default, skip_serializing_if = "HashMap::is_empty")]
@@ -235,64 +186,62 @@ struct ScoreInput {
     rows: Vec<ScoreRow>,
 }
 
-impl Artifact {
-    /// Head outputs (logit or value) for raw rows.
-    pub fn head_outputs(&self, rows: &[ScoreRow]) -> Result<Vec<f32>> {
-        if rows.is_empty() {
-            return Ok(vec![]);
-        }
-        let i = &self.config.input;
-        let a = &self.config.architecture;
-        let n = rows.len();
-        let mut obs = Vec::with_capacity(n * i.obs_dim);
-        let mut act = Vec::with_capacity(n * i.act_dim);
-        let mut temb = vec![0f32; n * a.t_embed_dim];
-        let mut extras: Vec<Vec<f32>> = vec![Vec::new(); a.extra_inputs.len()];
-        for (k, r) in rows.iter().enumerate() {
-            ensure!(r.obs.len() == i.obs_dim, "row {k}: obs has {} values, expected {}", r.obs.len(), i.obs_dim);
-            ensure!(r.action.len() == i.act_dim, "row {k}: action has {} values, expected {}", r.action.len(), i.act_dim);
-            obs.extend_from_slice(&r.obs);
-            act.extend_from_slice(&r.action);
-            time_embedding_into(r.t, &mut temb[k * a.t_embed_dim..(k + 1) * a.t_embed_dim]);
-            for (e, dst) in a.extra_inputs.iter().zip(extras.iter_mut()) {
-                let v = r.extras.get(&e.name).with_context(|| format!("row {k}: missing extra input {}", e.name))?;
-                ensure!(v.len() == e.dim, "row {k}: extra {} has wrong length", e.name);
-                dst.extend_from_slice(v);
-            }
-        }
-        self.config.normalization().apply(&mut obs, &mut act);
-        let ex: Vec<&[f32]> = extras.iter().map(|v| v.as_slice()).collect();
-        let bt = self.model.batch_tensors(n, &obs, &act, &temb, &ex)?;
-        let (y, _) = self.model.forward(&bt, &Default::default())?;
-        Ok(y.to_vec1::<f32>()?)
-    }
-
-    /// Scores: classifier `sigmoid(logit)`, Q the value.
-    pub fn score(&self, rows: &[ScoreRow]) -> Result<Vec<f32>> {
-        let y = self.head_outputs(rows)?;
-        Ok(match self.spec.kind {
-            Kind::Classifier => y.into_iter().map(sigmoid).collect(),
-            Kind::Q => y,
-        })
-    }
-
-    pub fn variant(&self) -> Variant {
-        self.spec.arch.variant
-    }
+/// Parse `{"rows": [{"obs": [..], "action": [..], "t": 3}]}`.
+pub fn parse_rows(input_json: &str) -> Result<Vec<ScoreRow>> {
+    Ok(serde_json::from_str::<ScoreInput>(input_json).context("parsing score input JSON")?.rows)
 }
 
-/// Scores of raw rows under an artifact (the reference `ufops score` prints).
+/// Rows as the core's batch: obs, extras (in the verifier's order), t, chunks.
+fn batch(v: &Verifier, rows: &[ScoreRow]) -> Result<(Vec<f32>, Vec<Vec<f32>>, Vec<u32>, Vec<f32>)> {
+    let (od, ad) = (v.obs_dim(), v.act_dim());
+    let names = v.extra_inputs();
+    let mut obs = Vec::with_capacity(rows.len() * od);
+    let mut act = Vec::with_capacity(rows.len() * ad);
+    let mut t = Vec::with_capacity(rows.len());
+    let mut extras: Vec<Vec<f32>> = vec![Vec::new(); names.len()];
+    for (k, r) in rows.iter().enumerate() {
+        ensure!(r.obs.len() == od, "row {k}: obs has {} values, expected {od}", r.obs.len());
+        ensure!(r.action.len() == ad, "row {k}: action has {} values, expected {ad}", r.action.len());
+        ensure!(
+            r.t >= 0.0 && r.t.fract() == 0.0 && r.t <= u32::MAX as f64,
+            "row {k}: t = {} is not an episode step (a whole number >= 0)",
+            r.t
+        );
+        obs.extend_from_slice(&r.obs);
+        act.extend_from_slice(&r.action);
+        t.push(r.t as u32);
+        for ((name, dim), dst) in names.iter().zip(extras.iter_mut()) {
+            let x = r.extras.get(*name).with_context(|| format!("row {k}: missing extra input {name}"))?;
+            ensure!(x.len() == *dim, "row {k}: extra input {name} has {} values, expected {dim}", x.len());
+            dst.extend_from_slice(x);
+        }
+    }
+    Ok((obs, extras, t, act))
+}
+
+/// Scores of rows under a verifier (the core's forward pass).
+pub fn score_rows(v: &Verifier, rows: &[ScoreRow]) -> Result<Vec<f32>> {
+    let (obs, extras, t, act) = batch(v, rows)?;
+    let ex: Vec<&[f32]> = extras.iter().map(|e| e.as_slice()).collect();
+    Ok(v.score_ext(&obs, &ex, &t, &act, 1)?)
+}
+
+/// Guidance gradients of rows (d log C / d action for the classifier, d Q / d action), one
+/// `act_dim` vector per row.
+pub fn grad_rows(v: &Verifier, rows: &[ScoreRow]) -> Result<Vec<Vec<f32>>> {
+    let (obs, extras, t, act) = batch(v, rows)?;
+    let ex: Vec<&[f32]> = extras.iter().map(|e| e.as_slice()).collect();
+    let g = v.grad_ext(&obs, &ex, &t, &act)?;
+    Ok(g.chunks(v.act_dim().max(1)).map(<[f32]>::to_vec).collect())
+}
+
+/// Scores of raw rows under an artifact.
 pub fn score(artifact: &Artifact, rows: &[ScoreRow]) -> Result<Vec<f32>> {
     artifact.score(rows)
 }
 
 /// Load the artifact in `artifact_dir` and score `{"rows":[{"obs":[..], "action":[..], "t":3}]}`.
 pub fn score_json(artifact_dir: &Path, input_json: &str) -> Result<Vec<f32>> {
-    let a = load_artifact(artifact_dir)?;
-    let inp: ScoreInput = serde_json::from_str(input_json).context("parsing score input JSON")?;
-    a.score(&inp.rows)
+    let v = Verifier::load_dir(artifact_dir)?;
+    score_rows(&v, &parse_rows(input_json)?)
 }
-
-/// Unused-import guard for Tensor in docs.
-#[allow(dead_code)]
-fn _tensor_type(_: &Tensor) {}

@@ -42,58 +42,12 @@ impl Episode {
     }
 }
 
-/// An observation key and its per-step width.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ObsKey {
-    pub key: String,
-    pub dim: usize,
-}
+/// How samples are built (observation keys, history, chunk shape, step-embedding width): the
+/// core's input layout, which the artifact records as `config.json`'s `input`.
+pub use verifier::InputLayout as InputSpec;
+pub use verifier::{time_embedding_into, ExtraInputSpec, ObsKey};
 
-/// An optional extra model input (language embedding, proprioception...), read from the episode's
-/// observation series `key` at the current step only (no history) and encoded by its own
-/// `Linear(dim, width) + ReLU`. The raw value is used (not standardised).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ExtraInputSpec {
-    pub name: String,
-    pub key: String,
-    pub dim: usize,
-    pub width: usize,
-}
-
-/// How samples are built from episodes.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct InputSpec {
-    /// Observation keys, concatenated in this order within one step.
-    pub obs_keys: Vec<ObsKey>,
-    /// `T_o`: number of most recent observations, oldest first.
-    pub obs_history: usize,
-    /// `H`: action chunk length.
-    pub chunk_len: usize,
-    /// `A`: per-step action width.
-    pub action_dim: usize,
-    /// `d`: sinusoidal step embedding width.
-    pub t_embed_dim: usize,
-    /// Optional extra inputs, each encoded separately (see [`ExtraInputSpec`]).
-    #[serde(default)]
-    pub extra_inputs: Vec<ExtraInputSpec>,
-}
-
-impl InputSpec {
-    /// Width of one observation step (sum of key dims).
-    pub fn step_obs_dim(&self) -> usize {
-        self.obs_keys.iter().map(|k| k.dim).sum()
-    }
-    /// `T_o * sum(dim)`.
-    pub fn obs_dim(&self) -> usize {
-        self.obs_history * self.step_obs_dim()
-    }
-    /// `H * A`.
-    pub fn act_dim(&self) -> usize {
-        self.chunk_len * self.action_dim
-    }
-}
-
-/// Mean/std standardisation statistics (train set), std clamped to `>= 1e-6`.
+/// Mean/std standardisation statistics (train set), std clamped to a floor.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Normalization {
     pub obs_mean: Vec<f32>,
@@ -102,12 +56,50 @@ pub struct Normalization {
     pub act_std: Vec<f32>,
 }
 
+/// Statistics fitted on a training set, with a warning per (near-)constant dimension.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Fitted {
+    pub norm: Normalization,
+    /// One message per dimension whose std was below the floor (clamped to it): such a
+    /// dimension would otherwise be multiplied by up to 1/std at inference.
+    pub warnings: Vec<String>,
+}
+
 impl Normalization {
-    /// Statistics of a sample set (population std, clamped to >= 1e-6).
-    pub fn fit(s: &Samples) -> Self {
-        let (obs_mean, obs_std) = col_stats(&s.obs, s.obs_dim);
-        let (act_mean, act_std) = col_stats(&s.act, s.act_dim);
-        Normalization { obs_mean, obs_std, act_mean, act_std }
+    /// Statistics of a sample set: population std, clamped to `std_floor`. With
+    /// `standardize_actions` false (actions in the policy's space) the action statistics are
+    /// the identity. Warnings name each clamped dimension by key, history step and component.
+    pub fn fit(s: &Samples, input: &InputSpec, standardize_actions: bool, std_floor: f32) -> Fitted {
+        let mut warnings = Vec::new();
+        let (obs_mean, obs_std, low) = col_stats(&s.obs, s.obs_dim, std_floor);
+        let per_step = input.step_obs_dim().max(1);
+        for (k, sd) in low {
+            let (h, mut off) = (k / per_step, k % per_step);
+            let mut name = format!("obs[{k}]");
+            for key in &input.obs_keys {
+                if off < key.dim {
+                    name = format!("obs[{k}] (key {:?}[{off}], history step {h} of {})", key.key, input.obs_history);
+                    break;
+                }
+                off -= key.dim;
+            }
+            warnings.push(format!("{name} is (near-)constant in the training set: std {sd:.3e} clamped to {std_floor:.1e}"));
+        }
+        let (act_mean, act_std) = if standardize_actions {
+            let (m, sd, low) = col_stats(&s.act, s.act_dim, std_floor);
+            let a = input.action_dim.max(1);
+            for (k, v) in low {
+                warnings.push(format!(
+                    "act[{k}] (chunk step {}, action component {}) is (near-)constant in the training set: std {v:.3e} clamped to {std_floor:.1e}",
+                    k / a,
+                    k % a
+                ));
+            }
+            (m, sd)
+        } else {
+            (vec![0.0; s.act_dim], vec![1.0; s.act_dim])
+        };
+        Fitted { norm: Normalization { obs_mean, obs_std, act_mean, act_std }, warnings }
     }
 
     /// Identity statistics (mean 0, std 1).
@@ -139,7 +131,9 @@ fn standardize(x: &mut [f32], mean: &[f32], std: &[f32]) {
     }
 }
 
-fn col_stats(x: &[f32], d: usize) -> (Vec<f32>, Vec<f32>) {
+/// Column means and population stds, each std clamped to `floor`; also the (column, std) of
+/// every clamped column.
+fn col_stats(x: &[f32], d: usize, floor: f32) -> (Vec<f32>, Vec<f32>, Vec<(usize, f32)>) {
     let n = x.len().checked_div(d).unwrap_or(0);
     let mut mean = vec![0f64; d];
     for row in x.chunks_exact(d.max(1)).take(n) {
@@ -156,8 +150,19 @@ fn col_stats(x: &[f32], d: usize) -> (Vec<f32>, Vec<f32>) {
             *s += c * c;
         }
     }
-    let std = var.iter().map(|s| ((s / nn).sqrt() as f32).max(1e-6)).collect();
-    (mean.iter().map(|m| *m as f32).collect(), std)
+    let mut low = Vec::new();
+    let std = var
+        .iter()
+        .enumerate()
+        .map(|(k, s)| {
+            let sd = (s / nn).sqrt() as f32;
+            if sd < floor {
+                low.push((k, sd));
+            }
+            sd.max(floor)
+        })
+        .collect();
+    (mean.iter().map(|m| *m as f32).collect(), std, low)
 }
 
 /// Flat, row-major sample arrays.
@@ -317,21 +322,10 @@ pub fn build_samples(episodes: &[Episode], spec: &InputSpec, gamma: f64) -> Resu
     Ok(s)
 }
 
-/// Sinusoidal step embedding (paper eq. 1): `sin(t / 10000^(j/d))` for even `j`,
-/// `cos(t / 10000^((j-1)/d))` for odd `j`. Computed in f64, rounded to f32.
-pub fn time_embedding_into(t: f64, out: &mut [f32]) {
-    let d = out.len() as f64;
-    for (j, o) in out.iter_mut().enumerate() {
-        let e = (j - (j % 2)) as f64 / d;
-        let arg = t / 10000f64.powf(e);
-        *o = if j % 2 == 0 { arg.sin() as f32 } else { arg.cos() as f32 };
-    }
-}
-
 /// Embedding of one step index.
 pub fn time_embedding(t: f64, d: usize) -> Vec<f32> {
     let mut v = vec![0.0; d];
-    time_embedding_into(t, &mut v);
+    verifier::time_embedding_into(t, &mut v);
     v
 }
 
@@ -355,7 +349,7 @@ impl TimeEmbedTable {
         }
         self.table.resize(need * self.d, 0.0);
         for t in have..need {
-            time_embedding_into(t as f64, &mut self.table[t * self.d..(t + 1) * self.d]);
+            verifier::time_embedding_into(t as f64, &mut self.table[t * self.d..(t + 1) * self.d]);
         }
     }
     /// Embedding of step `t` (must have been `ensure`d).

@@ -1,14 +1,17 @@
-//! Fused fast path for the `lowdim` architecture without extra inputs: a hand-written f32
-//! forward/backward over preallocated buffers (matrix products through the `gemm` crate that
+//! Fused fast path for training the `lowdim` architecture without extra inputs: a hand-written
+//! f32 forward/backward over preallocated buffers (matrix products through the `gemm` crate that
 //! candle itself uses, elementwise work fused per layer, AVX2/FMA kernels selected at runtime).
+//! The LayerNorm kernels are the verifier core's (`verifier::kernels`), shared with inference;
+//! the ones here (bias + ReLU, the head) are training-only.
 //!
 //! It computes exactly the model of `model.rs` (tested against the candle graph: values and
-//! gradients), reading and writing the same [`ParamSet`] layout.
+//! gradients), observation noise included, reading and writing the same [`ParamSet`] layout.
 
 use anyhow::{ensure, Result};
 
 use crate::loss::{objective_host, LossConfig};
 use crate::model::{Kind, ModelSpec, ParamSet, Variant};
+use verifier::kernels::{ln_backward, ln_forward, Isa, LnGrads};
 
 /// Whether the fused path supports this model.
 pub fn supports(spec: &ModelSpec) -> bool {
@@ -111,118 +114,6 @@ macro_rules! kernels {
             }
 
             $(#[target_feature(enable = $feat)])*
-            /// LayerNorm + ReLU forward on rows of `pre` (`x + bias` first): writes `xhat`,
-            /// `rstd`, and `out = relu(xhat * g + beta)`. Reductions use 8 lanes (vectorised).
-            #[allow(clippy::too_many_arguments)]
-            pub unsafe fn bias_ln_relu(
-                pre: &mut [f32], bias: &[f32], xhat: &mut [f32], rstd: &mut [f32], out: &mut [f32],
-                g: &[f32], beta: &[f32], eps: f32, rows: usize,
-            ) {
-                let n = g.len();
-                let inv_n = 1.0 / n as f32;
-                for r in 0..rows {
-                    let p = &mut pre[r * n..(r + 1) * n];
-                    let mut acc = [0.0f32; 8];
-                    let mut pc = p.chunks_exact_mut(8);
-                    let mut bc = bias.chunks_exact(8);
-                    for (c, b) in (&mut pc).zip(&mut bc) {
-                        for l in 0..8 {
-                            c[l] += b[l];
-                            acc[l] += c[l];
-                        }
-                    }
-                    let mut s = 0.0f32;
-                    for (v, b) in pc.into_remainder().iter_mut().zip(bc.remainder()) {
-                        *v += b;
-                        s += *v;
-                    }
-                    let mean = (s + super::hsum(acc)) * inv_n;
-                    let mut acc = [0.0f32; 8];
-                    let mut pc = p.chunks_exact(8);
-                    for c in &mut pc {
-                        for l in 0..8 {
-                            let d = c[l] - mean;
-                            acc[l] += d * d;
-                        }
-                    }
-                    let mut q = 0.0f32;
-                    for v in pc.remainder() {
-                        q += (v - mean) * (v - mean);
-                    }
-                    let rs = 1.0 / ((q + super::hsum(acc)) * inv_n + eps).sqrt();
-                    rstd[r] = rs;
-                    let xh = &mut xhat[r * n..(r + 1) * n];
-                    let o = &mut out[r * n..(r + 1) * n];
-                    for ((((x, h), o), gg), bb) in p.iter().zip(xh.iter_mut()).zip(o.iter_mut()).zip(g).zip(beta) {
-                        let v = (x - mean) * rs;
-                        *h = v;
-                        *o = (v * gg + bb).max(0.0);
-                    }
-                }
-            }
-
-            $(#[target_feature(enable = $feat)])*
-            /// Backward of `relu(LN(pre))`: `d` holds d/d out on entry and d/d pre on exit.
-            #[allow(clippy::too_many_arguments)]
-            pub unsafe fn ln_relu_back(
-                d: &mut [f32], out: &[f32], xhat: &[f32], rstd: &[f32], g: &[f32],
-                dg: &mut [f32], dbeta: &mut [f32], db: &mut [f32], rows: usize,
-            ) {
-                let n = g.len();
-                let inv_n = 1.0 / n as f32;
-                let (dg, dbeta, db) = (&mut dg[..n], &mut dbeta[..n], &mut db[..n]);
-                for r in 0..rows {
-                    let dr = &mut d[r * n..(r + 1) * n];
-                    let or = &out[r * n..(r + 1) * n];
-                    let xh = &xhat[r * n..(r + 1) * n];
-                    let mut a1 = [0.0f32; 8];
-                    let mut a2 = [0.0f32; 8];
-                    let it = dr
-                        .chunks_exact_mut(8)
-                        .zip(or.chunks_exact(8))
-                        .zip(xh.chunks_exact(8))
-                        .zip(g.chunks_exact(8))
-                        .zip(dg.chunks_exact_mut(8))
-                        .zip(dbeta.chunks_exact_mut(8));
-                    for (((((dc, oc), xc), gc), dgc), dbc) in it {
-                        let dc: &mut [f32; 8] = dc.try_into().unwrap();
-                        let oc: &[f32; 8] = oc.try_into().unwrap();
-                        let xc: &[f32; 8] = xc.try_into().unwrap();
-                        let gc: &[f32; 8] = gc.try_into().unwrap();
-                        let dgc: &mut [f32; 8] = dgc.try_into().unwrap();
-                        let dbc: &mut [f32; 8] = dbc.try_into().unwrap();
-                        for l in 0..8 {
-                            let dl = if oc[l] > 0.0 { dc[l] } else { 0.0 };
-                            dgc[l] += dl * xc[l];
-                            dbc[l] += dl;
-                            let dxh = dl * gc[l];
-                            dc[l] = dxh;
-                            a1[l] += dxh;
-                            a2[l] += dxh * xc[l];
-                        }
-                    }
-                    let (mut s1, mut s2) = (0.0f32, 0.0f32);
-                    for i in (n - n % 8)..n {
-                        let dl = if or[i] > 0.0 { dr[i] } else { 0.0 };
-                        dg[i] += dl * xh[i];
-                        dbeta[i] += dl;
-                        let dxh = dl * g[i];
-                        dr[i] = dxh;
-                        s1 += dxh;
-                        s2 += dxh * xh[i];
-                    }
-                    let m1 = (s1 + super::hsum(a1)) * inv_n;
-                    let m2 = (s2 + super::hsum(a2)) * inv_n;
-                    let rs = rstd[r];
-                    for ((dv, x), s) in dr.iter_mut().zip(xh).zip(db.iter_mut()) {
-                        let v = rs * (*dv - m1 - x * m2);
-                        *dv = v;
-                        *s += v;
-                    }
-                }
-            }
-
-            $(#[target_feature(enable = $feat)])*
             /// Head forward: `y[r] = sum_k z[r,k] * mask[r,k] * w[k] + b`.
             pub unsafe fn head_fwd(z: &[f32], mask: Option<&[f32]>, w: &[f32], b: f32, y: &mut [f32]) {
                 let n = w.len();
@@ -303,155 +194,16 @@ fn hsum(a: [f32; 8]) -> f32 {
 
 kernels!(k_avx2, "avx2", "fma");
 
-#[allow(clippy::needless_range_loop)]
-/// Hand-vectorised AVX2/FMA versions of the hottest elementwise kernels (widths multiple of 8).
-#[cfg(target_arch = "x86_64")]
-mod k_x86 {
-    use std::arch::x86_64::*;
-
-    #[target_feature(enable = "avx2,fma")]
-    unsafe fn hsum256(v: __m256) -> f32 {
-        let lo = _mm256_castps256_ps128(v);
-        let hi = _mm256_extractf128_ps(v, 1);
-        let s = _mm_add_ps(lo, hi);
-        let s = _mm_add_ps(s, _mm_movehl_ps(s, s));
-        let s = _mm_add_ss(s, _mm_shuffle_ps(s, s, 1));
-        _mm_cvtss_f32(s)
-    }
-
-    /// See `k_base::ln_relu_back`. Requires `g.len() % 8 == 0`.
-    #[target_feature(enable = "avx2,fma")]
-    #[allow(clippy::too_many_arguments)]
-    pub unsafe fn ln_relu_back(
-        d: &mut [f32], out: &[f32], xhat: &[f32], rstd: &[f32], g: &[f32],
-        dg: &mut [f32], dbeta: &mut [f32], db: &mut [f32], rows: usize,
-    ) {
-        let n = g.len();
-        debug_assert!(n.is_multiple_of(8) && d.len() >= rows * n && out.len() >= rows * n && xhat.len() >= rows * n);
-        assert!(dg.len() >= n && dbeta.len() >= n && db.len() >= n && rstd.len() >= rows);
-        let inv_n = 1.0 / n as f32;
-        let zero = _mm256_setzero_ps();
-        let (gp, dgp, dbp, dbbp) = (g.as_ptr(), dg.as_mut_ptr(), dbeta.as_mut_ptr(), db.as_mut_ptr());
-        for r in 0..rows {
-            let dp = d.as_mut_ptr().add(r * n);
-            let op = out.as_ptr().add(r * n);
-            let xp = xhat.as_ptr().add(r * n);
-            let mut a1 = zero;
-            let mut a2 = zero;
-            let mut k = 0;
-            while k < n {
-                let o = _mm256_loadu_ps(op.add(k));
-                let m = _mm256_cmp_ps::<_CMP_GT_OQ>(o, zero);
-                let dl = _mm256_and_ps(_mm256_loadu_ps(dp.add(k)), m);
-                let x = _mm256_loadu_ps(xp.add(k));
-                _mm256_storeu_ps(dgp.add(k), _mm256_fmadd_ps(dl, x, _mm256_loadu_ps(dgp.add(k))));
-                _mm256_storeu_ps(dbp.add(k), _mm256_add_ps(dl, _mm256_loadu_ps(dbp.add(k))));
-                let dxh = _mm256_mul_ps(dl, _mm256_loadu_ps(gp.add(k)));
-                _mm256_storeu_ps(dp.add(k), dxh);
-                a1 = _mm256_add_ps(a1, dxh);
-                a2 = _mm256_fmadd_ps(dxh, x, a2);
-                k += 8;
-            }
-            let m1 = _mm256_set1_ps(hsum256(a1) * inv_n);
-            let m2 = _mm256_set1_ps(hsum256(a2) * inv_n);
-            let rs = _mm256_set1_ps(rstd[r]);
-            let mut k = 0;
-            while k < n {
-                let x = _mm256_loadu_ps(xp.add(k));
-                let t = _mm256_fnmadd_ps(x, m2, _mm256_sub_ps(_mm256_loadu_ps(dp.add(k)), m1));
-                let v = _mm256_mul_ps(rs, t);
-                _mm256_storeu_ps(dp.add(k), v);
-                _mm256_storeu_ps(dbbp.add(k), _mm256_add_ps(v, _mm256_loadu_ps(dbbp.add(k))));
-                k += 8;
-            }
-        }
-    }
-
-    /// See `k_base::bias_ln_relu`. Requires `g.len() % 8 == 0`.
-    #[target_feature(enable = "avx2,fma")]
-    #[allow(clippy::too_many_arguments)]
-    pub unsafe fn bias_ln_relu(
-        pre: &mut [f32], bias: &[f32], xhat: &mut [f32], rstd: &mut [f32], out: &mut [f32],
-        g: &[f32], beta: &[f32], eps: f32, rows: usize,
-    ) {
-        let n = g.len();
-        assert!(pre.len() >= rows * n && xhat.len() >= rows * n && out.len() >= rows * n);
-        assert!(bias.len() >= n && beta.len() >= n && rstd.len() >= rows);
-        let inv_n = 1.0 / n as f32;
-        let zero = _mm256_setzero_ps();
-        for r in 0..rows {
-            let pp = pre.as_mut_ptr().add(r * n);
-            let mut acc = zero;
-            let mut k = 0;
-            while k < n {
-                let v = _mm256_add_ps(_mm256_loadu_ps(pp.add(k)), _mm256_loadu_ps(bias.as_ptr().add(k)));
-                _mm256_storeu_ps(pp.add(k), v);
-                acc = _mm256_add_ps(acc, v);
-                k += 8;
-            }
-            let mean = hsum256(acc) * inv_n;
-            let mv = _mm256_set1_ps(mean);
-            let mut acc = zero;
-            let mut k = 0;
-            while k < n {
-                let c = _mm256_sub_ps(_mm256_loadu_ps(pp.add(k)), mv);
-                acc = _mm256_fmadd_ps(c, c, acc);
-                k += 8;
-            }
-            let rs = 1.0 / (hsum256(acc) * inv_n + eps).sqrt();
-            rstd[r] = rs;
-            let rv = _mm256_set1_ps(rs);
-            let xp = xhat.as_mut_ptr().add(r * n);
-            let op = out.as_mut_ptr().add(r * n);
-            let mut k = 0;
-            while k < n {
-                let h = _mm256_mul_ps(_mm256_sub_ps(_mm256_loadu_ps(pp.add(k)), mv), rv);
-                _mm256_storeu_ps(xp.add(k), h);
-                let o = _mm256_fmadd_ps(h, _mm256_loadu_ps(g.as_ptr().add(k)), _mm256_loadu_ps(beta.as_ptr().add(k)));
-                _mm256_storeu_ps(op.add(k), _mm256_max_ps(o, zero));
-                k += 8;
-            }
-        }
-    }
-}
 kernels!(k_base,);
 
-/// Runtime-selected elementwise kernels.
-#[derive(Clone, Copy, Debug)]
-enum Isa {
-    Avx2,
-    Base,
-}
-
-fn detect() -> Isa {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-            return Isa::Avx2;
-        }
-    }
-    Isa::Base
-}
-
-/// Like `dispatch!`, but uses the hand-written AVX2 kernel when the width is a multiple of 8.
-macro_rules! dispatch_x86 {
-    ($isa:expr, $n:expr, $f:ident ( $($arg:expr),* )) => {
-        match $isa {
-            #[cfg(target_arch = "x86_64")]
-            #[allow(unused_unsafe)]
-            Isa::Avx2 if $n % 8 == 0 => unsafe { k_x86::$f($($arg),*) },
-            _ => dispatch!($isa, $f($($arg),*)),
-        }
-    };
-}
-
+/// Runs an elementwise kernel compiled for the selected instruction set.
 macro_rules! dispatch {
     ($isa:expr, $f:ident ( $($arg:expr),* )) => {
         match $isa {
             #[allow(unused_unsafe)]
-            Isa::Avx2 => unsafe { k_avx2::$f($($arg),*) },
+            Isa::Avx2Fma => unsafe { k_avx2::$f($($arg),*) },
             #[allow(unused_unsafe)]
-            Isa::Base => unsafe { k_base::$f($($arg),*) },
+            Isa::Portable => unsafe { k_base::$f($($arg),*) },
         }
     };
 }
@@ -555,7 +307,7 @@ impl FastModel {
             .collect();
         Ok(FastModel {
             spec: spec.clone(),
-            isa: detect(),
+            isa: Isa::detect(),
             o0: lin("obs_enc.0"),
             o1: lin("obs_enc.1"),
             a0: lin("act_enc.0"),
@@ -575,7 +327,7 @@ impl FastModel {
 
     /// Use the portable (non-AVX2) kernels (for testing both paths).
     pub fn force_portable(&mut self) {
-        self.isa = Isa::Base;
+        self.isa = Isa::Portable;
     }
 
     fn zdim(&self) -> usize {
@@ -593,8 +345,9 @@ impl FastModel {
 
     #[allow(clippy::type_complexity)]
     /// Forward pass over `rows` (indices into `src`); `mask` is the scaled dropout mask
-    /// `[rows.len(), zdim]` (None at evaluation). Results in [`Self::y`] / [`Self::z`].
-    pub fn forward(&mut self, p: &ParamSet, src: &BatchSource, rows: &[u32], mask: Option<&[f32]>) {
+    /// `[rows.len(), zdim]` and `obs_noise` the Gaussian noise `[rows.len(), obs_dim]` added to
+    /// the standardised observation (both None at evaluation). Results in [`Self::y`] / [`Self::z`].
+    pub fn forward(&mut self, p: &ParamSet, src: &BatchSource, rows: &[u32], mask: Option<&[f32]>, obs_noise: Option<&[f32]>) {
         let n = rows.len();
         let zdim = self.zdim();
         self.y.resize(n.max(self.y.len()), 0.0);
@@ -602,20 +355,24 @@ impl FastModel {
         let nw = self.workers.len();
         let cap = self.workers[0].cap;
         assert!(n <= cap * nw, "batch larger than the fast path's capacity");
+        let od = self.spec.obs_dim;
+        if let Some(noise) = obs_noise {
+            assert_eq!(noise.len(), n * od, "observation noise: one value per batch row and obs dim");
+        }
         let chunk = n.div_ceil(nw).max(1);
         let mut workers = std::mem::take(&mut self.workers);
         {
             let ctx = Ctx { m: &*self, p };
-            let jobs: Vec<(&mut Worker, &[u32], Option<&[f32]>)> = workers
+            let jobs: Vec<(&mut Worker, &[u32], Option<&[f32]>, Option<&[f32]>)> = workers
                 .iter_mut()
                 .enumerate()
                 .map(|(i, w)| {
                     let s = (i * chunk).min(n);
                     let e = ((i + 1) * chunk).min(n);
-                    (w, &rows[s..e], mask.map(|m| &m[s * zdim..e * zdim]))
+                    (w, &rows[s..e], mask.map(|m| &m[s * zdim..e * zdim]), obs_noise.map(|x| &x[s * od..e * od]))
                 })
                 .collect();
-            run_parallel(jobs, |(w, r, m)| ctx.forward(w, src, r, m));
+            run_parallel(jobs, |(w, r, m, x)| ctx.forward(w, src, r, m, x));
         }
         let mut off = 0;
         for w in &workers {
@@ -637,10 +394,11 @@ impl FastModel {
         rows: &[u32],
         target: &[f32],
         mask: Option<&[f32]>,
+        obs_noise: Option<&[f32]>,
         kind: Kind,
         loss_cfg: &LossConfig,
     ) -> f64 {
-        self.forward(p, src, rows, mask);
+        self.forward(p, src, rows, mask, obs_noise);
         let n = rows.len();
         let zdim = self.zdim();
         self.dy.resize(n.max(self.dy.len()), 0.0);
@@ -712,7 +470,7 @@ struct Ctx<'a> {
 }
 
 impl Ctx<'_> {
-    fn forward(&self, w: &mut Worker, src: &BatchSource, rows: &[u32], mask: Option<&[f32]>) {
+    fn forward(&self, w: &mut Worker, src: &BatchSource, rows: &[u32], mask: Option<&[f32]>, obs_noise: Option<&[f32]>) {
         let m = self.m;
         let p = &self.p.values;
         let n = rows.len();
@@ -730,6 +488,13 @@ impl Ctx<'_> {
             w.obs[r * od..(r + 1) * od].copy_from_slice(&src.obs[i * od..(i + 1) * od]);
             w.act[r * ad..(r + 1) * ad].copy_from_slice(&src.act[i * ad..(i + 1) * ad]);
             w.x[r * ti + 2 * ew..r * ti + 2 * ew + te].copy_from_slice(src.temb.get(src.t[i]));
+        }
+        // Noise on the standardised observation (the lowdim model has no input LayerNorm); the
+        // noisy input is also what obs_enc.0's weight gradient sees, as in the candle graph.
+        if let Some(noise) = obs_noise {
+            for (o, e) in w.obs[..n * od].iter_mut().zip(noise) {
+                *o += e;
+            }
         }
         unsafe {
             // Encoders.
@@ -751,10 +516,10 @@ impl Ctx<'_> {
                 let (inp, ins): (*const f32, usize) =
                     if i == 0 { (w.x.as_ptr(), ti) } else { (w.out[i - 1].as_ptr(), l.input) };
                 mm(n, l.output, l.input, w.pre[i].as_mut_ptr(), l.output, 1, false, inp, ins, 1, p[l.w].as_ptr(), 1, l.input);
-                dispatch_x86!(m.isa, l.output, bias_ln_relu(
-                    &mut w.pre[i], &p[l.b], &mut w.xhat[i], &mut w.rstd[i], &mut w.out[i],
-                    &p[tl.g], &p[tl.beta], m.eps, n
-                ));
+                ln_forward(
+                    m.isa, &mut w.pre[i], Some(p[l.b].as_slice()), &mut w.xhat[i], &mut w.rstd[i], &mut w.out[i],
+                    &p[tl.g], &p[tl.beta], m.eps, n, l.output, true,
+                );
             }
             let z = w.out.last().unwrap();
             let h = m.head;
@@ -794,10 +559,8 @@ impl Ctx<'_> {
                 let l = tl.lin;
                 {
                     let (dg, dbeta, db) = split_three(&mut w.grads, tl.g, tl.beta, l.b);
-                    dispatch_x86!(m.isa, l.output, ln_relu_back(
-                        &mut cur[..n * l.output], &w.out[i], &w.xhat[i], &w.rstd[i], &p[tl.g],
-                        dg, dbeta, db, n
-                    ));
+                    let grads = LnGrads { dg, dbeta, db };
+                    ln_backward(m.isa, &mut cur[..n * l.output], Some(w.out[i].as_slice()), &w.xhat[i], &w.rstd[i], &p[tl.g], n, l.output, Some(grads));
                 }
                 // dW = dpre^T @ input
                 let (inp, ins): (*const f32, usize) =

@@ -187,23 +187,27 @@ pub async fn run_train_job(
     Ok(rec)
 }
 
-/// Scores every step of a stored episode with an artifact: the (obs history, chunk, t) of each
-/// step are built exactly as for training (stored chunk, else the next H actions).
-pub fn score_steps(artifact: &crate::Artifact, batch: &arrow::array::RecordBatch) -> Result<Vec<f32>> {
-    let input = artifact.config.input_spec();
+/// The verifier inputs of every step of a stored episode, built exactly as for training
+/// (observation history; stored chunk, else the next H actions; step index) with the raw chunks
+/// put into the space the artifact takes (`input.action_space`).
+pub fn step_inputs(cfg: &verifier::ArtifactConfig, batch: &arrow::array::RecordBatch) -> Result<crate::Samples> {
+    let input = &cfg.input.layout;
+    if !cfg.architecture.extra_inputs.is_empty() {
+        bail!("building stored steps for a verifier with extra inputs is not supported");
+    }
     let keys: Vec<String> = input.obs_keys.iter().map(|k| k.key.clone()).collect();
     let mut ep = episode_from_steps("scored", false, batch, &keys)?;
     if ep.action_chunk.as_ref().is_some_and(|(h, _)| *h != input.chunk_len) {
         ep.action_chunk = None;
     }
-    let s = build_samples(std::slice::from_ref(&ep), &input, artifact.config.gamma.unwrap_or(0.99))?;
-    let rows: Vec<crate::ScoreRow> = (0..s.len())
-        .map(|i| crate::ScoreRow {
-            obs: s.obs[i * s.obs_dim..(i + 1) * s.obs_dim].to_vec(),
-            action: s.act[i * s.act_dim..(i + 1) * s.act_dim].to_vec(),
-            t: s.t[i] as f64,
-            extras: Default::default(),
-        })
-        .collect();
-    artifact.score(&rows)
+    let mut s = build_samples(std::slice::from_ref(&ep), input, cfg.gamma.unwrap_or(0.99))?;
+    cfg.input.action_space.raw_to_input(&mut s.act, input.action_dim);
+    Ok(s)
+}
+
+/// Scores every step of a stored episode with a verifier (what the viewer shows), on the
+/// inputs of [`step_inputs`], through the core.
+pub fn score_steps(v: &verifier::Verifier, batch: &arrow::array::RecordBatch) -> Result<Vec<f32>> {
+    let s = step_inputs(v.config(), batch)?;
+    Ok(v.score(&s.obs, &s.t, &s.act, 1)?)
 }

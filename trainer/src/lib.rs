@@ -1,12 +1,16 @@
 //! `trainer`: the ufops verifier trainer.
 //!
-//! This crate owns the verifier models (success classifier and time-to-success Q, `model.rs`,
-//! written in candle as the single source of truth, plus a fused fast path for the low-dim
-//! architecture in `fast.rs`), their losses (`loss.rs`), the training loop and recipe
-//! (`train.rs`, `optim.rs`, `metrics.rs`), sample construction from episodes (`data.rs`, with no
-//! dependency on the store), the artifact format: writing, verified loading and reference
-//! scoring (`artifact.rs`, contract in `ARTIFACT.md`), and training jobs that read a split from
-//! the store and publish the artifact back (`job.rs`).
+//! This crate owns TRAINING: the verifier models as trainable candle graphs (success classifier
+//! and time-to-success Q, `model.rs`, plus a fused fast path for the low-dim architecture in
+//! `fast.rs`), their losses (`loss.rs`), the training loop and recipe (`train.rs`, `optim.rs`,
+//! `metrics.rs`), sample construction from episodes with the standardisation statistics and the
+//! policy's action space (`data.rs`, no dependency on the store), writing artifacts and scoring
+//! rows or stored steps (`artifact.rs`, `job.rs`), and training jobs that read a split from the
+//! store and publish the artifact back (`job.rs`).
+//!
+//! The inference contract — artifact types, files and checks, tensor names, the step
+//! embedding, the forward pass and its gradient, the LayerNorm kernels — is the `verifier`
+//! core's (`trainer/ARTIFACT.md`); the trainer writes and scores through it.
 
 pub mod artifact;
 pub mod data;
@@ -18,8 +22,12 @@ pub mod model;
 pub mod optim;
 pub mod train;
 
-pub use artifact::{load_artifact, score, score_json, write_artifact, Artifact, ArtifactConfig, ArtifactInfo, ScoreRow};
-pub use job::{load_split, run_train_job, score_steps, SplitData, TrainJobSpec};
+pub use artifact::{
+    grad_rows, load_artifact, parse_rows, score, score_json, score_rows, write_artifact, Artifact, ArtifactConfig,
+    ArtifactInfo, ScoreRow,
+};
+pub use job::{load_split, run_train_job, score_steps, step_inputs, SplitData, TrainJobSpec};
 pub use data::{build_samples, Episode, ExtraInputSpec, InputSpec, ObsKey, ObsSeries, Samples};
+pub use verifier::{ActionSpace, Verifier};
 pub use model::{Architecture, Kind, ModelSpec, Variant};
 pub use train::{train, train_samples, train_with, Backend, Cancelled, EpochReport, Metrics, TrainConfig, Trained};

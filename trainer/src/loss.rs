@@ -31,15 +31,7 @@ pub fn bce_with_logits_scalar(x: f32, y: f32) -> f32 {
     (x.max(0.0) - x * y as f64 + (-x.abs()).exp().ln_1p()) as f32
 }
 
-/// Numerically stable sigmoid.
-pub fn sigmoid(x: f32) -> f32 {
-    if x >= 0.0 {
-        1.0 / (1.0 + (-x).exp())
-    } else {
-        let e = x.exp();
-        e / (1.0 + e)
-    }
-}
+pub use verifier::sigmoid;
 
 /// Mean stable BCE with logits (candle graph). `logits`, `y`: `[B]`.
 pub fn bce_with_logits(logits: &Tensor, y: &Tensor) -> Result<Tensor> {

@@ -1,136 +1,22 @@
-//! Verifier architecture (the single source of truth, in candle) and its configuration structs.
-//!
-//! Parameters live in a host-side [`ParamSet`] (names and shapes exactly as in ARTIFACT.md,
-//! PyTorch layout); [`CandleModel`] wraps them in `Var`s and defines the forward pass. The fused
+//! The verifier as a trainable candle graph. The architecture types, the tensor names and
+//! shapes, and the inference forward pass are the `verifier` core's (re-exported here); this
+//! module adds what training needs: parameters in a host-side [`ParamSet`] (the core's tensor
+//! list, in its order), [`CandleModel`] over `Var`s with dropout, observation noise and
+//! spectral normalisation, and the conversions to and from the core's [`Weights`]. The fused
 //! fast path in `fast.rs` reads the same [`ParamSet`] and is tested against this model.
 
 use std::collections::HashMap;
 use std::sync::Mutex;
 
-use anyhow::{bail, ensure, Context, Result};
-use candle_core::{DType, Device, Tensor, Var, D};
+use anyhow::{ensure, Context, Result};
+use candle_core::{Device, Tensor, Var, D};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
+use verifier::{TensorRole, Weights};
 
-/// What the verifier predicts.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Kind {
-    /// Success classifier: score = sigmoid(logit), trained with BCE + contrastive hinge.
-    Classifier,
-    /// Time-to-success Q: score = value, trained with MSE to `gamma^(T-t) r_T`.
-    Q,
-}
-
-/// Architecture variant.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Variant {
-    /// Raw low-dimensional state (paper's low-dim column): ReLU encoders, no encoder LayerNorm.
-    Lowdim,
-    /// Frozen encoder features (paper's image column): GELU, LayerNorm, spectral norm.
-    Features,
-}
-
-/// Encoder nonlinearity.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Activation {
-    Relu,
-    /// Exact (erf) GELU.
-    Gelu,
-}
-
-/// An extra input encoded by `Linear(dim, width) + ReLU`, concatenated after the step embedding.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ExtraInput {
-    pub name: String,
-    pub dim: usize,
-    pub width: usize,
-}
-
-/// `config.json`'s `architecture` object.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Architecture {
-    pub variant: Variant,
-    pub activation: Activation,
-    pub encoder_width: usize,
-    pub t_embed_dim: usize,
-    pub trunk_dims: Vec<usize>,
-    pub input_layernorm: bool,
-    pub encoder_layernorm: bool,
-    /// Train with spectral normalisation; weights are stored already divided by sigma.
-    pub spectral_norm: bool,
-    /// Dropout before the head (identity at inference).
-    pub dropout: f64,
-    pub layernorm_eps: f64,
-    #[serde(default)]
-    pub extra_inputs: Vec<ExtraInput>,
-}
-
-impl Default for Architecture {
-    fn default() -> Self {
-        Self::lowdim()
-    }
-}
-
-impl Architecture {
-    /// Paper, low-dim Square column.
-    pub fn lowdim() -> Self {
-        Architecture {
-            variant: Variant::Lowdim,
-            activation: Activation::Relu,
-            encoder_width: 64,
-            t_embed_dim: 64,
-            trunk_dims: vec![128, 64],
-            input_layernorm: false,
-            encoder_layernorm: false,
-            spectral_norm: false,
-            dropout: 0.5,
-            layernorm_eps: 1e-5,
-            extra_inputs: vec![],
-        }
-    }
-
-    /// Paper, image (frozen-encoder features) Square column.
-    pub fn features() -> Self {
-        Architecture {
-            variant: Variant::Features,
-            activation: Activation::Gelu,
-            encoder_width: 256,
-            t_embed_dim: 128,
-            trunk_dims: vec![512, 256],
-            input_layernorm: true,
-            encoder_layernorm: true,
-            spectral_norm: true,
-            dropout: 0.5,
-            layernorm_eps: 1e-5,
-            extra_inputs: vec![],
-        }
-    }
-
-    pub fn validate(&self) -> Result<()> {
-        ensure!(self.encoder_width > 0 && self.t_embed_dim > 0, "zero width");
-        ensure!(!self.trunk_dims.is_empty(), "trunk_dims must not be empty");
-        ensure!((0.0..1.0).contains(&self.dropout), "dropout must be in [0, 1)");
-        if self.variant == Variant::Lowdim
-            && (self.input_layernorm || self.encoder_layernorm || self.activation != Activation::Relu)
-        {
-            bail!("lowdim variant: ReLU encoders without LayerNorm (use variant \"features\")");
-        }
-        Ok(())
-    }
-
-    /// Width of the trunk input: `2 * encoder_width + t_embed_dim + sum(extra widths)`.
-    pub fn trunk_in(&self) -> usize {
-        2 * self.encoder_width
-            + self.t_embed_dim
-            + self.extra_inputs.iter().map(|e| e.width).sum::<usize>()
-    }
-}
+pub use verifier::{Activation, Architecture, ExtraInput, Kind, LinearSpec, Variant};
 
 /// Everything needed to build parameters and the forward pass.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -177,81 +63,39 @@ impl ParamSet {
     }
 }
 
-/// A linear layer of the model (name prefix and dims), in parameter order.
-#[derive(Clone, Debug, PartialEq)]
-pub struct LayerDesc {
-    pub name: String,
-    pub input: usize,
-    pub output: usize,
-    /// LayerNorm after the linear (`<name>.ln`).
-    pub ln: bool,
-    /// Spectral normalisation applies to this layer.
-    pub sn: bool,
-}
-
 impl ModelSpec {
-    /// The linear layers in parameter order (the input LayerNorm, if any, comes first).
-    pub fn layers(&self) -> Vec<LayerDesc> {
-        let a = &self.arch;
-        let w = a.encoder_width;
-        let enc_ln = a.encoder_layernorm;
-        let sn = a.spectral_norm;
-        let mut v = Vec::new();
-        let mut lin = |name: &str, i: usize, o: usize, ln: bool, sn: bool| {
-            v.push(LayerDesc { name: name.to_string(), input: i, output: o, ln, sn })
-        };
-        lin("obs_enc.0", self.obs_dim, w, enc_ln, sn);
-        lin("obs_enc.1", w, w, enc_ln, sn);
-        lin("act_enc.0", self.act_dim, w, enc_ln, sn);
-        lin("act_enc.1", w, w, enc_ln, sn);
-        for e in &a.extra_inputs {
-            lin(&format!("extra.{}", e.name), e.dim, e.width, false, false);
-        }
-        let mut prev = a.trunk_in();
-        for (i, &d) in a.trunk_dims.iter().enumerate() {
-            lin(&format!("trunk.{i}"), prev, d, true, sn);
-            prev = d;
-        }
-        lin("head", prev, 1, false, false);
-        v
+    /// The linear layers in parameter order (the core's list).
+    pub fn layers(&self) -> Vec<LinearSpec> {
+        self.arch.linears(self.obs_dim, self.act_dim)
     }
 
-    /// Freshly initialised parameters (PyTorch defaults: `U(-1/sqrt(in), 1/sqrt(in))` for Linear
-    /// weight and bias, LayerNorm weight 1 / bias 0), drawn from `rng`.
+    /// Freshly initialised parameters in the core's tensor order (PyTorch defaults:
+    /// `U(-1/sqrt(in), 1/sqrt(in))` for Linear weight and bias, LayerNorm weight 1 / bias 0),
+    /// drawn from `rng`.
     pub fn init_params(&self, rng: &mut ChaCha8Rng) -> ParamSet {
         let mut p = ParamSet::default();
-        if self.arch.input_layernorm {
-            p.push("obs_in_ln.weight".into(), vec![self.obs_dim], vec![1.0; self.obs_dim]);
-            p.push("obs_in_ln.bias".into(), vec![self.obs_dim], vec![0.0; self.obs_dim]);
-        }
-        for l in self.layers() {
-            let bound = 1.0 / (l.input as f32).sqrt();
-            let wv: Vec<f32> =
-                (0..l.input * l.output).map(|_| rng.gen_range(-bound..bound)).collect();
-            let bv: Vec<f32> = (0..l.output).map(|_| rng.gen_range(-bound..bound)).collect();
-            p.push(format!("{}.weight", l.name), vec![l.output, l.input], wv);
-            p.push(format!("{}.bias", l.name), vec![l.output], bv);
-            if l.ln {
-                p.push(format!("{}.ln.weight", l.name), vec![l.output], vec![1.0; l.output]);
-                p.push(format!("{}.ln.bias", l.name), vec![l.output], vec![0.0; l.output]);
-            }
+        for t in self.arch.tensors(self.obs_dim, self.act_dim) {
+            let n: usize = t.shape.iter().product();
+            let values = match t.role {
+                TensorRole::Weight { fan_in } | TensorRole::Bias { fan_in } => {
+                    let bound = 1.0 / (fan_in as f32).sqrt();
+                    (0..n).map(|_| rng.gen_range(-bound..bound)).collect()
+                }
+                TensorRole::NormWeight => vec![1.0; n],
+                TensorRole::NormBias => vec![0.0; n],
+            };
+            p.push(t.name, t.shape, values);
         }
         p
     }
 
-    /// Check that `p` has exactly the tensors (names and shapes) this spec needs.
+    /// Check that `p` has exactly the tensors (names, shapes, order) this spec needs.
     pub fn check_params(&self, p: &ParamSet) -> Result<()> {
-        let want = self.init_params(&mut rand::SeedableRng::seed_from_u64(0));
-        ensure!(
-            want.len() == p.len(),
-            "expected {} tensors, found {} ({:?})",
-            want.len(),
-            p.len(),
-            p.names
-        );
-        for (n, s) in want.names.iter().zip(&want.shapes) {
-            let i = p.index(n).with_context(|| format!("missing tensor {n}"))?;
-            ensure!(&p.shapes[i] == s, "tensor {n}: shape {:?}, expected {:?}", p.shapes[i], s);
+        let want = self.arch.tensors(self.obs_dim, self.act_dim);
+        ensure!(want.len() == p.len(), "expected {} tensors, found {} ({:?})", want.len(), p.len(), p.names);
+        for (i, t) in want.iter().enumerate() {
+            ensure!(p.names[i] == t.name, "tensor {i} is {}, expected {}", p.names[i], t.name);
+            ensure!(p.shapes[i] == t.shape, "tensor {}: shape {:?}, expected {:?}", t.name, p.shapes[i], t.shape);
         }
         Ok(())
     }
@@ -310,7 +154,7 @@ impl CandleModel {
         }
         let mut sn = HashMap::new();
         if spec.arch.spectral_norm {
-            for l in spec.layers().into_iter().filter(|l| l.sn) {
+            for l in spec.layers().into_iter().filter(|l| l.spectral_norm) {
                 let u = unit_normal(rng, l.output);
                 let v = unit_normal(rng, l.input);
                 sn.insert(l.name, SnState { u, v });
@@ -564,25 +408,25 @@ pub fn spectral_norm_estimate(w: &[f32], m: usize, n: usize, iters: usize, seed:
     sigma_uv(w, &u, &v)
 }
 
-/// Convert a `ParamSet` into named candle tensors (for safetensors).
-pub fn params_to_tensors(p: &ParamSet) -> Result<HashMap<String, Tensor>> {
-    let mut m = HashMap::new();
-    for ((n, s), v) in p.names.iter().zip(&p.shapes).zip(&p.values) {
-        m.insert(n.clone(), Tensor::from_slice(v, s.as_slice(), &Device::Cpu)?);
+impl ParamSet {
+    /// The core's weights (for writing an artifact).
+    pub fn to_weights(&self) -> Result<Weights> {
+        let mut w = Weights::default();
+        for ((n, s), v) in self.names.iter().zip(&self.shapes).zip(&self.values) {
+            w.insert(n, s.clone(), v.clone())?;
+        }
+        Ok(w)
     }
-    Ok(m)
-}
 
-/// Build a `ParamSet` in `spec`'s order from named tensors.
-pub fn params_from_tensors(spec: &ModelSpec, t: &HashMap<String, Tensor>) -> Result<ParamSet> {
-    let want = spec.init_params(&mut rand::SeedableRng::seed_from_u64(0));
-    ensure!(t.len() == want.len(), "expected {} tensors, found {}", want.len(), t.len());
-    let mut p = ParamSet::default();
-    for (n, s) in want.names.iter().zip(&want.shapes) {
-        let x = t.get(n).with_context(|| format!("missing tensor {n}"))?;
-        ensure!(x.dtype() == DType::F32, "tensor {n} is not F32");
-        ensure!(x.dims() == s.as_slice(), "tensor {n}: shape {:?}, expected {:?}", x.dims(), s);
-        p.push(n.clone(), s.clone(), x.flatten_all()?.to_vec1::<f32>()?);
+    /// Parameters in `spec`'s order from the core's weights (already checked against the
+    /// artifact's configuration).
+    pub fn from_weights(spec: &ModelSpec, w: &Weights) -> Result<Self> {
+        let mut p = ParamSet::default();
+        for t in spec.arch.tensors(spec.obs_dim, spec.act_dim) {
+            let x = w.tensor(&t.name, &t.shape)?;
+            p.push(t.name, t.shape, x.data.clone());
+        }
+        ensure!(p.len() == w.len(), "the weights hold {} tensors, the architecture {}", w.len(), p.len());
+        Ok(p)
     }
-    Ok(p)
 }

@@ -14,12 +14,13 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
-use crate::data::{build_samples, Episode, InputSpec, Normalization, Samples, TimeEmbedTable};
+use crate::data::{build_samples, Episode, Fitted, InputSpec, Normalization, Samples, TimeEmbedTable};
 use crate::fast::{BatchSource, FastModel};
 use crate::loss::{objective, objective_host, LossConfig};
 use crate::metrics::{pearson, roc_auc};
 use crate::model::{Architecture, CandleModel, ExtraInput, Kind, ModelSpec, ParamSet, Variant};
 use crate::optim::{clip_grad_norm, linear_factor, AdamW, AdamWConfig};
+use verifier::ActionSpace;
 
 /// Which implementation computes forward/backward during training.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -59,8 +60,17 @@ pub struct TrainConfig {
     pub contrastive_margin: f64,
     /// Classifier: `||d|| = sqrt(sum d^2 + eps)`.
     pub contrastive_eps: f64,
-    /// Std of Gaussian noise added to the (layer-normed) observation at train time (features).
+    /// Std of Gaussian noise added to the (standardised, layer-normed when the architecture has
+    /// an input LayerNorm) observation at train time; both backends honour it.
     pub obs_noise_std: f64,
+    /// In which space the action chunk is fed: the policy's normalised space (the paper's
+    /// choice, the default; give the policy's normaliser `raw = x * scale + offset` so stored
+    /// raw actions are mapped into it) or `standardized` (raw chunks standardised with train-set
+    /// statistics, as before). Recorded in the artifact's `input.action_space`.
+    pub action_space: ActionSpace,
+    /// Floor of the standardisation std: a (near-)constant dimension is divided by this, not by
+    /// its tiny std (which multiplied it by up to 1e6), and named in a warning.
+    pub std_floor: f64,
     /// Threads for the fused path (data parallel). 1 measured fastest for the low-dim model.
     pub threads: usize,
     pub backend: Backend,
@@ -83,6 +93,8 @@ impl Default for TrainConfig {
             contrastive_margin: 1.0,
             contrastive_eps: 1e-9,
             obs_noise_std: 0.0,
+            action_space: ActionSpace::default(),
+            std_floor: 1e-3,
             threads: 1,
             backend: Backend::Auto,
         }
@@ -133,6 +145,8 @@ impl TrainConfig {
         ensure!(self.batch_size > 0, "batch_size must be > 0");
         ensure!(self.optimizer.lr > 0.0, "lr must be > 0");
         ensure!(self.gamma > 0.0 && self.gamma <= 1.0, "gamma must be in (0, 1]");
+        ensure!(self.obs_noise_std >= 0.0 && self.obs_noise_std.is_finite(), "obs_noise_std must be >= 0");
+        ensure!(self.std_floor > 0.0 && self.std_floor.is_finite(), "std_floor must be > 0");
         Ok(())
     }
 }
@@ -173,6 +187,9 @@ pub struct Metrics {
     pub seconds: f64,
     pub samples_per_second: f64,
     pub backend: String,
+    /// Data warnings (e.g. constant dimensions whose std was clamped).
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 /// The result of training: everything `artifact::write_artifact` needs.
@@ -181,6 +198,8 @@ pub struct Trained {
     pub spec: ModelSpec,
     pub input: InputSpec,
     pub norm: Normalization,
+    /// What the action input is (recorded in the artifact).
+    pub action_space: ActionSpace,
     /// Best weights, inference-ready (spectral norm folded in).
     pub params: ParamSet,
     pub config: TrainConfig,
@@ -230,7 +249,8 @@ enum Engine {
     Candle(Box<CandleModel>),
 }
 
-/// Train on prepared (raw, un-normalised) samples.
+/// Train on prepared (raw, un-normalised) samples. The step embedding width comes from `input`
+/// and must be even (sin/cos pairs), as every client requires.
 pub fn train_samples(
     mut tr: Samples,
     mut va: Samples,
@@ -244,8 +264,16 @@ pub fn train_samples(
     spec.arch.validate()?;
     ensure!(!tr.is_empty(), "no training samples");
     ensure!(tr.obs_dim == spec.obs_dim && tr.act_dim == spec.act_dim, "sample dims do not match the input spec");
+    cfg.action_space.validate(input.action_dim)?;
     let start = Instant::now();
-    let norm = Normalization::fit(&tr);
+    // Actions: into the policy's space (the paper), or standardised raw chunks (older recipe).
+    let standardize_actions = !cfg.action_space.is_policy();
+    cfg.action_space.raw_to_input(&mut tr.act, input.action_dim);
+    cfg.action_space.raw_to_input(&mut va.act, input.action_dim);
+    let Fitted { norm, warnings } = Normalization::fit(&tr, input, standardize_actions, cfg.std_floor as f32);
+    for w in &warnings {
+        tracing::warn!("{w}");
+    }
     norm.apply(&mut tr.obs, &mut tr.act);
     norm.apply(&mut va.obs, &mut va.act);
     let mut temb = TimeEmbedTable::new(spec.arch.t_embed_dim);
@@ -327,19 +355,18 @@ pub fn train_samples(
             } else {
                 None
             };
+            // Drawn in the same order for both backends, so they train the same model.
+            let obs_noise = noise.map(|d| (0..b * spec.obs_dim).map(|_| d.sample(&mut rng) as f32).collect::<Vec<_>>());
             let loss = match &mut engine {
                 Engine::Fast(f) => {
                     let src = BatchSource { obs: &tr.obs, act: &tr.act, t: &tr.t, temb: &temb };
-                    let l = f.loss_and_grads(&params, &src, rows, &tgt[..b], m, cfg.kind, &cfg.loss());
+                    let l = f.loss_and_grads(&params, &src, rows, &tgt[..b], m, obs_noise.as_deref(), cfg.kind, &cfg.loss());
                     for (g, s) in grads.iter_mut().zip(&f.grads) {
                         g.copy_from_slice(s);
                     }
                     l
                 }
-                Engine::Candle(model) => {
-                    let obs_noise = noise.map(|d| (0..b * spec.obs_dim).map(|_| d.sample(&mut rng) as f32).collect::<Vec<_>>());
-                    candle_step(model, &tr, &temb, rows, &tgt[..b], m, obs_noise, cfg, &mut grads)?
-                }
+                Engine::Candle(model) => candle_step(model, &tr, &temb, rows, &tgt[..b], m, obs_noise, cfg, &mut grads)?,
             };
             ensure!(loss.is_finite(), "training loss is not finite (epoch {epoch})");
             loss_sum += loss * b as f64;
@@ -418,11 +445,21 @@ pub fn train_samples(
                 seconds,
                 samples_per_second: samples_seen as f64 / seconds.max(1e-9),
                 backend: backend_name.into(),
+                warnings,
             },
         ),
         None => bail!("no epoch was run (epochs = 0)"),
     };
-    Ok(Trained { spec, input: input.clone(), norm, params: best_params, config: cfg.clone(), metrics, history })
+    Ok(Trained {
+        spec,
+        input: input.clone(),
+        norm,
+        action_space: cfg.action_space.clone(),
+        params: best_params,
+        config: cfg.clone(),
+        metrics,
+        history,
+    })
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -505,7 +542,7 @@ fn evaluate(
         let (y, z): (Vec<f32>, Vec<f32>) = match engine {
             Engine::Fast(f) => {
                 let src = BatchSource { obs: &va.obs, act: &va.act, t: &va.t, temb };
-                f.forward(params, &src, rows, None);
+                f.forward(params, &src, rows, None, None);
                 (f.y()[..rows.len()].to_vec(), f.z()[..rows.len() * zdim].to_vec())
             }
             Engine::Candle(m) => {

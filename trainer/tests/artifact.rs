@@ -58,7 +58,7 @@ fn write_load_score_roundtrip() {
         table.ensure(100);
         let mut f = FastModel::new(&t.spec, &t.params, s.len(), 1).unwrap();
         let idx: Vec<u32> = (0..s.len() as u32).collect();
-        f.forward(&t.params, &BatchSource { obs: &sn.obs, act: &sn.act, t: &sn.t, temb: &table }, &idx, None);
+        f.forward(&t.params, &BatchSource { obs: &sn.obs, act: &sn.act, t: &sn.t, temb: &table }, &idx, None, None);
         for (sc, y) in scores.iter().zip(f.y()) {
             let want = match kind {
                 Kind::Classifier => trainer::loss::sigmoid(*y),
@@ -86,15 +86,21 @@ fn tampered_or_unknown_artifacts_are_refused() {
     let old = trainer::artifact::sha256_hex(orig.as_bytes());
     std::fs::write(&mpath, m.replace(&old, &trainer::artifact::sha256_hex(&bytes))).unwrap();
     let e = load_artifact(dir.path()).err().unwrap().to_string();
-    assert!(e.contains("unknown architecture variant"), "{e}");
+    assert!(e.contains("unknown architecture.variant"), "{e}");
     // Wrong row width.
     std::fs::write(&p, &orig).unwrap();
     std::fs::write(&mpath, &m).unwrap();
     assert!(score_json(dir.path(), r#"{"rows":[{"obs":[1.0],"action":[1.0],"t":0}]}"#).is_err());
 }
 
+/// The artifact stores spectrally normalised weights already divided by sigma; its scores
+/// (through the verifier core) must equal the candle model WITH spectral norm active (weights
+/// W, sigma = u^T W v applied in the graph), on weights whose sigma is far from 1 so that a
+/// missing or wrong folding would show.
 #[test]
 fn features_artifact_scores_match_model_with_spectral_norm() {
+    use rand::SeedableRng;
+    use trainer::model::{CandleModel, TrainNoise};
     use trainer::Variant;
     let eps = common::action_task(6, 15, 1);
     let mut cfg = TrainConfig::preset(Kind::Classifier, Variant::Features);
@@ -104,14 +110,60 @@ fn features_artifact_scores_match_model_with_spectral_norm() {
     cfg.batch_size = 32;
     let mut spec = common::action_spec();
     spec.t_embed_dim = 8;
-    let t = trainer::train(&eps, &eps, &spec, &cfg).unwrap();
+    let mut t = trainer::train(&eps, &eps, &spec, &cfg).unwrap();
+    assert!(t.spec.arch.spectral_norm);
+    // A spectrally normalised model with large raw weights (sigma ~ 3).
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let mut raw = t.spec.init_params(&mut rng);
+    for (n, v) in raw.names.iter().zip(raw.values.iter_mut()) {
+        if n.ends_with(".weight") && !n.contains(".ln") && !n.starts_with("obs_in_ln") {
+            v.iter_mut().for_each(|x| *x *= 3.0);
+        }
+    }
+    let model = CandleModel::new(&t.spec, &raw, &mut rng).unwrap();
+    model.power_iteration(20).unwrap();
+    let sigma = model.sigma("trunk.0").unwrap();
+    assert!((sigma - 1.0).abs() > 0.5, "sigma {sigma} too close to 1 for the test to mean anything");
+    let rows: Vec<ScoreRow> = (0..6)
+        .map(|i| ScoreRow {
+            obs: (0..8).map(|k| ((i * 8 + k) as f32 * 0.61).sin()).collect(),
+            action: (0..8).map(|k| ((i * 3 + k) as f32 * 0.37).cos()).collect(),
+            t: (i * 5) as f64,
+            extras: Default::default(),
+        })
+        .collect();
+    // The candle graph with spectral norm on, on the artifact's standardisation.
+    let norm = t.norm.clone();
+    let eval = |m: &CandleModel| -> Vec<f32> {
+        let n = rows.len();
+        let mut obs: Vec<f32> = rows.iter().flat_map(|r| r.obs.clone()).collect();
+        let mut act: Vec<f32> = rows.iter().flat_map(|r| r.action.clone()).collect();
+        norm.apply(&mut obs, &mut act);
+        let mut temb = vec![0f32; n * 8];
+        for (k, r) in rows.iter().enumerate() {
+            trainer::data::time_embedding_into(r.t, &mut temb[k * 8..(k + 1) * 8]);
+        }
+        let bt = m.batch_tensors(n, &obs, &act, &temb, &[]).unwrap();
+        let (y, _) = m.forward(&bt, &TrainNoise::default()).unwrap();
+        y.to_vec1::<f32>().unwrap().into_iter().map(trainer::loss::sigmoid).collect()
+    };
+    let with_sn = eval(&model);
+    // Write the folded weights as the artifact and score through the core.
+    t.params = model.inference_params().unwrap();
     let dir = tempfile::tempdir().unwrap();
     write_artifact(dir.path(), &t, serde_json::json!({})).unwrap();
-    let a = load_artifact(dir.path()).unwrap();
     let cfg_json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("config.json")).unwrap()).unwrap();
     assert_eq!(cfg_json["architecture"]["spectral_norm"], true);
     assert_eq!(cfg_json["architecture"]["activation"], "gelu");
-    let rows = vec![ScoreRow { obs: vec![0.1; 8], action: vec![0.3; 8], t: 4.0, extras: Default::default() }];
-    let s = a.score(&rows).unwrap();
-    assert!(s[0] > 0.0 && s[0] < 1.0);
+    let a = load_artifact(dir.path()).unwrap();
+    let scores = a.score(&rows).unwrap();
+    for (k, (s, w)) in scores.iter().zip(&with_sn).enumerate() {
+        assert!((s - w).abs() < 1e-5, "row {k}: artifact {s} vs candle with spectral norm {w}");
+    }
+    // Without the division by sigma the scores are different: the comparison above can fail.
+    let mut no_sn = t.spec.clone();
+    no_sn.arch.spectral_norm = false;
+    let unfolded = CandleModel::new(&no_sn, &raw, &mut rng).unwrap();
+    let wrong = eval(&unfolded);
+    assert!(wrong.iter().zip(&with_sn).any(|(a, b)| (a - b).abs() > 1e-3), "folding sigma changed nothing");
 }

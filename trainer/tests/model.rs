@@ -210,7 +210,12 @@ fn fast_vs_candle(kind: Kind, threads: usize, portable: bool) {
     // Candle reference.
     let s = trainer::Samples { obs_dim: 46, act_dim: 40, obs: obs.clone(), act: act.clone(), t: t.clone(), ..Default::default() };
     let bt = trainer::train::gather_tensors(&model, &s, &table, &rows).unwrap();
-    let noise = TrainNoise { drop_mask: Some(Tensor::from_slice(&mask, (b, zdim), &Device::Cpu).unwrap()), obs_noise: None };
+    // Observation noise (obs_noise_std > 0): the fast path must honour it like the candle graph.
+    let obs_noise: Vec<f32> = rand_vec(&mut rng, b * spec.obs_dim).iter().map(|v| 0.05 * v).collect();
+    let noise = TrainNoise {
+        drop_mask: Some(Tensor::from_slice(&mask, (b, zdim), &Device::Cpu).unwrap()),
+        obs_noise: Some(Tensor::from_slice(&obs_noise, (b, spec.obs_dim), &Device::Cpu).unwrap()),
+    };
     let (y, z) = model.forward(&bt, &noise).unwrap();
     let loss = objective(kind, &y, &z, &target, &cfg).unwrap();
     let grads = loss.backward().unwrap();
@@ -220,7 +225,7 @@ fn fast_vs_candle(kind: Kind, threads: usize, portable: bool) {
         f.force_portable();
     }
     let src = BatchSource { obs: &obs, act: &act, t: &t, temb: &table };
-    let fl = f.loss_and_grads(&params, &src, &rows, &target, Some(&mask), kind, &cfg);
+    let fl = f.loss_and_grads(&params, &src, &rows, &target, Some(&mask), Some(&obs_noise), kind, &cfg);
     let cl = loss.to_scalar::<f32>().unwrap() as f64;
     assert!((fl - cl).abs() < 1e-5 * (1.0 + cl.abs()), "loss fast {fl} vs candle {cl}");
     let yv = y.to_vec1::<f32>().unwrap();
@@ -239,7 +244,7 @@ fn fast_vs_candle(kind: Kind, threads: usize, portable: bool) {
         }
     }
     // Eval-mode forward without mask.
-    f.forward(&params, &src, &rows, None);
+    f.forward(&params, &src, &rows, None, None);
     let (y2, _) = model.forward(&bt, &TrainNoise::default()).unwrap();
     for (a, b) in f.y()[..b].iter().zip(&y2.to_vec1::<f32>().unwrap()) {
         assert!((a - b).abs() < 1e-5 * (1.0 + b.abs()));

@@ -223,3 +223,90 @@ fn features_variant_trains_with_candle_backend() {
     // One power iteration per step: sigma estimate is close to, and never above, the true norm.
     assert!(s > 0.9 && s < 1.5, "sigma of the stored weight {s}");
 }
+
+#[test]
+fn fast_path_honours_observation_noise() {
+    // obs_noise_std on the lowdim model: the fused path adds the same noise as the candle graph
+    // (same draws), so both backends train alike — and differently from training without noise.
+    let eps = common::action_task(10, 20, 1);
+    let val = common::action_task(4, 20, 2);
+    let cfg = TrainConfig { epochs: 2, batch_size: 64, seed: 5, obs_noise_std: 0.3, ..Default::default() };
+    let fast = trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { backend: Backend::Fast, ..cfg.clone() }).unwrap();
+    let candle = trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { backend: Backend::Candle, ..cfg.clone() }).unwrap();
+    assert_eq!(fast.metrics.backend, "fast");
+    let diff = |a: &trainer::Trained, b: &trainer::Trained| {
+        a.params.values.iter().flatten().zip(b.params.values.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max)
+    };
+    assert!(diff(&fast, &candle) < 1e-3, "fast and candle diverge with noise: {}", diff(&fast, &candle));
+    let quiet = trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { obs_noise_std: 0.0, ..cfg }).unwrap();
+    assert!(diff(&fast, &quiet) > 1e-3, "the noise changed nothing: it was ignored");
+}
+
+#[test]
+fn odd_step_embedding_is_refused_at_train_time() {
+    let eps = common::action_task(4, 10, 1);
+    let mut spec = common::action_spec();
+    spec.t_embed_dim = 7;
+    let e = trainer::train(&eps, &[], &spec, &TrainConfig { epochs: 1, ..Default::default() }).unwrap_err();
+    assert!(format!("{e:#}").contains("even"), "{e:#}");
+}
+
+#[test]
+fn constant_dimensions_are_clamped_to_the_floor_and_named() {
+    let mut eps = common::action_task(6, 20, 1);
+    for e in &mut eps {
+        // "vel" constant up to float noise.
+        let vel = e.obs.iter_mut().find(|o| o.key == "vel").unwrap();
+        vel.values.iter_mut().enumerate().for_each(|(i, v)| *v = 0.25 + 1e-7 * (i % 2) as f32);
+    }
+    let cfg = TrainConfig { epochs: 1, batch_size: 64, ..Default::default() };
+    let t = trainer::train(&eps, &[], &common::action_spec(), &cfg).unwrap();
+    // obs = 2 steps of [pos (3), vel (1)]: dims 3 and 7 are the constant ones.
+    let floor = cfg.std_floor as f32;
+    for k in 0..8 {
+        if k == 3 || k == 7 {
+            assert_eq!(t.norm.obs_std[k], floor, "dim {k}");
+        } else {
+            assert!(t.norm.obs_std[k] > 0.5, "dim {k}: {}", t.norm.obs_std[k]);
+        }
+    }
+    let w = &t.metrics.warnings;
+    assert_eq!(w.len(), 2, "{w:?}");
+    assert!(w[0].contains("obs[3]") && w[0].contains("\"vel\"") && w[0].contains("history step 0"), "{}", w[0]);
+    assert!(w[1].contains("obs[7]") && w[1].contains("history step 1"), "{}", w[1]);
+    // A bad floor is a config error.
+    assert!(trainer::train(&eps, &[], &common::action_spec(), &TrainConfig { std_floor: 0.0, ..cfg }).is_err());
+}
+
+#[test]
+fn actions_are_fed_in_the_policy_space_by_default() {
+    // raw = x * scale + offset. Training on raw actions with the normaliser is training on the
+    // policy-space actions with no normaliser: nothing re-standardises them.
+    let (scale, offset) = (vec![2.0f32, 0.5], vec![1.0f32, -0.25]);
+    let raw = common::action_task(8, 20, 1);
+    let mut policy = raw.clone();
+    for e in &mut policy {
+        for (i, a) in e.actions.iter_mut().enumerate() {
+            *a = (*a - offset[i % 2]) / scale[i % 2];
+        }
+    }
+    let cfg = TrainConfig { epochs: 2, batch_size: 64, seed: 2, ..Default::default() };
+    assert_eq!(cfg.action_space, trainer::ActionSpace::default());
+    let with_norm = TrainConfig { action_space: trainer::ActionSpace::policy(scale.clone(), offset.clone()), ..cfg.clone() };
+    let a = trainer::train(&raw, &[], &common::action_spec(), &with_norm).unwrap();
+    let b = trainer::train(&policy, &[], &common::action_spec(), &cfg).unwrap();
+    assert!(a.norm.act_mean.iter().all(|m| *m == 0.0) && a.norm.act_std.iter().all(|s| *s == 1.0));
+    let d = a.params.values.iter().flatten().zip(b.params.values.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+    assert!(d < 1e-5, "policy-space training differs by {d}");
+    // The artifact records the normaliser; the older recipe records train-set statistics.
+    let dir = tempfile::tempdir().unwrap();
+    trainer::write_artifact(dir.path(), &a, serde_json::Value::Null).unwrap();
+    let c: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("config.json")).unwrap()).unwrap();
+    assert_eq!(c["input"]["action_space"], serde_json::json!({"space": "policy", "scale": [2.0, 0.5], "offset": [1.0, -0.25]}));
+    let s = trainer::train(&raw, &[], &common::action_spec(), &TrainConfig { action_space: trainer::ActionSpace::Standardized, ..cfg }).unwrap();
+    assert!(s.norm.act_mean[0] > 0.5 || s.norm.act_mean[0] < -0.5 || s.norm.act_std[0] != 1.0);
+    let dir = tempfile::tempdir().unwrap();
+    trainer::write_artifact(dir.path(), &s, serde_json::Value::Null).unwrap();
+    let c: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("config.json")).unwrap()).unwrap();
+    assert_eq!(c["input"]["action_space"], serde_json::json!({"space": "standardized"}));
+}

@@ -3,7 +3,7 @@
 //!
 //! It owns the recording's layout — entity paths, timelines (`step`, `time`), colours, the
 //! blueprint — and nothing else: episodes and steps come from the `store` crate, verifier scores
-//! from whoever implements [`EpisodeScorer`] (the binary, with the steer crate's verifier).
+//! from whoever implements [`EpisodeScorer`] ([`VerifierScorer`]: a verifier artifact through the verifier core).
 //! [`write_recording`] writes a file for `ufops view`; [`recording_bytes`] returns the same
 //! recording in memory for the API's `GET /v1/views`.
 //!
@@ -85,10 +85,21 @@ impl ViewOptions {
     }
 }
 
-/// Scores an episode's steps (the binary implements it with the steer crate's verifier).
+/// Scores an episode's steps ([`VerifierScorer`] with a verifier artifact; tests may bring
+/// their own).
 pub trait EpisodeScorer {
     /// One score per step of `batch` (a steps batch as returned by `Store::read_steps`).
     fn score_episode(&self, batch: &RecordBatch) -> Result<Vec<f32>, String>;
+}
+
+/// The viewer's scorer: a verifier artifact through the verifier core, each step's (obs
+/// history, chunk, t) built as the trainer builds them (`trainer::score_steps`).
+pub struct VerifierScorer(pub verifier::Verifier);
+
+impl EpisodeScorer for VerifierScorer {
+    fn score_episode(&self, batch: &RecordBatch) -> Result<Vec<f32>, String> {
+        trainer::score_steps(&self.0, batch).map_err(|e| format!("{e:#}"))
+    }
 }
 
 /// What went into a recording.

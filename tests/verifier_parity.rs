@@ -1,0 +1,166 @@
+//! One verifier core, every client. A lowdim classifier (actions in the policy's space, with a
+//! non-trivial normaliser) and a features/spectral-norm Q verifier are trained through the
+//! binary and published in a store; on the steps of a stored episode, the robot (steer's
+//! `Scorer`), `ufops score` (the binary, from the store, with policy-space and with raw
+//! actions), the viewer's scorer and the independent numpy reference give the same scores
+//! (1e-5); the gradients agree with each other, with finite differences, and with the trainer's
+//! candle graph and its autograd. The numpy part FAILS without python3 + numpy + safetensors
+//! when `UFOPS_REQUIRE_PYTHON=1` (scripts/test.sh sets it), and is skipped with a message
+//! otherwise.
+
+mod common;
+use common::*;
+
+use std::path::Path;
+use std::process::Command;
+
+use steer::Scorer;
+use viewer::EpisodeScorer;
+
+fn numpy_available() -> bool {
+    let importable = Command::new("python3").args(["-c", "import numpy, safetensors"]).status().is_ok_and(|s| s.success());
+    if !importable && std::env::var("UFOPS_REQUIRE_PYTHON").as_deref() == Ok("1") {
+        panic!("UFOPS_REQUIRE_PYTHON=1: python3 with numpy and safetensors is required for the numpy reference");
+    }
+    importable
+}
+
+fn floats(v: &serde_json::Value) -> Vec<f32> {
+    v.as_array().unwrap_or_else(|| panic!("not an array: {v}")).iter().map(|x| x.as_f64().unwrap() as f32).collect()
+}
+
+fn nested(v: &serde_json::Value) -> Vec<f32> {
+    v.as_array().unwrap().iter().flat_map(floats).collect()
+}
+
+/// `got` equals `want` to `tol` (relative to max(1, |want|)).
+fn same(what: &str, got: &[f32], want: &[f32], tol: f32) {
+    assert_eq!(got.len(), want.len(), "{what}: lengths");
+    for (i, (g, w)) in got.iter().zip(want).enumerate() {
+        assert!((g - w).abs() <= tol * w.abs().max(1.0), "{what}[{i}]: {g} vs {w}");
+    }
+}
+
+fn rows_json(path: &Path, obs: &[f32], act: &[f32], t: &[u32]) {
+    let (n, od, ad) = (t.len(), obs.len() / t.len(), act.len() / t.len());
+    let rows: Vec<serde_json::Value> = (0..n)
+        .map(|i| serde_json::json!({"obs": &obs[i * od..(i + 1) * od], "action": &act[i * ad..(i + 1) * ad], "t": t[i]}))
+        .collect();
+    std::fs::write(path, serde_json::json!({ "rows": rows }).to_string()).unwrap();
+}
+
+#[test]
+fn every_client_gives_the_same_scores_and_gradients() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = Target::sqlite(dir.path());
+    t.ok(&["init"]);
+    t.ok(&["dev", "synth", "--episodes", "40", "--steps", "30", "--seed", "5"]);
+    let split = t.json(&["split", "create", "--policy", "synth", "--checkpoint", "ckpt-0", "--json"]);
+    let split = split["id"].as_str().unwrap().to_string();
+    let lowdim = dir.path().join("lowdim.json");
+    std::fs::write(&lowdim, r#"{"epochs": 3}"#).unwrap();
+    t.ok(&[
+        "train", "--split", &split, "--kind", "classifier", "--config", lowdim.to_str().unwrap(),
+        "--action-scale", "0.5", "2.0", "--action-offset", "0.1", "0",
+    ]);
+    let mut f = trainer::TrainConfig::preset(trainer::Kind::Q, trainer::Variant::Features);
+    f.architecture.encoder_width = 16;
+    f.architecture.t_embed_dim = 16;
+    f.architecture.trunk_dims = vec![32, 16];
+    f.epochs = 3;
+    f.batch_size = 256;
+    let features = dir.path().join("features.json");
+    std::fs::write(&features, serde_json::to_string(&f).unwrap()).unwrap();
+    t.ok(&["train", "--split", &split, "--kind", "q", "--config", features.to_str().unwrap()]);
+
+    // The steps of a stored episode: what the viewer scores.
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    let batch = rt.block_on(async {
+        let store = store::Store::open(&store::StoreConfig::local(dir.path())).await.unwrap();
+        let filter = store::EpisodeFilter { policy: Some("synth".into()), limit: Some(1), ..Default::default() };
+        let ep = store.episodes(&filter).await.unwrap().remove(0);
+        store.read_steps(&ep.id, None).await.unwrap()
+    });
+    let numpy = numpy_available();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/python/reference/ufops_reference.py");
+
+    for (reference, name) in [("synth/ckpt-0/classifier@latest", "classifier"), ("synth/ckpt-0/q@latest", "q")] {
+        let local = dir.path().join(name);
+        t.ok(&["artifacts", "download", reference, local.to_str().unwrap()]);
+        let robot = steer::Verifier::load_dir(&local).unwrap();
+        let cfg = robot.config();
+        match name {
+            "classifier" => {
+                assert_eq!(cfg.architecture.variant, verifier::Variant::Lowdim);
+                assert_eq!(cfg.input.action_space, verifier::ActionSpace::policy(vec![0.5, 2.0], vec![0.1, 0.0]));
+            }
+            _ => {
+                let a = &cfg.architecture;
+                assert!(a.variant == verifier::Variant::Features && a.spectral_norm && a.input_layernorm && a.encoder_layernorm);
+                assert_eq!(a.activation, verifier::Activation::Gelu);
+            }
+        }
+        let s = trainer::step_inputs(cfg, &batch).unwrap();
+        let (n, ad) = (s.len(), s.act_dim);
+        assert!(n >= 10, "{name}: {n} steps");
+
+        // The robot: steer's Scorer.
+        let scores = robot.score_batch(&s.obs, &s.t, &s.act, 1).unwrap();
+        let grads = robot.grad_batch(&s.obs, &s.t, &s.act).unwrap();
+        assert!(grads.iter().any(|g| g.abs() > 1e-4), "{name}: the gradient is trivially zero");
+
+        // The viewer's scorer, on the stored steps themselves.
+        let viewer_scores = viewer::VerifierScorer(verifier::Verifier::load_dir(&local).unwrap()).score_episode(&batch).unwrap();
+        same(&format!("{name}: viewer scores"), &viewer_scores, &scores, 1e-5);
+
+        // `ufops score` from the store, with policy-space rows and with raw rows.
+        let rows = dir.path().join(format!("{name}-rows.json"));
+        rows_json(&rows, &s.obs, &s.act, &s.t);
+        let cli = t.json(&["score", "--artifact", reference, "--input", rows.to_str().unwrap(), "--grad"]);
+        same(&format!("{name}: ufops score"), &floats(&cli["scores"]), &scores, 1e-5);
+        same(&format!("{name}: ufops score --grad"), &nested(&cli["grads"]), &grads, 1e-5);
+        let mut raw = s.act.clone();
+        cfg.input.action_space.input_to_raw(&mut raw, cfg.input.layout.action_dim);
+        let raw_rows = dir.path().join(format!("{name}-raw-rows.json"));
+        rows_json(&raw_rows, &s.obs, &raw, &s.t);
+        let cli_raw = t.json(&["score", "--artifact", reference, "--input", raw_rows.to_str().unwrap(), "--raw-actions"]);
+        same(&format!("{name}: ufops score --raw-actions"), &floats(&cli_raw["scores"]), &scores, 1e-5);
+
+        // The trainer's candle graph and its autograd.
+        let art = trainer::load_artifact(&local).unwrap();
+        let score_rows = trainer::parse_rows(&std::fs::read_to_string(&rows).unwrap()).unwrap();
+        let (cs, cg) = art.candle_scores_and_grads(&score_rows).unwrap();
+        same(&format!("{name}: candle scores"), &cs, &scores, 1e-5);
+        same(&format!("{name}: candle autograd"), &cg.concat(), &grads, 1e-5);
+
+        // Finite differences of the robot's own scores (log C for the classifier), a few rows.
+        for r in [0, n / 2, n - 1] {
+            let obj = |c: &[f32]| -> f64 {
+                let v = robot.score_batch(&s.obs[r * s.obs_dim..(r + 1) * s.obs_dim], &s.t[r..r + 1], c, 1).unwrap()[0] as f64;
+                if name == "q" { v } else { v.ln() }
+            };
+            let chunk = &s.act[r * ad..(r + 1) * ad];
+            for j in 0..ad {
+                let h = 1e-2f32;
+                let (mut p, mut m) = (chunk.to_vec(), chunk.to_vec());
+                p[j] += h;
+                m[j] -= h;
+                let fd = (obj(&p) - obj(&m)) / (2.0 * h as f64);
+                let g = grads[r * ad + j] as f64;
+                assert!((fd - g).abs() < 2e-3 + 2e-2 * fd.abs(), "{name} row {r} d/da[{j}]: finite difference {fd} vs {g}");
+            }
+        }
+
+        // The independent numpy reference (float64, hand-written backprop).
+        if numpy {
+            let out = Command::new("python3").arg(&script).arg(&local).arg(&rows).output().unwrap();
+            assert!(out.status.success(), "{name}: numpy reference failed: {}", String::from_utf8_lossy(&out.stderr));
+            let py: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+            assert_eq!(py["artifact_id"].as_str(), robot.id());
+            same(&format!("{name}: numpy scores"), &floats(&py["scores"]), &scores, 1e-5);
+            same(&format!("{name}: numpy gradients"), &nested(&py["grads"]), &grads, 1e-5);
+        } else {
+            eprintln!("SKIPPED the numpy reference: python3 with numpy and safetensors is not importable");
+        }
+    }
+}

@@ -1,0 +1,54 @@
+//! `verifier`: the ufops verifier core — the inference contract of a verifier artifact, once.
+//!
+//! It owns the artifact format (`config.json` and `manifest.json` types, [`format`]; the
+//! contract is trainer/ARTIFACT.md), loading with every file checked against its sha256 (from a
+//! directory, from bytes, or through any getter so the store and HTTP plug in: [`Artifact`]),
+//! the artifact id, the weights and the one list of tensor names and shapes ([`Weights`],
+//! [`Architecture::tensors`]), the step embedding, and the forward pass and its gradient w.r.t.
+//! the action chunk for every variant ([`Verifier`]), with AVX2/FMA kernels chosen at run time
+//! and a portable fallback ([`kernels`], which the trainer's fused training path shares). It
+//! also builds the files the trainer writes ([`ArtifactFiles`]).
+//!
+//! It has no heavy dependencies: `steer` (on the robot) and the Python package bind it. It does
+//! not train (the `trainer` crate), sample policies or steer them (the `steer` crate).
+//!
+//! ```no_run
+//! let v = verifier::Verifier::load_dir("artifact/")?;
+//! let obs = vec![0.0; v.obs_dim()];
+//! let candidates = vec![0.0; 10 * v.act_dim()];
+//! let scores = v.score(&obs, &[7], &candidates, 10)?; // 10 scores
+//! let grad = v.grad(&obs, &[7], &candidates[..v.act_dim()])?; // d log C / d chunk
+//! # Ok::<(), verifier::VerifierError>(())
+//! ```
+
+pub mod artifact;
+pub mod error;
+pub mod format;
+pub mod kernels;
+mod math;
+mod net;
+pub mod testutil;
+pub mod weights;
+
+pub use artifact::{Artifact, ArtifactFiles};
+pub use error::{Result, VerifierError};
+pub use format::{
+    is_plain_name, ActionSpace, Activation, Architecture, ArtifactConfig, ExtraInput, ExtraInputSpec, InputConfig,
+    InputLayout, Kind, LinearSpec, Manifest, ObsKey, TensorRole, TensorSpec, Variant, CONFIG_FILE, MANIFEST_FILE,
+    MODEL_FILE, SCHEMA_VERSION,
+};
+pub use math::{sigmoid, time_embedding_into};
+pub use net::Verifier;
+pub use weights::{Tensor, Weights};
+
+use sha2::{Digest, Sha256};
+
+/// Lower-case hex sha256 of `bytes`.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    hex::encode(Sha256::digest(bytes))
+}
+
+/// The artifact id: the first 16 hex digits of sha256(manifest.json bytes).
+pub fn artifact_id(manifest_bytes: &[u8]) -> String {
+    sha256_hex(manifest_bytes)[..16].to_string()
+}
