@@ -1,7 +1,7 @@
 //! Latency at the paper's Square dimensions (obs 46, chunk 16 x 10, lowdim: encoders 64, t-emb 64,
 //! trunk 128 -> 64), random weights, one thread: BoN(10) scoring (+ argmax) and one CG gradient
 //! through the `Scorer` trait (the verifier core's kernels: AVX2/FMA and the portable fallback),
-//! and the PyTorch eager peer (/work/shared/bench/torch_bon_latency.py) measured in the same run
+//! and the PyTorch eager peer (bench/reference/torch_bon_latency.py) measured in the same run
 //! when `python3 -c "import torch"` works. Run with `cargo bench -p steer`.
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -26,7 +26,7 @@ fn measure(iters: usize, mut f: impl FnMut()) -> (f64, f64) {
 }
 
 fn torch_peer() -> Option<(f64, f64, f64, f64)> {
-    let script = std::path::Path::new("/work/shared/bench/torch_bon_latency.py");
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../bench/reference/torch_bon_latency.py");
     if !script.exists() {
         return None;
     }

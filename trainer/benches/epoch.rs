@@ -1,6 +1,6 @@
 //! Training throughput on synthetic Square-sized data (302,400 samples, obs 46, action chunk 160,
 //! the paper's low-dim contrastive classifier, batch 1024), and the PyTorch peer measured in the
-//! same run (`/work/shared/bench/torch_verifier_epoch.py`, or `UFOPS_TORCH_EPOCH_SCRIPT`; skipped
+//! same run (`bench/reference/torch_verifier_epoch.py`, or `UFOPS_TORCH_EPOCH_SCRIPT`; skipped
 //! when torch is not importable). Run: `cargo bench -p trainer`.
 //! Env: `UFOPS_BENCH_SAMPLES` (default 302400), `UFOPS_BENCH_EPOCHS` (default 2),
 //! `UFOPS_BENCH_BACKENDS` (default "fast", comma list of fast,candle), `UFOPS_BENCH_THREADS`
@@ -29,7 +29,7 @@ fn cpu_seconds() -> Option<f64> {
 /// Samples/s of the PyTorch peer (one thread) at its median epoch time, taken like ours (sorted
 /// epoch times, index len/2), parsed from its "N samples/s" lines.
 fn torch_peer(n: usize, epochs: usize) -> Option<f64> {
-    let script = std::env::var("UFOPS_TORCH_EPOCH_SCRIPT").unwrap_or_else(|_| "/work/shared/bench/torch_verifier_epoch.py".into());
+    let script = std::env::var("UFOPS_TORCH_EPOCH_SCRIPT").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/../bench/reference/torch_verifier_epoch.py").into());
     if !std::path::Path::new(&script).exists() {
         return None;
     }
