@@ -4,7 +4,8 @@
 //! * tasks: v2.1 `meta/tasks.jsonl`; v3.0 `meta/tasks.parquet`.
 //! * episodes: v2.1 `meta/episodes.jsonl`; v3.0 `meta/episodes/chunk-*/file-*.parquet` with
 //!   `dataset_from_index` / `dataset_to_index` and `videos/<key>/{chunk,file}_index,from_timestamp`.
-//! * data Parquet (fixed-size or variable lists, or scalars) is streamed batch by batch.
+//! * data Parquet (fixed-size or variable lists, or scalars) is streamed batch by batch, page by
+//!   page: memory is bounded by an episode and a batch, not by the file.
 //! * `video` features become [`MediaColumn`] references (each frame's time inside the shared
 //!   mp4) plus one [`MediaFile`] per mp4 (content-addressed, emitted once); `image` features
 //!   (PNG bytes in a `struct<bytes, path>` column) become [`ImageColumn`]s.
@@ -950,8 +951,11 @@ pub fn read_dir(root: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> 
 }
 
 fn stream_data<R: ChunkReader + 'static>(path: &Path, r: R, plan: &Plan, emit: &mut dyn FnMut(EpBuf) -> Result<()>) -> Result<()> {
+    // Rows are decoded a batch at a time, page by page from the file (the sync reader reads
+    // pages, not whole row groups); PNG image columns make a row KBs, so their batches are small.
+    let batch_rows = if plan.images.is_empty() { 4096 } else { 64 };
     let reader = checked_builder(path, r)?
-        .with_batch_size(4096)
+        .with_batch_size(batch_rows)
         .build()
         .map_err(|e| IngestError::invalid(path, format!("not a readable Parquet file: {e}")))?;
     let mut dr = DataReader { plan, cur: None };

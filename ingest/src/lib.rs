@@ -28,7 +28,7 @@ pub mod sink;
 use std::path::Path;
 
 pub use error::IngestError;
-pub use options::{Format, IngestOptions, ReadOptions};
+pub use options::{Format, IngestOptions, MemoryBudget, ReadOptions};
 pub use pipeline::{ingest, IngestReport, LabelCounts};
 
 use error::Result;

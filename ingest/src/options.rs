@@ -72,6 +72,37 @@ pub struct IngestOptions {
     pub recover: bool,
     /// Show a progress bar (only honoured when stderr is a terminal).
     pub progress: bool,
+    /// How much memory the ingest may hold (the defaults suit any source size).
+    pub memory: MemoryBudget,
+}
+
+/// What one ingest may hold in memory, whatever the source's size: readers decode one episode
+/// at a time, and these bound the buffers between the reader and the object store. With the
+/// defaults a multi-GB source is ingested in a few hundred MB; tests shrink them to check that
+/// memory does not grow with the source.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MemoryBudget {
+    /// Decoded episodes on their way from the reader to the writer (one always passes, however
+    /// large: an episode is the unit of work).
+    pub in_flight_bytes: usize,
+    /// Encoded steps the writer may hold while the source's sha256 (the episode ids' prefix) is
+    /// still being computed; past it the reader waits for the hash.
+    pub unhashed_bytes: usize,
+    /// Encoded bytes of the row group being filled (the store's default row group size).
+    pub row_group_bytes: usize,
+    /// Bytes of the steps file being filled before it is uploaded and the next one begins.
+    pub file_bytes: usize,
+}
+
+impl Default for MemoryBudget {
+    fn default() -> Self {
+        MemoryBudget {
+            in_flight_bytes: 64 << 20,
+            unhashed_bytes: 96 << 20,
+            row_group_bytes: store::steps::ROW_GROUP_MAX_BYTES,
+            file_bytes: store::MAX_STEPS_FILE_BYTES,
+        }
+    }
 }
 
 /// Success labels given by the user in a side file.
@@ -174,10 +205,6 @@ pub struct ReadOptions {
     pub recover: bool,
     pub policy: String,
     pub checkpoint: String,
-    /// Ask the reader to report the source's sha256 ([`crate::sink::EpisodeSink::source_hash`])
-    /// when it can hash bytes it holds anyway (a robomimic file loaded whole), sparing a second
-    /// read of the file. Readers that cannot leave it to the caller.
-    pub hash_source: bool,
 }
 
 impl ReadOptions {
@@ -192,7 +219,6 @@ impl ReadOptions {
             recover: opts.recover,
             policy: opts.policy.clone(),
             checkpoint: opts.checkpoint.clone(),
-            hash_source: false,
         })
     }
 

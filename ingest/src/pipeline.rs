@@ -1,21 +1,23 @@
 //! The async glue: one ingest = one store version, all or nothing.
 //!
-//! The format reader runs on a blocking thread and pushes into a bounded channel (so memory stays
-//! bounded: at most [`CHANNEL_DEPTH`] episodes in flight); the source's sha256 is computed on a
-//! second blocking thread at the same time. Once the hash and the source metadata are known the
-//! store's `IngestWriter` is opened and fed; any error aborts it, so the store stays exactly as
-//! it was.
+//! The format reader runs on a blocking thread and pushes into a bounded channel (at most
+//! [`CHANNEL_DEPTH`] episodes and [`MemoryBudget::in_flight_bytes`] in flight); the source's
+//! sha256 is computed on a second blocking thread reading the file itself at the same time. The
+//! store's `IngestWriter` encodes episodes as they come; until the hash (the episode ids' prefix)
+//! is known it holds at most [`MemoryBudget::unhashed_bytes`] of encoded steps, then the reader
+//! waits for the hash. Memory is therefore bounded by an episode and the budgets, never by the
+//! source. Any error aborts the writer, so the store stays exactly as it was.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
 
 use crate::error::{IngestError, Result};
 use crate::model::{EpisodeInput, Label, MediaFile, SourceInput};
-use crate::options::{Format, IngestOptions, ReadOptions};
+use crate::options::{Format, IngestOptions, MemoryBudget, ReadOptions};
 use crate::sink::{EpisodeSink, SourceMeta};
 
 /// Episodes (or media files) buffered between the reader thread and the store writer.
@@ -85,12 +87,17 @@ impl std::fmt::Display for IngestReport {
 enum Msg {
     Source(SourceMeta),
     Media(MediaFile),
-    Episode(Box<EpisodeInput>),
-    Hash(String, u64),
+    /// An episode and its share of the in-flight budget, returned once it is encoded.
+    Episode(Box<EpisodeInput>, OwnedSemaphorePermit),
 }
 
+/// The reader's end: a bounded channel plus a byte budget, a semaphore of KiB permits (an
+/// episode larger than the whole budget takes all of it, so it passes alone).
 struct ChannelSink {
     tx: mpsc::Sender<Msg>,
+    in_flight: Arc<Semaphore>,
+    budget_kib: u32,
+    runtime: tokio::runtime::Handle,
 }
 
 impl ChannelSink {
@@ -107,10 +114,39 @@ impl EpisodeSink for ChannelSink {
         self.send(Msg::Media(file))
     }
     fn episode(&mut self, episode: EpisodeInput) -> Result<()> {
-        self.send(Msg::Episode(Box::new(episode)))
+        let kib = (approx_bytes(&episode) / 1024 + 1).min(self.budget_kib as usize) as u32;
+        // Blocks this (blocking-pool) thread until enough earlier episodes were encoded; fails
+        // once the writer's side gave up (the semaphore is closed).
+        let permit = self
+            .runtime
+            .block_on(self.in_flight.clone().acquire_many_owned(kib))
+            .map_err(|_| IngestError::Cancelled)?;
+        self.send(Msg::Episode(Box::new(episode), permit))
     }
-    fn source_hash(&mut self, sha256: String, size: u64) -> Result<()> {
-        self.send(Msg::Hash(sha256, size))
+}
+
+/// Heap bytes of an episode's step data (what the in-flight budget counts).
+fn approx_bytes(ep: &EpisodeInput) -> usize {
+    let floats = ep.observations.iter().map(|o| o.values.len()).sum::<usize>()
+        + ep.action.values.len()
+        + ep.reward.len()
+        + ep.action_chunk.as_ref().map_or(0, |c| c.values.len());
+    let images: usize = ep.images.iter().flat_map(|im| im.png_frames.iter().map(|f| f.len() + 24)).sum();
+    let media: usize = ep.media.iter().map(|m| m.timestamps.len() * 8).sum();
+    floats * 4 + ep.timestamps.len() * 8 + ep.done.len() + images + media
+}
+
+/// The writer's side of the channel: closing it makes a reader waiting on the channel or on the
+/// budget stop with [`IngestError::Cancelled`].
+struct Feed {
+    rx: mpsc::Receiver<Msg>,
+    in_flight: Arc<Semaphore>,
+}
+
+impl Feed {
+    fn close(&mut self) {
+        self.rx.close();
+        self.in_flight.close();
     }
 }
 
@@ -164,42 +200,45 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
     if opts.policy.trim().is_empty() || opts.checkpoint.trim().is_empty() {
         return Err(IngestError::Usage("--policy and --checkpoint are required".into()));
     }
-    let mut read_opts = ReadOptions::from_ingest(opts)?;
+    let read_opts = ReadOptions::from_ingest(opts)?;
     let format = match opts.format {
         Format::Auto => crate::detect(path)?,
         f => f,
     };
     let total = source_size(path)?;
 
-    // Hash the source on its own thread while the reader decodes; a robomimic file read whole is
-    // hashed by its reader from the bytes it already holds (no second read of the file).
+    // Hash the source on its own thread, reading the file itself (sequentially, in 4 MB
+    // buffers), while the reader decodes it.
     let hashed = Arc::new(AtomicU64::new(0));
-    read_opts.hash_source = format == Format::Robomimic
-        && std::fs::metadata(path).map(|m| m.is_file()).unwrap_or(false)
-        && total <= crate::robomimic::STREAMING_THRESHOLD;
-    let hash_task = (!read_opts.hash_source).then(|| {
+    let hash_task = {
         let p = path.to_path_buf();
         let h = hashed.clone();
-        tokio::task::spawn_blocking(move || crate::hashing::hash_path_progress(&p, Some(&h)))
-    });
+        Some(tokio::task::spawn_blocking(move || crate::hashing::hash_path_progress(&p, Some(&h))))
+    };
 
-    let (tx, mut rx) = mpsc::channel::<Msg>(CHANNEL_DEPTH);
+    let MemoryBudget { in_flight_bytes, unhashed_bytes, row_group_bytes, file_bytes } = opts.memory;
+    let (tx, rx) = mpsc::channel::<Msg>(CHANNEL_DEPTH);
+    let budget_kib = (in_flight_bytes / 1024).clamp(1, Semaphore::MAX_PERMITS.min(u32::MAX as usize)) as u32;
+    let mut feed = Feed { rx, in_flight: Arc::new(Semaphore::new(budget_kib as usize)) };
     let reader = {
         let p = path.to_path_buf();
-        tokio::task::spawn_blocking(move || {
-            let mut sink = ChannelSink { tx };
-            crate::read_path_report(&p, format, &read_opts, &mut sink)
-        })
+        let mut sink = ChannelSink {
+            tx,
+            in_flight: feed.in_flight.clone(),
+            budget_kib,
+            runtime: tokio::runtime::Handle::current(),
+        };
+        tokio::task::spawn_blocking(move || crate::read_path_report(&p, format, &read_opts, &mut sink))
     };
 
     let progress = Progress::new(opts.progress, total);
 
     // The first message is the source metadata (or the channel closes on a reader error).
-    let first = rx.recv().await;
+    let first = feed.rx.recv().await;
     let meta = match first {
         Some(Msg::Source(m)) => m,
         Some(_) => {
-            drop(rx);
+            feed.close();
             let _ = reader.await;
             return Err(IngestError::Usage("internal error: reader sent data before the source".into()));
         }
@@ -237,10 +276,13 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
     };
     // The writer encodes episodes while the hash is still being computed; nothing is written to
     // object storage before the hash is known (and checked against the store).
-    let mut writer = match store.begin_ingest_unhashed(source, &opts.policy, &opts.checkpoint) {
+    let writer = store
+        .begin_ingest_unhashed(source, &opts.policy, &opts.checkpoint)
+        .map(|w| w.with_max_file_bytes(file_bytes).with_max_row_group_bytes(row_group_bytes));
+    let mut writer = match writer {
         Ok(w) => w,
         Err(e) => {
-            drop(rx);
+            feed.close();
             let _ = reader.await;
             if let Some(h) = hash_task {
                 let _ = h.await;
@@ -252,8 +294,6 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
 
     enum Fed {
         Done,
-        /// The channel closed without the reader reporting the hash it was asked for.
-        NoHash,
         AlreadyIngested(i64),
     }
     enum Event {
@@ -261,7 +301,6 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
         Msg(Option<Msg>),
     }
     let mut hash_task = hash_task;
-    let mut hash_known = false;
     // Robomimic: the source's metadata says how many episodes to expect (progress without a
     // separate hashing pass to count bytes).
     let expected_episodes = meta_episodes.filter(|&n| n > 0);
@@ -269,19 +308,21 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
     let fed: Result<Fed> = async {
         let mut open = true;
         while open || hash_task.is_some() {
+            // Until the hash is known the writer holds what it encodes: past the budget, stop
+            // taking episodes (the reader blocks on the channel) and wait for the hash.
+            let take = open && (hash_task.is_none() || writer.unhashed_bytes() < unhashed_bytes);
             let ev = tokio::select! {
                 biased;
                 h = async { hash_task.as_mut().expect("guarded").await }, if hash_task.is_some() => {
                     Event::Hash(h.map_err(join_err).and_then(|r| r))
                 }
-                m = rx.recv(), if open => Event::Msg(m),
+                m = feed.rx.recv(), if take => Event::Msg(m),
             };
             let (sha256, size) = match ev {
                 Event::Hash(h) => {
                     hash_task = None;
                     h?
                 }
-                Event::Msg(Some(Msg::Hash(sha, n))) => (sha, n),
                 Event::Msg(None) => {
                     open = false;
                     continue;
@@ -292,7 +333,7 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
                     report.media_files += 1;
                     continue;
                 }
-                Event::Msg(Some(Msg::Episode(ep))) => {
+                Event::Msg(Some(Msg::Episode(ep, permit))) => {
                     report.episodes += 1;
                     report.steps += ep.len() as u64;
                     match ep.label {
@@ -301,6 +342,8 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
                         Label::Unknown => report.labels.unknown += 1,
                     }
                     writer.push_episode(*ep).await.map_err(|e| store_err(path, e))?;
+                    // Encoded: its decoded columns are gone, so is its share of the budget.
+                    drop(permit);
                     let pos = match expected_episodes {
                         Some(n) if hash_task.is_none() => total.saturating_mul(report.episodes as u64) / n,
                         _ => hashed.load(Ordering::Relaxed),
@@ -310,7 +353,6 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
                 }
             };
             // The source's hash: check the store for it; from now on files can be written.
-            hash_known = true;
             report.sha256 = sha256.clone();
             report.bytes = size;
             match writer.set_source_hash(&sha256, size).await {
@@ -319,10 +361,10 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
                 Err(e) => return Err(store_err(path, e)),
             }
         }
-        Ok(if hash_known { Fed::Done } else { Fed::NoHash })
+        Ok(Fed::Done)
     }
     .await;
-    drop(rx);
+    feed.close();
     if let Some(h) = hash_task.take() {
         let _ = h.await;
     }
@@ -342,9 +384,6 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
         (Err(e), _) => Err(e),
         (Ok(_), Err(e)) => Err(e),
         (Ok(_), Ok(Err(e))) => Err(e),
-        (Ok(Fed::NoHash), Ok(Ok(_))) => {
-            Err(IngestError::invalid(path, "internal error: the reader did not report the file's hash"))
-        }
         (Ok(_), Ok(Ok(out))) => Ok(out),
     };
     let outcome = match outcome {

@@ -2,8 +2,8 @@
 //! states}`, attributes `data@total`, `data@env_args` (JSON), `demo@num_samples`,
 //! `demo@model_file`, and `mask/<filter>` lists of demo names.
 //!
-//! Read with `hdf5-pure` (no system library). Small files are loaded whole; files above
-//! [`STREAMING_THRESHOLD`] are opened with the streaming backend (bounded memory).
+//! Read with `hdf5-pure` (no system library) through positioned reads of the file, one demo at
+//! a time: memory is bounded by a demo, not by the file.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
@@ -17,58 +17,49 @@ use crate::model::{EpisodeInput, ImageColumn, Label, VectorColumn};
 use crate::options::ReadOptions;
 use crate::sink::{EpisodeSink, SourceMeta};
 
-/// Files larger than this are read with `File::open_streaming` instead of being loaded whole.
-pub const STREAMING_THRESHOLD: u64 = 2 << 30;
+/// Budget of the metadata cache of the streaming reader (object headers, B-tree and heap blocks
+/// of the demo groups are read once each; a few MB keeps the ones still in use).
+const METADATA_CACHE_BYTES: usize = 8 << 20;
 
 /// Attribute values larger than this (e.g. the ~38 KB MuJoCo `model_file` per demo) are not
 /// copied into episode metadata; their sha256 and length are kept instead.
 const MAX_ATTR_CHARS: usize = 4096;
 
-/// Reads a robomimic file from disk.
-pub fn read_file(path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<()> {
-    let size = std::fs::metadata(path).map_err(|e| IngestError::io(path, e))?.len();
-    check_signature_file(path)?;
-    let file = if size > STREAMING_THRESHOLD {
-        File::open_streaming(path)
-    } else {
-        let bytes = std::fs::read(path).map_err(|e| IngestError::io(path, e))?;
-        File::from_bytes(bytes)
-    }
-    .map_err(|e| IngestError::invalid(path, format!("not a readable HDF5 file: {e}")))?;
-    let bytes = file.as_bytes();
-    if !opts.hash_source || bytes.is_empty() {
-        return read_h5(&file, path, opts, sink, None);
-    }
-    // The whole file is in memory: hash it on a second thread while the demos are decoded
-    // (no second read of the file), and report the hash as soon as it is ready.
-    std::thread::scope(|s| {
-        let (tx, rx) = std::sync::mpsc::channel();
-        s.spawn(move || {
-            let _ = tx.send((crate::hashing::hash_bytes(bytes), bytes.len() as u64));
-        });
-        let mut pending = Some(rx);
-        read_h5(&file, path, opts, sink, Some(&mut pending))?;
-        if let Some(rx) = pending {
-            let (sha, n) = rx.recv().map_err(|_| IngestError::invalid(path, "hashing the file failed"))?;
-            sink.source_hash(sha, n)?;
-        }
-        Ok(())
-    })
+/// The file read with positioned reads (`pread`): no shared cursor, no lock, no whole-file copy.
+struct PositionedFile {
+    file: std::fs::File,
+    len: u64,
 }
 
-type PendingHash = Option<std::sync::mpsc::Receiver<(String, u64)>>;
-
-/// Reports the file's hash to the sink once the hashing thread has it.
-fn poll_hash(pending: &mut Option<&mut PendingHash>, sink: &mut dyn EpisodeSink) -> Result<()> {
-    if let Some(p) = pending.as_deref_mut() {
-        if let Some(rx) = p.as_ref() {
-            if let Ok((sha, n)) = rx.try_recv() {
-                *p = None;
-                sink.source_hash(sha, n)?;
-            }
-        }
+impl hdf5_pure::Source for PositionedFile {
+    fn len(&self) -> u64 {
+        self.len
     }
-    Ok(())
+
+    fn read_at(&self, offset: u64, buf: &mut [u8]) -> std::result::Result<(), hdf5_pure::FormatError> {
+        use std::os::unix::fs::FileExt;
+        let past_end = offset.checked_add(buf.len() as u64).is_none_or(|end| end > self.len);
+        if past_end {
+            return Err(hdf5_pure::FormatError::UnexpectedEof {
+                expected: offset.saturating_add(buf.len() as u64).try_into().unwrap_or(usize::MAX),
+                available: self.len.try_into().unwrap_or(usize::MAX),
+            });
+        }
+        self.file.read_exact_at(buf, offset).map_err(|e| hdf5_pure::FormatError::Source(e.to_string()))
+    }
+}
+
+/// Reads a robomimic file from disk, demo by demo: the file is never loaded whole (memory is
+/// bounded by one demo's datasets, whatever the file's size).
+pub fn read_file(path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<()> {
+    check_signature_file(path)?;
+    let f = std::fs::File::open(path).map_err(|e| IngestError::io(path, e))?;
+    let len = f.metadata().map_err(|e| IngestError::io(path, e))?.len();
+    let props = hdf5_pure::FileAccessProperties::new()
+        .with_metadata_cache(hdf5_pure::MetadataCacheConfig::new(METADATA_CACHE_BYTES));
+    let file = File::from_source_with_options(PositionedFile { file: f, len }, props)
+        .map_err(|e| IngestError::invalid(path, format!("not a readable HDF5 file: {e}")))?;
+    read_h5(&file, path, opts, sink)
 }
 
 /// Reads a robomimic file held in memory (`name` is used in error messages).
@@ -83,7 +74,7 @@ pub fn read_bytes(
     }
     let file = File::from_bytes(bytes)
         .map_err(|e| IngestError::invalid(name, format!("not a readable HDF5 file: {e}")))?;
-    read_h5(&file, name, opts, sink, None)
+    read_h5(&file, name, opts, sink)
 }
 
 fn check_signature_file(path: &Path) -> Result<()> {
@@ -278,7 +269,6 @@ fn read_h5(
     path: &Path,
     opts: &ReadOptions,
     sink: &mut dyn EpisodeSink,
-    mut hash: Option<&mut PendingHash>,
 ) -> Result<()> {
     let data = file
         .group("data")
@@ -322,7 +312,6 @@ fn read_h5(
         let ep = read_demo(g, path, name, index as u32, freq, &masks, env_name.as_deref(), opts)?;
         total_steps += ep.len() as u64;
         sink.episode(ep)?;
-        poll_hash(&mut hash, sink)?;
     }
     let _ = total_steps;
     Ok(())

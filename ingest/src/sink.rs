@@ -18,11 +18,6 @@ pub trait EpisodeSink {
     /// A media file that later episodes reference (by sha256). May be called once per file.
     fn media(&mut self, file: MediaFile) -> Result<()>;
     fn episode(&mut self, episode: EpisodeInput) -> Result<()>;
-    /// The source's sha256 (hex) and size, when the reader computed them from the bytes it read
-    /// (asked for with `ReadOptions::hash_source`): at most once, after `source`.
-    fn source_hash(&mut self, _sha256: String, _size: u64) -> Result<()> {
-        Ok(())
-    }
 }
 
 /// A sink that keeps everything in memory (tests, small files, fuzzing).

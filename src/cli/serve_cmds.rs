@@ -56,6 +56,7 @@ pub fn ingest_options(a: &IngestArgs) -> Result<ingest::IngestOptions> {
         mapping: a.mapping.clone(),
         recover: a.recover,
         progress: !a.json,
+        memory: Default::default(),
     })
 }
 
@@ -137,6 +138,7 @@ impl api::JobRunner for Runner {
                         mapping: None,
                         recover: s.get("recover").and_then(|v| v.as_bool()).unwrap_or(false),
                         progress: false,
+                        memory: Default::default(),
                     };
                     let r = ingest::ingest(store, std::path::Path::new(&path), &opts).await.map_err(|e| format!("{e:#}"))?;
                     serde_json::to_value(&r).map_err(|e| e.to_string())

@@ -7,10 +7,19 @@ use crate::{StoreConfig, StoreError};
 use bytes::Bytes;
 use futures::TryStreamExt;
 use object_store::path::Path as ObjPath;
-use object_store::{GetOptions, GetRange, ObjectStore, PutMode, PutOptions, PutPayload};
+use object_store::{GetOptions, GetRange, ObjectStore, PutMode, PutOptions, PutPayload, WriteMultipart};
+use sha2::Digest;
 use std::ops::Range;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+use tokio::io::AsyncReadExt;
+
+/// Local files up to this size are copied into the store with one put; larger ones (a LeRobot
+/// mp4 may be 500 MB) stream as a multipart upload in parts of this size, so memory stays bounded
+/// by a few parts whatever the file's size.
+const FILE_PART_BYTES: usize = 8 << 20;
+/// Parts being uploaded at once.
+const FILE_PARTS_IN_FLIGHT: usize = 2;
 
 pub(crate) struct Objects {
     store: Arc<dyn ObjectStore>,
@@ -165,6 +174,75 @@ impl Objects {
         }
     }
 
+    /// Copies the local (media) file `local` into the content-addressed object `path`, checking on the
+    /// way that its content has the sha256 `sha256`: a file that changed since it was hashed is
+    /// refused and nothing becomes visible (a multipart upload is completed only after the
+    /// whole content matched, and aborted otherwise). Returns the number of bytes read.
+    pub async fn put_file_content_addressed(
+        &self,
+        path: &str,
+        local: &std::path::Path,
+        sha256: &str,
+    ) -> Result<u64, StoreError> {
+        let io = |e: std::io::Error| StoreError::invalid(format!("cannot read {}: {e}", local.display()));
+        let mut f = tokio::fs::File::open(local).await.map_err(io)?;
+        let len = f.metadata().await.map_err(io)?.len();
+        let changed = |actual: String| {
+            StoreError::invalid(format!(
+                "media file {} changed while ingesting: sha256 {actual}, expected {sha256}",
+                local.display()
+            ))
+        };
+        if len <= FILE_PART_BYTES as u64 {
+            let mut data = Vec::with_capacity(len as usize);
+            f.read_to_end(&mut data).await.map_err(io)?;
+            let actual = crate::sha256_hex(&data);
+            if actual != sha256 {
+                return Err(changed(actual));
+            }
+            let n = data.len() as u64;
+            self.put_content_addressed(path, Bytes::from(data)).await?;
+            return Ok(n);
+        }
+        let mut hasher = sha2::Sha256::new();
+        let mut total = 0u64;
+        if self.exists(path).await? {
+            // Stored already: only check that the file still is what the caller hashed.
+            while let Some(part) = read_part(&mut f).await.map_err(io)? {
+                hasher.update(&part);
+                total += part.len() as u64;
+            }
+            let actual = hex::encode(hasher.finalize());
+            return if actual == sha256 { Ok(total) } else { Err(changed(actual)) };
+        }
+        let upload = self.store.put_multipart(&ObjPath::from(path)).await?;
+        let mut w = WriteMultipart::new_with_chunk_size(upload, FILE_PART_BYTES);
+        let copied: Result<(), StoreError> = async {
+            while let Some(part) = read_part(&mut f).await.map_err(io)? {
+                hasher.update(&part);
+                total += part.len() as u64;
+                w.wait_for_capacity(FILE_PARTS_IN_FLIGHT).await?;
+                w.put(Bytes::from(part));
+            }
+            let actual = hex::encode(hasher.finalize_reset());
+            if actual != sha256 {
+                return Err(changed(actual));
+            }
+            Ok(())
+        }
+        .await;
+        match copied {
+            Ok(()) => {
+                w.finish().await?;
+                Ok(total)
+            }
+            Err(e) => {
+                let _ = w.abort().await;
+                Err(e)
+            }
+        }
+    }
+
     pub async fn exists(&self, path: &str) -> Result<bool, StoreError> {
         self.counters.head();
         match self.store.head(&ObjPath::from(path)).await {
@@ -294,5 +372,58 @@ impl Objects {
             Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
             Err(e) => Err(e.into()),
         }
+    }
+}
+
+/// The next part (up to [`FILE_PART_BYTES`]) of a file, `None` at its end.
+async fn read_part(f: &mut tokio::fs::File) -> std::io::Result<Option<Vec<u8>>> {
+    let mut buf = vec![0u8; FILE_PART_BYTES];
+    let mut n = 0;
+    while n < buf.len() {
+        match f.read(&mut buf[n..]).await? {
+            0 => break,
+            k => n += k,
+        }
+    }
+    buf.truncate(n);
+    Ok((n > 0).then_some(buf))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A file larger than a part streams as a multipart upload and the object holds exactly its
+    /// bytes; a file whose content is not what the caller hashed is refused and leaves nothing,
+    /// not even a staging file.
+    #[tokio::test]
+    async fn large_files_stream_in_parts_and_changed_ones_leave_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let objects = Objects::open(&StoreConfig::local(dir.path().join("store"))).unwrap();
+        let data: Vec<u8> = (0..2 * FILE_PART_BYTES + 12_345).map(|i| (i * 31 % 251) as u8).collect();
+        let local = dir.path().join("video.mp4");
+        std::fs::write(&local, &data).unwrap();
+        let sha = crate::sha256_hex(&data);
+        let n = objects.put_file_content_addressed("media/a.mp4", &local, &sha).await.unwrap();
+        assert_eq!(n, data.len() as u64);
+        assert_eq!(objects.get("media/a.mp4").await.unwrap(), data);
+        // Stored already: the file is only checked.
+        assert_eq!(objects.put_file_content_addressed("media/a.mp4", &local, &sha).await.unwrap(), n);
+
+        let wrong = "0".repeat(64);
+        let err = objects.put_file_content_addressed("media/b.mp4", &local, &wrong).await.unwrap_err();
+        assert!(err.to_string().contains("changed while ingesting"), "{err}");
+        assert!(!objects.exists("media/b.mp4").await.unwrap());
+        assert!(objects.local_staging_files().is_empty(), "{:?}", objects.local_staging_files());
+        let err = objects.put_file_content_addressed("media/a.mp4", &local, &wrong).await.unwrap_err();
+        assert!(err.to_string().contains("changed while ingesting"), "{err}");
+
+        // A small file takes the single-put path, with the same check.
+        std::fs::write(&local, b"small").unwrap();
+        let err = objects.put_file_content_addressed("media/c.mp4", &local, &sha).await.unwrap_err();
+        assert!(err.to_string().contains("changed while ingesting"), "{err}");
+        let sha = crate::sha256_hex(b"small");
+        assert_eq!(objects.put_file_content_addressed("media/c.mp4", &local, &sha).await.unwrap(), 5);
+        assert_eq!(&objects.get("media/c.mp4").await.unwrap()[..], b"small");
     }
 }

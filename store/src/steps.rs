@@ -330,6 +330,7 @@ pub struct StepsFileWriter {
     waiting: Vec<ClosedRowGroup>,
     waiting_bytes: usize,
     id_prefix: Option<String>,
+    max_row_group_bytes: usize,
     pub rows: usize,
     pub row_groups: usize,
 }
@@ -349,9 +350,17 @@ impl StepsFileWriter {
             waiting: Vec::new(),
             waiting_bytes: 0,
             id_prefix: None,
+            max_row_group_bytes: ROW_GROUP_MAX_BYTES,
             rows: 0,
             row_groups: 0,
         })
+    }
+
+    /// Closes row groups past this many estimated encoded bytes instead of
+    /// [`ROW_GROUP_MAX_BYTES`]: the open row group is what a writer holds in memory.
+    pub fn with_max_row_group_bytes(mut self, bytes: usize) -> Self {
+        self.max_row_group_bytes = bytes.max(1);
+        self
     }
 
     /// The id prefix (`<source sha256[:12]>`) when known up front.
@@ -417,7 +426,7 @@ impl StepsFileWriter {
         rg.rows += n;
         self.rows += n;
         let full = rg.rows >= ROW_GROUP_MAX_ROWS
-            || rg.writers.iter().map(|w| w.get_estimated_total_bytes()).sum::<usize>() >= ROW_GROUP_MAX_BYTES;
+            || rg.writers.iter().map(|w| w.get_estimated_total_bytes()).sum::<usize>() >= self.max_row_group_bytes;
         if full {
             self.close_row_group()?;
         }

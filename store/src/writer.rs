@@ -9,8 +9,9 @@ use crate::{now_rfc3339, EpisodeInput, Label, MediaFile, SourceInput, Store, Sto
 use bytes::Bytes;
 use std::collections::{HashMap, HashSet};
 
-/// Roll over to a new data file past this many encoded bytes (bounds memory).
-const MAX_FILE_BYTES: usize = 64 << 20;
+/// Roll over to a new data file past this many encoded bytes (bounds memory: a steps file is
+/// built in memory, then uploaded with one put).
+pub const MAX_STEPS_FILE_BYTES: usize = 64 << 20;
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct CommitInfo {
@@ -57,6 +58,7 @@ pub struct IngestWriter {
     /// sha256 → object path of the media added so far (what step rows reference).
     media_paths: HashMap<String, String>,
     max_file_bytes: usize,
+    max_row_group_bytes: usize,
 }
 
 pub(crate) fn check_name(what: &str, s: &str) -> Result<(), StoreError> {
@@ -121,7 +123,8 @@ impl Store {
             indexes: HashSet::new(),
             media: HashMap::new(),
             media_paths: HashMap::new(),
-            max_file_bytes: MAX_FILE_BYTES,
+            max_file_bytes: MAX_STEPS_FILE_BYTES,
+            max_row_group_bytes: steps::ROW_GROUP_MAX_BYTES,
         })
     }
 
@@ -140,6 +143,24 @@ impl IngestWriter {
     pub fn with_max_file_bytes(mut self, bytes: usize) -> Self {
         self.max_file_bytes = bytes.max(1);
         self
+    }
+
+    /// Closes row groups past this many encoded bytes (default
+    /// [`steps::ROW_GROUP_MAX_BYTES`]). With [`Self::with_max_file_bytes`] it bounds what the
+    /// writer holds in memory once the source's hash is known: one open row group and the
+    /// file being filled.
+    pub fn with_max_row_group_bytes(mut self, bytes: usize) -> Self {
+        self.max_row_group_bytes = bytes.max(1);
+        self
+    }
+
+    /// Encoded steps held in memory because the source's sha256 (the episode ids' prefix) is not
+    /// known yet; 0 once it is. A caller bounds its memory by waiting for the hash past a budget.
+    pub fn unhashed_bytes(&self) -> usize {
+        if self.id_prefix.is_some() {
+            return 0;
+        }
+        self.parked.iter().chain(self.current.as_ref()).map(|(_, w)| w.bytes_written()).sum()
     }
 
     /// Supplies the source's sha256 and size (see [`Store::begin_ingest_unhashed`]). Fails with
@@ -170,21 +191,11 @@ impl IngestWriter {
         Ok(())
     }
 
-    /// Copies a media file into object storage under its sha256 (stored once).
+    /// Copies a media file into object storage under its sha256 (stored once), streaming it:
+    /// memory stays bounded by a few upload parts whatever the file's size.
     pub async fn add_media(&mut self, file: &MediaFile) -> Result<(), StoreError> {
         if self.media.contains_key(&file.sha256) {
             return Ok(());
-        }
-        let data = tokio::fs::read(&file.local_path).await.map_err(|e| {
-            StoreError::invalid(format!("cannot read media file {}: {e}", file.local_path.display()))
-        })?;
-        let actual = crate::sha256_hex(&data);
-        if actual != file.sha256 {
-            return Err(StoreError::invalid(format!(
-                "media file {} changed while ingesting: sha256 {actual}, expected {}",
-                file.local_path.display(),
-                file.sha256
-            )));
         }
         let ext = file
             .local_path
@@ -193,7 +204,10 @@ impl IngestWriter {
             .filter(|e| e.chars().all(|c| c.is_ascii_alphanumeric()))
             .unwrap_or("bin");
         let path = format!("media/{}.{ext}", file.sha256);
-        self.store.objects().put_content_addressed(&path, Bytes::from(data)).await?;
+        self.store
+            .objects()
+            .put_file_content_addressed(&path, &file.local_path, &file.sha256)
+            .await?;
         self.media_paths.insert(file.sha256.clone(), path.clone());
         self.media.insert(file.sha256.clone(), (path, file.content_type.clone(), file.size_bytes as i64));
         Ok(())
@@ -228,7 +242,7 @@ impl IngestWriter {
         }
         if self.current.is_none() {
             let path = format!("steps/{}.parquet", uuid::Uuid::new_v4());
-            let mut w = StepsFileWriter::new(schema)?;
+            let mut w = StepsFileWriter::new(schema)?.with_max_row_group_bytes(self.max_row_group_bytes);
             if let Some(p) = &self.id_prefix {
                 w = w.with_id_prefix(p);
             }

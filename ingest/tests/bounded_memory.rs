@@ -1,0 +1,283 @@
+//! Ingest memory is bounded by the work, not by the source: a source twice as large must not
+//! need more memory. A counting global allocator records the heap's high-water mark (every
+//! thread's: reader, hashing, writer) while each source is ingested into a fresh store with small
+//! buffer budgets, so the plateau is reached within a few MB of output.
+//!
+//! A reader that loads the source whole (robomimic did, up to 2 GiB files), a writer that keeps
+//! encoded row groups until the end, or a channel without a byte bound all make the larger
+//! source's peak grow with it, and fail here.
+
+mod common;
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+
+use arrow::array::{ArrayRef, BinaryArray, FixedSizeListArray, Float32Array, Int64Array, RecordBatch, StringArray, StructArray};
+use arrow::datatypes::{DataType, Field};
+use hdf5_pure::{AttrValue, FileBuilder};
+use ingest::{Format, IngestOptions, MemoryBudget};
+
+struct Counting;
+
+static LIVE: AtomicUsize = AtomicUsize::new(0);
+static PEAK: AtomicUsize = AtomicUsize::new(0);
+
+fn grew(by: usize) {
+    let now = LIVE.fetch_add(by, Ordering::Relaxed) + by;
+    PEAK.fetch_max(now, Ordering::Relaxed);
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc(layout) };
+        if !p.is_null() {
+            grew(layout.size());
+        }
+        p
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc_zeroed(layout) };
+        if !p.is_null() {
+            grew(layout.size());
+        }
+        p
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) };
+        LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        let p = unsafe { System.realloc(ptr, layout, new_size) };
+        if !p.is_null() {
+            LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
+            grew(new_size);
+        }
+        p
+    }
+}
+
+#[global_allocator]
+static ALLOC: Counting = Counting;
+
+/// The counters see every thread: tests of this binary run one at a time.
+static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+const STEPS: usize = 120;
+const IMG: usize = 24; // 24 x 24 x 3 camera frames
+
+/// Bytes that look like camera frames to no compressor (an LCG), so file and output sizes
+/// follow the number of demos.
+fn noise(seed: u64, n: usize) -> Vec<u8> {
+    let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    (0..n)
+        .map(|_| {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (s >> 56) as u8
+        })
+        .collect()
+}
+
+/// A robomimic-layout file: `data/demo_i/{obs/{pos, agentview_image}, actions, rewards, dones}`,
+/// the image gzip-compressed in chunks (as robomimic's `--compress` writes it), the rest
+/// contiguous.
+fn write_robomimic(path: &Path, demos: usize) {
+    let mut b = FileBuilder::new();
+    let mut data = b.create_group("data");
+    for i in 0..demos {
+        let mut g = data.create_group(&format!("demo_{i}"));
+        let mut obs = g.create_group("obs");
+        let pos: Vec<f64> = (0..STEPS * 3).map(|k| (k + i) as f64 * 0.01).collect();
+        obs.create_dataset("pos").with_f64_data(&pos).with_shape(&[STEPS as u64, 3]);
+        obs.create_dataset("agentview_image")
+            .with_u8_data(&noise(i as u64, STEPS * IMG * IMG * 3))
+            .with_shape(&[STEPS as u64, IMG as u64, IMG as u64, 3])
+            .with_chunks(&[16, IMG as u64, IMG as u64, 3])
+            .with_deflate(1);
+        g.add_group(obs.finish());
+        let act: Vec<f64> = (0..STEPS * 7).map(|k| ((k * 7 + i) % 13) as f64 / 13.0).collect();
+        g.create_dataset("actions").with_f64_data(&act).with_shape(&[STEPS as u64, 7]);
+        let mut rewards = vec![0.0; STEPS];
+        rewards[STEPS - 1] = (i % 2) as f64;
+        g.create_dataset("rewards").with_f64_data(&rewards);
+        let dones: Vec<i64> = (0..STEPS).map(|t| (t + 1 == STEPS) as i64).collect();
+        g.create_dataset("dones").with_i64_data(&dones);
+        g.set_attr("num_samples", AttrValue::I64(STEPS as i64));
+        data.add_group(g.finish());
+    }
+    data.set_attr("total", AttrValue::I64((demos * STEPS) as i64));
+    data.set_attr("env_args", AttrValue::String(r#"{"env_name": "Lift", "env_kwargs": {"control_freq": 20}}"#.into()));
+    b.add_group(data.finish());
+    b.write(path).unwrap();
+}
+
+fn parquet(path: &Path, batch: RecordBatch) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    let f = std::fs::File::create(path).unwrap();
+    let mut w = parquet::arrow::ArrowWriter::try_new(f, batch.schema(), None).unwrap();
+    w.write(&batch).unwrap();
+    w.close().unwrap();
+}
+
+fn f32_list(values: Vec<f32>, dim: i32) -> ArrayRef {
+    let item = Arc::new(Field::new("item", DataType::Float32, true));
+    Arc::new(FixedSizeListArray::try_new(item, dim, Arc::new(Float32Array::from(values)), None).unwrap())
+}
+
+/// A LeRobot v3.0 dataset: every episode in one data file (`data/chunk-000/file-000.parquet`),
+/// with a 6-D state, a 6-D action and a PNG `image` feature stored in the Parquet.
+fn write_lerobot_v3(root: &Path, episodes: usize) {
+    let info = serde_json::json!({
+        "codebase_version": "v3.0", "fps": 10, "robot_type": "toy", "total_episodes": episodes,
+        "features": {
+            "observation.state": {"dtype": "float32", "shape": [6]},
+            "observation.images.front": {"dtype": "image", "shape": [IMG, IMG, 3]},
+            "action": {"dtype": "float32", "shape": [6]},
+            "timestamp": {"dtype": "float32", "shape": [1]},
+            "frame_index": {"dtype": "int64", "shape": [1]},
+            "episode_index": {"dtype": "int64", "shape": [1]},
+            "index": {"dtype": "int64", "shape": [1]},
+            "task_index": {"dtype": "int64", "shape": [1]}
+        }
+    });
+    std::fs::create_dir_all(root.join("meta")).unwrap();
+    std::fs::write(root.join("meta/info.json"), info.to_string()).unwrap();
+    let n = episodes * STEPS;
+    let ep: Vec<i64> = (0..episodes as i64).collect();
+    let cols: Vec<(&str, ArrayRef)> = vec![
+        ("episode_index", Arc::new(Int64Array::from(ep.clone()))),
+        ("length", Arc::new(Int64Array::from(vec![STEPS as i64; episodes]))),
+        ("dataset_from_index", Arc::new(Int64Array::from_iter_values(ep.iter().map(|e| e * STEPS as i64)))),
+        ("dataset_to_index", Arc::new(Int64Array::from_iter_values(ep.iter().map(|e| (e + 1) * STEPS as i64)))),
+    ];
+    parquet(&root.join("meta/episodes/chunk-000/file-000.parquet"), RecordBatch::try_from_iter(cols).unwrap());
+    let pngs: Vec<Vec<u8>> = (0..n)
+        .map(|r| ingest::robomimic::encode_png(&noise(r as u64, IMG * IMG * 3), IMG, IMG, 3).unwrap())
+        .collect();
+    let image = StructArray::from(vec![
+        (
+            Arc::new(Field::new("bytes", DataType::Binary, true)),
+            Arc::new(BinaryArray::from_iter_values(pngs.iter())) as ArrayRef,
+        ),
+        (Arc::new(Field::new("path", DataType::Utf8, true)), Arc::new(StringArray::from(vec![Some(""); n])) as ArrayRef),
+    ]);
+    let cols: Vec<(&str, ArrayRef)> = vec![
+        ("observation.state", f32_list((0..n * 6).map(|k| k as f32 * 1e-3).collect(), 6)),
+        ("observation.images.front", Arc::new(image)),
+        ("action", f32_list((0..n * 6).map(|k| (k % 11) as f32).collect(), 6)),
+        ("timestamp", Arc::new(Float32Array::from_iter_values((0..n).map(|r| (r % STEPS) as f32 / 10.0)))),
+        ("frame_index", Arc::new(Int64Array::from_iter_values((0..n).map(|r| (r % STEPS) as i64)))),
+        ("episode_index", Arc::new(Int64Array::from_iter_values((0..n).map(|r| (r / STEPS) as i64)))),
+        ("index", Arc::new(Int64Array::from_iter_values(0..n as i64))),
+        ("task_index", Arc::new(Int64Array::from(vec![0i64; n]))),
+    ];
+    parquet(&root.join("data/chunk-000/file-000.parquet"), RecordBatch::try_from_iter(cols).unwrap());
+}
+
+/// Peak heap growth (bytes above what was live before) while `path` is ingested into a fresh
+/// store, and the number of episodes ingested.
+fn peak_while_ingesting(rt: &tokio::runtime::Runtime, path: &Path, format: Format, store_dir: &Path) -> (usize, usize) {
+    let store = rt.block_on(store::Store::open(&store::StoreConfig::local(store_dir))).unwrap();
+    let opts = IngestOptions {
+        policy: "p".into(),
+        checkpoint: "c".into(),
+        format,
+        // Small budgets so that a few MB of output reach the plateau (the defaults are 64-96 MB).
+        memory: MemoryBudget {
+            in_flight_bytes: 256 << 10,
+            unhashed_bytes: 1 << 20,
+            row_group_bytes: 256 << 10,
+            file_bytes: 1 << 20,
+        },
+        ..Default::default()
+    };
+    let before = LIVE.load(Ordering::Relaxed);
+    PEAK.store(before, Ordering::Relaxed);
+    let report = rt.block_on(ingest::ingest(&store, path, &opts)).unwrap();
+    let peak = PEAK.load(Ordering::Relaxed) - before;
+    assert!(!report.already_ingested);
+    (peak, report.episodes)
+}
+
+fn source_bytes(path: &Path) -> u64 {
+    ingest::hashing::hash_path(path).unwrap().1
+}
+
+/// Ingests a source of `n` and one of `2n` episodes (made by `write`) and checks that the larger
+/// one's peak heap is no larger (within 25%) and far below its size.
+fn check_bounded(what: &str, format: Format, n: usize, write: impl Fn(&Path, usize), file_name: &str) {
+    let dir = tempfile::tempdir().unwrap();
+    let small = dir.path().join(format!("small_{file_name}"));
+    let large = dir.path().join(format!("large_{file_name}"));
+    write(&small, n);
+    write(&large, 2 * n);
+    let (small_size, large_size) = (source_bytes(&small), source_bytes(&large));
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let (peak_small, eps_small) = peak_while_ingesting(&rt, &small, format, &dir.path().join("store_small"));
+    let (peak_large, eps_large) = peak_while_ingesting(&rt, &large, format, &dir.path().join("store_large"));
+    assert_eq!((eps_small, eps_large), (n, 2 * n));
+    let mb = |b: u64| b as f64 / 1e6;
+    eprintln!(
+        "{what}: {n} episodes ({:.1} MB) peak heap {:.1} MB; {} episodes ({:.1} MB) peak heap {:.1} MB",
+        mb(small_size),
+        mb(peak_small as u64),
+        2 * n,
+        mb(large_size),
+        mb(peak_large as u64)
+    );
+    assert!(
+        (peak_large as f64) < peak_small as f64 * 1.25,
+        "{what}: peak heap grew with the source: {peak_small} bytes for {small_size}, {peak_large} for {large_size}"
+    );
+    assert!(
+        (peak_large as u64) < large_size / 3,
+        "{what}: peak heap {peak_large} bytes is not far below the source's {large_size} bytes"
+    );
+}
+
+#[test]
+fn peak_memory_does_not_grow_with_the_source() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    // robomimic: about 30 MB and 60 MB files (120 steps of a 24x24 camera and 10 low-dim values).
+    check_bounded("robomimic", Format::Robomimic, 140, write_robomimic, "rollouts.hdf5");
+    // LeRobot v3.0: one data file holding every episode, PNG frames inside the Parquet.
+    check_bounded("lerobot v3.0", Format::Lerobot, 120, write_lerobot_v3, "dataset");
+}
+
+/// The smallest budgets change where row groups and files end, never what is stored: the reader
+/// waits for the hash after every episode, every episode is its own row group and file, and each
+/// one reads back exactly as with the default budgets (robomimic with images, LeRobot with videos).
+#[test]
+fn tiny_budgets_store_the_same_steps() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let f = common::fixtures();
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    for source in ["robomimic/lift_rollouts_image.hdf5", "lerobot/v30_eval_video"] {
+        let dir = tempfile::tempdir().unwrap();
+        let tiny = MemoryBudget { in_flight_bytes: 1, unhashed_bytes: 1, row_group_bytes: 1, file_bytes: 1 };
+        let mut ids = Vec::new();
+        let mut stores = Vec::new();
+        for (name, memory) in [("default", MemoryBudget::default()), ("tiny", tiny)] {
+            let store = rt.block_on(store::Store::open(&store::StoreConfig::local(dir.path().join(name)))).unwrap();
+            let opts = IngestOptions { policy: "p".into(), checkpoint: "c".into(), memory, ..Default::default() };
+            let report = rt.block_on(ingest::ingest(&store, &f.join(source), &opts)).unwrap();
+            let eps = rt.block_on(store.episodes(&store::EpisodeFilter::default())).unwrap();
+            assert_eq!(eps.len(), report.episodes, "{source}");
+            let files: std::collections::HashSet<_> = eps.iter().map(|e| e.data_file.clone()).collect();
+            if name == "tiny" {
+                assert_eq!(files.len(), eps.len(), "{source}: one steps file per episode with a 1-byte file budget");
+            }
+            let mut e: Vec<String> = eps.into_iter().map(|e| e.id).collect();
+            e.sort();
+            ids.push(e);
+            stores.push(store);
+        }
+        assert_eq!(ids[0], ids[1], "{source}");
+        for id in &ids[0] {
+            let a = rt.block_on(stores[0].read_steps(id, None)).unwrap();
+            let b = rt.block_on(stores[1].read_steps(id, None)).unwrap();
+            assert_eq!(a, b, "{source}: episode {id}");
+        }
+    }
+}
