@@ -390,23 +390,11 @@ mod tests {
         let mut ids = Vec::new();
         for i in 0..3u32 {
             ids.push(
-                w.add_episode(EpisodeInput {
-                    source_name: format!("ep{i}"),
-                    source_index: i,
-                    task: None,
-                    label: if i % 2 == 0 { Label::Success } else { Label::Failure },
-                    label_source: "test".into(),
-                    tags: vec![],
-                    metadata: serde_json::json!({}),
-                    timestamps: vec![0.0, 0.1],
-                    observations: vec![VectorColumn { name: "pos".into(), dim: 1, values: vec![0.0, 1.0] }],
-                    action: VectorColumn { name: "action".into(), dim: 1, values: vec![0.0, 1.0] },
-                    reward: vec![0.0, 1.0],
-                    done: vec![false, true],
-                    action_chunk: None,
-                    images: vec![],
-                    media: vec![],
-                })
+                w.add_episode(crate::test_support::two_step_episode(
+                    i,
+                    None,
+                    if i % 2 == 0 { Label::Success } else { Label::Failure },
+                ))
                 .await
                 .unwrap(),
             );

@@ -163,3 +163,25 @@ mod tests {
         assert!(msg.contains("missing_tool_skips_or_fails_by_its_switch") || msg.starts_with("this test"), "{msg}");
     }
 }
+
+/// A two-step episode (`demo_<i>`, one-dimensional observation and action) for catalog tests,
+/// where only the episode's identity, task and label matter.
+pub fn two_step_episode(i: u32, task: Option<&str>, label: crate::Label) -> crate::EpisodeInput {
+    crate::EpisodeInput {
+        source_name: format!("demo_{i}"),
+        source_index: i,
+        task: task.map(str::to_string),
+        label,
+        label_source: "test".into(),
+        tags: vec![],
+        metadata: serde_json::json!({}),
+        timestamps: vec![0.0, 0.1],
+        observations: vec![crate::VectorColumn { name: "pos".into(), dim: 1, values: vec![0.0, 1.0] }],
+        action: crate::VectorColumn { name: "action".into(), dim: 1, values: vec![0.0, 1.0] },
+        reward: vec![0.0, 1.0],
+        done: vec![false, true],
+        action_chunk: None,
+        images: vec![],
+        media: vec![],
+    }
+}

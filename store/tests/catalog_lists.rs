@@ -6,26 +6,6 @@
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use store::*;
 
-fn episode(i: u32, task: Option<&str>, label: Label) -> EpisodeInput {
-    EpisodeInput {
-        source_name: format!("demo_{i}"),
-        source_index: i,
-        task: task.map(str::to_string),
-        label,
-        label_source: "test".into(),
-        tags: vec![],
-        metadata: serde_json::json!({}),
-        timestamps: vec![0.0, 0.1],
-        observations: vec![VectorColumn { name: "pos".into(), dim: 1, values: vec![0.0, 1.0] }],
-        action: VectorColumn { name: "action".into(), dim: 1, values: vec![0.0, 1.0] },
-        reward: vec![0.0, 1.0],
-        done: vec![false, true],
-        action_chunk: None,
-        images: vec![],
-        media: vec![],
-    }
-}
-
 /// A small deterministic generator (xorshift).
 struct Rng(u64);
 impl Rng {
@@ -69,7 +49,7 @@ async fn ingest(store: &Store, tag: &str, policy: &str, ckpt: &str, n: u32) -> V
     for i in 0..n {
         let task = [Some("reach"), Some("push"), None, Some("reach"), Some("lift")][i as usize % 5];
         let label = [Label::Unknown, Label::Success, Label::Unknown, Label::Failure][i as usize % 4];
-        ids.push(w.add_episode(episode(i, task, label)).await.unwrap());
+        ids.push(w.add_episode(test_support::two_step_episode(i, task, label)).await.unwrap());
     }
     w.commit("lists test").await.unwrap();
     ids
