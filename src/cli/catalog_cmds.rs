@@ -23,6 +23,9 @@ pub enum SplitCommand {
         val_fraction: f64,
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// Keep at most N labeled episodes, a seeded sample (nested across N for the same seed).
+        #[arg(long)]
+        max_episodes: Option<u64>,
         #[arg(long, env = "USER", default_value = "cli")]
         actor: String,
         #[arg(long)]
@@ -46,7 +49,7 @@ pub enum SplitCommand {
 pub async fn split(args: &StoreArgs, cmd: SplitCommand) -> Result<()> {
     let store = args.open().await?;
     match cmd {
-        SplitCommand::Create { policy, checkpoint, version, off_policy_from, val_fraction, seed, actor, json } => {
+        SplitCommand::Create { policy, checkpoint, version, off_policy_from, val_fraction, seed, max_episodes, actor, json } => {
             let off = off_policy_from
                 .iter()
                 .map(|s| match s.split_once('/') {
@@ -54,7 +57,7 @@ pub async fn split(args: &StoreArgs, cmd: SplitCommand) -> Result<()> {
                     None => (policy.clone(), s.clone()),
                 })
                 .collect();
-            let req = SplitRequest { policy, checkpoint, version, off_policy_from: off, val_fraction, seed, actor };
+            let req = SplitRequest { policy, checkpoint, version, off_policy_from: off, val_fraction, seed, actor, max_episodes };
             let s = store.create_split(&req).await?;
             if json {
                 return print_json(&s);

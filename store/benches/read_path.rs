@@ -101,6 +101,7 @@ async fn make_store(config: &StoreConfig, n: u32) -> (Store, SplitRecord) {
             val_fraction: 0.2,
             seed: 0,
             actor: "bench".into(),
+            max_episodes: None,
         })
         .await
         .unwrap();

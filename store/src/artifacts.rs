@@ -50,7 +50,9 @@ fn read(dir: &Path, name: &str) -> Result<Vec<u8>, StoreError> {
 
 impl Store {
     /// Publishes an artifact directory: checks every file against its manifest, copies the files
-    /// into object storage and records the artifact; moves the `latest` alias.
+    /// into object storage and records the artifact; moves the `latest` alias unless the artifact
+    /// was trained off-policy (on other checkpoints' rollouts): a robot that asks for a
+    /// checkpoint's `latest` verifier gets one trained on that checkpoint's own rollouts.
     pub async fn publish_artifact(&self, new: NewArtifact<'_>) -> Result<ArtifactRecord, StoreError> {
         if new.kind != "classifier" && new.kind != "q" {
             return Err(StoreError::invalid(format!("unknown verifier kind {:?}", new.kind)));
@@ -92,6 +94,10 @@ impl Store {
         if config.is_null() {
             return Err(StoreError::invalid("artifact has no config.json in its manifest"));
         }
+        let off_policy = match new.split_id {
+            Some(s) => self.split(s).await?.mode == "off_policy",
+            None => false,
+        };
         for (name, data) in uploads {
             self.objects().put_content_addressed(&format!("{prefix}/{name}"), Bytes::from(data)).await?;
         }
@@ -112,7 +118,9 @@ impl Store {
         .bind(&now)
         .execute(&mut *tx)
         .await?;
-        upsert_alias(&mut tx, new.policy, new.checkpoint, new.kind, "latest", &id, &now).await?;
+        if !off_policy {
+            upsert_alias(&mut tx, new.policy, new.checkpoint, new.kind, "latest", &id, &now).await?;
+        }
         tx.commit().await?;
         self.artifact(&id).await
     }

@@ -16,6 +16,9 @@ pub struct SplitRequest {
     pub val_fraction: f64,
     pub seed: u64,
     pub actor: String,
+    /// Keep at most this many labeled episodes, a seeded sample (nested: with the same seed, the
+    /// sample of 100 is inside the sample of 250), e.g. for a verifier's learning curve.
+    pub max_episodes: Option<u64>,
 }
 
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -108,6 +111,15 @@ impl Store {
                 })
                 .await?;
             members.extend(eps.into_iter().filter(|e| e.label != Label::Unknown));
+        }
+        if let Some(cap) = req.max_episodes {
+            if cap == 0 {
+                return Err(StoreError::invalid("max episodes must be at least 1"));
+            }
+            // A key independent of the train/val key, so the sample keeps the val fraction.
+            let sample_seed = req.seed ^ 0x9e37_79b9_7f4a_7c15;
+            members.sort_by(|a, b| split_key(sample_seed, &a.id).total_cmp(&split_key(sample_seed, &b.id)));
+            members.truncate(usize::try_from(cap).unwrap_or(usize::MAX));
         }
         if members.is_empty() {
             return Err(StoreError::invalid(format!(

@@ -156,6 +156,7 @@ async fn versions_labels_time_travel(store: Store) {
         val_fraction: 0.5,
         seed: 3,
         actor: "alice".into(),
+        max_episodes: None,
     };
     let s1 = store.create_split(&req).await.unwrap();
     let s2 = store.create_split(&req).await.unwrap();
@@ -178,6 +179,20 @@ async fn versions_labels_time_travel(store: Store) {
     let new = || NewArtifact { dir: dir.path(), policy: "pol", checkpoint: "c1", kind: "classifier", split_id: Some(&s1.id), job_id: None };
     let a = store.publish_artifact(new()).await.unwrap();
     assert_eq!(a.aliases, vec!["latest".to_string()]);
+    assert_eq!(store.resolve_artifact("pol/c1/classifier@latest").await.unwrap().id, a.id);
+    // A verifier trained off-policy (on c2's rollouts) is published without taking c1's `latest`.
+    let off_dir = tempfile::tempdir().unwrap();
+    let off_cfg = b"{\"kind\":\"classifier\",\"mode\":\"off_policy\"}";
+    std::fs::write(off_dir.path().join("config.json"), off_cfg).unwrap();
+    std::fs::write(off_dir.path().join("model.safetensors"), b"other weights").unwrap();
+    let off_manifest = serde_json::json!({"schema_version": 1, "files": {
+        "config.json": sha256_hex(off_cfg), "model.safetensors": sha256_hex(b"other weights")}});
+    std::fs::write(off_dir.path().join("manifest.json"), serde_json::to_vec(&off_manifest).unwrap()).unwrap();
+    let off_art = store
+        .publish_artifact(NewArtifact { dir: off_dir.path(), policy: "pol", checkpoint: "c1", kind: "classifier", split_id: Some(&off.id), job_id: None })
+        .await
+        .unwrap();
+    assert!(off_art.aliases.is_empty(), "{:?}", off_art.aliases);
     assert_eq!(store.resolve_artifact("pol/c1/classifier@latest").await.unwrap().id, a.id);
     store.set_alias("prod", &a.id).await.unwrap();
     assert_eq!(store.resolve_artifact("pol/c1/classifier@prod").await.unwrap().id, a.id);

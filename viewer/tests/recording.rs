@@ -265,6 +265,7 @@ async fn split_limit_and_3d_positions() {
             val_fraction: 0.3,
             seed: 1,
             actor: "test".into(),
+            max_episodes: None,
         })
         .await
         .unwrap();

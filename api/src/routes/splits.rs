@@ -22,6 +22,8 @@ pub struct SplitCreate {
     val_fraction: Option<f64>,
     /// Default 0.
     seed: Option<u64>,
+    /// Keep at most this many labeled episodes, a seeded sample (nested across sizes).
+    max_episodes: Option<u64>,
 }
 
 #[derive(Deserialize, ToSchema)]
@@ -50,6 +52,7 @@ pub async fn create_split(
         val_fraction: b.val_fraction.unwrap_or(0.2),
         seed: b.seed.unwrap_or(0),
         actor: caller.name.clone(),
+        max_episodes: b.max_episodes,
     };
     let rec = {
         let _gate = s.write_gate().await;
