@@ -6,6 +6,9 @@ use clap::Parser;
 
 fn main() {
     let args = cli::Cli::parse();
+    if !args.is_long_running() {
+        restore_default_sigpipe();
+    }
     let filter = tracing_subscriber::EnvFilter::try_from_env("UFOPS_LOG")
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
     tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
@@ -21,5 +24,16 @@ fn main() {
         let msg = e.chain().map(|c| c.to_string()).collect::<Vec<_>>().join(": ");
         eprintln!("error: {msg}");
         std::process::exit(1);
+    }
+}
+
+/// Rust ignores SIGPIPE, so printing to a closed pipe (`ufops episodes | head`) panics. A
+/// command-line tool should end quietly instead, as `cat` does. The server and the worker keep
+/// SIGPIPE ignored: a client that hangs up must never kill them.
+fn restore_default_sigpipe() {
+    #[cfg(unix)]
+    // SAFETY: called once at start-up, before any other thread exists; SIG_DFL is a valid handler.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }
