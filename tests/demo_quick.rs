@@ -1,11 +1,14 @@
-//! `ufops demo --quick` runs the whole loop (sim → store → trainer → steer) and its report shows
-//! best-of-N steering improving on the base policy.
+//! `ufops demo --quick` runs the whole loop (sim → store → trainer → steer) on 200 rollouts per
+//! row. Every row whose effect is large at that scale (|Δ| ≥ 15 pp in the full demo) must go the
+//! way the method says: on-policy best-of-N and classifier guidance lift the base policy, the
+//! flow twin's best-of-N too, a verifier trained on fewer rollouts still helps, and best-of-N with
+//! an off-policy classifier hurts. "Goes that way" is the Newcombe 95% interval of Δ excluding 0.
 
 mod common;
 use common::*;
 
 #[test]
-fn quick_demo_improves_on_base() {
+fn quick_demo_rows_go_the_way_the_method_says() {
     let dir = tempfile::tempdir().unwrap();
     let t = Target::sqlite(dir.path());
     let out = t.ok(&["demo", "--quick"]);
@@ -13,21 +16,56 @@ fn quick_demo_improves_on_base() {
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("demo/report.json")).unwrap()).unwrap();
     let rows = report["rows"].as_array().unwrap();
-    let rate = |m: &str, v: &str| {
+    let row = |m: &str, v: &str| {
         rows.iter()
-            .find(|r| r["method"] == m && r["verifier"].as_str().unwrap().starts_with(v))
-            .unwrap_or_else(|| panic!("no row {m}/{v}"))["rate"]
-            .as_f64()
-            .unwrap()
+            .find(|r| r["method"] == m && r["verifier"] == v)
+            .unwrap_or_else(|| panic!("no row {m} / {v} in {out}"))
     };
-    let base = rate("base (DDPM)", "-");
-    let bon = rate("C x BoN (N=10)", "on-policy");
-    assert!(bon > base + 0.05, "best-of-N {bon} vs base {base}");
+    let interval = |m: &str, v: &str| {
+        let ci = &row(m, v)["newcombe_95"];
+        (ci[0].as_f64().unwrap(), ci[1].as_f64().unwrap())
+    };
+    for (m, v) in [
+        ("C x BoN (N=10)", "on-policy"),
+        ("Q x BoN (N=10)", "on-policy"),
+        ("C x CG (lambda=3)", "on-policy"),
+        ("flow twin, C x BoN (N=10)", "on-policy (DDPM rollouts)"),
+        ("C x BoN (N=10)", "on-policy, 50 rollouts"),
+    ] {
+        let (lo, _) = interval(m, v);
+        assert!(lo > 0.0, "{m} / {v} should lift the base policy: Δ interval starts at {lo}\n{out}");
+    }
+    let (_, hi) = interval("C x BoN (N=10)", "off-policy (alt rollouts)");
+    assert!(hi < 0.0, "best-of-N with the off-policy classifier should hurt: Δ interval ends at {hi}\n{out}");
+    // Rows without a large effect in the full demo exist, with the diagnostics of every guided row.
+    for (m, v) in [("Q x CG (lambda=3)", "on-policy"), ("flow twin, unsteered", "-"), ("C x CG (lambda=3)", "off-policy (alt rollouts)")] {
+        row(m, v);
+    }
+    let diag = report["diagnostics"].as_array().unwrap();
+    let guided = diag.iter().find(|d| d["method"] == "Q x CG (lambda=3)").expect("diagnostics of the Q x CG row");
+    assert_eq!(guided["per_step"].as_array().unwrap().len(), 20, "one entry per denoising step");
+    assert!(guided["total_push"].as_f64().unwrap() > 0.0);
     assert!(dir.path().join("demo/trajectories.png").exists());
+
     // The rollouts are in the store as checkpoint nav-dp/base with the simulator's labels.
     let eps = t.json(&["episodes", "--policy", "nav-dp", "--checkpoint", "base", "--json"]);
     assert_eq!(eps.as_array().unwrap().len(), 200);
     assert!(eps.as_array().unwrap().iter().all(|e| e["label_source"] == "sim"));
     let arts = t.json(&["artifacts", "--policy", "nav-dp", "--json"]);
-    assert_eq!(arts.as_array().unwrap().len(), 3, "classifier, q and the off-policy classifier");
+    assert_eq!(arts.as_array().unwrap().len(), 4, "classifier, q, the off-policy classifier, the 50-rollout classifier");
+    // `latest` of the base checkpoint's classifier is the on-policy one trained on every rollout
+    // (neither the off-policy one nor a learning-curve one published after it).
+    let latest: Vec<&serde_json::Value> = arts
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|a| a["kind"] == "classifier" && a["aliases"].as_array().unwrap().iter().any(|x| x == "latest"))
+        .collect();
+    assert_eq!(latest.len(), 1, "{arts}");
+    assert_eq!(latest[0]["id"], report["meta"]["artifacts"]["classifier"]);
+    // The learning-curve split holds 50 of the on-policy rollouts.
+    let splits = t.json(&["split", "list", "--json"]);
+    let sizes: Vec<i64> =
+        splits.as_array().unwrap().iter().map(|s| s["train_episodes"].as_i64().unwrap() + s["val_episodes"].as_i64().unwrap()).collect();
+    assert!(sizes.contains(&50), "{sizes:?}");
 }

@@ -6,6 +6,7 @@
 //! (steer: best-of-N and guidance), repeat with an off-policy verifier for the ablation, and write
 //! the report (`report.md`, `report.json`, `trajectories.png`).
 
+pub mod diagnose;
 mod report;
 
 pub use report::{Report, Row};
@@ -30,6 +31,12 @@ pub struct DemoConfig {
     pub verifier_epochs: usize,
     pub bon_n: Vec<usize>,
     pub lambdas: Vec<f32>,
+    /// The verifier's learning curve: on-policy classifiers trained on seeded samples of this many
+    /// rollouts (nested), each steering one best-of-N row (the full set is the main row).
+    pub ablation_sizes: Vec<usize>,
+    /// Verifier training stops after this many epochs without a better validation loss; `None`
+    /// trains every epoch. Either way the best-validation checkpoint is kept.
+    pub early_stopping_patience: Option<usize>,
     pub seed: u64,
     pub out_dir: PathBuf,
 }
@@ -43,7 +50,12 @@ impl DemoConfig {
             policy_steps: 1500,
             verifier_epochs: 200,
             bon_n: vec![30, 10],
-            lambdas: vec![1.0, 3.0, 10.0],
+            // A sweep from the paper's 0.1 up: the useful strength depends on the verifier's
+            // gradient scale, and the report shows where each verifier helps and where it breaks.
+            lambdas: vec![0.1, 0.3, 1.0, 3.0, 10.0],
+            ablation_sizes: vec![100, 250, 500],
+            // The paper's low-dimensional recipe: 200 epochs, the best-validation checkpoint.
+            early_stopping_patience: None,
             seed: 0,
             out_dir: out_dir.to_path_buf(),
         }
@@ -57,6 +69,8 @@ impl DemoConfig {
             verifier_epochs: 40,
             bon_n: vec![10],
             lambdas: vec![3.0],
+            ablation_sizes: vec![50],
+            early_stopping_patience: Some(10),
             ..Self::full(out_dir)
         }
     }
@@ -158,7 +172,7 @@ async fn train_verifier(
         action_space: action_space.clone(),
         ..Default::default()
     };
-    tc.early_stopping_patience = Some(30);
+    tc.early_stopping_patience = cfg.early_stopping_patience;
     let spec = trainer::TrainJobSpec {
         split_id: split_id.to_string(),
         kind,
@@ -235,6 +249,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         val_fraction: 0.2,
         seed: cfg.seed,
         actor: "demo".into(),
+        max_episodes: None,
     };
     let on_split = store.create_split(&split_req(vec![])).await?;
     let off_split = store.create_split(&split_req(vec![(POLICY.into(), ALT.into())])).await?;
@@ -263,22 +278,32 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     let mut keep_for_plot = None;
     let verifiers: [(&str, &steer::Verifier); 2] = [("C", &clf), ("Q", &q)];
     for (name, v) in verifiers {
+        let label = format!("base (DDPM), scored by {name}");
+        report.diagnostics.push(diagnose::run_diagnostics(&label, &base_eps, v, pc.max_speed, None)?);
+    }
+    for (name, v) in verifiers {
         for &nn in &cfg.bon_n {
             seed += 1;
             let label = format!("{name} x BoN (N={nn})");
             let eps = eval(&base, Steering::BestOfN { scorer: v, n: nn }, &label, seed)?;
             report.add(&label, "on-policy", &eps);
+            report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, pc.max_speed, None)?);
             if name == "C" && keep_for_plot.is_none() {
                 keep_for_plot = Some(eps);
             }
         }
     }
+    let max_speed = pc.max_speed;
     for (name, v) in verifiers {
         for &lambda in &cfg.lambdas {
             seed += 1;
             let label = format!("{name} x CG (lambda={lambda})");
-            let eps = eval(&base, Steering::Guided { scorer: v, lambda }, &label, seed)?;
+            // Every guided row records what guidance did to x̂0 per denoising step (the report's
+            // diagnostics table explains a collapse or a gain from them).
+            let trace = diagnose::TracingScorer::new(v, pc.diffusion_steps, lambda);
+            let eps = eval(&base, Steering::Guided { scorer: &trace, lambda }, &label, seed)?;
             report.add(&label, "on-policy", &eps);
+            report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, max_speed, Some(&trace))?);
         }
     }
     // Flow twin: same verifier, guidance from the second Euler step on.
@@ -297,6 +322,20 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     let lambda = cfg.lambdas[cfg.lambdas.len() / 2];
     let eps = eval(&base, Steering::Guided { scorer: &off_clf, lambda }, "off-policy C x CG", seed)?;
     report.add(&format!("C x CG (lambda={lambda})"), "off-policy (alt rollouts)", &eps);
+
+    // 7. The verifier's learning curve: classifiers on nested samples of the on-policy rollouts.
+    let nn_ablation = cfg.bon_n.iter().copied().min().unwrap_or(10);
+    for &size in cfg.ablation_sizes.iter().filter(|&&s| s < n) {
+        let split = store.create_split(&store::SplitRequest { max_episodes: Some(size as u64), ..split_req(vec![]) }).await?;
+        let (_, v) = train_verifier(store, &split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir).await?;
+        seed += 1;
+        let label = format!("C x BoN (N={nn_ablation})");
+        let eps = eval(&base, Steering::BestOfN { scorer: &v, n: nn_ablation }, &format!("{label}, {size} rollouts"), seed)?;
+        report.add(&label, &format!("on-policy, {size} rollouts"), &eps);
+    }
+
+    // The learning-curve classifiers were published last: `latest` names the main one again.
+    store.set_alias("latest", &c_rec.id).await?;
 
     // 5. The report and the trajectory figure.
     let steered = keep_for_plot.context("no best-of-N row")?;

@@ -22,6 +22,8 @@ pub struct Row {
 #[derive(Debug, Clone, Serialize)]
 pub struct Report {
     pub rows: Vec<Row>,
+    /// What each steered run did (guidance per denoising step, speed, gaps, outcomes).
+    pub diagnostics: Vec<crate::diagnose::RunDiagnostics>,
     pub seconds: f64,
     pub meta: serde_json::Value,
 }
@@ -39,7 +41,7 @@ impl Report {
             diff_to_base: None,
             newcombe_95: None,
         };
-        Report { rows: vec![row], seconds: 0.0, meta: serde_json::Value::Null }
+        Report { rows: vec![row], diagnostics: vec![], seconds: 0.0, meta: serde_json::Value::Null }
     }
 
     pub fn add(&mut self, method: &str, verifier: &str, eps: &[sim::Episode]) {
@@ -86,8 +88,9 @@ impl Report {
 
     pub fn write(&self, dir: &Path) -> Result<()> {
         let md = format!(
-            "# ufops demo: two-gap navigation\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
+            "# ufops demo: two-gap navigation\n\n{}\n## What steering did\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
             self.markdown(),
+            crate::diagnose::markdown(&self.diagnostics),
             self.seconds
         );
         std::fs::write(dir.join("report.md"), md)?;

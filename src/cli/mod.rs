@@ -133,6 +133,13 @@ pub enum Command {
         /// A small scale that finishes in about a minute.
         #[arg(long)]
         quick: bool,
+        /// Guidance strengths of the CG rows (default 0.1,0.3,1,3,10; the paper uses 0.1).
+        #[arg(long, value_delimiter = ',')]
+        lambdas: Option<Vec<f32>>,
+        /// Train verifiers on nested samples of this many rollouts for the learning-curve rows
+        /// (default 100,250,500; sizes at or above the rollouts per row are skipped).
+        #[arg(long, value_delimiter = ',')]
+        ablation_sizes: Option<Vec<usize>>,
     },
     /// Write a rerun recording (.rrd) of success vs failure trajectories and verifier scores.
     View(view_cmd::ViewArgs),
@@ -164,9 +171,18 @@ pub async fn run(cli: Cli) -> Result<()> {
             let opts = run_cmds::ScoreOptions { grad, raw_actions };
             run_cmds::score(&cli.store, &artifact, &input, api.as_deref(), token.as_deref(), opts).await
         }
-        Command::Demo { quick } => run_cmds::demo(&cli.store, quick).await,
+        Command::Demo { quick, lambdas, ablation_sizes } => {
+            run_cmds::demo(&cli.store, quick, lambdas, ablation_sizes).await
+        }
         Command::View(a) => view_cmd::view(&cli.store, a).await,
         Command::Dev { command } => dev::run(&cli.store, command).await,
+    }
+}
+
+impl Cli {
+    /// The server and the worker run until stopped and talk to clients over sockets.
+    pub fn is_long_running(&self) -> bool {
+        matches!(self.command, Command::Serve(_) | Command::Worker { .. })
     }
 }
 

@@ -161,10 +161,18 @@ pub async fn score(args: &StoreArgs, artifact: &str, input: &PathBuf, api: Optio
     print_json(&out)
 }
 
-pub async fn demo(args: &StoreArgs, quick: bool) -> Result<()> {
+pub async fn demo(args: &StoreArgs, quick: bool, lambdas: Option<Vec<f32>>, ablation: Option<Vec<usize>>) -> Result<()> {
     let store = args.open().await?;
     let out = args.data_dir.join("demo");
-    let cfg = if quick { demo::DemoConfig::quick(&out) } else { demo::DemoConfig::full(&out) };
+    let mut cfg = if quick { demo::DemoConfig::quick(&out) } else { demo::DemoConfig::full(&out) };
+    if let Some(l) = lambdas {
+        anyhow::ensure!(!l.is_empty() && l.iter().all(|x| x.is_finite() && *x >= 0.0), "--lambdas: finite values >= 0");
+        cfg.lambdas = l;
+    }
+    if let Some(a) = ablation {
+        anyhow::ensure!(a.iter().all(|&s| s > 0), "--ablation-sizes: sizes of at least 1");
+        cfg.ablation_sizes = a;
+    }
     eprintln!("ufops demo{}: {} rollouts per row, store {}", if quick { " --quick" } else { "" }, cfg.episodes, store.describe());
     let report = demo::run(&store, &cfg).await?;
     println!("{}", report.markdown());
