@@ -269,7 +269,7 @@ pub struct DiffusionPolicy {
 
 impl DiffusionPolicy {
     pub fn train(cfg: &PolicyConfig, tc: &TrainConfig, demos: &[Demo]) -> Result<Self> {
-        let sched = DdpmSchedule::squaredcos_cap_v2(cfg.diffusion_steps);
+        let sched = DdpmSchedule::squaredcos_cap_v2(cfg.diffusion_steps)?;
         let (mlp, train_loss) = train_mlp(cfg, tc, demos, &Objective::Ddpm(sched.clone()))?;
         Ok(DiffusionPolicy { cfg: cfg.clone(), sched, mlp, train_loss })
     }
@@ -283,7 +283,8 @@ impl DiffusionPolicy {
         let cfg: PolicyConfig = serde_json::from_slice(&std::fs::read(dir.join("ddpm.json"))?)?;
         let mut mlp = Mlp::new(&cfg, &mut ChaCha8Rng::seed_from_u64(0))?;
         mlp.load(&dir.join("ddpm.safetensors"))?;
-        Ok(DiffusionPolicy { sched: DdpmSchedule::squaredcos_cap_v2(cfg.diffusion_steps), cfg, mlp, train_loss: f32::NAN })
+        let sched = DdpmSchedule::squaredcos_cap_v2(cfg.diffusion_steps)?;
+        Ok(DiffusionPolicy { sched, cfg, mlp, train_loss: f32::NAN })
     }
 }
 

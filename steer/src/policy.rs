@@ -1,5 +1,5 @@
 //! Traits a user implements for their own policy model.
-use crate::error::Result;
+use crate::error::{Result, SteerError};
 use crate::schedule::DdpmSchedule;
 
 /// Per-dimension affine map from the policy's sample space to raw actions:
@@ -15,19 +15,42 @@ pub struct ActionAffine {
 }
 
 impl ActionAffine {
+    /// Checks the map against chunks of `act_dim` values: one finite, non-zero scale and one
+    /// finite offset per action dimension, and a chunk made of whole actions.
+    pub fn check(&self, act_dim: usize) -> Result<()> {
+        let d = self.scale.len();
+        if d == 0 || self.offset.len() != d {
+            return Err(SteerError::Input(format!(
+                "action affine has {} scales and {} offsets: needs one of each per action dimension",
+                d,
+                self.offset.len()
+            )));
+        }
+        if !act_dim.is_multiple_of(d) {
+            return Err(SteerError::Input(format!("chunk of {act_dim} values is not whole actions of {d} dimensions")));
+        }
+        if self.scale.iter().any(|s| !s.is_finite() || *s == 0.0) || self.offset.iter().any(|o| !o.is_finite()) {
+            return Err(SteerError::Input("action affine scales must be finite and non-zero, offsets finite".into()));
+        }
+        Ok(())
+    }
     /// Sample space to raw actions, in place.
-    pub fn apply(&self, x: &mut [f32]) {
+    pub fn apply(&self, x: &mut [f32]) -> Result<()> {
+        self.check(x.len())?;
         let d = self.scale.len();
         for (i, v) in x.iter_mut().enumerate() {
             *v = *v * self.scale[i % d] + self.offset[i % d];
         }
+        Ok(())
     }
     /// Raw actions to the sample space, in place (the inverse of [`Self::apply`]).
-    pub fn invert(&self, raw: &mut [f32]) {
+    pub fn invert(&self, raw: &mut [f32]) -> Result<()> {
+        self.check(raw.len())?;
         let d = self.scale.len();
         for (i, v) in raw.iter_mut().enumerate() {
             *v = (*v - self.offset[i % d]) / self.scale[i % d];
         }
+        Ok(())
     }
 }
 

@@ -54,7 +54,7 @@ fn guide_x0(g: &Guidance, aff: &Option<ActionAffine>, x0: &mut [f32]) -> Result<
     let grad = match aff {
         Some(a) if !g.scorer.takes_policy_space() => {
             let mut raw = x0.to_vec();
-            a.apply(&mut raw);
+            a.apply(&mut raw)?;
             let mut gr = g.scorer.grad_batch(g.obs, g.t, &raw)?;
             let d = a.scale.len();
             for (i, v) in gr.iter_mut().enumerate() {
@@ -110,6 +110,9 @@ fn ddpm_impl<P: NoisePredictor + ?Sized, R: Rng + ?Sized>(
     }
     let sched = policy.schedule();
     let aff = policy.action_affine();
+    if let Some(a) = &aff {
+        a.check(ad)?;
+    }
     let clip_c = policy.clip_sample();
     let n = b * ad;
     let mut x = randn(rng, n); // a_K ~ N(0, I)
@@ -141,7 +144,7 @@ fn ddpm_impl<P: NoisePredictor + ?Sized, R: Rng + ?Sized>(
         }
     }
     if let Some(a) = &aff {
-        a.apply(&mut x);
+        a.apply(&mut x)?;
     }
     Ok(x)
 }
@@ -174,6 +177,9 @@ fn flow_impl<P: VelocityField + ?Sized, R: Rng + ?Sized>(
         check_guidance(g, b, ad)?;
     }
     let aff = policy.action_affine();
+    if let Some(a) = &aff {
+        a.check(ad)?;
+    }
     let n = b * ad;
     let steps = policy.num_steps().max(1);
     let dt = 1.0 / steps as f32;
@@ -200,7 +206,7 @@ fn flow_impl<P: VelocityField + ?Sized, R: Rng + ?Sized>(
     }
     clip(&mut x, policy.clip_sample());
     if let Some(a) = &aff {
-        a.apply(&mut x);
+        a.apply(&mut x)?;
     }
     Ok(x)
 }
@@ -233,6 +239,7 @@ pub struct BestOfN {
 /// Best-of-N (Algorithm 1): score `n` candidates per group (`candidates` is `B * n * act_dim`,
 /// group-major, in the space the scorer takes) and keep the argmax of each group.
 pub fn best_of_n(scorer: &dyn Scorer, obs: &[f32], t: &[u32], candidates: &[f32], n: usize) -> Result<BestOfN> {
+    check_n(n)?;
     let scores = scorer.score_batch(obs, t, candidates, n)?;
     pick(scorer.act_dim(), scores, t.len(), candidates, n)
 }
@@ -248,10 +255,11 @@ pub fn best_of_n_raw(
     raw_candidates: &[f32],
     n: usize,
 ) -> Result<BestOfN> {
+    check_n(n)?;
     let scores = match affine {
         Some(a) if scorer.takes_policy_space() => {
             let mut x = raw_candidates.to_vec();
-            a.invert(&mut x);
+            a.invert(&mut x)?;
             scorer.score_batch(obs, t, &x, n)?
         }
         _ => scorer.score_batch(obs, t, raw_candidates, n)?,
@@ -259,7 +267,15 @@ pub fn best_of_n_raw(
     pick(scorer.act_dim(), scores, t.len(), raw_candidates, n)
 }
 
+fn check_n(n: usize) -> Result<()> {
+    if n == 0 {
+        return Err(SteerError::Input("best-of-N needs at least one candidate per group (n = 0)".into()));
+    }
+    Ok(())
+}
+
 fn pick(ad: usize, scores: Vec<f32>, b: usize, candidates: &[f32], n: usize) -> Result<BestOfN> {
+    check_n(n)?;
     if scores.len() != b * n || candidates.len() != b * n * ad {
         return Err(SteerError::Input(format!(
             "{} scores and {} candidate values for {b} groups of {n} chunks of {ad}",

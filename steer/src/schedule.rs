@@ -1,6 +1,9 @@
 //! DDPM noise schedule, indexed as in the paper: k = 1..=K, with alpha_bar(0) = 1.
 //! (diffusers' 0-based timestep index is k - 1; that index is what a [`crate::NoisePredictor`]
-//! receives.)
+//! receives.) The constructors refuse an empty schedule or betas outside (0, 1), so every
+//! schedule that exists has K >= 1 valid steps.
+
+use crate::error::{Result, SteerError};
 
 #[derive(Debug, Clone)]
 pub struct DdpmSchedule {
@@ -12,7 +15,7 @@ impl DdpmSchedule {
     /// diffusers' `squaredcos_cap_v2` (`betas_for_alpha_bar`, cosine, max_beta = 0.999):
     /// alpha_bar(s) = cos^2((s + 0.008) / 1.008 * pi / 2),
     /// beta_i = min(1 - alpha_bar((i+1)/K) / alpha_bar(i/K), 0.999) for i = 0..K-1.
-    pub fn squaredcos_cap_v2(k: usize) -> Self {
+    pub fn squaredcos_cap_v2(k: usize) -> Result<Self> {
         let ab = |s: f64| ((s + 0.008) / 1.008 * std::f64::consts::FRAC_PI_2).cos().powi(2);
         let betas = (0..k)
             .map(|i| {
@@ -25,15 +28,20 @@ impl DdpmSchedule {
     }
 
     /// diffusers' `linear` schedule.
-    pub fn linear(k: usize, beta_start: f64, beta_end: f64) -> Self {
+    pub fn linear(k: usize, beta_start: f64, beta_end: f64) -> Result<Self> {
         let betas = (0..k)
             .map(|i| beta_start + (beta_end - beta_start) * i as f64 / (k.max(2) - 1) as f64)
             .collect();
         Self::from_betas(betas)
     }
 
-    pub fn from_betas(betas: Vec<f64>) -> Self {
-        assert!(!betas.is_empty() && betas.iter().all(|b| *b > 0.0 && *b < 1.0), "betas must be in (0, 1)");
+    pub fn from_betas(betas: Vec<f64>) -> Result<Self> {
+        if betas.is_empty() {
+            return Err(SteerError::Input("a DDPM schedule needs at least one step".into()));
+        }
+        if let Some((i, b)) = betas.iter().enumerate().find(|(_, b)| !(**b > 0.0 && **b < 1.0)) {
+            return Err(SteerError::Input(format!("beta {b} at step {} is not in (0, 1)", i + 1)));
+        }
         let mut acc = 1.0;
         let alphas_cumprod = betas
             .iter()
@@ -42,7 +50,7 @@ impl DdpmSchedule {
                 acc
             })
             .collect();
-        DdpmSchedule { betas, alphas_cumprod }
+        Ok(DdpmSchedule { betas, alphas_cumprod })
     }
 
     /// K, the number of diffusion steps.

@@ -79,7 +79,7 @@ impl Scorer for Quad {
 #[test]
 fn squaredcos_schedule_values() {
     // diffusers DDPMScheduler(num_train_timesteps=100, beta_schedule="squaredcos_cap_v2")
-    let s = DdpmSchedule::squaredcos_cap_v2(100);
+    let s = DdpmSchedule::squaredcos_cap_v2(100).unwrap();
     let close = |a: f64, b: f64| assert!((a - b).abs() < 1e-9 * b.abs().max(1e-3), "{a} vs {b}");
     close(s.beta(1), 0.0006312815983416931);
     close(s.beta(50), 0.030593124281670048);
@@ -89,7 +89,7 @@ fn squaredcos_schedule_values() {
     close(s.alpha_bar(50), 0.49384359044063775);
     close(s.alpha_bar(100), 2.4285722793500615e-07);
     assert_eq!(s.alpha_bar(0), 1.0);
-    let s2 = DdpmSchedule::squaredcos_cap_v2(2);
+    let s2 = DdpmSchedule::squaredcos_cap_v2(2).unwrap();
     close(s2.beta(1), 0.5061564095593623);
     close(s2.beta(2), 0.999);
 }
@@ -97,7 +97,7 @@ fn squaredcos_schedule_values() {
 /// Algorithm 2 with K = 2, hand-computed.
 #[test]
 fn ddpm_guidance_two_step_hand_computed() {
-    let p = LinEps { sched: DdpmSchedule::from_betas(vec![0.1, 0.5]), c: vec![0.25, 0.5], ad: 1, clip: None };
+    let p = LinEps { sched: DdpmSchedule::from_betas(vec![0.1, 0.5]).unwrap(), c: vec![0.25, 0.5], ad: 1, clip: None };
     let q = Quad { target: vec![2.0] };
     let obs = [0.3f32];
     let lam = 0.4f64;
@@ -148,7 +148,7 @@ fn flow_guidance_two_step_hand_computed() {
 fn lambda_zero_reproduces_unguided() {
     let ad = 6;
     let p = LinEps {
-        sched: DdpmSchedule::squaredcos_cap_v2(20),
+        sched: DdpmSchedule::squaredcos_cap_v2(20).unwrap(),
         c: (0..20).map(|k| 0.1 + 0.04 * k as f32).collect(),
         ad,
         clip: Some(1.0),
@@ -197,7 +197,7 @@ fn best_of_n_picks_the_argmax() {
 #[test]
 fn ddpm_guidance_does_not_clip_after_the_gradient_step() {
     // K = 1: alpha_bar_0 = 1, so the posterior mean is x̂0 itself and there is no noise.
-    let p = LinEps { sched: DdpmSchedule::from_betas(vec![0.3]), c: vec![0.5], ad: 1, clip: Some(1.0) };
+    let p = LinEps { sched: DdpmSchedule::from_betas(vec![0.3]).unwrap(), c: vec![0.5], ad: 1, clip: Some(1.0) };
     let q = Quad { target: vec![5.0] };
     let lam = 0.5f64;
     let g = Guidance { scorer: &q, obs: &[0.0], t: &[0], lambda: lam as f32 };
@@ -250,7 +250,7 @@ fn guidance_takes_the_gradient_in_the_space_the_scorer_takes() {
             self.0.grad_batch(o, t, c)
         }
     }
-    let p = Affine(LinEps { sched: DdpmSchedule::from_betas(vec![0.3]), c: vec![0.5], ad: 1, clip: None });
+    let p = Affine(LinEps { sched: DdpmSchedule::from_betas(vec![0.3]).unwrap(), c: vec![0.5], ad: 1, clip: None });
     let lam = 0.1f64;
     let a1: f64 = rand::Rng::sample::<f32, _>(&mut ChaCha8Rng::seed_from_u64(4), rand_distr::StandardNormal) as f64;
     let x0 = (a1 - 0.3f64.sqrt() * (0.5 * a1 + 0.03)) / 0.7f64.sqrt();
