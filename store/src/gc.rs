@@ -15,6 +15,9 @@ pub struct GcReport {
     pub kept_recent: usize,
 }
 
+/// The longest grace period gc accepts: ten years, far beyond any writer in flight.
+pub const MAX_GRACE_SECONDS: u64 = 10 * 365 * 86_400;
+
 impl Store {
     /// Paths of every object some catalog row points at.
     pub async fn referenced_objects(&self) -> Result<HashSet<String>, StoreError> {
@@ -34,13 +37,23 @@ impl Store {
         Ok(set)
     }
 
-    /// Removes unreferenced objects older than `grace_seconds`.
+    /// Removes unreferenced objects older than `grace_seconds` (at most [`MAX_GRACE_SECONDS`]).
     pub async fn gc(&self, grace_seconds: u64, dry_run: bool) -> Result<GcReport, StoreError> {
+        // Checked before anything is listed: a grace that overflowed the cutoff used to wrap into
+        // the future and delete every unreferenced object, in-flight writers' included.
+        let cutoff = i64::try_from(grace_seconds)
+            .ok()
+            .filter(|g| *g <= MAX_GRACE_SECONDS as i64)
+            .and_then(|g| crate::now_ms().checked_sub(g * 1000))
+            .ok_or_else(|| {
+                StoreError::invalid(format!(
+                    "gc grace period of {grace_seconds} s is more than the maximum of {MAX_GRACE_SECONDS} s (10 years)"
+                ))
+            })?;
         // List first, then read the references: an object committed in between is then
         // seen as referenced, never deleted.
         let objects = self.objects().list_all().await?;
         let referenced = self.referenced_objects().await?;
-        let cutoff = crate::now_ms() - (grace_seconds as i64) * 1000;
         let mut report =
             GcReport { objects_scanned: objects.len(), referenced: 0, deleted: Vec::new(), kept_recent: 0 };
         for o in objects {

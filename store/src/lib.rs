@@ -28,7 +28,7 @@ pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
 pub use catalog::{migration_names, Backend};
 pub use counts::{CountFilter, LabelCounts};
 pub use error::StoreError;
-pub use gc::GcReport;
+pub use gc::{GcReport, MAX_GRACE_SECONDS};
 pub use jobs::{JobRecord, JobState};
 pub use labels::{LabelChange, LabelEvent, LabelUpdate};
 pub use model::*;

@@ -336,6 +336,13 @@ async fn aborted_ingest_is_invisible_and_collected() {
     assert!(r.deleted.is_empty(), "young orphans are kept: {:?}", r.deleted);
     assert_eq!(r.kept_recent, orphans.len());
     assert_eq!(object_files(dir.path()), committed.union(&orphans).cloned().collect());
+    // A grace period too large to compute with is refused and deletes nothing (it used to wrap
+    // around into "everything unreferenced is old enough").
+    for huge in [u64::MAX, 1 << 62, store::MAX_GRACE_SECONDS + 1] {
+        let e = store.gc(huge, false).await.unwrap_err().to_string();
+        assert!(e.contains("grace period"), "{e}");
+    }
+    assert_eq!(object_files(dir.path()), committed.union(&orphans).cloned().collect());
 
     // After it, gc removes exactly the aborted ingest's objects (a dry run first lists them).
     tokio::time::sleep(std::time::Duration::from_millis(20)).await;
