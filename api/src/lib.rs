@@ -25,7 +25,7 @@ pub use error::{ApiError, Problem};
 pub use media::parse_range;
 pub use openapi::openapi;
 pub use upload::sanitize_filename;
-pub use worker::{run_worker, run_worker_with, JobContext, JobRunner, WorkerOptions};
+pub use worker::{run_worker, run_worker_with, worker_identity, JobContext, JobRunner, WorkerOptions};
 
 use axum::extract::DefaultBodyLimit;
 use axum::middleware::from_fn_with_state;
@@ -70,7 +70,7 @@ impl ServeConfig {
             upload_limit_bytes: 50 << 30,
             upload_dir: data_dir.join("uploads"),
             run_worker_in_process: true,
-            worker_id: format!("serve-{}", std::process::id()),
+            worker_id: worker::worker_identity("serve"),
             worker_lease_ms: 30_000,
             token_cache_ttl: Duration::from_secs(5),
         }

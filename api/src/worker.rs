@@ -12,6 +12,20 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use store::{JobRecord, Store};
 
+/// A worker's name, unique across machines and restarts: `ROLE-HOST-PID-RANDOM`. The process id
+/// alone is not (every container's main process is PID 1, so all workers were `worker-1`), and
+/// the job lease and its fencing are only as good as the names.
+pub fn worker_identity(role: &str) -> String {
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .map(|h| h.trim().chars().filter(|c| c.is_ascii_alphanumeric() || *c == '-' || *c == '.').collect::<String>())
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "host".into());
+    let random = &uuid::Uuid::new_v4().simple().to_string()[..8];
+    format!("{role}-{host}-{}-{random}", std::process::id())
+}
+
 /// Does the work of a job. The binary implements training (trainer crate) and ingest (ingest
 /// crate); tests implement fakes. Long, blocking work should poll [`JobContext::is_cancelled`].
 pub trait JobRunner: Send + Sync + 'static {
@@ -204,4 +218,16 @@ pub(crate) async fn run_one(store: &Store, runner: &dyn JobRunner, opts: &Worker
 enum Stop {
     Cancelled,
     LeaseLost(&'static str),
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn worker_identities_are_unique_and_say_where_they_run() {
+        let (a, b) = (super::worker_identity("worker"), super::worker_identity("worker"));
+        assert_ne!(a, b, "two workers of one process (or two PID-1 containers) get different names");
+        assert!(a.starts_with("worker-") && a.contains(&format!("-{}-", std::process::id())), "{a}");
+        let host = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
+        assert!(a.contains(host.trim()), "{a} names the host {host}");
+    }
 }

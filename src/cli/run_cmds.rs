@@ -80,7 +80,7 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
         step_stride: a.step_stride,
     };
     let job = store.create_job("train", &serde_json::to_value(&spec)?, &a.actor).await?;
-    let worker = format!("cli-{}", std::process::id());
+    let worker = api::worker_identity("cli");
     let claimed = store.claim_job(&worker, 3_600_000).await?;
     anyhow::ensure!(claimed.as_ref().map(|j| j.id.as_str()) == Some(job.id.as_str()), "another queued job was claimed first; run `ufops worker`");
     let pb = if std::io::IsTerminal::is_terminal(&std::io::stderr()) {

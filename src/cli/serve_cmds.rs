@@ -173,7 +173,7 @@ pub async fn serve(args: &StoreArgs, a: ServeArgs) -> Result<()> {
 
 pub async fn worker(args: &StoreArgs, id: Option<String>, lease_ms: i64) -> Result<()> {
     let store = args.open().await?;
-    let id = id.unwrap_or_else(|| format!("worker-{}", std::process::id()));
+    let id = id.unwrap_or_else(|| api::worker_identity("worker"));
     eprintln!("worker {id}: claiming jobs from {}", store.describe());
     api::run_worker(store, Arc::new(Runner), id, lease_ms, shutdown_signal()).await;
     Ok(())
