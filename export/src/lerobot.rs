@@ -221,6 +221,9 @@ impl Writer<'_> {
 
     fn add(&mut self, index: usize, e: &EpisodeRecord, steps: RecordBatch, part: Option<&String>) -> Result<()> {
         let l = layout_of(&steps.schema())?;
+        if l.action == 0 {
+            return Err(no_actions(e));
+        }
         if l != self.layout {
             return Err(ExportError::invalid(format!(
                 "episode {} has other step columns than the first one exported ({:?} vs {:?}): a LeRobot dataset has one feature set; export them separately",
@@ -496,10 +499,7 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
         if writer.is_none() {
             let layout = layout_of(&steps.schema())?;
             if layout.action == 0 {
-                return Err(ExportError::invalid(format!(
-                    "episode {} has no actions: a LeRobot dataset needs an action per frame (select episodes with actions)",
-                    e.id
-                )));
+                return Err(no_actions(e));
             }
             let fps = match fps {
                 Some(f) => f,
@@ -612,6 +612,13 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
     report.bytes = disk_size(&root);
     staged.commit()?;
     Ok(report)
+}
+
+fn no_actions(e: &EpisodeRecord) -> ExportError {
+    ExportError::invalid(format!(
+        "episode {} has no actions: a LeRobot dataset needs an action per frame (select episodes with actions)",
+        e.id
+    ))
 }
 
 /// Frames per second from an episode's step times (median interval), 10 when they say nothing.
