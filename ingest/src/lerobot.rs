@@ -280,6 +280,14 @@ fn floats64(path: &Path, a: &ArrayRef, what: &str) -> Result<Vec<f64>> {
     Ok(c.values().to_vec())
 }
 
+/// A boolean column keeping its nulls.
+fn opt_bools(path: &Path, a: &ArrayRef, what: &str) -> Result<Vec<Option<bool>>> {
+    let a = flatten_single(path, a, what)?;
+    let c = arrow::compute::cast(&a, &DataType::Boolean)
+        .map_err(|e| IngestError::invalid(path, format!("column {what}: {e}")))?;
+    Ok(c.as_boolean().iter().collect())
+}
+
 fn bools(path: &Path, a: &ArrayRef, what: &str) -> Result<Vec<bool>> {
     let a = flatten_single(path, a, what)?;
     let c = arrow::compute::cast(&a, &DataType::Boolean)
@@ -552,7 +560,8 @@ struct EpBuf {
     action: (usize, Vec<f32>),
     reward: Vec<f32>,
     done: Vec<bool>,
-    success: Vec<bool>,
+    /// `next.success` per row; null rows (an unlabeled episode in a ufops export) are `None`.
+    success: Vec<Option<bool>>,
     images: Vec<Vec<Vec<u8>>>,
 }
 
@@ -582,7 +591,7 @@ impl<'a> DataReader<'a> {
         }
         let reward = if self.plan.has_reward { Some(list_f32(path, need("next.reward")?, "next.reward")?) } else { None };
         let done = if self.plan.has_done { Some(bools(path, need("next.done")?, "next.done")?) } else { None };
-        let success = if self.plan.has_success { Some(bools(path, need("next.success")?, "next.success")?) } else { None };
+        let success = if self.plan.has_success { Some(opt_bools(path, need("next.success")?, "next.success")?) } else { None };
         let mut imgs = Vec::new();
         for (c, _) in &self.plan.images {
             imgs.push(image_bytes(path, need(c)?, c)?);
@@ -819,7 +828,10 @@ impl Ctx<'_> {
         let name = format!("episode_{e:06}");
         let (label, label_source) = match self.opts.user_label(&name, e as u32, &reward) {
             Some(l) => l,
-            None if self.plan.has_success => (Label::from_bool(Some(b.success.iter().any(|&s| s))), LABEL_SOURCE.to_string()),
+            // An episode whose `next.success` is null throughout is unlabeled.
+            None if self.plan.has_success && b.success.iter().any(|s| s.is_some()) => {
+                (Label::from_bool(Some(b.success.iter().any(|&s| s == Some(true)))), LABEL_SOURCE.to_string())
+            }
             None => (Label::Unknown, String::new()),
         };
         let task = self.opts.task.clone().or_else(|| meta.tasks.first().cloned()).or_else(|| {

@@ -113,7 +113,7 @@ fn read_path_inner(path: &Path, format: Format, opts: &ReadOptions, sink: &mut d
     };
     let mut notes = Vec::new();
     match format {
-        Format::Robomimic => robomimic::read_file(path, opts, sink)?,
+        Format::Robomimic => notes.extend(robomimic::read_file_notes(path, opts, sink)?),
         Format::Lerobot => lerobot::read_dir(path, opts, sink)?,
         Format::Mcap => {
             let r = mcapfmt::read_file(path, opts, sink)?;
@@ -125,7 +125,7 @@ fn read_path_inner(path: &Path, format: Format, opts: &ReadOptions, sink: &mut d
             }
             if !r.skipped_empty.is_empty() {
                 notes.push(format!(
-                    "left out (no action messages): episodes {}",
+                    "left out (no messages on the mapped topics): episodes {}",
                     r.skipped_empty.iter().map(|i| i.to_string()).collect::<Vec<_>>().join(", ")
                 ));
             }

@@ -713,14 +713,31 @@ impl<'a> Assembler<'a> {
             }
             Ok(())
         };
+        let has_action = samples.iter().any(|s| matches!(s.kind, Kind::Action(_)));
         match self.mapping.rate_hz {
-            None => {
+            None if has_action => {
                 for s in samples {
                     match &s.kind {
                         Kind::Obs(k, v) => latest[*k] = Some(v),
                         Kind::Reward(r) => latest_reward = *r,
                         Kind::Action(v) => step(s.t, &latest, Some(v), latest_reward, &mut cols, &mut action)?,
                         Kind::Other => {}
+                    }
+                }
+            }
+            None => {
+                // No action messages: one step per observation time (all observations
+                // published at that log time taken together), actions null.
+                for (i, s) in samples.iter().enumerate() {
+                    match &s.kind {
+                        Kind::Obs(k, v) => latest[*k] = Some(v),
+                        Kind::Reward(r) => latest_reward = *r,
+                        _ => {}
+                    }
+                    let last_at_t = samples.get(i + 1).is_none_or(|n| n.t != s.t);
+                    let obs_at_t = samples[..=i].iter().rev().take_while(|p| p.t == s.t).any(|p| matches!(p.kind, Kind::Obs(..)));
+                    if last_at_t && obs_at_t {
+                        step(s.t, &latest, None, latest_reward, &mut cols, &mut action)?;
                     }
                 }
             }
@@ -749,7 +766,7 @@ impl<'a> Assembler<'a> {
                 }
             }
         }
-        if times.is_empty() || action.dim.is_none() {
+        if times.is_empty() {
             return Ok(None);
         }
         let backfill = |c: Col| -> Option<(usize, Vec<f32>)> {
@@ -765,7 +782,8 @@ impl<'a> Assembler<'a> {
             v.extend_from_slice(&c.vals);
             Some((d, v))
         };
-        let (adim, avals) = backfill(action).expect("dim checked");
+        // No action in the whole episode: dimension 0, stored without an action column.
+        let (adim, avals) = backfill(action).unwrap_or((0, Vec::new()));
         let mut observations = Vec::new();
         for (k, c) in cols.into_iter().enumerate() {
             if let Some((dim, values)) = backfill(c) {

@@ -13,10 +13,11 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
+use arrow::array::Array as _;
 use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
 
 use crate::error::{IngestError, Result};
-use crate::model::{EpisodeInput, Label, MediaFile, SourceInput};
+use crate::model::{EpisodeInput, ExtraColumn, Label, MediaFile, SourceInput};
 use crate::options::{Format, IngestOptions, MemoryBudget, ReadOptions};
 use crate::sink::{EpisodeSink, SourceMeta};
 
@@ -78,7 +79,7 @@ impl std::fmt::Display for IngestReport {
             write!(f, ", {} media files", self.media_files)?;
         }
         for n in &self.notes {
-            write!(f, "\nnote: {n}")?;
+            write!(f, "\nwarning: {n}")?;
         }
         Ok(())
     }
@@ -88,7 +89,7 @@ enum Msg {
     Source(SourceMeta),
     Media(MediaFile),
     /// An episode and its share of the in-flight budget, returned once it is encoded.
-    Episode(Box<EpisodeInput>, OwnedSemaphorePermit),
+    Episode(Box<(EpisodeInput, Vec<ExtraColumn>)>, OwnedSemaphorePermit),
 }
 
 /// The reader's end: a bounded channel plus a byte budget, a semaphore of KiB permits (an
@@ -113,15 +114,16 @@ impl EpisodeSink for ChannelSink {
     fn media(&mut self, file: MediaFile) -> Result<()> {
         self.send(Msg::Media(file))
     }
-    fn episode(&mut self, episode: EpisodeInput) -> Result<()> {
-        let kib = (approx_bytes(&episode) / 1024 + 1).min(self.budget_kib as usize) as u32;
+    fn episode_with_extras(&mut self, episode: EpisodeInput, extras: Vec<ExtraColumn>) -> Result<()> {
+        let extra_bytes: usize = extras.iter().map(|x| x.values.get_array_memory_size()).sum();
+        let kib = ((approx_bytes(&episode) + extra_bytes) / 1024 + 1).min(self.budget_kib as usize) as u32;
         // Blocks this (blocking-pool) thread until enough earlier episodes were encoded; fails
         // once the writer's side gave up (the semaphore is closed).
         let permit = self
             .runtime
             .block_on(self.in_flight.clone().acquire_many_owned(kib))
             .map_err(|_| IngestError::Cancelled)?;
-        self.send(Msg::Episode(Box::new(episode), permit))
+        self.send(Msg::Episode(Box::new((episode, extras)), permit))
     }
 }
 
@@ -333,7 +335,8 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
                     report.media_files += 1;
                     continue;
                 }
-                Event::Msg(Some(Msg::Episode(ep, permit))) => {
+                Event::Msg(Some(Msg::Episode(item, permit))) => {
+                    let (ep, extras) = *item;
                     report.episodes += 1;
                     report.steps += ep.len() as u64;
                     match ep.label {
@@ -341,7 +344,7 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
                         Label::Failure => report.labels.failure += 1,
                         Label::Unknown => report.labels.unknown += 1,
                     }
-                    writer.push_episode(*ep).await.map_err(|e| store_err(path, e))?;
+                    writer.push_episode_with_extras(ep, extras).await.map_err(|e| store_err(path, e))?;
                     // Encoded: its decoded columns are gone, so is its share of the budget.
                     drop(permit);
                     let pos = match expected_episodes {

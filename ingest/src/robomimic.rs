@@ -4,6 +4,11 @@
 //!
 //! Read with `hdf5-pure` (no system library) through positioned reads of the file, one demo at
 //! a time: memory is bounded by a demo, not by the file.
+//!
+//! Lossless: what the step model has no place for is kept as extra columns (`states`,
+//! `next_obs/<key>` where it differs from the next step's `obs/<key>`, any other per-step
+//! dataset, attribute values too large for the episode metadata), so an export gives the file
+//! back; what still cannot be kept is reported as a note.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
@@ -13,7 +18,11 @@ use serde_json::{json, Map, Value};
 use sha2::Digest;
 
 use crate::error::{IngestError, Result};
-use crate::model::{EpisodeInput, ImageColumn, Label, VectorColumn};
+use crate::model::{EpisodeInput, ExtraColumn, ImageColumn, Label, VectorColumn};
+use arrow::array::{ArrayRef, FixedSizeListArray, PrimitiveArray, StringArray};
+use arrow::buffer::NullBuffer;
+use arrow::datatypes::{ArrowPrimitiveType, Field, Float32Type, Float64Type, UInt8Type};
+use std::sync::Arc;
 use crate::options::ReadOptions;
 use crate::sink::{EpisodeSink, SourceMeta};
 
@@ -52,6 +61,11 @@ impl hdf5_pure::Source for PositionedFile {
 /// Reads a robomimic file from disk, demo by demo: the file is never loaded whole (memory is
 /// bounded by one demo's datasets, whatever the file's size).
 pub fn read_file(path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<()> {
+    read_file_notes(path, opts, sink).map(|_| ())
+}
+
+/// [`read_file`], returning notes on what could not be kept (for the user, as warnings).
+pub fn read_file_notes(path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<Vec<String>> {
     check_signature_file(path)?;
     let f = std::fs::File::open(path).map_err(|e| IngestError::io(path, e))?;
     let len = f.metadata().map_err(|e| IngestError::io(path, e))?.len();
@@ -74,7 +88,7 @@ pub fn read_bytes(
     }
     let file = File::from_bytes(bytes)
         .map_err(|e| IngestError::invalid(name, format!("not a readable HDF5 file: {e}")))?;
-    read_h5(&file, name, opts, sink)
+    read_h5(&file, name, opts, sink).map(|_| ())
 }
 
 fn check_signature_file(path: &Path) -> Result<()> {
@@ -269,7 +283,7 @@ fn read_h5(
     path: &Path,
     opts: &ReadOptions,
     sink: &mut dyn EpisodeSink,
-) -> Result<()> {
+) -> Result<Vec<String>> {
     let data = file
         .group("data")
         .map_err(h5err(path, "no `data` group: not a robomimic file"))?;
@@ -307,14 +321,113 @@ fn read_h5(
     sink.source(SourceMeta { format: "robomimic".into(), metadata: Value::Object(meta) })?;
 
     let env_name = env_args.get("env_name").and_then(|v| v.as_str()).map(str::to_string);
-    let mut total_steps = 0u64;
+    let mut left_out: BTreeMap<String, Vec<String>> = BTreeMap::new();
     for (index, (name, g)) in demos.iter().enumerate() {
-        let ep = read_demo(g, path, name, index as u32, freq, &masks, env_name.as_deref(), opts)?;
-        total_steps += ep.len() as u64;
-        sink.episode(ep)?;
+        let (ep, extras, skipped) = read_demo(g, path, name, index as u32, freq, &masks, env_name.as_deref(), opts)?;
+        for s in skipped {
+            left_out.entry(s).or_default().push(name.clone());
+        }
+        sink.episode_with_extras(ep, extras)?;
     }
-    let _ = total_steps;
-    Ok(())
+    Ok(left_out
+        .into_iter()
+        .map(|(what, demos)| format!("left out {what} (in {} demo(s), e.g. {})", demos.len(), demos[0]))
+        .collect())
+}
+
+/// A `(T, ...)` array as a fixed-size-list column (`dim` values per row); rows where `valid` is
+/// false are null.
+fn fsl_column<T: ArrowPrimitiveType>(dim: usize, values: Vec<T::Native>, valid: Option<Vec<bool>>) -> Result<ArrayRef, String> {
+    let item = Arc::new(Field::new("item", T::DATA_TYPE, false));
+    let child = Arc::new(PrimitiveArray::<T>::from_iter_values(values));
+    let nulls = valid.map(NullBuffer::from);
+    FixedSizeListArray::try_new(item, dim as i32, child, nulls).map(|a| Arc::new(a) as ArrayRef).map_err(|e| e.to_string())
+}
+
+fn dtype_name(d: &DType) -> String {
+    match d {
+        DType::F32 => "float32".into(),
+        DType::F64 => "float64".into(),
+        DType::I8 => "int8".into(),
+        DType::I16 => "int16".into(),
+        DType::I32 => "int32".into(),
+        DType::I64 => "int64".into(),
+        DType::U8 => "uint8".into(),
+        DType::U16 => "uint16".into(),
+        DType::U32 => "uint32".into(),
+        DType::U64 => "uint64".into(),
+        DType::Enum(_) => "bool".into(),
+        other => other.to_string(),
+    }
+}
+
+fn extra(name: String, values: ArrayRef, dtype: &DType, row_shape: &[u64], extra_meta: &[(&str, String)]) -> ExtraColumn {
+    let mut metadata = HashMap::from([
+        ("ufops.dtype".to_string(), dtype_name(dtype)),
+        ("ufops.shape".to_string(), json!(row_shape).to_string()),
+    ]);
+    for (k, v) in extra_meta {
+        metadata.insert(k.to_string(), v.clone());
+    }
+    ExtraColumn { name, values, metadata }
+}
+
+/// A per-step dataset (`T` rows) as an extra column: u8 kept as u8, floats of 32 bits as f32,
+/// every other number type as f64 (exact for integers up to 2^53).
+fn read_extra(ds: &Dataset, path: &Path, what: &str, name: String, steps: usize) -> Result<Option<ExtraColumn>> {
+    let inf = info(ds, path, what)?;
+    if inf.shape.first().copied() != Some(steps as u64) || !(is_numeric(&inf.dtype) || matches!(inf.dtype, DType::Enum(_))) {
+        return Ok(None);
+    }
+    let dim = inf.shape[1..].iter().product::<u64>() as usize;
+    let bad = |e: String| IngestError::invalid(path, format!("{what}: {e}"));
+    let values = match inf.dtype {
+        DType::U8 => fsl_column::<UInt8Type>(dim, ds.read_u8().map_err(h5err(path, format!("cannot read {what}")))?, None),
+        DType::F32 => fsl_column::<Float32Type>(dim, ds.read_f32().map_err(h5err(path, format!("cannot read {what}")))?, None),
+        _ => fsl_column::<Float64Type>(dim, ds.read_f64().map_err(h5err(path, format!("cannot read {what}")))?, None),
+    }
+    .map_err(bad)?;
+    Ok(Some(extra(name, values, &inf.dtype, &inf.shape[1..], &[])))
+}
+
+/// `next_obs/<key>` keeping only the rows that differ from `obs/<key>` of the next step (robomimic
+/// writes `next_obs[t] == obs[t + 1]` but for the last step; rendered images may differ).
+fn read_next_obs(ds: &Dataset, path: &Path, what: &str, key: &str, obs: Option<&ObsValues>, steps: usize) -> Result<Option<ExtraColumn>> {
+    let inf = info(ds, path, what)?;
+    if inf.shape.first().copied() != Some(steps as u64) {
+        return Ok(None);
+    }
+    let dim = inf.shape[1..].iter().product::<u64>() as usize;
+    let bad = |e: String| IngestError::invalid(path, format!("{what}: {e}"));
+    let keep = |same: &dyn Fn(usize) -> bool| -> Vec<bool> { (0..steps).map(|t| t + 1 == steps || !same(t)).collect() };
+    let meta = [("ufops.null_means", format!("obs/{key} of the next step"))];
+    let values = if inf.dtype == DType::U8 {
+        let v = ds.read_u8().map_err(h5err(path, format!("cannot read {what}")))?;
+        let valid = match obs {
+            Some(ObsValues::U8(o)) if o.len() == v.len() => keep(&|t| v[t * dim..(t + 1) * dim] == o[(t + 1) * dim..(t + 2) * dim]),
+            _ => vec![true; steps],
+        };
+        fsl_column::<UInt8Type>(dim, v, Some(valid))
+    } else if is_numeric(&inf.dtype) {
+        let v = ds.read_f32().map_err(h5err(path, format!("cannot read {what}")))?;
+        let valid = match obs {
+            Some(ObsValues::F32(o)) if o.len() == v.len() => keep(&|t| {
+                v[t * dim..(t + 1) * dim].iter().zip(&o[(t + 1) * dim..(t + 2) * dim]).all(|(a, b)| a.to_bits() == b.to_bits())
+            }),
+            _ => vec![true; steps],
+        };
+        fsl_column::<Float32Type>(dim, v, Some(valid))
+    } else {
+        return Ok(None);
+    }
+    .map_err(bad)?;
+    Ok(Some(extra(format!("next_obs/{key}"), values, &inf.dtype, &inf.shape[1..], &meta)))
+}
+
+/// An observation's values as stored (to compare `next_obs` with).
+enum ObsValues {
+    F32(Vec<f32>),
+    U8(Vec<u8>),
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -327,7 +440,7 @@ fn read_demo(
     masks: &HashMap<String, Vec<String>>,
     env_name: Option<&str>,
     opts: &ReadOptions,
-) -> Result<EpisodeInput> {
+) -> Result<(EpisodeInput, Vec<ExtraColumn>, Vec<String>)> {
     let attrs = group_attrs(g, path, &format!("data/{name}"), &["num_samples"])?;
     let members = g.datasets().map_err(h5err(path, format!("cannot list data/{name}")))?;
     if !members.iter().any(|m| m == "actions") {
@@ -367,6 +480,9 @@ fn read_demo(
     // Observations.
     let mut observations = Vec::new();
     let mut images = Vec::new();
+    let mut extras = Vec::new();
+    let mut skipped = Vec::new();
+    let mut raw_images: HashMap<String, Vec<u8>> = HashMap::new();
     if let Ok(obs) = g.group("obs") {
         let mut keys = obs.datasets().map_err(h5err(path, format!("cannot list data/{name}/obs")))?;
         keys.sort();
@@ -375,10 +491,28 @@ fn read_demo(
             let ds = obs.dataset(&key).map_err(h5err(path, format!("cannot open {what}")))?;
             let inf = info(&ds, path, &what)?;
             if inf.dtype == DType::U8 && inf.shape.len() == 4 {
-                images.push(read_images(&ds, path, &what, &key, &inf.shape, steps)?);
+                let (im, raw) = read_images(&ds, path, &what, &key, &inf.shape, steps)?;
+                images.push(im);
+                raw_images.insert(key, raw);
             } else {
                 let (_, dim, values) = read_matrix(&ds, path, &what, Some(steps))?;
                 observations.push(VectorColumn { name: key, dim, values });
+            }
+        }
+    }
+    if let Ok(next) = g.group("next_obs") {
+        let mut keys = next.datasets().map_err(h5err(path, format!("cannot list data/{name}/next_obs")))?;
+        keys.sort();
+        for key in keys {
+            let what = format!("data/{name}/next_obs/{key}");
+            let ds = next.dataset(&key).map_err(h5err(path, format!("cannot open {what}")))?;
+            let o = match raw_images.remove(&key) {
+                Some(raw) => Some(ObsValues::U8(raw)),
+                None => observations.iter().find(|o| o.name == key).map(|o| ObsValues::F32(o.values.clone())),
+            };
+            match read_next_obs(&ds, path, &what, &key, o.as_ref(), steps)? {
+                Some(x) => extras.push(x),
+                None => skipped.push(format!("next_obs/{key} (not one row per step)")),
             }
         }
     }
@@ -388,9 +522,14 @@ fn read_demo(
         None => (0..steps).map(|t| t as f64).collect(),
     };
 
-    let (label, label_source) = opts
-        .user_label(name, index, &reward)
-        .unwrap_or((Label::Unknown, String::new()));
+    // A label given by the user wins; else a `success` demo attribute (ufops' robomimic export
+    // writes the frozen label there); else unknown (robomimic itself never writes success).
+    let (label, label_source) = opts.user_label(name, index, &reward).unwrap_or_else(|| {
+        match attrs.get("success").and_then(|v| v.as_i64()) {
+            Some(s) => (Label::from_bool(Some(s != 0)), "robomimic:demo@success".to_string()),
+            None => (Label::Unknown, String::new()),
+        }
+    });
 
     let mut md = Map::new();
     let mut attr_names: Vec<_> = attrs.keys().cloned().collect();
@@ -410,12 +549,19 @@ fn read_demo(
             }
         }
     }
+    // `states` and any other per-step dataset become extra columns.
     let mut others: BTreeMap<String, Value> = BTreeMap::new();
     for m in &members {
         if !matches!(m.as_str(), "actions" | "rewards" | "dones") {
-            if let Ok(ds) = g.dataset(m) {
-                if let Ok(s) = ds.shape() {
-                    others.insert(m.clone(), json!(s));
+            let what = format!("data/{name}/{m}");
+            let ds = g.dataset(m).map_err(h5err(path, format!("cannot open {what}")))?;
+            match read_extra(&ds, path, &what, m.clone(), steps)? {
+                Some(x) => extras.push(x),
+                None => {
+                    skipped.push(format!("data/<demo>/{m} (not a number array with one row per step)"));
+                    if let Ok(s) = ds.shape() {
+                        others.insert(m.clone(), json!(s));
+                    }
                 }
             }
         }
@@ -423,10 +569,21 @@ fn read_demo(
     if !others.is_empty() {
         md.insert("not_ingested".into(), json!(others));
     }
+    // Attribute values too large for the catalog (the MuJoCo `model_file`): the text on the
+    // first row of an extra column (later rows null, so it costs its compressed size once).
+    for (k, v) in &md {
+        if let (Some(obj), Some(text)) = (v.as_object(), attrs.get(k).and_then(|a| a.as_str())) {
+            if obj.contains_key("sha256") && obj.contains_key("chars") {
+                let col: ArrayRef = Arc::new(StringArray::from_iter((0..steps).map(|t| (t == 0).then_some(text))));
+                let meta = HashMap::from([("ufops.attribute".to_string(), k.clone())]);
+                extras.push(ExtraColumn { name: format!("attr/{k}"), values: col, metadata: meta });
+            }
+        }
+    }
 
     let task = opts.task.clone().or_else(|| env_name.map(str::to_string));
     let tags = masks.get(name).cloned().unwrap_or_default();
-    Ok(EpisodeInput {
+    let ep = EpisodeInput {
         source_name: name.to_string(),
         source_index: index,
         task,
@@ -442,7 +599,8 @@ fn read_demo(
         action_chunk: None,
         images,
         media: Vec::new(),
-    })
+    };
+    Ok((ep, extras, skipped))
 }
 
 fn read_dones(g: &Group, path: &Path, name: &str, steps: usize) -> Result<Vec<bool>> {
@@ -494,7 +652,7 @@ fn read_images(
     key: &str,
     shape: &[u64],
     steps: usize,
-) -> Result<ImageColumn> {
+) -> Result<(ImageColumn, Vec<u8>)> {
     let (t, h, w, c) = (shape[0] as usize, shape[1] as usize, shape[2] as usize, shape[3] as usize);
     if t != steps {
         return Err(IngestError::invalid(path, format!("{what} has {t} frames but the demo has {steps} steps")));
@@ -508,7 +666,7 @@ fn read_images(
         return Err(IngestError::invalid(path, format!("{what}: read {} bytes, shape says {}", bytes.len(), frame * t)));
     }
     let png_frames = encode_png_frames(&bytes, t, h, w, c).map_err(|e| IngestError::invalid(path, format!("{what}: {e}")))?;
-    Ok(ImageColumn { name: key.to_string(), shape: [h, w, c], png_frames })
+    Ok((ImageColumn { name: key.to_string(), shape: [h, w, c], png_frames }, bytes))
 }
 
 /// PNG-encodes `t` frames of `h x w x c` u8 (fast compression), on two threads when it pays.

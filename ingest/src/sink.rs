@@ -3,7 +3,7 @@
 //! blocking thread and forwards what they emit to the store through a bounded channel.
 
 use crate::error::Result;
-use crate::model::{EpisodeInput, MediaFile};
+use crate::model::{EpisodeInput, ExtraColumn, MediaFile};
 
 /// What the reader learned about the source before any episode (format + metadata JSON).
 #[derive(Debug, Clone, PartialEq)]
@@ -17,7 +17,12 @@ pub trait EpisodeSink {
     fn source(&mut self, meta: SourceMeta) -> Result<()>;
     /// A media file that later episodes reference (by sha256). May be called once per file.
     fn media(&mut self, file: MediaFile) -> Result<()>;
-    fn episode(&mut self, episode: EpisodeInput) -> Result<()>;
+    fn episode(&mut self, episode: EpisodeInput) -> Result<()> {
+        self.episode_with_extras(episode, Vec::new())
+    }
+    /// An episode and the per-step arrays of the source the step model has no place for
+    /// (stored as `extra.<name>` columns, so an export can give them back).
+    fn episode_with_extras(&mut self, episode: EpisodeInput, extras: Vec<ExtraColumn>) -> Result<()>;
 }
 
 /// A sink that keeps everything in memory (tests, small files, fuzzing).
@@ -26,6 +31,8 @@ pub struct CollectSink {
     pub source: Option<SourceMeta>,
     pub media: Vec<MediaFile>,
     pub episodes: Vec<EpisodeInput>,
+    /// The extra columns of each episode (same order as `episodes`).
+    pub extras: Vec<Vec<ExtraColumn>>,
 }
 
 impl EpisodeSink for CollectSink {
@@ -37,8 +44,9 @@ impl EpisodeSink for CollectSink {
         self.media.push(file);
         Ok(())
     }
-    fn episode(&mut self, episode: EpisodeInput) -> Result<()> {
+    fn episode_with_extras(&mut self, episode: EpisodeInput, extras: Vec<ExtraColumn>) -> Result<()> {
         self.episodes.push(episode);
+        self.extras.push(extras);
         Ok(())
     }
 }
@@ -59,7 +67,7 @@ impl EpisodeSink for CountSink {
         self.media += 1;
         Ok(())
     }
-    fn episode(&mut self, episode: EpisodeInput) -> Result<()> {
+    fn episode_with_extras(&mut self, episode: EpisodeInput, _extras: Vec<ExtraColumn>) -> Result<()> {
         self.episodes += 1;
         self.steps += episode.len();
         Ok(())

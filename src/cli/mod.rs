@@ -2,6 +2,7 @@
 
 mod catalog_cmds;
 mod dev;
+mod export_cmd;
 mod run_cmds;
 mod serve_cmds;
 mod view_cmd;
@@ -96,6 +97,8 @@ pub enum Command {
     },
     /// Ingest evaluation rollouts (robomimic HDF5, LeRobot v2.1/v3.0, MCAP) as one new version.
     Ingest(serve_cmds::IngestArgs),
+    /// Export a version, split or filter as a LeRobot v3.0 dataset or a robomimic HDF5 file.
+    Export(export_cmd::ExportArgs),
     /// Serve the HTTP API (and run queued jobs in-process unless --no-worker).
     Serve(serve_cmds::ServeArgs),
     /// Claim and run queued jobs (training, ingest) from the catalog.
@@ -164,6 +167,7 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Artifacts(a) => catalog_cmds::artifacts(&cli.store, a).await,
         Command::Token { command } => catalog_cmds::token(&cli.store, command).await,
         Command::Ingest(a) => serve_cmds::ingest(&cli.store, a).await,
+        Command::Export(a) => export_cmd::export(&cli.store, a).await,
         Command::Serve(a) => serve_cmds::serve(&cli.store, a).await,
         Command::Worker { id, lease_ms } => serve_cmds::worker(&cli.store, id, lease_ms).await,
         Command::Train(a) => run_cmds::train(&cli.store, a).await,

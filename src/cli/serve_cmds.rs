@@ -71,15 +71,21 @@ pub async fn ingest(args: &StoreArgs, a: IngestArgs) -> Result<()> {
         println!("{} is already in the store (version {}, sha256 {}): nothing to do", a.path.display(), r.version, r.sha256);
     } else {
         println!(
-            "version {}: {} episodes, {} steps from {} ({}, {:.1} MB) — labels {:?}",
+            "version {}: {} episodes, {} steps from {} ({}, {:.1} MB) — labels: {} success, {} failure, {} unknown",
             r.version,
             r.episodes,
             r.steps,
             a.path.display(),
             r.format,
             r.bytes as f64 / 1e6,
-            r.labels
+            r.labels.success,
+            r.labels.failure,
+            r.labels.unknown
         );
+    }
+    // What the ingest left out (or recovered around), one warning per line.
+    for n in &r.notes {
+        eprintln!("warning: {n}");
     }
     Ok(())
 }

@@ -38,7 +38,7 @@ pub use query::{EpisodeFilter, EpisodeRecord, VersionDiff, VersionInfo};
 pub use read::{EpisodeLocation, EpisodeSteps, StepsReadError, StepsStream};
 pub use splits::{SplitEpisode, SplitRecord, SplitRequest};
 pub use tokens::{Role, TokenRecord};
-pub use writer::{CommitInfo, IngestWriter, MAX_STEPS_FILE_BYTES};
+pub use writer::{CommitInfo, IngestWriter, SourceRecord, MAX_STEPS_FILE_BYTES};
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

@@ -118,6 +118,8 @@ pub struct EpisodeInput {
     /// Step times in seconds since the episode start (len = steps).
     pub timestamps: Vec<f64>,
     pub observations: Vec<VectorColumn>,
+    /// The executed action; `dim` 0 (no values) when the source recorded none for this episode
+    /// (e.g. an MCAP episode without action messages): the steps then have no `action` column.
     pub action: VectorColumn,
     pub reward: Vec<f32>,
     pub done: Vec<bool>,
@@ -132,6 +134,24 @@ impl EpisodeInput {
     }
     pub fn is_empty(&self) -> bool {
         self.timestamps.is_empty()
+    }
+}
+
+/// A per-step array of the source that the step model has no place for (robomimic `states`,
+/// `next_obs/<key>`, large demo attributes), kept so an export can give the source back. Stored
+/// as the steps column `extra.<name>`; `values` has one row per step (null rows allowed), any
+/// Arrow type; `metadata` becomes the field's metadata (e.g. `ufops.dtype`, `ufops.shape`).
+/// Passed beside the episode ([`crate::IngestWriter::push_episode_with_extras`]).
+#[derive(Debug, Clone)]
+pub struct ExtraColumn {
+    pub name: String,
+    pub values: arrow::array::ArrayRef,
+    pub metadata: std::collections::HashMap<String, String>,
+}
+
+impl PartialEq for ExtraColumn {
+    fn eq(&self, other: &Self) -> bool {
+        self.name == other.name && self.metadata == other.metadata && self.values.to_data() == other.values.to_data()
     }
 }
 

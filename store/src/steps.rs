@@ -3,7 +3,7 @@
 //! row so the files stand on their own. Episodes follow each other in row groups of up to 1 Mi
 //! rows / 64 MB; the catalog records each one's `(row_group, row_offset, row_count)`.
 
-use crate::{EpisodeInput, Label, StoreError};
+use crate::{EpisodeInput, ExtraColumn, Label, StoreError};
 use arrow::array::{
     Array, ArrayRef, BinaryArray, BinaryBuilder, BooleanArray, FixedSizeListArray, Float32Array, Float64Array,
     Int32Array, RecordBatch, StringArray,
@@ -25,6 +25,8 @@ pub const SCHEMA_VERSION: &str = "1";
 pub const OBS_PREFIX: &str = "obs.";
 pub const IMAGE_PREFIX: &str = "image.";
 pub const MEDIA_PREFIX: &str = "media.";
+/// Per-step arrays of the source beyond the step model ([`crate::ExtraColumn`]).
+pub const EXTRA_PREFIX: &str = "extra.";
 
 /// The episode-level values repeated on every row.
 pub struct EpisodeMeta<'a> {
@@ -43,6 +45,11 @@ fn fsl_field(name: &str, dim: usize, meta: HashMap<String, String>) -> Field {
 
 /// The Arrow schema an episode is written with.
 pub fn schema_for(ep: &EpisodeInput) -> SchemaRef {
+    schema_with_extras(ep, &[])
+}
+
+/// The Arrow schema of an episode and its extra columns (after the media columns).
+pub fn schema_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn]) -> SchemaRef {
     let mut fields = vec![
         Field::new("episode_id", DataType::Utf8, false),
         Field::new("t", DataType::Int32, false),
@@ -52,7 +59,9 @@ pub fn schema_for(ep: &EpisodeInput) -> SchemaRef {
         let meta = HashMap::from([("ufops.observation_key".to_string(), o.name.clone())]);
         fields.push(fsl_field(&format!("{OBS_PREFIX}{}", o.name), o.dim, meta));
     }
-    fields.push(fsl_field("action", ep.action.dim, HashMap::new()));
+    if ep.action.dim > 0 {
+        fields.push(fsl_field("action", ep.action.dim, HashMap::new()));
+    }
     fields.push(Field::new("reward", DataType::Float32, false));
     fields.push(Field::new("done", DataType::Boolean, false));
     if let Some(c) = &ep.action_chunk {
@@ -74,6 +83,12 @@ pub fn schema_for(ep: &EpisodeInput) -> SchemaRef {
     for m in &ep.media {
         fields.push(Field::new(format!("{MEDIA_PREFIX}{}.path", m.name), DataType::Utf8, false));
         fields.push(Field::new(format!("{MEDIA_PREFIX}{}.timestamp", m.name), DataType::Float64, false));
+    }
+    for x in extras {
+        fields.push(
+            Field::new(format!("{EXTRA_PREFIX}{}", x.name), x.values.data_type().clone(), true)
+                .with_metadata(x.metadata.clone()),
+        );
     }
     fields.push(Field::new("policy", DataType::Utf8, false));
     fields.push(Field::new("checkpoint", DataType::Utf8, false));
@@ -97,7 +112,9 @@ pub fn validate(ep: &EpisodeInput) -> Result<(), StoreError> {
         return bad(format!("has too many steps ({n})"));
     }
     let mut names = std::collections::HashSet::new();
-    for v in ep.observations.iter().chain(std::iter::once(&ep.action)) {
+    // An action of dimension 0 with no values: the source recorded no actions.
+    let no_action = ep.action.dim == 0 && ep.action.values.is_empty();
+    for v in ep.observations.iter().chain(std::iter::once(&ep.action).filter(|_| !no_action)) {
         if v.dim == 0 {
             return bad(format!("column {:?} has dimension 0", v.name));
         }
@@ -146,6 +163,27 @@ pub fn validate(ep: &EpisodeInput) -> Result<(), StoreError> {
     Ok(())
 }
 
+/// [`validate`], and the extra columns: one row per step, unique names.
+pub fn validate_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn]) -> Result<(), StoreError> {
+    validate(ep)?;
+    let mut names = std::collections::HashSet::new();
+    for x in extras {
+        if x.name.is_empty() || !names.insert(x.name.as_str()) {
+            return Err(StoreError::invalid(format!("episode {:?}: extra column {:?} is empty-named or appears twice", ep.source_name, x.name)));
+        }
+        if x.values.len() != ep.len() {
+            return Err(StoreError::invalid(format!(
+                "episode {:?}: extra column {:?} has {} rows for {} steps",
+                ep.source_name,
+                x.name,
+                x.values.len(),
+                ep.len()
+            )));
+        }
+    }
+    Ok(())
+}
+
 fn fsl(dim: usize, values: Vec<f32>) -> Result<ArrayRef, StoreError> {
     // `Float32Array::from(Vec)` takes the vector's buffer over: no copy.
     let child: ArrayRef = Arc::new(Float32Array::from(values));
@@ -174,6 +212,18 @@ pub fn episode_columns(
     checkpoint: &str,
     media_paths: &HashMap<String, String>,
 ) -> Result<Vec<ArrayRef>, StoreError> {
+    episode_columns_with_extras(ep, Vec::new(), policy, checkpoint, media_paths)
+}
+
+/// [`episode_columns`] with the episode's extra columns, in [`schema_with_extras`] order. Call
+/// [`validate_with_extras`] first.
+pub fn episode_columns_with_extras(
+    ep: EpisodeInput,
+    extras: Vec<ExtraColumn>,
+    policy: &str,
+    checkpoint: &str,
+    media_paths: &HashMap<String, String>,
+) -> Result<Vec<ArrayRef>, StoreError> {
     let n = ep.len();
     let label = ep.label.as_bool();
     let mut cols: Vec<ArrayRef> = Vec::with_capacity(12 + ep.observations.len());
@@ -182,7 +232,9 @@ pub fn episode_columns(
     for o in ep.observations {
         cols.push(fsl(o.dim, o.values)?);
     }
-    cols.push(fsl(ep.action.dim, ep.action.values)?);
+    if ep.action.dim > 0 {
+        cols.push(fsl(ep.action.dim, ep.action.values)?);
+    }
     cols.push(Arc::new(Float32Array::from(ep.reward)));
     cols.push(Arc::new(BooleanArray::from(ep.done)));
     if let Some(c) = ep.action_chunk {
@@ -206,6 +258,7 @@ pub fn episode_columns(
         cols.push(Arc::new(StringArray::from(vec![path.as_str(); n])));
         cols.push(Arc::new(Float64Array::from(m.timestamps)));
     }
+    cols.extend(extras.into_iter().map(|x| x.values));
     cols.push(Arc::new(StringArray::from(vec![policy; n])));
     cols.push(Arc::new(StringArray::from(vec![checkpoint; n])));
     cols.push(Arc::new(StringArray::from(vec![ep.task.as_deref(); n])));

@@ -5,7 +5,7 @@
 use crate::catalog::{insert_rows, RowExt, Tx, Val};
 use crate::counts::{insert_version_counts, CountDeltas};
 use crate::steps::{self, StepsFileWriter};
-use crate::{now_rfc3339, EpisodeInput, Label, MediaFile, SourceInput, Store, StoreError};
+use crate::{now_rfc3339, EpisodeInput, ExtraColumn, Label, MediaFile, SourceInput, Store, StoreError};
 use bytes::Bytes;
 use std::collections::{HashMap, HashSet};
 
@@ -17,6 +17,18 @@ pub const MAX_STEPS_FILE_BYTES: usize = 64 << 20;
 pub struct CommitInfo {
     pub version: i64,
     pub episodes: usize,
+}
+
+/// An ingested source (catalog `sources`).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct SourceRecord {
+    pub sha256: String,
+    pub path: String,
+    pub format: String,
+    pub size_bytes: i64,
+    pub metadata: serde_json::Value,
+    /// The version its ingest created.
+    pub version: i64,
 }
 
 struct PendingEpisode {
@@ -128,6 +140,25 @@ impl Store {
         })
     }
 
+    /// A source's record: what was ingested, its format and format-specific metadata.
+    pub async fn source(&self, sha256: &str) -> Result<SourceRecord, StoreError> {
+        let r = sqlx::query("SELECT sha256, path, format, size_bytes, metadata, version FROM sources WHERE sha256 = $1")
+            .bind(sha256)
+            .fetch_optional(&self.db().pool)
+            .await?
+            .ok_or_else(|| StoreError::not_found("source", sha256))?;
+        let metadata = serde_json::from_str(&r.s("metadata")?)
+            .map_err(|e| StoreError::Corrupt(format!("source {sha256}: metadata is not JSON: {e}")))?;
+        Ok(SourceRecord {
+            sha256: r.s("sha256")?,
+            path: r.s("path")?,
+            format: r.s("format")?,
+            size_bytes: r.i("size_bytes")?,
+            metadata,
+            version: r.i("version")?,
+        })
+    }
+
     /// The version that holds a source with this sha256, if any.
     pub async fn source_version(&self, sha256: &str) -> Result<Option<i64>, StoreError> {
         let row = sqlx::query("SELECT version FROM sources WHERE sha256 = $1")
@@ -226,7 +257,13 @@ impl IngestWriter {
 
     /// Appends one episode to the current Parquet file (episodes share row groups).
     pub async fn push_episode(&mut self, ep: EpisodeInput) -> Result<(), StoreError> {
-        steps::validate(&ep)?;
+        self.push_episode_with_extras(ep, Vec::new()).await
+    }
+
+    /// [`Self::push_episode`] with per-step arrays of the source beyond the step model, stored as
+    /// `extra.<name>` columns (store/README.md, "Steps schema").
+    pub async fn push_episode_with_extras(&mut self, ep: EpisodeInput, extras: Vec<ExtraColumn>) -> Result<(), StoreError> {
+        steps::validate_with_extras(&ep, &extras)?;
         if let Some(t) = &ep.task {
             check_name("task", t)?;
         }
@@ -236,7 +273,7 @@ impl IngestWriter {
                 ep.source_index, ep.source_name
             )));
         }
-        let schema = steps::schema_for(&ep);
+        let schema = steps::schema_with_extras(&ep, &extras);
         if self.current.as_ref().is_some_and(|(_, w)| w.schema != schema) {
             self.finish_file().await?;
         }
@@ -271,7 +308,7 @@ impl IngestWriter {
                 .collect(),
         };
         let index = ep.source_index;
-        let cols = steps::episode_columns(ep, &self.policy, &self.checkpoint, &self.media_paths)?;
+        let cols = steps::episode_columns_with_extras(ep, extras, &self.policy, &self.checkpoint, &self.media_paths)?;
         let (path, w) = self.current.as_mut().expect("writer just created");
         let range = w.write_episode(index, &cols)?;
         self.episodes.push(PendingEpisode { data_file: path.clone(), range, ..pending });

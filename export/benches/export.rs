@@ -1,0 +1,157 @@
+//! Export of 5,000 rollouts (issue 16, Must show 5): `export::lerobot::export` and
+//! `export::robomimic::export` against the Python path a user would write with pyarrow / h5py
+//! (`bench/reference/py_export_store.py`), in the same run, each in its own process (wall time
+//! and peak RSS), medians of `EXPORT_BENCH_RUNS` (default 3).
+//!
+//! The store: 5,000 generated Square-like rollouts (obs 23 floats in 4 keys, action 7, 150-400
+//! steps, 1.38 M steps), made once under the target dir and reused.
+//! `cargo bench -p export --bench export` (`EXPORT_BENCH_N` for another count).
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use store::*;
+
+const OBS: [(&str, usize); 4] = [("object", 14), ("robot0_eef_pos", 3), ("robot0_eef_quat", 4), ("robot0_gripper_qpos", 2)];
+const ACTION: usize = 7;
+
+/// A deterministic Square-like rollout (as in store/benches/read_path.rs).
+fn rollout(i: u32) -> EpisodeInput {
+    let mut rng = (i as u64).wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let mut noise = move || {
+        rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((rng >> 33) as f32 / (1u64 << 31) as f32 - 0.5) * 0.01
+    };
+    let steps = 150 + (i as usize * 7919) % 251;
+    let phase = i as f32 * 0.37;
+    let mut observations = Vec::new();
+    for (k, (name, dim)) in OBS.iter().enumerate() {
+        let values = (0..steps * dim)
+            .map(|j| ((j / dim) as f32 / steps as f32 * (1.0 + (j % dim) as f32) + phase + k as f32).sin() * 0.5 + noise())
+            .collect();
+        observations.push(VectorColumn { name: name.to_string(), dim: *dim, values });
+    }
+    let action = VectorColumn {
+        name: "action".into(),
+        dim: ACTION,
+        values: (0..steps * ACTION).map(|k| ((k % ACTION) as f32 * 0.1 + (k / ACTION) as f32 * 0.02 + phase).cos() + noise()).collect(),
+    };
+    let success = i % 3 != 0;
+    EpisodeInput {
+        source_name: format!("demo_{i}"),
+        source_index: i,
+        task: Some("square".into()),
+        label: if success { Label::Success } else { Label::Failure },
+        label_source: "bench".into(),
+        tags: vec![],
+        metadata: serde_json::json!({}),
+        timestamps: (0..steps).map(|t| t as f64 * 0.05).collect(),
+        observations,
+        action,
+        reward: (0..steps).map(|t| if success && t + 1 == steps { 1.0 } else { 0.0 }).collect(),
+        done: (0..steps).map(|t| t + 1 == steps).collect(),
+        action_chunk: None,
+        images: vec![],
+        media: vec![],
+    }
+}
+
+async fn make_store(dir: &Path, n: u32) -> Store {
+    let store = Store::open(&StoreConfig::local(dir)).await.unwrap();
+    if store.head_version().await.unwrap() == 0 {
+        let t0 = Instant::now();
+        let src = SourceInput {
+            path: "bench".into(),
+            sha256: sha256_hex(format!("export bench {n}").as_bytes()),
+            format: "bench".into(),
+            size_bytes: 1,
+            metadata: serde_json::json!({"fps": 20}),
+        };
+        let mut w = store.begin_ingest(src, "square", "bench").await.unwrap();
+        for i in 0..n {
+            w.add_episode(rollout(i)).await.unwrap();
+        }
+        w.commit("bench").await.unwrap();
+        eprintln!("made a store of {n} rollouts in {:.1} s", t0.elapsed().as_secs_f64());
+    }
+    store
+}
+
+fn peak_rss_mb() -> f64 {
+    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    s.lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+/// The child process: one export, then `{"rows", "seconds", "peak_rss_mb"}` on stdout.
+async fn child(format: &str, store_dir: &Path, out: &Path) {
+    let t0 = Instant::now();
+    let store = Store::open(&StoreConfig::local(store_dir)).await.unwrap();
+    let sel = export::select(&store, &export::Selection::default()).await.unwrap();
+    let rep = match format {
+        "lerobot" => export::lerobot::export(&store, &sel, out, None).await.unwrap(),
+        _ => export::robomimic::export(&store, &sel, out, None).await.unwrap(),
+    };
+    let secs = t0.elapsed().as_secs_f64();
+    println!("{}", serde_json::json!({"rows": rep.frames, "seconds": secs, "peak_rss_mb": peak_rss_mb()}));
+}
+
+fn run(cmd: &mut Command) -> serde_json::Value {
+    let out = cmd.output().expect("runs");
+    assert!(out.status.success(), "{:?} failed:\n{}", cmd, String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    serde_json::from_str(stdout.lines().last().expect("a result line")).expect("JSON result")
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+#[tokio::main]
+async fn main() {
+    let base = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("export_bench");
+    let n: u32 = std::env::var("EXPORT_BENCH_N").ok().and_then(|v| v.parse().ok()).unwrap_or(5000);
+    let store_dir = base.join(format!("store-{n}"));
+    if let Ok(format) = std::env::var("EXPORT_BENCH_CHILD") {
+        let out = PathBuf::from(std::env::var("EXPORT_BENCH_OUT").expect("EXPORT_BENCH_OUT"));
+        child(&format, &store_dir, &out).await;
+        return;
+    }
+    let store = make_store(&store_dir, n).await;
+    let head = store.head_version().await.unwrap();
+    let labels = store.version(head).await.unwrap().labels_path;
+    let runs: usize = std::env::var("EXPORT_BENCH_RUNS").ok().and_then(|v| v.parse().ok()).unwrap_or(3);
+    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../bench/reference/py_export_store.py");
+    let exe = std::env::current_exe().unwrap();
+    println!("export of {n} rollouts, medians of {runs} (each in its own process; same run):");
+    println!("| format | ufops s | python s | python / ufops | ufops peak RSS MB | python peak RSS MB |");
+    println!("|---|---|---|---|---|---|");
+    for format in ["lerobot", "robomimic"] {
+        let (mut us, mut py) = (Vec::new(), Vec::new());
+        for r in 0..runs {
+            let ext = if format == "lerobot" { "" } else { ".hdf5" };
+            let a = base.join(format!("out-ufops-{format}-{r}{ext}"));
+            let b = base.join(format!("out-py-{format}-{r}{ext}"));
+            for p in [&a, &b] {
+                let _ = std::fs::remove_dir_all(p);
+                let _ = std::fs::remove_file(p);
+            }
+            let u = run(Command::new(&exe).env("EXPORT_BENCH_CHILD", format).env("EXPORT_BENCH_OUT", &a).env("EXPORT_BENCH_N", n.to_string()));
+            let p = run(Command::new("python3").arg(&script).arg(store_dir.join("objects")).arg(&labels).arg(format).arg(&b));
+            assert_eq!(u["rows"], p["rows"], "both export every step");
+            us.push(u);
+            py.push(p);
+            for p in [&a, &b] {
+                let _ = std::fs::remove_dir_all(p);
+                let _ = std::fs::remove_file(p);
+            }
+        }
+        let m = |v: &[serde_json::Value], k: &str| median(v.iter().map(|x| x[k].as_f64().unwrap()).collect());
+        let (ut, pt) = (m(&us, "seconds"), m(&py, "seconds"));
+        println!("| {format} | {ut:.2} | {pt:.2} | {:.2}x | {:.0} | {:.0} |", pt / ut, m(&us, "peak_rss_mb"), m(&py, "peak_rss_mb"));
+    }
+}

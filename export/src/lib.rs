@@ -1,0 +1,251 @@
+//! export: the way out of the store. A store version, a split or a filter of one (policy,
+//! checkpoint, task, label, tag) becomes a **LeRobot v3.0 dataset** ([`lerobot`]) or a
+//! **robomimic HDF5 file** ([`robomimic`]), with the version's frozen labels and a record of where
+//! it came from. This crate owns the selection of episodes ([`Selection`]), reading their steps
+//! in order with bounded memory ([`for_each_episode`]), the provenance record, and writing to a
+//! temporary name renamed at the end (a crash leaves no half dataset). It reads the store only
+//! through its public read path (`Store::read_episodes`).
+
+pub mod lerobot;
+pub mod robomimic;
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use arrow::array::RecordBatch;
+use serde::Serialize;
+use store::{EpisodeFilter, EpisodeLocation, EpisodeRecord, Label, Store, StoreError};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ExportError {
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error("{0}")]
+    Invalid(String),
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("writing {}: {message}", path.display())]
+    Write { path: PathBuf, message: String },
+}
+
+impl ExportError {
+    pub(crate) fn invalid(msg: impl Into<String>) -> Self {
+        ExportError::Invalid(msg.into())
+    }
+    pub(crate) fn io(path: &Path, source: std::io::Error) -> Self {
+        ExportError::Io { path: path.to_path_buf(), source }
+    }
+    pub(crate) fn write(path: &Path, e: impl std::fmt::Display) -> Self {
+        ExportError::Write { path: path.to_path_buf(), message: e.to_string() }
+    }
+}
+
+pub type Result<T, E = ExportError> = std::result::Result<T, E>;
+
+/// Which episodes to export: a version (default: the head) or a split (pinned to its own
+/// version), narrowed by the filters.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Selection {
+    pub version: Option<i64>,
+    pub split: Option<String>,
+    pub policy: Option<String>,
+    pub checkpoint: Option<String>,
+    pub task: Option<String>,
+    pub label: Option<Label>,
+    pub tag: Option<String>,
+}
+
+/// The episodes a [`Selection`] resolved to, in the store's order (by version added, source,
+/// index in the source), with their labels frozen in `version`.
+#[derive(Debug, Clone)]
+pub struct Selected {
+    pub version: i64,
+    /// The label snapshot file of `version` (store/README.md, "Label snapshot schema").
+    pub labels_path: String,
+    pub episodes: Vec<EpisodeRecord>,
+    /// For a split: each episode's part (`train` or `val`).
+    pub parts: HashMap<String, String>,
+    pub selection: Selection,
+}
+
+impl Selected {
+    /// Where the export came from, recorded in its metadata.
+    pub fn provenance(&self, format: &str) -> serde_json::Value {
+        serde_json::json!({
+            "exported_by": format!("ufops {}", env!("CARGO_PKG_VERSION")),
+            "exported_at": chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Secs, true),
+            "format": format,
+            "store_version": self.version,
+            "label_snapshot": self.labels_path,
+            "selection": self.selection,
+            "episodes": self.episodes.len(),
+        })
+    }
+}
+
+/// Resolves a selection against the store. Labels are always those frozen in a version (the
+/// head's when none is given), never unsnapshotted edits.
+pub async fn select(store: &Store, sel: &Selection) -> Result<Selected> {
+    let mut parts = HashMap::new();
+    let (version, members) = match &sel.split {
+        Some(id) => {
+            let split = store.split(id).await?;
+            if sel.version.is_some_and(|v| v != split.version) {
+                return Err(ExportError::invalid(format!(
+                    "split {id} is pinned to version {}, not {}",
+                    split.version,
+                    sel.version.unwrap_or_default()
+                )));
+            }
+            for m in store.split_episodes(id).await? {
+                parts.insert(m.episode_id, m.part);
+            }
+            (split.version, true)
+        }
+        None => match sel.version {
+            Some(v) => (v, false),
+            None => (store.head_version().await?, false),
+        },
+    };
+    let info = store.version(version).await?;
+    let filter = EpisodeFilter {
+        version: Some(version),
+        policy: sel.policy.clone(),
+        checkpoint: sel.checkpoint.clone(),
+        task: sel.task.clone(),
+        label: sel.label,
+        tag: sel.tag.clone(),
+        ..Default::default()
+    };
+    let mut episodes = store.episodes(&filter).await?;
+    if members {
+        episodes.retain(|e| parts.contains_key(&e.id));
+    }
+    episodes.sort_by(|a, b| {
+        (a.version_added, &a.source_sha256, a.source_index).cmp(&(b.version_added, &b.source_sha256, b.source_index))
+    });
+    Ok(Selected { version, labels_path: info.labels_path, episodes, parts, selection: sel.clone() })
+}
+
+/// Episodes read per request to the store: a group's steps are held at once, so memory is
+/// bounded by the group, not by the export.
+const GROUP_ROWS: i64 = 32_768;
+const GROUP_EPISODES: usize = 256;
+
+/// Calls `f` with each episode's steps, in the order of `episodes`, reading them in groups
+/// through `Store::read_episodes` (each group's row groups read once).
+pub async fn for_each_episode(
+    store: &Store,
+    episodes: &[EpisodeRecord],
+    mut f: impl FnMut(usize, &EpisodeRecord, RecordBatch) -> Result<()>,
+) -> Result<()> {
+    let mut start = 0;
+    while start < episodes.len() {
+        let mut end = start;
+        let mut rows = 0;
+        while end < episodes.len() && (end == start || rows + episodes[end].row_count <= GROUP_ROWS) && end - start < GROUP_EPISODES {
+            rows += episodes[end].row_count;
+            end += 1;
+        }
+        let locations = episodes[start..end].iter().map(EpisodeLocation::try_from).collect::<Result<Vec<_>, _>>()?;
+        let mut slots: Vec<Option<RecordBatch>> = vec![None; end - start];
+        let mut stream = store.read_episodes(locations);
+        while let Some(item) = stream.next().await {
+            let item = item.map_err(StoreError::from)?;
+            slots[item.index] = Some(item.steps);
+        }
+        for (k, steps) in slots.into_iter().enumerate() {
+            let e = &episodes[start + k];
+            let steps = steps.ok_or_else(|| ExportError::invalid(format!("episode {}: the store returned no steps", e.id)))?;
+            f(start + k, e, steps)?;
+        }
+        start = end;
+    }
+    Ok(())
+}
+
+/// A destination written under a temporary name next to it and renamed into place by
+/// [`Staged::commit`]; dropped uncommitted, the temporary is removed.
+pub(crate) struct Staged {
+    pub tmp: PathBuf,
+    pub dest: PathBuf,
+    committed: bool,
+}
+
+impl Staged {
+    pub fn new(dest: &Path, dir: bool) -> Result<Self> {
+        if dest.exists() {
+            return Err(ExportError::invalid(format!("{} already exists: choose a new output path", dest.display())));
+        }
+        let name = dest.file_name().ok_or_else(|| ExportError::invalid(format!("{}: not a file or folder name", dest.display())))?;
+        let parent = dest.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        if !parent.is_dir() {
+            return Err(ExportError::invalid(format!("{}: the folder does not exist", parent.display())));
+        }
+        let tmp = parent.join(format!(".{}.tmp-{}", name.to_string_lossy(), uuid::Uuid::new_v4().simple()));
+        if dir {
+            std::fs::create_dir(&tmp).map_err(|e| ExportError::io(&tmp, e))?;
+        }
+        Ok(Staged { tmp, dest: dest.to_path_buf(), committed: false })
+    }
+
+    pub fn commit(mut self) -> Result<()> {
+        if self.dest.exists() {
+            return Err(ExportError::invalid(format!("{} appeared while exporting: not replaced", self.dest.display())));
+        }
+        std::fs::rename(&self.tmp, &self.dest).map_err(|e| ExportError::io(&self.dest, e))?;
+        self.committed = true;
+        Ok(())
+    }
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        if !self.committed {
+            let _ = if self.tmp.is_dir() { std::fs::remove_dir_all(&self.tmp) } else { std::fs::remove_file(&self.tmp) };
+        }
+    }
+}
+
+/// What an export wrote.
+#[derive(Debug, Clone, Serialize)]
+pub struct ExportReport {
+    pub path: PathBuf,
+    pub format: String,
+    pub version: i64,
+    pub episodes: usize,
+    pub frames: u64,
+    pub labels: store::LabelCounts,
+    /// Video files copied (LeRobot).
+    pub media_files: usize,
+    pub bytes: u64,
+    /// What could not be exported as it is (e.g. columns the format has no place for).
+    pub warnings: Vec<String>,
+}
+
+pub(crate) fn count_label(c: &mut store::LabelCounts, l: Label) {
+    c.total += 1;
+    match l {
+        Label::Success => c.success += 1,
+        Label::Failure => c.failure += 1,
+        Label::Unknown => c.unknown += 1,
+    }
+}
+
+/// Size of a file or of every file under a folder.
+pub(crate) fn disk_size(p: &Path) -> u64 {
+    match std::fs::metadata(p) {
+        Ok(m) if m.is_dir() => std::fs::read_dir(p)
+            .map(|rd| rd.flatten().map(|e| disk_size(&e.path())).sum())
+            .unwrap_or(0),
+        Ok(m) => m.len(),
+        Err(_) => 0,
+    }
+}
+
+/// Optional progress callback: `(episodes done, episodes total)`.
+pub type Progress<'a> = Option<&'a (dyn Fn(usize, usize) + Send + Sync)>;

@@ -1,0 +1,350 @@
+//! robomimic HDF5 files in robomimic's documented layout, written with `hdf5-pure` (pure Rust,
+//! no system library; h5py reads its files):
+//!
+//! * `data@total` (frames), `data@env_args` (JSON: the source's when it was robomimic), and
+//!   `data@ufops` (JSON: where the export came from);
+//! * `data/demo_<i>/obs/<key>` (float32 `T x dim`, float64 where the source's were; PNG image
+//!   columns decoded to uint8 `T x H x W x C`), `next_obs/<key>` (the next step's obs, or the source's own value where it
+//!   differed: ingest keeps those rows), `actions` (float32), `rewards` (float64), `dones`
+//!   (uint8), `states` and every other per-step array ingest kept (`extra.*` columns, in their
+//!   source dtype and shape);
+//! * `demo@num_samples`, the demo's attributes from the source (large ones such as `model_file`
+//!   from their extra column), and `demo@success` (1 / 0; absent when unlabeled), the version's
+//!   frozen label, which ingest reads back;
+//! * `mask/train`, `mask/valid` from a split's parts, and `mask/<filter>` for the source's own
+//!   filter keys (ingested as tags).
+//!
+//! The file is assembled in memory and written once (hdf5-pure's `FileBuilder`), under a
+//! temporary name renamed at the end: memory is about the file's size.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+
+use arrow::array::{Array, ArrayRef, AsArray, RecordBatch};
+use arrow::datatypes::{DataType, Float32Type, Float64Type, UInt8Type};
+use hdf5_pure::{AttrValue, FileBuilder, GroupBuilder};
+use serde_json::Value;
+use store::steps::{EXTRA_PREFIX, IMAGE_PREFIX, OBS_PREFIX};
+use store::{EpisodeRecord, Store};
+
+use crate::{count_label, disk_size, for_each_episode, ExportError, ExportReport, Progress, Result, Selected, Staged};
+
+fn bad(e: &EpisodeRecord, what: impl std::fmt::Display) -> ExportError {
+    ExportError::invalid(format!("episode {}: {what}", e.id))
+}
+
+/// A float32 fixed-size-list column as (dim, values of its rows).
+fn f32_rows(col: &ArrayRef) -> Option<(usize, Vec<f32>)> {
+    let l = col.as_fixed_size_list_opt()?;
+    let d = l.value_length() as usize;
+    let v = l.values().as_primitive_opt::<Float32Type>()?;
+    Some((d, v.values()[l.offset() * d..(l.offset() + l.len()) * d].to_vec()))
+}
+
+fn decode_png(bytes: &[u8]) -> std::result::Result<(Vec<u8>, [usize; 3]), String> {
+    let mut dec = png::Decoder::new(std::io::Cursor::new(bytes));
+    dec.set_transformations(png::Transformations::EXPAND);
+    let mut r = dec.read_info().map_err(|e| e.to_string())?;
+    let mut buf = vec![0; r.output_buffer_size().ok_or("PNG too large")?];
+    let info = r.next_frame(&mut buf).map_err(|e| e.to_string())?;
+    buf.truncate(info.buffer_size());
+    let c = info.color_type.samples();
+    if info.bit_depth != png::BitDepth::Eight {
+        return Err(format!("{:?}-bit PNG (expected 8-bit)", info.bit_depth));
+    }
+    Ok((buf, [info.height as usize, info.width as usize, c]))
+}
+
+/// One observation of every step, as written to `obs/<key>` (and shifted into `next_obs`).
+enum Obs {
+    F32 { dim: usize, values: Vec<f32> },
+    U8 { shape: [usize; 3], values: Vec<u8> },
+}
+
+impl Obs {
+    fn row_len(&self) -> usize {
+        match self {
+            Obs::F32 { dim, .. } => *dim,
+            Obs::U8 { shape, .. } => shape.iter().product(),
+        }
+    }
+}
+
+fn dims(t: usize, row: &[usize]) -> Vec<u64> {
+    std::iter::once(t as u64).chain(row.iter().map(|&d| d as u64)).collect()
+}
+
+/// `next_obs/<key>`: row t is obs row t+1, or the source's own row where ingest kept one
+/// (`extra.next_obs/<key>` not null), the last row its own kept value or a repeat of the last obs.
+fn next_obs(obs: &Obs, kept: Option<&ArrayRef>, t: usize) -> Obs {
+    let row = obs.row_len();
+    let pick = |k: usize| -> Option<usize> { kept.filter(|c| c.is_valid(k)).map(|_| k) };
+    match obs {
+        Obs::F32 { dim, values } => {
+            let src = kept.and_then(f32_rows).map(|(_, v)| v);
+            let mut out = Vec::with_capacity(values.len());
+            for k in 0..t {
+                match (pick(k), &src) {
+                    (Some(k), Some(s)) if s.len() == t * row => out.extend_from_slice(&s[k * row..(k + 1) * row]),
+                    _ => {
+                        let n = (k + 1).min(t - 1);
+                        out.extend_from_slice(&values[n * row..(n + 1) * row]);
+                    }
+                }
+            }
+            Obs::F32 { dim: *dim, values: out }
+        }
+        Obs::U8 { shape, values } => {
+            let src: Option<Vec<u8>> = kept.and_then(|c| {
+                let l = c.as_fixed_size_list_opt()?;
+                let v = l.values().as_primitive_opt::<UInt8Type>()?;
+                Some(v.values()[l.offset() * row..(l.offset() + l.len()) * row].to_vec())
+            });
+            let mut out = Vec::with_capacity(values.len());
+            for k in 0..t {
+                match (pick(k), &src) {
+                    (Some(k), Some(s)) if s.len() == t * row => out.extend_from_slice(&s[k * row..(k + 1) * row]),
+                    _ => {
+                        let n = (k + 1).min(t - 1);
+                        out.extend_from_slice(&values[n * row..(n + 1) * row]);
+                    }
+                }
+            }
+            Obs::U8 { shape: *shape, values: out }
+        }
+    }
+}
+
+/// Writes an observation; float ones as float64 when the source's were (`wide`: the widened
+/// float32 values), else float32.
+fn put_obs(g: &mut GroupBuilder, key: &str, o: &Obs, t: usize, wide: bool) {
+    match o {
+        Obs::F32 { dim, values } if wide => {
+            let v: Vec<f64> = values.iter().map(|&x| x as f64).collect();
+            g.create_dataset(key).with_f64_data(&v).with_shape(&dims(t, &[*dim]));
+        }
+        Obs::F32 { dim, values } => {
+            g.create_dataset(key).with_f32_data(values).with_shape(&dims(t, &[*dim]));
+        }
+        Obs::U8 { shape, values } => {
+            g.create_dataset(key).with_u8_data(values).with_shape(&dims(t, shape));
+        }
+    }
+}
+
+/// An extra column back as a dataset in its source dtype and shape.
+fn put_extra(g: &mut GroupBuilder, e: &EpisodeRecord, name: &str, col: &ArrayRef, meta: &HashMap<String, String>, t: usize) -> Result<()> {
+    let l = col.as_fixed_size_list_opt().ok_or_else(|| bad(e, format!("extra column {name} is not a list column")))?;
+    let d = l.value_length() as usize;
+    let shape: Vec<usize> = meta.get("ufops.shape").and_then(|s| serde_json::from_str(s).ok()).unwrap_or_else(|| vec![d]);
+    let shape = dims(t, &shape);
+    let (a, b) = (l.offset() * d, (l.offset() + l.len()) * d);
+    let dtype = meta.get("ufops.dtype").map(String::as_str).unwrap_or("");
+    match l.value_type() {
+        DataType::UInt8 => {
+            g.create_dataset(name).with_u8_data(&l.values().as_primitive::<UInt8Type>().values()[a..b]).with_shape(&shape);
+        }
+        DataType::Float32 => {
+            g.create_dataset(name).with_f32_data(&l.values().as_primitive::<Float32Type>().values()[a..b]).with_shape(&shape);
+        }
+        DataType::Float64 => {
+            let v = &l.values().as_primitive::<Float64Type>().values()[a..b];
+            // Integers were kept as float64 (exact): write them back as integers.
+            if dtype.starts_with("int") || dtype.starts_with("uint") || dtype == "bool" {
+                let ints: Vec<i64> = v.iter().map(|&x| x as i64).collect();
+                g.create_dataset(name).with_i64_data(&ints).with_shape(&shape);
+            } else {
+                g.create_dataset(name).with_f64_data(v).with_shape(&shape);
+            }
+        }
+        other => return Err(bad(e, format!("extra column {name} holds {other}, not numbers"))),
+    }
+    Ok(())
+}
+
+/// Builds one `demo_<i>` group from an episode's steps.
+fn demo_group(fb: &mut FileBuilder, name: &str, e: &EpisodeRecord, steps: &RecordBatch, robomimic_source: bool) -> Result<GroupBuilder> {
+    let t = steps.num_rows();
+    let schema = steps.schema();
+    let mut g = fb.create_group(name);
+    let mut obs_g = g.create_group("obs");
+    let mut next_g = g.create_group("next_obs");
+    for f in schema.fields() {
+        let col = steps.column_by_name(f.name()).expect("field of the batch");
+        let (key, o) = if let Some(k) = f.name().strip_prefix(OBS_PREFIX) {
+            let (dim, values) = f32_rows(col).ok_or_else(|| bad(e, format!("{} is not a float32 list column", f.name())))?;
+            (k, Obs::F32 { dim, values })
+        } else if let Some(k) = f.name().strip_prefix(IMAGE_PREFIX) {
+            let bin = col.as_binary_opt::<i32>().ok_or_else(|| bad(e, format!("{} is not a binary column", f.name())))?;
+            let mut values = Vec::new();
+            let mut shape = [0; 3];
+            for r in 0..t {
+                let (px, s) = decode_png(bin.value(r)).map_err(|err| bad(e, format!("{} row {r}: {err}", f.name())))?;
+                if r > 0 && s != shape {
+                    return Err(bad(e, format!("{}: frames of different sizes", f.name())));
+                }
+                shape = s;
+                values.extend_from_slice(&px);
+            }
+            (k, Obs::U8 { shape, values })
+        } else {
+            continue;
+        };
+        // The source's dtype is recorded on the kept `next_obs` column (robomimic writes obs and
+        // next_obs alike).
+        let kept_name = format!("{EXTRA_PREFIX}next_obs/{key}");
+        let kept = steps.column_by_name(&kept_name);
+        let wide = schema.field_with_name(&kept_name).is_ok_and(|f| f.metadata().get("ufops.dtype").is_some_and(|d| d == "float64"));
+        put_obs(&mut obs_g, key, &o, t, wide);
+        put_obs(&mut next_g, key, &next_obs(&o, kept, t), t, wide);
+    }
+    g.add_group(obs_g.finish());
+    g.add_group(next_g.finish());
+    let actions = steps.column_by_name("action").ok_or_else(|| bad(e, "has no actions: robomimic needs one per step"))?;
+    let (adim, avals) = f32_rows(actions).ok_or_else(|| bad(e, "action is not a float32 list column"))?;
+    g.create_dataset("actions").with_f32_data(&avals).with_shape(&dims(t, &[adim]));
+    let reward = steps.column_by_name("reward").and_then(|c| c.as_primitive_opt::<Float32Type>().cloned()).ok_or_else(|| bad(e, "no reward column"))?;
+    let rewards: Vec<f64> = reward.values().iter().map(|&r| r as f64).collect();
+    g.create_dataset("rewards").with_f64_data(&rewards);
+    let done = steps.column_by_name("done").and_then(|c| c.as_boolean_opt().cloned()).ok_or_else(|| bad(e, "no done column"))?;
+    let dones: Vec<u8> = done.iter().map(|d| (d == Some(true)) as u8).collect();
+    g.create_dataset("dones").with_u8_data(&dones);
+    let mut attrs: BTreeMap<String, AttrValue> = BTreeMap::new();
+    attrs.insert("num_samples".into(), AttrValue::I64(t as i64));
+    for f in schema.fields() {
+        let Some(name) = f.name().strip_prefix(EXTRA_PREFIX) else { continue };
+        let col = steps.column_by_name(f.name()).expect("field of the batch");
+        if name.starts_with("next_obs/") {
+            continue;
+        }
+        if let Some(attr) = name.strip_prefix("attr/") {
+            if let Some(s) = col.as_string_opt::<i32>().filter(|s| s.is_valid(0)) {
+                attrs.insert(attr.to_string(), AttrValue::VarLenString(s.value(0).to_string()));
+            }
+            continue;
+        }
+        put_extra(&mut g, e, name, col, f.metadata(), t)?;
+    }
+    // The source's demo attributes (robomimic sources keep them as episode metadata).
+    if robomimic_source {
+        if let Some(md) = e.metadata.as_object() {
+            for (k, v) in md {
+                if k == "not_ingested" || k == "success" || attrs.contains_key(k) {
+                    continue;
+                }
+                match v {
+                    Value::String(s) => {
+                        attrs.insert(k.clone(), AttrValue::VarLenString(s.clone()));
+                    }
+                    Value::Number(n) if n.is_i64() => {
+                        attrs.insert(k.clone(), AttrValue::I64(n.as_i64().unwrap_or_default()));
+                    }
+                    Value::Number(n) => {
+                        attrs.insert(k.clone(), AttrValue::F64(n.as_f64().unwrap_or_default()));
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+    if let Some(s) = e.label.as_bool() {
+        attrs.insert("success".into(), AttrValue::I64(s as i64));
+    }
+    for (k, v) in attrs {
+        g.set_attr(&k, v);
+    }
+    Ok(g)
+}
+
+/// Writes the selected episodes as one robomimic HDF5 file at `out` (a new file).
+pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progress<'_>) -> Result<ExportReport> {
+    if sel.episodes.is_empty() {
+        return Err(ExportError::invalid("the selection holds no episodes: nothing to export"));
+    }
+    let staged = Staged::new(out, false)?;
+    let mut sources: HashMap<String, (String, Value)> = HashMap::new();
+    for e in &sel.episodes {
+        if !sources.contains_key(&e.source_sha256) {
+            let s = store.source(&e.source_sha256).await?;
+            sources.insert(e.source_sha256.clone(), (s.format, s.metadata));
+        }
+    }
+    let env_args = sources
+        .values()
+        .find_map(|(f, m)| (f == "robomimic").then(|| m.get("env_args").cloned()).flatten())
+        .filter(|v| !v.is_null())
+        .unwrap_or_else(|| {
+            let task = sel.episodes.iter().find_map(|e| e.task.clone()).unwrap_or_default();
+            serde_json::json!({"env_name": task, "env_kwargs": {}})
+        });
+    // The source's filter keys came in as tags: they go back as masks.
+    let filters: std::collections::HashSet<String> = sources
+        .values()
+        .filter_map(|(_, m)| m.get("mask_filters").and_then(|v| v.as_array()).cloned())
+        .flatten()
+        .filter_map(|v| v.as_str().map(str::to_string))
+        .collect();
+    let mut masks: BTreeMap<String, Vec<String>> = BTreeMap::new();
+    let mut report = ExportReport {
+        path: out.to_path_buf(),
+        format: "robomimic".into(),
+        version: sel.version,
+        episodes: 0,
+        frames: 0,
+        labels: Default::default(),
+        media_files: 0,
+        bytes: 0,
+        warnings: Vec::new(),
+    };
+    let mut fb = FileBuilder::new();
+    let mut data = fb.create_group("data");
+    let total = sel.episodes.len();
+    let mut videos_left_out = 0;
+    for_each_episode(store, &sel.episodes, |i, e, steps| {
+        let name = format!("demo_{i}");
+        let robomimic_source = sources.get(&e.source_sha256).is_some_and(|(f, _)| f == "robomimic");
+        if steps.schema().fields().iter().any(|f| f.name().starts_with(store::steps::MEDIA_PREFIX)) {
+            videos_left_out += 1;
+        }
+        let g = demo_group(&mut fb, &name, e, &steps, robomimic_source)?;
+        data.add_group(g.finish());
+        for tag in &e.tags {
+            if filters.contains(tag) {
+                masks.entry(tag.clone()).or_default().push(name.clone());
+            }
+        }
+        if let Some(part) = sel.parts.get(&e.id) {
+            let key = if part == "val" { "valid" } else { part.as_str() };
+            masks.entry(key.to_string()).or_default().push(name.clone());
+        }
+        report.frames += steps.num_rows() as u64;
+        count_label(&mut report.labels, e.label);
+        if let Some(p) = progress {
+            p(i + 1, total);
+        }
+        Ok(())
+    })
+    .await?;
+    data.set_attr("total", AttrValue::I64(report.frames as i64));
+    data.set_attr("env_args", AttrValue::VarLenString(env_args.to_string()));
+    data.set_attr("ufops", AttrValue::VarLenString(sel.provenance("robomimic").to_string()));
+    fb.add_group(data.finish());
+    if !masks.is_empty() {
+        let mut mask = fb.create_group("mask");
+        for (k, demos) in &masks {
+            let names: Vec<&str> = demos.iter().map(String::as_str).collect();
+            mask.create_dataset(k).with_ascii_strings(&names).map_err(|err| ExportError::write(out, err))?;
+        }
+        fb.add_group(mask.finish());
+    }
+    if videos_left_out > 0 {
+        report.warnings.push(format!(
+            "left out the video frames of {videos_left_out} episode(s): robomimic holds images, not videos (export them as LeRobot)"
+        ));
+    }
+    fb.write(&staged.tmp).map_err(|err| ExportError::write(out, err))?;
+    report.episodes = total;
+    report.bytes = disk_size(&staged.tmp);
+    staged.commit()?;
+    Ok(report)
+}
