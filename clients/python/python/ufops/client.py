@@ -69,8 +69,13 @@ class Client:
 
     def episode(self, episode_id: str) -> JsonObject:
         """One episode's record (its ``label_revision`` is what :meth:`set_label` expects)."""
-        ep, _ = self._request("GET", f"/v1/episodes/{urllib.parse.quote(episode_id, safe='')}")
-        return ep  # type: ignore[no-any-return]
+        body, _ = self._request("GET", f"/v1/episodes/{urllib.parse.quote(episode_id, safe='')}")
+        return body["episode"]  # type: ignore[no-any-return]
+
+    def label_history(self, episode_id: str) -> List[JsonObject]:
+        """The episode's label events, oldest first (who set what, when)."""
+        body, _ = self._request("GET", f"/v1/episodes/{urllib.parse.quote(episode_id, safe='')}")
+        return body["history"]  # type: ignore[no-any-return]
 
     def set_label(self, episode_id: str, label: str, revision: int, note: Optional[str] = None) -> JsonObject:
         """Sets the label (``success``, ``failure`` or ``unknown``) if the episode is still at
