@@ -155,7 +155,7 @@ def report(name: str, eps: List[Episode], base: Optional[float] = None) -> float
     k, n = sum(e.success for e in eps), len(eps)
     lo, hi = wilson(k, n)
     delta = "" if base is None else f"   {100 * (k / n - base):+5.1f} pp vs base"
-    log(f"  {name:<24} {k:>4}/{n} = {100 * k / n:5.1f}%   95% CI [{100 * lo:5.1f}, {100 * hi:5.1f}]{delta}")
+    log(f"  {name:<28} {k:>4}/{n} = {100 * k / n:5.1f}%   95% CI [{100 * lo:5.1f}, {100 * hi:5.1f}]{delta}")
     return k / n
 
 
