@@ -27,12 +27,14 @@ pub fn shape_str(shape: &[usize]) -> String {
 }
 
 /// A float32 array argument, borrowed read-only.
-pub fn f32_array<'py>(x: &Bound<'py, PyAny>, name: &str, expected: &str) -> PyResult<PyReadonlyArrayDyn<'py, f32>> {
+/// `expected` (the accepted shapes, for the error message) is only called on a failure.
+pub fn f32_array<'py>(x: &Bound<'py, PyAny>, name: &str, expected: impl FnOnce() -> String) -> PyResult<PyReadonlyArrayDyn<'py, f32>> {
     let a = as_ndarray(x, "float32")?;
     match a.cast::<PyArrayDyn<f32>>() {
         Ok(f) => Ok(f.readonly()),
         Err(_) => Err(PyTypeError::new_err(format!(
-            "{name} must be a float32 array of shape {expected}; got dtype {} with shape {}",
+            "{name} must be a float32 array of shape {}; got dtype {} with shape {}",
+            expected(),
             a.dtype(),
             shape_str(a.shape())
         ))),

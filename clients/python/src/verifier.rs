@@ -70,6 +70,9 @@ impl PyVerifier {
         extras: Option<&Bound<'py, PyDict>>,
         batch: Option<usize>,
     ) -> PyResult<Vec<PyReadonlyArrayDyn<'py, f32>>> {
+        if extras.is_none() && self.v.config().architecture.extra_inputs.is_empty() {
+            return Ok(Vec::new());
+        }
         let wanted = self.v.extra_inputs();
         let mut out = Vec::with_capacity(wanted.len());
         for (name, dim) in &wanted {
@@ -80,7 +83,7 @@ impl PyVerifier {
             let item = extras.map(|d| d.get_item(name)).transpose()?.flatten().ok_or_else(|| {
                 PyValueError::new_err(format!("this verifier takes the extra input {name:?} of shape {expected}: pass extras={{{name:?}: array}}"))
             })?;
-            let a = f32_array(&item, &format!("extras[{name:?}]"), &expected)?;
+            let a = f32_array(&item, &format!("extras[{name:?}]"), || expected.clone())?;
             let ok = match batch {
                 None => a.shape() == [*dim],
                 Some(b) => a.shape() == [b, *dim],
@@ -215,13 +218,13 @@ impl PyVerifier {
         extras: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
         let od = self.v.obs_dim();
-        let obs = f32_array(obs, "obs", &format!("({od},) or (B, {od})"))?;
+        let obs = f32_array(obs, "obs", || format!("({od},) or (B, {od})"))?;
         let batch = self.obs_rows(&obs)?;
-        let expected = match batch {
+        let expected = || match batch {
             None => format!("{} for obs of shape ({od},)", self.chunk_shapes("N, ")),
             Some(b) => format!("{} or {} for obs of shape ({b}, {od})", self.chunk_shapes(&format!("{b}, N, ")), self.chunk_shapes(&format!("{b}, "))),
         };
-        let act = f32_array(act, "act", &expected)?;
+        let act = f32_array(act, "act", expected)?;
         let lead = self.chunks(act.shape()).map(|c| c.lead);
         // (groups, candidates per group, output shape)
         let (b, n, out_shape) = match (batch, lead.as_deref()) {
@@ -229,7 +232,7 @@ impl PyVerifier {
             (Some(b), Some([b2, n])) if *b2 == b => (b, *n, vec![b, *n]),
             (Some(b), Some([b2])) if *b2 == b => (b, 1, vec![b]),
             _ => {
-                return Err(PyValueError::new_err(format!("act must have shape {expected}; got {}", shape_str(act.shape()))));
+                return Err(PyValueError::new_err(format!("act must have shape {}; got {}", expected(), shape_str(act.shape()))));
             }
         };
         let t = steps(t, b)?;
@@ -260,19 +263,19 @@ impl PyVerifier {
         extras: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
         let od = self.v.obs_dim();
-        let obs = f32_array(obs, "obs", &format!("({od},) or (B, {od})"))?;
+        let obs = f32_array(obs, "obs", || format!("({od},) or (B, {od})"))?;
         let batch = self.obs_rows(&obs)?;
-        let expected = match batch {
+        let expected = || match batch {
             None => format!("{} for obs of shape ({od},)", self.chunk_shapes("")),
             Some(b) => format!("{} for obs of shape ({b}, {od})", self.chunk_shapes(&format!("{b}, "))),
         };
-        let act = f32_array(act, "act", &expected)?;
+        let act = f32_array(act, "act", expected)?;
         let lead = self.chunks(act.shape()).map(|c| c.lead);
         let b = match (batch, lead.as_deref()) {
             (None, Some([])) => 1,
             (Some(b), Some([b2])) if *b2 == b => b,
             _ => {
-                return Err(PyValueError::new_err(format!("act must have shape {expected}; got {}", shape_str(act.shape()))));
+                return Err(PyValueError::new_err(format!("act must have shape {}; got {}", expected(), shape_str(act.shape()))));
             }
         };
         let t = steps(t, b)?;
