@@ -15,6 +15,24 @@ ensure_python_deps() {
   fi
 }
 
+ensure_python_package_deps() {
+  # The Python package's tests (clients/python): pytest, polars, mypy, torch.
+  if ! python3 -c 'import pytest, polars, mypy, safetensors, torch' 2>/dev/null; then
+    python3 -m pip install -q --disable-pip-version-check -r clients/python/requirements-test.txt
+  fi
+}
+
+test_python_package() {
+  # Builds the package from this checkout (maturin, the dev profile, into $CARGO_TARGET_DIR, which
+  # is kept between runs: the extension's dependencies are compiled once, ~15 min on 2 cores, then
+  # only a changed crate), installs it, type-checks it and runs its tests against the `ufops`
+  # binary of the same target dir. Any failure fails the caller (set -e).
+  cargo build --locked --bin ufops
+  python3 -m pip install -q --disable-pip-version-check --force-reinstall --no-deps ./clients/python
+  python3 -m mypy --strict --config-file clients/python/pyproject.toml clients/python/python/ufops
+  python3 -m pytest -q clients/python/tests
+}
+
 ensure_postgres() {
   # Our machines run Postgres on 127.0.0.1:5432 (database "test", trust auth); start it if stopped.
   if command -v pg_isready >/dev/null && ! pg_isready -h 127.0.0.1 -p 5432 -q; then

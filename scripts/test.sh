@@ -5,9 +5,12 @@ cd "$(dirname "$0")/.."
 # shellcheck source=scripts/env.sh
 source scripts/env.sh
 ensure_python_deps
+ensure_python_package_deps
 ensure_postgres
 ensure_browser
 # Every test that needs an external tool fails when it is missing (instead of skipping):
 # store::test_support::require reads these switches.
 export UFOPS_REQUIRE_PYTHON=1 UFOPS_REQUIRE_S3=1 UFOPS_REQUIRE_POSTGRES=1 UFOPS_REQUIRE_BROWSER=1
 cargo test --workspace --locked "$@"
+# The Python package `ufops` (clients/python): built, installed and tested (pytest).
+test_python_package

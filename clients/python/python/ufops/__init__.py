@@ -1,0 +1,40 @@
+"""ufops for Python: steer PyTorch policies with ufops verifiers, and read the ufops store.
+
+* :class:`Verifier` — a verifier artifact loaded from a directory, a store or ``ufops serve``
+  (every file checked against its sha256); ``score`` and ``grad`` run the Rust verifier core on
+  numpy arrays or torch tensors, with the GIL released.
+* :class:`Store` — a store opened read-only: episodes, steps, splits and artifacts as polars
+  DataFrames (``pip install polars``).
+* :class:`Client` — the ``ufops serve`` API: episodes, labels (with optimistic concurrency).
+* :mod:`ufops.torch` — best-of-N and guidance hooks for PyTorch samplers.
+"""
+from __future__ import annotations
+
+from ufops._ufops import Verifier, __version__
+from ufops.client import Client
+from ufops.errors import (
+    ArtifactError,
+    AuthError,
+    ConflictError,
+    FetchError,
+    IntegrityError,
+    NotFoundError,
+    StoreError,
+    UfopsError,
+)
+from ufops.store import Store
+
+__all__ = [
+    "Verifier",
+    "Store",
+    "Client",
+    "UfopsError",
+    "ArtifactError",
+    "IntegrityError",
+    "FetchError",
+    "AuthError",
+    "NotFoundError",
+    "StoreError",
+    "ConflictError",
+    "__version__",
+]

@@ -1,0 +1,138 @@
+"""Steering helpers for PyTorch samplers, running the verifier core through :class:`ufops.Verifier`.
+
+* :func:`best_of_n` — the paper's Algorithm 1: sample N candidate chunks, keep the best scored.
+* :func:`ddpm_guidance` — Algorithm 2 for a diffusers-style loop: a hook that turns the policy's
+  noise prediction into the one whose x̂0 is ``x̂0 + λ ∇ log C(o, x̂0)`` (classifier) or
+  ``x̂0 + λ ∇ Q`` (q), so ``scheduler.step`` then takes its posterior mean at the guided x̂0.
+* :func:`flow_guidance` — the same for a flow-matching sampler: ``x̂0 = a_t − t·v``, guided, and
+  the velocity that reaches it, ``v' = v − λ ∇ / t`` (not applied at t = 1, where x̂0 is noise).
+
+The verifier reads chunks in the policy's normalised sample space (the artifact's
+``takes_policy_space``), as the trainer writes them by default. Tensors stay where they are:
+gradients come back on the input's device and dtype. torch is imported by these functions only.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable, Optional, Tuple
+
+import numpy as np
+
+from ufops._ufops import Verifier
+
+Tensor = Any  # torch.Tensor (kept loose so the package imports without torch)
+
+
+def _steps(t: Any) -> Any:
+    if isinstance(t, (int, np.integer)):
+        return int(t)
+    return np.ascontiguousarray(np.asarray(t.detach().cpu() if hasattr(t, "detach") else t, dtype=np.int64))
+
+
+def _policy_space(verifier: Verifier) -> None:
+    if not verifier.takes_policy_space:
+        raise ValueError(
+            f"verifier {verifier.id} scores raw actions, not the policy's sample space: "
+            "guide with a verifier trained in the policy space (the trainer's default)"
+        )
+
+
+def best_of_n(
+    verifier: Verifier,
+    sample_fn: Callable[[int], Tensor],
+    obs: Any,
+    n: int,
+    t: Any = 0,
+) -> Tuple[Tensor, Tensor]:
+    """Algorithm 1. ``sample_fn(n)`` returns ``n`` candidate chunks for the observation row
+    ``obs`` (shape ``(obs_dim,)``): ``(n, act_dim)`` or ``(n, chunk_len, action_dim)``; with a
+    batch of rows ``obs`` ``(B, obs_dim)`` it returns ``(B, n, ...)``. Returns the best chunk
+    (per row) and all scores ``(n,)`` / ``(B, n)``, as tensors like the candidates."""
+    import torch
+
+    if n < 1:
+        raise ValueError(f"n must be at least 1; got {n}")
+    cands = sample_fn(n)
+    scores = verifier.score(obs, cands, _steps(t))
+    s = torch.from_numpy(np.ascontiguousarray(scores)).to(cands.device)
+    best = s.argmax(dim=-1)
+    if s.dim() == 1:
+        return cands[best], s
+    return cands[torch.arange(cands.shape[0], device=cands.device), best], s
+
+
+def guidance_gradient(verifier: Verifier, obs: Any, x0: Tensor, t: Any) -> Tensor:
+    """∇ log C (classifier) or ∇ Q (q) w.r.t. the chunk ``x0``, a tensor like ``x0``."""
+    import torch
+
+    g = verifier.grad(obs, x0, _steps(t))
+    return torch.from_numpy(np.ascontiguousarray(g)).to(device=x0.device, dtype=x0.dtype)
+
+
+def ddpm_guidance(
+    verifier: Verifier,
+    obs: Any,
+    alphas_cumprod: Any,
+    lam: float,
+    t: Any = 0,
+) -> Callable[[Tensor, Any, Tensor], Tensor]:
+    """A hook for an epsilon-predicting DDPM loop (diffusers' ``scheduler.step`` or your own)::
+
+        hook = ddpm_guidance(verifier, obs, scheduler.alphas_cumprod, lam=3.0)
+        for k in scheduler.timesteps:
+            eps = policy(x, k, cond)
+            eps = hook(eps, k, x)                 # Algorithm 2 on x̂0
+            x = scheduler.step(eps, k, x).prev_sample
+
+    ``alphas_cumprod[k]`` is ᾱ at the 0-based step ``k``; ``obs`` are the verifier's rows for
+    ``x``'s batch and ``t`` their episode steps."""
+    _policy_space(verifier)
+    import torch
+
+    ab = torch.as_tensor(alphas_cumprod, dtype=torch.float64)
+
+    def hook(eps: Tensor, k: Any, x: Tensor) -> Tensor:
+        if lam == 0.0:
+            return eps
+        a = float(ab[int(k)])
+        sa, s1a = a**0.5, (1.0 - a) ** 0.5
+        x0 = (x - s1a * eps) / sa
+        g = guidance_gradient(verifier, obs, x0, t)
+        # The eps whose x̂0 is x0 + lam * g.
+        return eps - (sa / s1a) * lam * g
+
+    return hook
+
+
+def flow_guidance(
+    verifier: Verifier,
+    obs: Any,
+    lam: float,
+    t: Any = 0,
+) -> Callable[[Tensor, float, Tensor], Tensor]:
+    """A hook for a flow-matching Euler loop from flow time 1 (noise) to 0 (data)::
+
+        hook = flow_guidance(verifier, obs, lam=1.0)
+        for i in range(steps):
+            s = 1 - i / steps
+            v = hook(policy(x, s, cond), s, x)
+            x = x - v / steps
+    """
+    _policy_space(verifier)
+
+    def hook(v: Tensor, s: float, x: Tensor) -> Tensor:
+        s = float(s)
+        if lam == 0.0 or s >= 1.0 - 1e-6 or s <= 0.0:
+            return v
+        x0 = x - s * v
+        g = guidance_gradient(verifier, obs, x0, t)
+        return v - (lam / s) * g
+
+    return hook
+
+
+def as_tensor(a: np.ndarray[Any, Any], like: Optional[Tensor] = None) -> Tensor:
+    """A numpy result as a tensor (sharing memory on the CPU), on ``like``'s device if given."""
+    import torch
+
+    out = torch.from_numpy(np.ascontiguousarray(a))
+    return out if like is None else out.to(like.device)

@@ -1,0 +1,45 @@
+//! `ufops-py`: the native module `ufops._ufops` of the Python package `ufops` (clients/python).
+//!
+//! It owns the bindings only: the verifier core (`verifier`: checked loading, forward pass and
+//! gradient) and steer's HTTP loader as `ufops.Verifier`, the store's read path as
+//! `ufops.Store`, and the exception hierarchy. Nothing numeric is re-implemented here or in the
+//! Python layer (python/ufops), which adds types, docstrings and the PyTorch helpers.
+
+mod arrays;
+mod errors;
+mod store;
+mod verifier;
+
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+/// Writes an artifact with random weights (`verifier::testutil`) of the given dimensions
+/// ("square": the paper's Square task; "nav", "nav_features": the 2-D task) into `dir` and
+/// returns its id. For benchmarks and examples: it is not a trained verifier.
+#[pyfunction]
+fn write_random_artifact(py: Python<'_>, dir: std::path::PathBuf, dims: &str, seed: u64) -> PyResult<String> {
+    use ::verifier::testutil::RandomSpec;
+    let spec = match dims {
+        "square" => RandomSpec::square(),
+        "nav" => RandomSpec::nav(),
+        "nav_features" => RandomSpec::nav_features(),
+        other => return Err(PyValueError::new_err(format!("unknown dims {other:?}: square, nav or nav_features"))),
+    };
+    py.detach(|| {
+        let (config, weights) = spec.build(seed);
+        let files = ::verifier::ArtifactFiles::build(&config, &weights)?;
+        files.write_dir(&dir)?;
+        Ok(files.id)
+    })
+    .map_err(errors::from_verifier)
+}
+
+#[pymodule]
+fn _ufops(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    errors::register(m)?;
+    m.add_class::<verifier::PyVerifier>()?;
+    m.add_class::<store::PyStore>()?;
+    m.add_function(wrap_pyfunction!(write_random_artifact, m)?)?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

@@ -1,0 +1,188 @@
+//! `ufops.Store`: the store's read path (catalog queries and the Parquet steps reader) for a
+//! local data directory or Postgres + S3, read-only. Records cross into Python as JSON, steps as
+//! Arrow IPC streams (polars and pyarrow read them without a second Arrow binding in this
+//! crate). One Tokio runtime, made on first use, runs the store's async reads.
+
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+use arrow::ipc::writer::StreamWriter;
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyBytes;
+
+use crate::errors::{from_store, from_verifier, NotFoundError};
+use crate::verifier::PyVerifier;
+
+fn runtime() -> PyResult<&'static tokio::runtime::Runtime> {
+    static RT: OnceLock<tokio::runtime::Runtime> = OnceLock::new();
+    if let Some(rt) = RT.get() {
+        return Ok(rt);
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .thread_name("ufops-store")
+        .enable_all()
+        .build()
+        .map_err(|e| PyRuntimeError::new_err(format!("cannot start the store's runtime: {e}")))?;
+    Ok(RT.get_or_init(|| rt))
+}
+
+fn json<T: serde::Serialize>(v: &T) -> PyResult<String> {
+    serde_json::to_string(v).map_err(|e| PyValueError::new_err(e.to_string()))
+}
+
+/// A ufops store opened read-only.
+#[pyclass(module = "ufops._ufops", name = "Store", frozen, subclass)]
+pub struct PyStore {
+    store: store::Store,
+    describe: String,
+}
+
+impl PyStore {
+    pub(crate) fn open_dir(py: Python<'_>, dir: PathBuf) -> PyResult<Self> {
+        Self::new(py, Some(dir), None, None)
+    }
+}
+
+#[pymethods]
+impl PyStore {
+    /// Opens the store in `data_dir` (its SQLite catalog and local objects), or the catalog at
+    /// `database_url` (`postgres://…`, `sqlite://…`) with the objects at `object_store`
+    /// (a path or `s3://bucket/prefix`). Nothing is created: a missing store is NotFoundError.
+    #[new]
+    #[pyo3(signature = (data_dir=None, *, database_url=None, object_store=None))]
+    fn new(py: Python<'_>, data_dir: Option<PathBuf>, database_url: Option<String>, object_store: Option<String>) -> PyResult<Self> {
+        if data_dir.is_none() && database_url.is_none() {
+            return Err(PyValueError::new_err("pass a data directory or database_url"));
+        }
+        let data_dir = data_dir.unwrap_or_else(|| PathBuf::from("."));
+        if database_url.is_none() && !data_dir.join("catalog.sqlite").is_file() {
+            return Err(NotFoundError::new_err(format!(
+                "no ufops store in {} (no catalog.sqlite): create one with `ufops init`",
+                data_dir.display()
+            )));
+        }
+        let config = store::StoreConfig { data_dir, database_url, object_store_url: object_store };
+        let rt = runtime()?;
+        let store = py.detach(|| rt.block_on(store::Store::open(&config))).map_err(from_store)?;
+        let describe = store.describe();
+        Ok(PyStore { store, describe })
+    }
+
+    fn __repr__(&self) -> String {
+        format!("Store({})", self.describe)
+    }
+
+    /// The latest committed version.
+    fn head_version(&self, py: Python<'_>) -> PyResult<i64> {
+        py.detach(|| runtime()?.block_on(self.store.head_version()).map_err(from_store))
+    }
+
+    /// The versions as a JSON list (see `ufops versions --json`).
+    fn versions_json(&self, py: Python<'_>) -> PyResult<String> {
+        let v = py.detach(|| runtime()?.block_on(self.store.versions()).map_err(from_store))?;
+        json(&v)
+    }
+
+    /// Episodes as a JSON list of records (what `ufops episodes --json` prints), now or at `version`.
+    #[pyo3(signature = (version=None, policy=None, checkpoint=None, task=None, label=None, tag=None, after=None, limit=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn episodes_json(
+        &self,
+        py: Python<'_>,
+        version: Option<i64>,
+        policy: Option<String>,
+        checkpoint: Option<String>,
+        task: Option<String>,
+        label: Option<String>,
+        tag: Option<String>,
+        after: Option<String>,
+        limit: Option<i64>,
+    ) -> PyResult<String> {
+        let label = label.as_deref().map(str::parse::<store::Label>).transpose().map_err(from_store)?;
+        let filter = store::EpisodeFilter { version, policy, checkpoint, task, label, tag, after, limit, ..Default::default() };
+        let eps = py.detach(|| runtime()?.block_on(self.store.episodes(&filter)).map_err(from_store))?;
+        json(&eps)
+    }
+
+    /// The steps of the episodes `ids` (in that order) as Arrow IPC streams: one stream per run
+    /// of episodes sharing a schema (usually one in all).
+    #[pyo3(signature = (ids, version=None))]
+    fn steps_ipc<'py>(&self, py: Python<'py>, ids: Vec<String>, version: Option<i64>) -> PyResult<Vec<Bound<'py, PyBytes>>> {
+        let streams = py.detach(|| -> PyResult<Vec<Vec<u8>>> {
+            let batches = runtime()?.block_on(async {
+                let locations = self.store.locate_episodes(&ids, version).await?;
+                let mut batches: Vec<Option<arrow::array::RecordBatch>> = vec![None; locations.len()];
+                let mut stream = self.store.read_episodes(locations);
+                while let Some(item) = stream.next().await {
+                    let ep = item?;
+                    batches[ep.index] = Some(ep.steps);
+                }
+                Ok::<_, store::StoreError>(batches)
+            });
+            let batches = batches.map_err(from_store)?;
+            let ipc_err = |e: arrow::error::ArrowError| PyRuntimeError::new_err(format!("writing Arrow IPC: {e}"));
+            let mut streams = Vec::new();
+            let mut writer: Option<(StreamWriter<Vec<u8>>, arrow::datatypes::SchemaRef)> = None;
+            for (id, b) in ids.iter().zip(batches) {
+                let b = b.ok_or_else(|| NotFoundError::new_err(format!("episode {id}: the read returned nothing")))?;
+                if writer.as_ref().is_some_and(|(_, s)| *s != b.schema()) {
+                    streams.push(writer.take().expect("checked").0.into_inner().map_err(ipc_err)?);
+                }
+                if writer.is_none() {
+                    writer = Some((StreamWriter::try_new(Vec::new(), &b.schema()).map_err(ipc_err)?, b.schema()));
+                }
+                writer.as_mut().expect("set above").0.write(&b).map_err(ipc_err)?;
+            }
+            if let Some((w, _)) = writer {
+                streams.push(w.into_inner().map_err(ipc_err)?);
+            }
+            Ok(streams)
+        })?;
+        Ok(streams.iter().map(|s| PyBytes::new(py, s)).collect())
+    }
+
+    /// The splits as a JSON list of records.
+    fn splits_json(&self, py: Python<'_>) -> PyResult<String> {
+        let v = py.detach(|| runtime()?.block_on(self.store.splits()).map_err(from_store))?;
+        json(&v)
+    }
+
+    /// A split's members (episode, part, label) as a JSON list.
+    fn split_episodes_json(&self, py: Python<'_>, split_id: &str) -> PyResult<String> {
+        let v = py.detach(|| runtime()?.block_on(self.store.split_episodes(split_id)).map_err(from_store))?;
+        json(&v)
+    }
+
+    /// The artifacts as a JSON list of records (with their aliases).
+    #[pyo3(signature = (policy=None, checkpoint=None, kind=None))]
+    fn artifacts_json(&self, py: Python<'_>, policy: Option<&str>, checkpoint: Option<&str>, kind: Option<&str>) -> PyResult<String> {
+        let v = py.detach(|| runtime()?.block_on(self.store.artifacts(policy, checkpoint, kind)).map_err(from_store))?;
+        json(&v)
+    }
+
+    /// Loads the verifier `reference` (an artifact id or `POLICY/CHECKPOINT/KIND@ALIAS`) from
+    /// the store, every file checked against the manifest by the verifier core.
+    pub(crate) fn verifier(&self, py: Python<'_>, reference: &str) -> PyResult<PyVerifier> {
+        py.detach(|| {
+            let rt = runtime()?;
+            let rec = rt.block_on(self.store.resolve_artifact(reference)).map_err(from_store)?;
+            let get = |name: &str| -> Result<Vec<u8>, verifier::VerifierError> {
+                rt.block_on(self.store.get_object(&format!("{}/{name}", rec.prefix)))
+                    .map(|b| b.to_vec())
+                    .map_err(|e| verifier::VerifierError::Fetch { file: name.into(), message: e.to_string() })
+            };
+            let manifest = get(verifier::MANIFEST_FILE).map_err(from_verifier)?;
+            let v = verifier::Verifier::load_with(&manifest, get).map_err(from_verifier)?;
+            if v.id() != Some(rec.id.as_str()) {
+                return Err(crate::errors::IntegrityError::new_err(format!(
+                    "artifact {}: its manifest.json hashes to {}",
+                    rec.id,
+                    v.id().unwrap_or("-")
+                )));
+            }
+            Ok(PyVerifier { v })
+        })
+    }
+}

@@ -1,0 +1,44 @@
+"""ufops.Client against a running `ufops serve`: episodes equal the store's, label writes with
+If-Match, and a stale write raises ConflictError saying who changed the label."""
+from __future__ import annotations
+
+import pytest
+
+import ufops
+from conftest import Server, Ufops
+
+
+def test_episodes_follow_every_page(server: Server, trained: Ufops) -> None:
+    c = ufops.Client(server.url, server.token)
+    eps = c.episodes(limit=7)  # 40 episodes in pages of 7
+    cli = trained.json("episodes", "--json")
+    assert [e["id"] for e in eps] == [e["id"] for e in cli]
+    assert c.episodes_frame(checkpoint="ckpt-0").height == len(cli)
+
+
+def test_label_writes_and_conflicts(server: Server) -> None:
+    c = ufops.Client(server.url, server.token)
+    ep = c.episodes(limit=1)[0]
+    rev = ep["label_revision"]
+    first = c.set_label(ep["id"], "failure", rev, note="first look")
+    assert first["revision"] == rev + 1
+    # A second labeler who read the old revision loses, and learns who won.
+    with pytest.raises(ufops.ConflictError) as info:
+        c.set_label(ep["id"], "success", rev)
+    e = info.value
+    assert e.actor == "pytest" and e.revision == rev + 1 and e.label == "failure"
+    assert "changed by pytest" in str(e)
+    assert c.episode(ep["id"])["label"] == "failure"
+    c.set_label(ep["id"], "success", rev + 1)
+
+
+def test_bad_requests(server: Server) -> None:
+    with pytest.raises(ufops.AuthError, match="401"):
+        ufops.Client(server.url, "wrong").episodes()
+    c = ufops.Client(server.url, server.token)
+    with pytest.raises(ufops.NotFoundError, match="404"):
+        c.episode("no-such-episode")
+    with pytest.raises(ValueError, match="400"):
+        c.set_label(c.episodes(limit=1)[0]["id"], "maybe", 0)
+    with pytest.raises(ufops.FetchError):
+        ufops.Client("http://127.0.0.1:9", "t", timeout=2).episodes()
