@@ -5,7 +5,7 @@
 use serde::Serialize;
 use sim::{Episode, Outcome};
 use std::sync::Mutex;
-use steer::{Scorer, SteerError};
+use steer::{ActionAffine, Scorer, SteerError};
 
 #[derive(Debug, Default, Clone, Copy)]
 struct Acc {
@@ -116,12 +116,14 @@ pub struct RunDiagnostics {
 }
 
 /// Diagnostics of a run's episodes under `scorer` (the verifier that steered it, or the one to
-/// compare with). `max_speed` maps raw chunks to the policy's space; `trace` is the tracing
-/// scorer of a guided run.
+/// compare with). `space` is the policy's map from its sample space to raw actions (chunks go to
+/// a policy-space scorer through its inverse); `max_speed` is the environment's speed limit;
+/// `trace` is the tracing scorer of a guided run.
 pub fn run_diagnostics(
     method: &str,
     eps: &[Episode],
     scorer: &dyn Scorer,
+    space: &ActionAffine,
     max_speed: f32,
     trace: Option<&TracingScorer>,
 ) -> steer::Result<RunDiagnostics> {
@@ -146,12 +148,11 @@ pub fn run_diagnostics(
             }
             sim::rollout::obs_history(&e.positions[..=t], t_o, &mut obs);
             ts.push(t as u32);
-            if scorer.takes_policy_space() {
-                chunks.extend(chunk.iter().map(|v| v / max_speed));
-            } else {
-                chunks.extend_from_slice(chunk);
-            }
+            chunks.extend_from_slice(chunk);
         }
+    }
+    if scorer.takes_policy_space() {
+        space.invert(&mut chunks)?;
     }
     let scores = if ts.is_empty() { vec![] } else { scorer.score_batch(&obs, &ts, &chunks, 1)? };
     let count = |f: &dyn Fn(&Episode) -> bool| eps.iter().filter(|e| f(e)).count() as u64;

@@ -256,7 +256,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     let art_dir = cfg.out_dir.join("artifacts");
     let stride = pc.n_exec;
     let norm = pc.action_normalizer();
-    let space = trainer::ActionSpace::policy(norm.scale, norm.offset);
+    let space = trainer::ActionSpace::policy(norm.scale.clone(), norm.offset.clone());
     let (c_rec, clf) = train_verifier(store, &on_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir).await?;
     let (q_rec, q) = train_verifier(store, &on_split.id, trainer::Kind::Q, cfg, stride, &space, &art_dir).await?;
     let (off_rec, off_clf) =
@@ -279,7 +279,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     let verifiers: [(&str, &steer::Verifier); 2] = [("C", &clf), ("Q", &q)];
     for (name, v) in verifiers {
         let label = format!("base (DDPM), scored by {name}");
-        report.diagnostics.push(diagnose::run_diagnostics(&label, &base_eps, v, pc.max_speed, None)?);
+        report.diagnostics.push(diagnose::run_diagnostics(&label, &base_eps, v, &norm, env.max_speed, None)?);
     }
     for (name, v) in verifiers {
         for &nn in &cfg.bon_n {
@@ -287,13 +287,12 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
             let label = format!("{name} x BoN (N={nn})");
             let eps = eval(&base, Steering::BestOfN { scorer: v, n: nn }, &label, seed)?;
             report.add(&label, "on-policy", &eps);
-            report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, pc.max_speed, None)?);
+            report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, &norm, env.max_speed, None)?);
             if name == "C" && keep_for_plot.is_none() {
                 keep_for_plot = Some(eps);
             }
         }
     }
-    let max_speed = pc.max_speed;
     for (name, v) in verifiers {
         for &lambda in &cfg.lambdas {
             seed += 1;
@@ -303,7 +302,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
             let trace = diagnose::TracingScorer::new(v, pc.diffusion_steps, lambda);
             let eps = eval(&base, Steering::Guided { scorer: &trace, lambda }, &label, seed)?;
             report.add(&label, "on-policy", &eps);
-            report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, max_speed, Some(&trace))?);
+            report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, &norm, env.max_speed, Some(&trace))?);
         }
     }
     // Flow twin: same verifier, guidance from the second Euler step on.

@@ -13,49 +13,8 @@ use std::time::Instant;
 
 use store::*;
 
-const OBS: [(&str, usize); 4] = [("object", 14), ("robot0_eef_pos", 3), ("robot0_eef_quat", 4), ("robot0_gripper_qpos", 2)];
-const ACTION: usize = 7;
+use store::test_support::square_rollout as rollout;
 
-/// A deterministic Square-like rollout (as in store/benches/read_path.rs).
-fn rollout(i: u32) -> EpisodeInput {
-    let mut rng = (i as u64).wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-    let mut noise = move || {
-        rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        ((rng >> 33) as f32 / (1u64 << 31) as f32 - 0.5) * 0.01
-    };
-    let steps = 150 + (i as usize * 7919) % 251;
-    let phase = i as f32 * 0.37;
-    let mut observations = Vec::new();
-    for (k, (name, dim)) in OBS.iter().enumerate() {
-        let values = (0..steps * dim)
-            .map(|j| ((j / dim) as f32 / steps as f32 * (1.0 + (j % dim) as f32) + phase + k as f32).sin() * 0.5 + noise())
-            .collect();
-        observations.push(VectorColumn { name: name.to_string(), dim: *dim, values });
-    }
-    let action = VectorColumn {
-        name: "action".into(),
-        dim: ACTION,
-        values: (0..steps * ACTION).map(|k| ((k % ACTION) as f32 * 0.1 + (k / ACTION) as f32 * 0.02 + phase).cos() + noise()).collect(),
-    };
-    let success = i % 3 != 0;
-    EpisodeInput {
-        source_name: format!("demo_{i}"),
-        source_index: i,
-        task: Some("square".into()),
-        label: if success { Label::Success } else { Label::Failure },
-        label_source: "bench".into(),
-        tags: vec![],
-        metadata: serde_json::json!({}),
-        timestamps: (0..steps).map(|t| t as f64 * 0.05).collect(),
-        observations,
-        action,
-        reward: (0..steps).map(|t| if success && t + 1 == steps { 1.0 } else { 0.0 }).collect(),
-        done: (0..steps).map(|t| t + 1 == steps).collect(),
-        action_chunk: None,
-        images: vec![],
-        media: vec![],
-    }
-}
 
 async fn make_store(dir: &Path, n: u32) -> Store {
     let store = Store::open(&StoreConfig::local(dir)).await.unwrap();

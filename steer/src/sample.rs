@@ -274,8 +274,8 @@ fn check_n(n: usize) -> Result<()> {
     Ok(())
 }
 
+/// `n >= 1` is checked by the callers, before scoring.
 fn pick(ad: usize, scores: Vec<f32>, b: usize, candidates: &[f32], n: usize) -> Result<BestOfN> {
-    check_n(n)?;
     if scores.len() != b * n || candidates.len() != b * n * ad {
         return Err(SteerError::Input(format!(
             "{} scores and {} candidate values for {b} groups of {n} chunks of {ad}",

@@ -24,53 +24,8 @@ use arrow::array::RecordBatch;
 use store::*;
 use std::time::Instant;
 
-const OBS: [(&str, usize); 4] = [("object", 14), ("robot0_eef_pos", 3), ("robot0_eef_quat", 4), ("robot0_gripper_qpos", 2)];
-const ACTION: usize = 7;
+use store::test_support::{square_rollout as rollout, SQUARE_ACTION as ACTION, SQUARE_OBS as OBS};
 
-/// A deterministic Square-like rollout: smooth trajectories with a little noise.
-fn rollout(i: u32) -> EpisodeInput {
-    let mut rng = (i as u64).wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-    let mut noise = move || {
-        rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        ((rng >> 33) as f32 / (1u64 << 31) as f32 - 0.5) * 0.01
-    };
-    let steps = 150 + (i as usize * 7919) % 251;
-    let phase = i as f32 * 0.37;
-    let mut observations = Vec::new();
-    for (k, (name, dim)) in OBS.iter().enumerate() {
-        let mut values = Vec::with_capacity(steps * dim);
-        for t in 0..steps {
-            for d in 0..*dim {
-                let x = t as f32 / steps as f32;
-                values.push((x * (1.0 + d as f32) + phase + k as f32).sin() * 0.5 + noise());
-            }
-        }
-        observations.push(VectorColumn { name: name.to_string(), dim: *dim, values });
-    }
-    let action = VectorColumn {
-        name: "action".into(),
-        dim: ACTION,
-        values: (0..steps * ACTION).map(|k| ((k % ACTION) as f32 * 0.1 + (k / ACTION) as f32 * 0.02 + phase).cos() + noise()).collect(),
-    };
-    let success = i % 3 != 0;
-    EpisodeInput {
-        source_name: format!("demo_{i}"),
-        source_index: i,
-        task: Some("square".into()),
-        label: if success { Label::Success } else { Label::Failure },
-        label_source: "bench".into(),
-        tags: vec![],
-        metadata: serde_json::json!({}),
-        timestamps: (0..steps).map(|t| t as f64 * 0.05).collect(),
-        observations,
-        action,
-        reward: (0..steps).map(|t| if success && t + 1 == steps { 1.0 } else { 0.0 }).collect(),
-        done: (0..steps).map(|t| t + 1 == steps).collect(),
-        action_chunk: None,
-        images: vec![],
-        media: vec![],
-    }
-}
 
 /// A store of `n` rollouts and a split of all of them (made once, reused across runs).
 async fn make_store(config: &StoreConfig, n: u32) -> (Store, SplitRecord) {

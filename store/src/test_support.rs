@@ -164,6 +164,58 @@ mod tests {
     }
 }
 
+/// Observation keys and widths of the synthetic Square-sized rollouts (robomimic's low-dim Square).
+pub const SQUARE_OBS: [(&str, usize); 4] =
+    [("object", 14), ("robot0_eef_pos", 3), ("robot0_eef_quat", 4), ("robot0_gripper_qpos", 2)];
+/// Action width of the synthetic Square-sized rollouts.
+pub const SQUARE_ACTION: usize = 7;
+
+/// A synthetic Square-sized rollout for benchmarks: 150–400 steps of smooth signals with a
+/// little seeded noise, one in three a failure. The same `i` gives the same episode.
+pub fn square_rollout(i: u32) -> crate::EpisodeInput {
+    let mut rng = (i as u64).wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let mut noise = move || {
+        rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((rng >> 33) as f32 / (1u64 << 31) as f32 - 0.5) * 0.01
+    };
+    let steps = 150 + (i as usize * 7919) % 251;
+    let phase = i as f32 * 0.37;
+    let mut observations = Vec::new();
+    for (k, (name, dim)) in SQUARE_OBS.iter().enumerate() {
+        let mut values = Vec::with_capacity(steps * dim);
+        for t in 0..steps {
+            for d in 0..*dim {
+                let x = t as f32 / steps as f32;
+                values.push((x * (1.0 + d as f32) + phase + k as f32).sin() * 0.5 + noise());
+            }
+        }
+        observations.push(crate::VectorColumn { name: name.to_string(), dim: *dim, values });
+    }
+    let action = crate::VectorColumn {
+        name: "action".into(),
+        dim: SQUARE_ACTION,
+        values: (0..steps * SQUARE_ACTION).map(|k| ((k % SQUARE_ACTION) as f32 * 0.1 + (k / SQUARE_ACTION) as f32 * 0.02 + phase).cos() + noise()).collect(),
+    };
+    let success = i % 3 != 0;
+    crate::EpisodeInput {
+        source_name: format!("demo_{i}"),
+        source_index: i,
+        task: Some("square".into()),
+        label: if success { crate::Label::Success } else { crate::Label::Failure },
+        label_source: "bench".into(),
+        tags: vec![],
+        metadata: serde_json::json!({}),
+        timestamps: (0..steps).map(|t| t as f64 * 0.05).collect(),
+        observations,
+        action,
+        reward: (0..steps).map(|t| if success && t + 1 == steps { 1.0 } else { 0.0 }).collect(),
+        done: (0..steps).map(|t| t + 1 == steps).collect(),
+        action_chunk: None,
+        images: vec![],
+        media: vec![],
+    }
+}
+
 /// A two-step episode (`demo_<i>`, one-dimensional observation and action) for catalog tests,
 /// where only the episode's identity, task and label matter.
 pub fn two_step_episode(i: u32, task: Option<&str>, label: crate::Label) -> crate::EpisodeInput {
