@@ -69,3 +69,77 @@ fn export_writes_lerobot_and_robomimic_and_refuses_clearly() {
     let left: Vec<String> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
     assert!(!left.iter().any(|n| n == "mcap" || n.contains(".tmp-")), "{left:?}");
 }
+
+/// Demo-SCORE-style curation: `ufops export --score-artifact A --min-score 0.5` keeps exactly the
+/// episodes `ufops rank` (the scorer) puts at or above 0.5, records each one's score, and says how
+/// many it scored; a range that holds nothing is refused like any empty selection.
+#[test]
+fn export_curated_by_verifier_score_keeps_what_the_scorer_keeps() {
+    use arrow::array::{Array, Float64Array, StringArray};
+    let dir = tempfile::tempdir().unwrap();
+    let t = Target::sqlite(&dir.path().join("store"));
+    t.ok(&["init"]);
+    let (artifact, n) = lift_with_classifier(&t);
+
+    let ranked = t.json(&["rank", "--artifact", artifact, "--policy", "bc", "--json"]);
+    let rows = ranked["episodes"].as_array().unwrap();
+    assert_eq!(rows.len(), n, "{ranked}");
+    let scores: Vec<f64> = rows.iter().map(|r| r["score"].as_f64().unwrap()).collect();
+    assert!(scores.windows(2).all(|w| w[0] <= w[1]), "rank is lowest first: {scores:?}");
+    let mut want: Vec<(String, f64)> = rows
+        .iter()
+        .filter(|r| r["score"].as_f64().unwrap() >= 0.5)
+        .map(|r| (r["episode_id"].as_str().unwrap().to_string(), r["score"].as_f64().unwrap()))
+        .collect();
+    assert!(!want.is_empty() && want.len() < n, "the classifier must split the episodes: {scores:?}");
+    let worst = t.json(&["rank", "--artifact", artifact, "--policy", "bc", "--worst", "3", "--json"]);
+    assert_eq!(worst["episodes"].as_array().unwrap().as_slice(), &rows[..3]);
+
+    let ds = dir.path().join("curated");
+    let rep = t.json(&[
+        "export", ds.to_str().unwrap(), "--format", "lerobot", "--policy", "bc",
+        "--score-artifact", artifact, "--min-score", "0.5", "--json",
+    ]);
+    assert_eq!(rep["episodes"].as_u64().unwrap() as usize, want.len(), "{rep}");
+    assert_eq!(rep["episodes_scored"].as_u64().unwrap() as usize, n, "{rep}");
+    // The dataset's episode table names the kept episodes and their scores.
+    let f = std::fs::File::open(ds.join("meta/episodes/chunk-000/file-000.parquet")).unwrap();
+    let reader = parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(f).unwrap().build().unwrap();
+    let mut got: Vec<(String, f64)> = Vec::new();
+    for batch in reader {
+        let batch = batch.unwrap();
+        let ids = batch.column_by_name("ufops/episode_id").unwrap().as_any().downcast_ref::<StringArray>().unwrap().clone();
+        let sc = batch.column_by_name("ufops/verifier_score").unwrap().as_any().downcast_ref::<Float64Array>().unwrap().clone();
+        assert_eq!(sc.null_count(), 0);
+        got.extend((0..ids.len()).map(|i| (ids.value(i).to_string(), sc.value(i))));
+    }
+    want.sort_by(|a, b| a.0.cmp(&b.0));
+    got.sort_by(|a, b| a.0.cmp(&b.0));
+    assert_eq!(got.len(), want.len());
+    for ((gi, gs), (wi, ws)) in got.iter().zip(&want) {
+        assert_eq!(gi, wi);
+        assert!((gs - ws).abs() < 1e-9, "{gi}: {gs} vs {ws}");
+    }
+    let info: serde_json::Value = serde_json::from_slice(&std::fs::read(ds.join("meta/info.json")).unwrap()).unwrap();
+    let prov = &info["ufops"];
+    assert_eq!(prov["selection"]["score"]["min"], 0.5, "{info}");
+    assert!(prov["selection"]["score"]["artifact"].as_str().unwrap().len() >= 16, "the artifact id, not the alias: {info}");
+
+    // The complement, as robomimic: every demo carries its score, all below 0.5.
+    let h5 = dir.path().join("rest.hdf5");
+    let rep = t.json(&[
+        "export", h5.to_str().unwrap(), "--format", "robomimic", "--policy", "bc",
+        "--score-artifact", artifact, "--max-score", "0.4999999", "--json",
+    ]);
+    assert_eq!(rep["episodes"].as_u64().unwrap() as usize, n - want.len(), "{rep}");
+    // Nothing in range: refused, nothing written.
+    let out = t.run(&["export", dir.path().join("none").to_str().unwrap(), "--format", "lerobot", "--policy", "bc",
+        "--score-artifact", artifact, "--min-score", "1.5"]);
+    assert!(!out.status.success());
+    assert!(text(&out.stderr).contains("no episodes"), "{}", text(&out.stderr));
+    assert!(!dir.path().join("none").exists());
+    let out = t.run(&["export", dir.path().join("bad").to_str().unwrap(), "--format", "lerobot",
+        "--score-artifact", artifact, "--min-score", "0.9", "--max-score", "0.1"]);
+    assert!(!out.status.success());
+    assert!(text(&out.stderr).contains("min <= max"), "{}", text(&out.stderr));
+}

@@ -1,8 +1,10 @@
 //! Label load test: 64 concurrent labelers updating overlapping episodes over loopback HTTP with
 //! If-Match (retrying on 409) for 20 s on SQLite (and Postgres with `--postgres`), then a replay
-//! of the audit log that must reproduce every episode's final label and revision.
+//! of the audit log that must reproduce every episode's final label and revision. The server runs
+//! in its own process (this benchmark started again with `--serve-child`), so the clients' work
+//! is not counted against it; `--in-process` runs both in one process as the test does.
 //!
-//! `cargo bench -p api --bench label_load [-- --seconds 20 --labelers 64 --episodes 256 --runs 1 --postgres --no-sqlite]`
+//! `cargo bench -p api --bench label_load [-- --seconds 20 --labelers 64 --episodes 256 --runs 1 --postgres --no-sqlite --in-process]`
 //!
 //! Each run prints its figures with the machine's load average (the box is shared: other
 //! processes' CPU use moves the figures); with `--runs N` the medians are printed at the end.
@@ -10,7 +12,7 @@
 #[path = "../tests/common/mod.rs"]
 mod common;
 
-use common::load::{run_label_load, LoadReport};
+use common::load::{run_label_load_at, LoadReport, ServerAt};
 use common::Db;
 use std::time::Duration;
 
@@ -33,8 +35,31 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
+/// The server half: `--serve-child DATA_DIR [DATABASE_URL]` serves that store on a free loopback
+/// port, prints `listening on URL` and runs until killed.
+fn serve_child(args: &[String]) {
+    let dir = std::path::PathBuf::from(&args[0]);
+    let cfg = store::StoreConfig { data_dir: dir.clone(), database_url: args.get(1).cloned(), object_store_url: None };
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
+    rt.block_on(async move {
+        let store = store::Store::open(&cfg).await.unwrap();
+        let mut sc = api::ServeConfig::new(&dir);
+        sc.addr = "127.0.0.1:0".parse().unwrap();
+        sc.run_worker_in_process = false;
+        api::serve(store, sc, common::TestRunner::new(50), std::future::pending()).await.unwrap();
+    });
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
+    if let Some(i) = args.iter().position(|a| a == "--serve-child") {
+        return serve_child(&args[i + 1..]);
+    }
+    let at = if args.iter().any(|a| a == "--in-process") {
+        ServerAt::InProcess
+    } else {
+        ServerAt::Child(std::env::current_exe().expect("this benchmark's path"))
+    };
     let arg = |name: &str, default: u64| -> u64 {
         args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).and_then(|v| v.parse().ok()).unwrap_or(default)
     };
@@ -54,7 +79,7 @@ fn main() {
         let mut reports: Vec<LoadReport> = Vec::new();
         for run in 1..=runs {
             let before = loadavg();
-            let r = rt.block_on(run_label_load(db, labelers, episodes, Duration::from_secs(seconds)));
+            let r = rt.block_on(run_label_load_at(db, &at, labelers, episodes, Duration::from_secs(seconds)));
             print!("run {run}/{runs} (load average before: {before}, after: {}): ", loadavg());
             r.print();
             reports.push(r);

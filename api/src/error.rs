@@ -59,7 +59,20 @@ impl ApiError {
     pub fn forbidden(detail: impl Into<String>) -> Self {
         Self::new(StatusCode::FORBIDDEN, "forbidden", detail)
     }
+    /// A server-side failure: the detail (which may name files, buckets or SQL) goes to the log
+    /// with an incident id; the client gets only the id.
     pub fn internal(detail: impl Into<String>) -> Self {
+        let incident = &uuid::Uuid::new_v4().simple().to_string()[..12];
+        tracing::error!(incident, "internal error: {}", detail.into());
+        Self::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "internal",
+            format!("internal error (incident {incident}); the server's log has the details"),
+        )
+        .with("incident", incident.to_string())
+    }
+    /// A server-side failure whose message is safe to show as it is.
+    pub fn internal_public(detail: impl Into<String>) -> Self {
         Self::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", detail)
     }
     pub fn with(mut self, key: &str, value: impl Into<serde_json::Value>) -> Self {
@@ -73,6 +86,11 @@ impl From<StoreError> for ApiError {
         let detail = e.to_string();
         match e {
             StoreError::Invalid(_) => ApiError::new(StatusCode::BAD_REQUEST, "invalid", detail),
+            // A stored object the catalog names is gone: a server-side fault, its key logged only.
+            StoreError::NotFound { what: "object", .. } => {
+                tracing::warn!("{detail}");
+                ApiError::not_found("a stored object is missing (the server's log names it)")
+            }
             StoreError::NotFound { .. } => ApiError::not_found(detail),
             StoreError::AlreadyIngested { version, sha256 } => {
                 ApiError::new(StatusCode::CONFLICT, "already-ingested", detail)
@@ -94,18 +112,18 @@ impl From<StoreError> for ApiError {
             }
             StoreError::Conflict(_) => ApiError::new(StatusCode::CONFLICT, "conflict", detail),
             StoreError::Db(sqlx_err) => {
-                tracing::error!("catalog error: {sqlx_err}");
                 if matches!(sqlx_err, sqlx::Error::PoolTimedOut) {
                     ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "busy", "the catalog is busy; retry")
                 } else {
                     ApiError::internal(format!("catalog error: {sqlx_err}"))
                 }
             }
-            StoreError::Object(object_store::Error::NotFound { .. }) => ApiError::not_found(detail),
-            other => {
-                tracing::error!("{other}");
-                ApiError::internal(other.to_string())
+            // The object store's message names the bucket or the local path: logged, not sent.
+            StoreError::Object(object_store::Error::NotFound { .. }) => {
+                tracing::warn!("{detail}");
+                ApiError::not_found("a stored object is missing (the server's log names it)")
             }
+            _ => ApiError::internal(detail),
         }
     }
 }

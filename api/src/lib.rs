@@ -59,6 +59,28 @@ pub struct ServeConfig {
     /// How long a verified token is trusted without asking the catalog again (default 5 s):
     /// a revoked token stops working within this time (at once on this server).
     pub token_cache_ttl: Duration,
+    /// After the shutdown signal, how long requests in flight get to finish before the server
+    /// closes anyway (default 10 s; a slow download must not hold a restart forever).
+    pub shutdown_deadline: Duration,
+    /// The origin browsers reach this server at when it runs behind a TLS proxy
+    /// (`https://label.example.com`, see [`public_origin`]): the CSRF origin check compares with
+    /// it, and https makes the session cookie `Secure`. None: the request's `Host`.
+    pub public_url: Option<String>,
+}
+
+/// `scheme://host[:port]` of a public URL (a trailing `/` allowed; no path, query or user info).
+pub fn public_origin(url: &str) -> Result<String, String> {
+    let u = url.trim().trim_end_matches('/');
+    let (scheme, rest) = u.split_once("://").ok_or_else(|| format!("public URL {url:?}: expected https://HOST[:PORT]"))?;
+    let scheme = scheme.to_ascii_lowercase();
+    if scheme != "https" && scheme != "http" {
+        return Err(format!("public URL {url:?}: the scheme must be https (or http)"));
+    }
+    let ok = !rest.is_empty() && rest.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | ':' | '[' | ']'));
+    if !ok {
+        return Err(format!("public URL {url:?}: expected https://HOST[:PORT], without a path"));
+    }
+    Ok(format!("{scheme}://{}", rest.to_ascii_lowercase()))
 }
 
 impl ServeConfig {
@@ -73,6 +95,8 @@ impl ServeConfig {
             worker_id: worker::worker_identity("serve"),
             worker_lease_ms: 30_000,
             token_cache_ttl: Duration::from_secs(5),
+            shutdown_deadline: Duration::from_secs(10),
+            public_url: None,
         }
     }
 }
@@ -96,16 +120,39 @@ pub(crate) struct Inner {
     pub write_gate: Option<tokio::sync::Mutex<()>>,
     /// Group commit of label PUTs on SQLite (`label_writer.rs`).
     pub label_writer: label_writer::LabelWriter,
+    /// `cfg.public_url` reduced to its origin.
+    pub public_origin: Option<String>,
 }
 
 impl AppState {
     pub fn new(store: Store, cfg: ServeConfig) -> Self {
         let write_gate = (store.backend() == Backend::Sqlite).then(|| tokio::sync::Mutex::new(()));
         let tokens = auth::TokenCache::new(cfg.token_cache_ttl);
-        AppState { inner: Arc::new(Inner { store, cfg, metrics: Default::default(), tokens, sessions: Default::default(), write_gate, label_writer: Default::default() }) }
+        // `serve` checked the URL already; an invalid one here (embedding) is treated as absent.
+        let public_origin = cfg.public_url.as_deref().and_then(|u| public_origin(u).ok());
+        AppState {
+            inner: Arc::new(Inner {
+                store,
+                cfg,
+                metrics: Default::default(),
+                tokens,
+                sessions: Default::default(),
+                write_gate,
+                label_writer: Default::default(),
+                public_origin,
+            }),
+        }
     }
     pub fn store(&self) -> &Store {
         &self.inner.store
+    }
+    /// The public origin (`--public-url`), if the server runs behind a proxy.
+    pub(crate) fn public_origin(&self) -> Option<&str> {
+        self.inner.public_origin.as_deref()
+    }
+    /// Session cookies are `Secure` when browsers reach us over https.
+    pub(crate) fn secure_cookies(&self) -> bool {
+        self.public_origin().is_some_and(|o| o.starts_with("https://"))
     }
     pub(crate) async fn write_gate(&self) -> Option<tokio::sync::MutexGuard<'_, ()>> {
         match &self.inner.write_gate {
@@ -180,6 +227,9 @@ pub async fn serve(
     runner: Arc<dyn JobRunner>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
+    if let Some(u) = &cfg.public_url {
+        public_origin(u).map_err(|e| anyhow::anyhow!(e))?;
+    }
     let listener = tokio::net::TcpListener::bind(cfg.addr)
         .await
         .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", cfg.addr))?;
@@ -206,16 +256,40 @@ pub async fn serve_on(
             let _ = rx.wait_for(|s| *s).await;
         }))
     });
+    let deadline = cfg.shutdown_deadline;
     let app = router(AppState::new(store, cfg));
-    let result = axum::serve(listener, app.into_make_service())
-        .with_graceful_shutdown(async move {
-            shutdown.await;
-            let _ = stop_tx2.send(true);
-        })
-        .await;
+    let server = axum::serve(listener, app.into_make_service()).with_graceful_shutdown(async move {
+        shutdown.await;
+        let _ = stop_tx2.send(true);
+    });
+    let mut stopping = stop_rx.clone();
+    let result = tokio::select! {
+        r = server => r,
+        _ = async move {
+            let _ = stopping.wait_for(|s| *s).await;
+            tokio::time::sleep(deadline).await;
+        } => {
+            tracing::warn!("requests still in flight {deadline:?} after the shutdown signal: closing them");
+            Ok(())
+        }
+    };
     let _ = stop_tx.send(true);
     if let Some(w) = worker {
         let _ = w.await;
     }
     result.map_err(|e| anyhow::anyhow!("server error: {e}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::public_origin;
+
+    #[test]
+    fn public_urls_reduce_to_an_origin() {
+        assert_eq!(public_origin("https://Label.Example.com/").unwrap(), "https://label.example.com");
+        assert_eq!(public_origin("http://10.0.0.5:8443").unwrap(), "http://10.0.0.5:8443");
+        for bad in ["label.example.com", "ftp://x", "https://x/ui", "https://user@x", "https://", "https://x?a=1"] {
+            assert!(public_origin(bad).is_err(), "{bad}");
+        }
+    }
 }

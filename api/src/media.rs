@@ -19,6 +19,9 @@ fn content_type(path: &str) -> &'static str {
         "avi" => "video/x-msvideo",
         "png" => "image/png",
         "jpg" | "jpeg" => "image/jpeg",
+        "parquet" => "application/vnd.apache.parquet",
+        "json" => "application/json",
+        "hdf5" | "h5" => "application/x-hdf5",
         _ => "application/octet-stream",
     }
 }

@@ -3,6 +3,7 @@
 
 use crate::AppState;
 use axum::extract::{MatchedPath, Request, State};
+use axum::http::Method;
 use axum::middleware::Next;
 use axum::response::Response;
 use std::collections::BTreeMap;
@@ -59,14 +60,26 @@ impl Metrics {
     }
 }
 
-/// Middleware counting every request by its route template (never the raw path).
+/// Middleware counting every request by its route template (never the raw path) and method.
 pub(crate) async fn track(State(state): State<AppState>, req: Request, next: Next) -> Response {
     let route = req
         .extensions()
         .get::<MatchedPath>()
         .map(|m| m.as_str().to_string())
         .unwrap_or_else(|| "unmatched".to_string());
-    let method = req.method().as_str().to_string();
+    // A fixed set of label values: a client inventing methods (or paths, see above) must not
+    // grow the metrics without bound.
+    let method = match *req.method() {
+        Method::GET => "GET",
+        Method::HEAD => "HEAD",
+        Method::POST => "POST",
+        Method::PUT => "PUT",
+        Method::DELETE => "DELETE",
+        Method::PATCH => "PATCH",
+        Method::OPTIONS => "OPTIONS",
+        _ => "other",
+    }
+    .to_string();
     let t0 = Instant::now();
     let resp = next.run(req).await;
     let dt = t0.elapsed().as_secs_f64();

@@ -7,7 +7,10 @@
 //! CSRF: the cookie is `SameSite=Strict`, and every cookie-authenticated request with an unsafe
 //! method (and the sign-in itself) must carry `X-Ufops-UI: 1` — a custom header a cross-site form
 //! cannot send and cross-site scripts cannot add without a CORS preflight this server never
-//! grants — and, when the browser sends `Origin`, it must match `Host`.
+//! grants — and, when the browser sends `Origin`, it must match the server's public origin
+//! (`--public-url`, for a server behind a TLS proxy; the cookie then also gets `Secure`), else
+//! `Host`. Each token holds at most [`MAX_SESSIONS_PER_TOKEN`] sessions (its least recently used
+//! one is dropped), so one token signing in in a loop cannot push other people's sessions out.
 //!
 //! These routes are the page's own, outside the bearer-token API and its OpenAPI document.
 
@@ -35,6 +38,8 @@ const IDLE: Duration = Duration::from_secs(12 * 3600);
 /// …and at the latest this long after sign-in.
 const MAX_AGE: Duration = Duration::from_secs(7 * 24 * 3600);
 const MAX_SESSIONS: usize = 10_000;
+/// Sessions one token may hold (browsers, tabs after cookie loss, a few machines).
+pub const MAX_SESSIONS_PER_TOKEN: usize = 32;
 
 struct Session {
     secret: String,
@@ -54,6 +59,15 @@ impl Sessions {
         let id = format!("{}{}", uuid::Uuid::new_v4().simple(), uuid::Uuid::new_v4().simple());
         let now = Instant::now();
         let mut map = self.map.lock().unwrap_or_else(|e| e.into_inner());
+        let mut mine: Vec<(Instant, String)> =
+            map.iter().filter(|(_, s)| s.secret == secret).map(|(k, s)| (s.last_seen, k.clone())).collect();
+        if mine.len() >= MAX_SESSIONS_PER_TOKEN {
+            mine.sort();
+            let drop = mine.len() + 1 - MAX_SESSIONS_PER_TOKEN;
+            for (_, k) in mine.into_iter().take(drop) {
+                map.remove(&k);
+            }
+        }
         if map.len() >= MAX_SESSIONS {
             map.retain(|_, s| now.duration_since(s.last_seen) < IDLE && now.duration_since(s.created) < MAX_AGE);
             if map.len() >= MAX_SESSIONS {
@@ -104,8 +118,9 @@ fn is_safe(m: &Method) -> bool {
     matches!(*m, Method::GET | Method::HEAD | Method::OPTIONS)
 }
 
-/// The CSRF rule for cookie-authenticated unsafe requests (see the module docs).
-fn check_csrf(headers: &HeaderMap) -> ApiResult<()> {
+/// The CSRF rule for cookie-authenticated unsafe requests (see the module docs); `public_origin`
+/// is `scheme://host[:port]` of `--public-url`.
+fn check_csrf(headers: &HeaderMap, public_origin: Option<&str>) -> ApiResult<()> {
     let marked = headers.get(CSRF_HEADER).and_then(|v| v.to_str().ok()).is_some_and(|v| v.trim() == "1");
     if !marked {
         return Err(ApiError::forbidden(format!(
@@ -114,9 +129,16 @@ fn check_csrf(headers: &HeaderMap) -> ApiResult<()> {
     }
     if let Some(origin) = headers.get(header::ORIGIN) {
         let origin = origin.to_str().unwrap_or("");
-        let host = headers.get(header::HOST).and_then(|v| v.to_str().ok()).unwrap_or("");
-        let origin_host = origin.split_once("://").map(|(_, h)| h).unwrap_or("");
-        if host.is_empty() || origin_host != host {
+        let same = match public_origin {
+            // Behind a proxy the Host header may be the proxy's upstream; the public origin decides.
+            Some(public) => origin.eq_ignore_ascii_case(public),
+            None => {
+                let host = headers.get(header::HOST).and_then(|v| v.to_str().ok()).unwrap_or("");
+                let origin_host = origin.split_once("://").map(|(_, h)| h).unwrap_or("");
+                !host.is_empty() && origin_host == host
+            }
+        };
+        if !same {
             return Err(ApiError::forbidden(format!("cross-origin request from {origin:?} refused")));
         }
     }
@@ -135,13 +157,14 @@ pub(crate) fn secret_from_cookie(state: &AppState, req: &Request) -> ApiResult<S
         .secret(&id)
         .ok_or_else(|| ApiError::unauthorized("the session has ended; sign in again"))?;
     if !is_safe(req.method()) {
-        check_csrf(req.headers())?;
+        check_csrf(req.headers(), state.public_origin())?;
     }
     Ok(secret)
 }
 
-fn set_cookie(value: &str, max_age: u64) -> HeaderValue {
-    HeaderValue::from_str(&format!("{COOKIE}={value}; Path=/; HttpOnly; SameSite=Strict; Max-Age={max_age}"))
+fn set_cookie(value: &str, max_age: u64, secure: bool) -> HeaderValue {
+    let secure = if secure { "; Secure" } else { "" };
+    HeaderValue::from_str(&format!("{COOKIE}={value}; Path=/; HttpOnly; SameSite=Strict; Max-Age={max_age}{secure}"))
         .unwrap_or_else(|_| HeaderValue::from_static("ufops_session=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0"))
 }
 
@@ -156,7 +179,7 @@ pub(crate) struct SignIn {
 
 /// `POST /ui/session {token}` → 200 `{name, role, token_id}` + the cookie; 401 for a bad token.
 async fn sign_in(State(s): State<AppState>, headers: HeaderMap, ApiJson(body): ApiJson<SignIn>) -> ApiResult<Response> {
-    check_csrf(&headers)?;
+    check_csrf(&headers, s.public_origin())?;
     let secret = body.token.trim().to_string();
     if secret.is_empty() || secret.len() > 256 {
         return Err(ApiError::unauthorized("unknown or revoked token"));
@@ -169,7 +192,7 @@ async fn sign_in(State(s): State<AppState>, headers: HeaderMap, ApiJson(body): A
     let caller = Caller { token_id: rec.id, name: rec.name, role: rec.role };
     let id = s.inner.sessions.create(secret);
     let mut resp = Json(who(&caller)).into_response();
-    resp.headers_mut().insert(header::SET_COOKIE, set_cookie(&id, MAX_AGE.as_secs()));
+    resp.headers_mut().insert(header::SET_COOKIE, set_cookie(&id, MAX_AGE.as_secs(), s.secure_cookies()));
     resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
     Ok(resp)
 }
@@ -184,12 +207,12 @@ async fn whoami(axum::Extension(caller): axum::Extension<Caller>) -> Response {
 /// `DELETE /ui/session` → 204, the session forgotten and the cookie cleared (also when there
 /// was none).
 async fn sign_out(State(s): State<AppState>, headers: HeaderMap) -> ApiResult<Response> {
-    check_csrf(&headers)?;
+    check_csrf(&headers, s.public_origin())?;
     if let Some(id) = cookie_value(&headers) {
         s.inner.sessions.remove(&id);
     }
     let mut resp = StatusCode::NO_CONTENT.into_response();
-    resp.headers_mut().insert(header::SET_COOKIE, set_cookie("", 0));
+    resp.headers_mut().insert(header::SET_COOKIE, set_cookie("", 0, s.secure_cookies()));
     Ok(resp)
 }
 
@@ -219,14 +242,44 @@ mod tests {
     #[test]
     fn csrf_rule() {
         let mut h = HeaderMap::new();
-        assert!(check_csrf(&h).is_err());
+        assert!(check_csrf(&h, None).is_err());
         h.insert(CSRF_HEADER, HeaderValue::from_static("1"));
-        assert!(check_csrf(&h).is_ok());
+        assert!(check_csrf(&h, None).is_ok());
         h.insert(header::HOST, HeaderValue::from_static("127.0.0.1:8080"));
         h.insert(header::ORIGIN, HeaderValue::from_static("http://127.0.0.1:8080"));
-        assert!(check_csrf(&h).is_ok());
+        assert!(check_csrf(&h, None).is_ok());
         h.insert(header::ORIGIN, HeaderValue::from_static("http://evil.example"));
-        assert!(check_csrf(&h).is_err());
+        assert!(check_csrf(&h, None).is_err());
+        // Behind a TLS proxy: the public origin decides, whatever Host the proxy forwards.
+        let public = Some("https://label.example.com");
+        h.insert(header::ORIGIN, HeaderValue::from_static("https://label.example.com"));
+        assert!(check_csrf(&h, public).is_ok());
+        h.insert(header::ORIGIN, HeaderValue::from_static("http://127.0.0.1:8080"));
+        assert!(check_csrf(&h, public).is_err(), "the proxy's upstream is not the public origin");
+        h.insert(header::ORIGIN, HeaderValue::from_static("http://label.example.com"));
+        assert!(check_csrf(&h, public).is_err(), "plain http is another origin");
+    }
+
+    #[test]
+    fn one_token_cannot_hold_more_than_its_share_of_sessions() {
+        let s = Sessions::default();
+        let other = s.create("other".into());
+        let first = s.create("loop".into());
+        let mut last = String::new();
+        for _ in 0..(MAX_SESSIONS_PER_TOKEN * 3) {
+            last = s.create("loop".into());
+        }
+        let held = s.map.lock().unwrap().values().filter(|x| x.secret == "loop").count();
+        assert_eq!(held, MAX_SESSIONS_PER_TOKEN);
+        assert_eq!(s.secret(&first), None, "its least recently used session went");
+        assert_eq!(s.secret(&last).as_deref(), Some("loop"));
+        assert_eq!(s.secret(&other).as_deref(), Some("other"), "another token's session is untouched");
+    }
+
+    #[test]
+    fn cookies_are_secure_behind_tls() {
+        assert!(set_cookie("abc", 10, true).to_str().unwrap().ends_with("; Secure"));
+        assert!(!set_cookie("abc", 10, false).to_str().unwrap().contains("Secure"));
     }
 
     #[test]

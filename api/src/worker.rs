@@ -108,8 +108,8 @@ impl WorkerOptions {
     }
 }
 
-/// The worker loop: runs jobs until `stop` resolves (a job in progress is interrupted and left
-/// to be retried by another worker after its lease expires).
+/// The worker loop: runs jobs until `stop` resolves (a job in progress is interrupted and
+/// released: queued again for another worker, or cancelled if a cancel was pending).
 pub async fn run_worker(
     store: Store,
     runner: Arc<dyn JobRunner>,
@@ -127,13 +127,17 @@ pub async fn run_worker_with(
     opts: WorkerOptions,
     stop: impl Future<Output = ()> + Send,
 ) {
+    // The job being run, to give back when the worker is stopped in the middle of it.
+    let current: Mutex<Option<(String, i64)>> = Mutex::new(None);
     let work = async {
         let mut backoff = opts.poll_interval;
         loop {
             match store.claim_job(&opts.worker_id, opts.lease_ms).await {
                 Ok(Some(job)) => {
                     backoff = opts.poll_interval;
+                    *current.lock().expect("current job") = Some((job.id.clone(), job.attempts));
                     run_one(&store, runner.as_ref(), &opts, job).await;
+                    *current.lock().expect("current job") = None;
                 }
                 Ok(None) => tokio::time::sleep(opts.poll_interval).await,
                 Err(e) => {
@@ -148,6 +152,17 @@ pub async fn run_worker_with(
         _ = stop => {}
         _ = work => {}
     }
+    // Stopped mid-job (SIGTERM, Ctrl-C): the runner was dropped with `work`. Give the job back
+    // at once (queued again, this attempt not counted; cancelled if a cancel was pending) rather
+    // than leaving it to look running until its lease runs out.
+    let held = current.lock().expect("current job").take();
+    if let Some((id, attempt)) = held {
+        match store.release_job(&id, &opts.worker_id, attempt).await {
+            Ok(true) => tracing::info!(worker = %opts.worker_id, job = %id, "job released at shutdown"),
+            Ok(false) => {}
+            Err(e) => tracing::warn!(worker = %opts.worker_id, job = %id, "cannot release the job (its lease will expire): {e}"),
+        }
+    }
 }
 
 /// Runs one claimed job: the runner's future and the heartbeat run in this task (aborting the
@@ -155,21 +170,32 @@ pub async fn run_worker_with(
 pub(crate) async fn run_one(store: &Store, runner: &dyn JobRunner, opts: &WorkerOptions, job: JobRecord) {
     tracing::info!(worker = %opts.worker_id, job = %job.id, kind = %job.kind, attempt = job.attempts, "job started");
     let ctx = JobContext::new(&opts.worker_id, job.progress.clone());
+    // Dropped with this future (the worker stopped mid-job): cancel the runner, so work it moved
+    // to other threads (training runs in `spawn_blocking`) stops too and the process can exit.
+    struct CancelOnDrop(JobContext);
+    impl Drop for CancelOnDrop {
+        fn drop(&mut self) {
+            self.0.cancel();
+        }
+    }
+    let _cancel_on_drop = CancelOnDrop(ctx.clone());
     let beat_every = Duration::from_millis((opts.lease_ms / 3).max(10) as u64);
     let heartbeat = {
         let ctx = ctx.clone();
         let job_id: &str = &job.id;
+        let attempt = job.attempts;
         async move {
             let mut last_ok = Instant::now();
             loop {
                 tokio::time::sleep(beat_every).await;
-                match store.heartbeat_job(job_id, &opts.worker_id, opts.lease_ms, &ctx.current_progress()).await {
+                match store.heartbeat_job(job_id, &opts.worker_id, attempt, opts.lease_ms, &ctx.current_progress()).await {
                     Ok(true) => last_ok = Instant::now(),
                     Ok(false) => {
                         // Either a cancel was requested (the job is still ours) or another
                         // worker holds it now (we must stop at once).
                         let ours = match store.job(job_id).await {
                             Ok(j) => j.worker.as_deref() == Some(opts.worker_id.as_str())
+                                && j.attempts == attempt
                                 && j.state == store::JobState::Running,
                             Err(_) => false,
                         };
@@ -208,7 +234,7 @@ pub(crate) async fn run_one(store: &Store, runner: &dyn JobRunner, opts: &Worker
         }
     };
     let ok = outcome.is_ok();
-    match store.finish_job(&job.id, &opts.worker_id, outcome).await {
+    match store.finish_job(&job.id, &opts.worker_id, job.attempts, outcome).await {
         Ok(true) => tracing::info!(worker = %opts.worker_id, job = %job.id, ok, "job finished"),
         Ok(false) => tracing::warn!(worker = %opts.worker_id, job = %job.id, "job no longer ours; outcome dropped"),
         Err(e) => tracing::error!(worker = %opts.worker_id, job = %job.id, "cannot record the outcome: {e}"),

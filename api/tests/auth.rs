@@ -54,6 +54,11 @@ async fn authorization_matrix() {
         (Method::GET, "/v1/policies/pol/checkpoints/c1/verifiers/classifier@latest/files/config.json".into(), None, Need::Viewer),
         (Method::POST, "/v1/ingest?policy=pol&checkpoint=up".into(), Some("{\"episodes\": []}".into()), Need::Admin),
         (Method::POST, "/v1/gc".into(), body(json!({"dry_run": true})), Need::Admin),
+        (Method::GET, "/v1/exports".into(), None, Need::Viewer),
+        (Method::POST, "/v1/exports".into(), body(json!({"format": "lerobot", "policy": "nobody"})), Need::Trainer),
+        (Method::GET, "/v1/exports/job-nope".into(), None, Need::Viewer),
+        (Method::GET, "/v1/exports/job-nope/files/meta/info.json".into(), None, Need::Viewer),
+        (Method::DELETE, "/v1/exports/job-nope".into(), None, Need::Trainer),
         (Method::GET, "/v1/tokens".into(), None, Need::Admin),
         (Method::POST, "/v1/tokens".into(), body(json!({"name": "new-token", "role": "viewer"})), Need::Admin),
         (Method::DELETE, "/v1/tokens/tok_nope".into(), None, Need::Admin),
@@ -141,7 +146,7 @@ fn templatize(p: &str) -> String {
             "episodes" if *s != "counts" => "{id}",
             "versions" => "{version}",
             "diff" => "{to}",
-            "splits" | "jobs" | "artifacts" | "tokens" if !s.is_empty() => "{id}",
+            "splits" | "jobs" | "artifacts" | "tokens" | "exports" if !s.is_empty() => "{id}",
             "media" => "{key}",
             "files" => "{name}",
             "aliases" => "{alias}",
@@ -154,5 +159,8 @@ fn templatize(p: &str) -> String {
     }
     let mut s = out.join("/");
     s = s.replace("/v1/versions/{version}/diff/{to}", "/v1/versions/{from}/diff/{to}");
+    if let Some(at) = s.find("/files/").filter(|_| s.starts_with("/v1/exports/")) {
+        s = format!("{}/files/{{path}}", &s[..at]); // a path of any depth
+    }
     s
 }

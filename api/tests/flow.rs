@@ -173,6 +173,12 @@ async fn full_flow(db: Db) {
     assert_eq!(r.status(), 201);
     let snap: Value = r.json().await.unwrap();
     assert_eq!(snap["version"], 4);
+    // Again with nothing changed: the head is the snapshot, no new version.
+    for _ in 0..3 {
+        let r = srv.req(Method::POST, "/v1/label-snapshots", "labeler").json(&json!({})).send().await.unwrap();
+        assert_eq!(r.status(), 200);
+        assert_eq!(r.json::<Value>().await.unwrap()["version"], 4);
+    }
     let versions = srv.get_json("/v1/versions", "viewer").await;
     assert_eq!(versions.as_array().unwrap().len(), 4);
     assert_eq!(srv.get_json("/v1/versions/4", "viewer").await["kind"], "label_snapshot");

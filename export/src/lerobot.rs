@@ -174,6 +174,8 @@ struct EpisodeRow {
     label: Label,
     source_name: String,
     part: Option<String>,
+    /// The episode's verifier score when the export was curated by one.
+    score: Option<f64>,
 }
 
 fn data_props() -> WriterProperties {
@@ -219,7 +221,7 @@ impl Writer<'_> {
         steps.column_by_name(name).ok_or_else(|| ExportError::invalid(format!("episode {}: no column {name}", e.id)))
     }
 
-    fn add(&mut self, index: usize, e: &EpisodeRecord, steps: RecordBatch, part: Option<&String>) -> Result<()> {
+    fn add(&mut self, index: usize, e: &EpisodeRecord, steps: RecordBatch, part: Option<&String>, score: Option<f64>) -> Result<()> {
         let l = layout_of(&steps.schema())?;
         if l.action == 0 {
             return Err(no_actions(e));
@@ -316,6 +318,7 @@ impl Writer<'_> {
             label: e.label,
             source_name: e.source_name.clone(),
             part: part.cloned(),
+            score,
         });
         self.frames += n as i64;
         if df.writer.bytes_written() + df.writer.in_progress_size() > DATA_FILE_BYTES {
@@ -429,6 +432,10 @@ fn episodes_batch(rows: &[EpisodeRow], video_keys: &[String]) -> Result<RecordBa
     cols.push(Arc::new(StringArray::from_iter_values(rows.iter().map(|r| r.label.as_str()))));
     cols.push(Arc::new(StringArray::from_iter_values(rows.iter().map(|r| r.source_name.as_str()))));
     cols.push(Arc::new(StringArray::from_iter(rows.iter().map(|r| r.part.as_deref()))));
+    if rows.iter().any(|r| r.score.is_some()) {
+        fields.push(Field::new("ufops/verifier_score", DataType::Float64, true));
+        cols.push(Arc::new(arrow::array::Float64Array::from_iter(rows.iter().map(|r| r.score))));
+    }
     RecordBatch::try_new(Arc::new(Schema::new(fields)), cols).map_err(|e| ExportError::invalid(e.to_string()))
 }
 
@@ -522,7 +529,7 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
             });
         }
         let w = writer.as_mut().expect("set above");
-        w.add(i, e, steps, sel.parts.get(&e.id))?;
+        w.add(i, e, steps, sel.parts.get(&e.id), sel.scores.get(&e.id).copied())?;
         count_label(&mut report.labels, e.label);
         if let Some(p) = progress {
             p(i + 1, total);

@@ -1,11 +1,12 @@
 //! export: the way out of the store. A store version, a split or a filter of one (policy,
-//! checkpoint, task, label, tag) becomes a **LeRobot v3.0 dataset** ([`lerobot`]) or a
+//! checkpoint, task, label, tag, verifier-score range of an artifact) becomes a **LeRobot v3.0 dataset** ([`lerobot`]) or a
 //! **robomimic HDF5 file** ([`robomimic`]), with the version's frozen labels and a record of where
 //! it came from. This crate owns the selection of episodes ([`Selection`]), reading their steps
 //! in order with bounded memory ([`for_each_episode`]), the provenance record, and writing to a
 //! temporary name renamed at the end (a crash leaves no half dataset). It reads the store only
 //! through its public read path (`Store::read_episodes`).
 
+pub mod job;
 pub mod lerobot;
 pub mod robomimic;
 
@@ -13,7 +14,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use arrow::array::RecordBatch;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use store::{EpisodeFilter, EpisodeLocation, EpisodeRecord, Label, Store, StoreError};
 
 #[derive(Debug, thiserror::Error)]
@@ -48,7 +49,8 @@ pub type Result<T, E = ExportError> = std::result::Result<T, E>;
 
 /// Which episodes to export: a version (default: the head) or a split (pinned to its own
 /// version), narrowed by the filters.
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Selection {
     pub version: Option<i64>,
     pub split: Option<String>,
@@ -57,6 +59,78 @@ pub struct Selection {
     pub task: Option<String>,
     pub label: Option<Label>,
     pub tag: Option<String>,
+    /// Keep only episodes whose verifier score lies in a range (Demo-SCORE-style curation); the
+    /// scoring itself is done by [`filter_by_score`] with a scorer the caller supplies.
+    pub score: Option<ScoreRange>,
+}
+
+/// A range of episode scores of one verifier artifact: `min <= score <= max` (either bound open).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScoreRange {
+    /// The artifact's id (resolved from an alias by the caller, so the record names one artifact).
+    pub artifact: String,
+    pub min: Option<f64>,
+    pub max: Option<f64>,
+}
+
+impl ScoreRange {
+    pub fn contains(&self, score: f64) -> bool {
+        self.min.is_none_or(|m| score >= m) && self.max.is_none_or(|m| score <= m)
+    }
+}
+
+/// Scores every step of a stored episode with a verifier. The binary implements it on the
+/// verifier core (`trainer::score_steps`), so this crate does not depend on the trainer.
+pub trait StepScorer: Send + Sync {
+    fn score_steps(&self, steps: &RecordBatch) -> std::result::Result<Vec<f32>, String>;
+}
+
+/// An episode's score: the mean of its steps' scores, as Demo-SCORE aggregates a rollout
+/// classifier over a demonstration. `None` for an episode without steps.
+pub fn episode_score(step_scores: &[f32]) -> Option<f64> {
+    (!step_scores.is_empty()).then(|| step_scores.iter().map(|&x| x as f64).sum::<f64>() / step_scores.len() as f64)
+}
+
+/// Scores each episode (in order) with `scorer`, reading steps with bounded memory.
+pub async fn score_episodes(
+    store: &Store,
+    episodes: &[EpisodeRecord],
+    scorer: &dyn StepScorer,
+    progress: Progress<'_>,
+) -> Result<Vec<Option<f64>>> {
+    let mut scores = vec![None; episodes.len()];
+    let total = episodes.len();
+    for_each_episode(store, episodes, |i, e, steps| {
+        let s = scorer.score_steps(&steps).map_err(|m| ExportError::invalid(format!("scoring episode {}: {m}", e.id)))?;
+        if s.iter().any(|x| !x.is_finite()) {
+            return Err(ExportError::invalid(format!("scoring episode {}: the verifier returned a non-finite score", e.id)));
+        }
+        scores[i] = episode_score(&s);
+        if let Some(p) = progress {
+            p(i + 1, total);
+        }
+        Ok(())
+    })
+    .await?;
+    Ok(scores)
+}
+
+/// Narrows a resolved selection to the episodes whose score lies in `sel.selection.score`
+/// (a no-op without one) and records each kept episode's score.
+pub async fn filter_by_score(store: &Store, sel: &mut Selected, scorer: &dyn StepScorer, progress: Progress<'_>) -> Result<()> {
+    let Some(range) = sel.selection.score.clone() else { return Ok(()) };
+    let scores = score_episodes(store, &sel.episodes, scorer, progress).await?;
+    sel.scored = Some(sel.episodes.len());
+    let mut kept = Vec::new();
+    for (e, s) in std::mem::take(&mut sel.episodes).into_iter().zip(scores) {
+        if let Some(s) = s.filter(|s| range.contains(*s)) {
+            sel.scores.insert(e.id.clone(), s);
+            kept.push(e);
+        }
+    }
+    sel.episodes = kept;
+    Ok(())
 }
 
 /// The episodes a [`Selection`] resolved to, in the store's order (by version added, source,
@@ -70,6 +144,10 @@ pub struct Selected {
     /// For a split: each episode's part (`train` or `val`).
     pub parts: HashMap<String, String>,
     pub selection: Selection,
+    /// With a score range: each kept episode's verifier score ([`filter_by_score`]).
+    pub scores: HashMap<String, f64>,
+    /// With a score range: how many episodes were scored before the range was applied.
+    pub scored: Option<usize>,
 }
 
 impl Selected {
@@ -83,6 +161,7 @@ impl Selected {
             "label_snapshot": self.labels_path,
             "selection": self.selection,
             "episodes": self.episodes.len(),
+            "episodes_scored": self.scored,
         })
     }
 }
@@ -128,7 +207,20 @@ pub async fn select(store: &Store, sel: &Selection) -> Result<Selected> {
     episodes.sort_by(|a, b| {
         (a.version_added, &a.source_sha256, a.source_index).cmp(&(b.version_added, &b.source_sha256, b.source_index))
     });
-    Ok(Selected { version, labels_path: info.labels_path, episodes, parts, selection: sel.clone() })
+    if let Some(r) = &sel.score {
+        if r.min.is_some_and(|m| !m.is_finite()) || r.max.is_some_and(|m| !m.is_finite()) || r.min.zip(r.max).is_some_and(|(a, b)| a > b) {
+            return Err(ExportError::invalid(format!("score range [{:?}, {:?}]: bounds must be finite with min <= max", r.min, r.max)));
+        }
+    }
+    Ok(Selected {
+        version,
+        labels_path: info.labels_path,
+        episodes,
+        parts,
+        selection: sel.clone(),
+        scores: HashMap::new(),
+        scored: None,
+    })
 }
 
 /// Episodes read per request to the store: a group's steps are held at once, so memory is

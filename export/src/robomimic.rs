@@ -306,7 +306,10 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
         if steps.schema().fields().iter().any(|f| f.name().starts_with(store::steps::MEDIA_PREFIX)) {
             videos_left_out += 1;
         }
-        let g = demo_group(&mut fb, &name, e, &steps, robomimic_source)?;
+        let mut g = demo_group(&mut fb, &name, e, &steps, robomimic_source)?;
+        if let Some(score) = sel.scores.get(&e.id) {
+            g.set_attr("verifier_score", AttrValue::F64(*score));
+        }
         data.add_group(g.finish());
         for tag in &e.tags {
             if filters.contains(tag) {

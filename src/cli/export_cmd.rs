@@ -1,18 +1,16 @@
 //! `ufops export`: a version, split or filter of the store as a LeRobot v3.0 dataset or a
-//! robomimic HDF5 file (the export crate).
+//! robomimic HDF5 file (the export crate), optionally curated by a verifier's episode scores; and
+//! `ufops rank`: the selected episodes ordered by such a score (worst first), the list a team
+//! reviews before deleting or relabeling demonstrations (Demo-SCORE-style curation).
 
 use super::{print_json, StoreArgs};
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 
+/// Which episodes: shared by `export` and `rank`.
 #[derive(clap::Args, Debug)]
-pub struct ExportArgs {
-    /// The new dataset folder (lerobot) or .hdf5 file (robomimic); must not exist.
-    pub out: PathBuf,
-    /// lerobot (v3.0) | robomimic
-    #[arg(long)]
-    pub format: String,
+pub struct SelectionArgs {
     /// Store version (default: the head). Labels are the ones frozen in it.
     #[arg(long)]
     pub version: Option<i64>,
@@ -30,31 +28,102 @@ pub struct ExportArgs {
     pub label: Option<String>,
     #[arg(long)]
     pub tag: Option<String>,
+}
+
+impl SelectionArgs {
+    fn selection(&self, score: Option<::export::ScoreRange>) -> Result<::export::Selection> {
+        Ok(::export::Selection {
+            version: self.version,
+            split: self.split.clone(),
+            policy: self.policy.clone(),
+            checkpoint: self.checkpoint.clone(),
+            task: self.task.clone(),
+            label: self.label.as_deref().map(str::parse).transpose()?,
+            tag: self.tag.clone(),
+            score,
+        })
+    }
+}
+
+#[derive(clap::Args, Debug)]
+pub struct ExportArgs {
+    /// The new dataset folder (lerobot) or .hdf5 file (robomimic); must not exist.
+    pub out: PathBuf,
+    /// lerobot (v3.0) | robomimic
+    #[arg(long)]
+    pub format: String,
+    #[command(flatten)]
+    pub select: SelectionArgs,
+    /// Keep only episodes this verifier artifact (id or POLICY/CHECKPOINT/KIND@ALIAS) scores in
+    /// [--min-score, --max-score]; an episode's score is the mean of its steps' scores.
+    #[arg(long)]
+    pub score_artifact: Option<String>,
+    #[arg(long, requires = "score_artifact")]
+    pub min_score: Option<f64>,
+    #[arg(long, requires = "score_artifact")]
+    pub max_score: Option<f64>,
     #[arg(long)]
     pub json: bool,
 }
 
-pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
-    let store = args.open().await?;
-    let sel = ::export::Selection {
-        version: a.version,
-        split: a.split.clone(),
-        policy: a.policy.clone(),
-        checkpoint: a.checkpoint.clone(),
-        task: a.task.clone(),
-        label: a.label.as_deref().map(str::parse).transpose()?,
-        tag: a.tag.clone(),
-    };
-    let selected = ::export::select(&store, &sel).await?;
-    let bar = (!a.json && std::io::stderr().is_terminal()).then(|| {
-        let b = indicatif::ProgressBar::new(selected.episodes.len() as u64);
+/// A verifier artifact of the store, scoring stored steps through the verifier core.
+pub struct StoreScorer {
+    pub verifier: verifier::Verifier,
+    /// The artifact's id (an alias resolved once, so everything names the same artifact).
+    pub artifact: String,
+}
+
+impl StoreScorer {
+    /// Loads an artifact of the store (id or POLICY/CHECKPOINT/KIND@ALIAS).
+    pub async fn load(store: &store::Store, reference: &str) -> Result<Self> {
+        let rec = store.resolve_artifact(reference).await?;
+        let tmp = tempfile::tempdir()?;
+        store.download_artifact(&rec.id, tmp.path()).await?;
+        let verifier = verifier::Verifier::load_dir(tmp.path()).with_context(|| format!("loading artifact {}", rec.id))?;
+        Ok(StoreScorer { verifier, artifact: rec.id })
+    }
+}
+
+impl ::export::StepScorer for StoreScorer {
+    fn score_steps(&self, steps: &arrow::array::RecordBatch) -> Result<Vec<f32>, String> {
+        trainer::score_steps(&self.verifier, steps).map_err(|e| format!("{e:#}"))
+    }
+}
+
+fn progress_bar(show: bool, len: usize, what: &str) -> Option<indicatif::ProgressBar> {
+    (show && std::io::stderr().is_terminal()).then(|| {
+        let b = indicatif::ProgressBar::new(len as u64);
         b.set_style(
-            indicatif::ProgressStyle::with_template("{spinner} [{elapsed_precise}] [{bar:30}] {pos}/{len} episodes")
+            indicatif::ProgressStyle::with_template(&format!("{{spinner}} [{{elapsed_precise}}] [{{bar:30}}] {{pos}}/{{len}} {what}"))
                 .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
                 .progress_chars("=> "),
         );
         b
-    });
+    })
+}
+
+pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
+    let store = args.open().await?;
+    let scorer = match &a.score_artifact {
+        Some(r) => Some(StoreScorer::load(&store, r).await?),
+        None => None,
+    };
+    let range = scorer.as_ref().map(|s| ::export::ScoreRange { artifact: s.artifact.clone(), min: a.min_score, max: a.max_score });
+    let mut selected = ::export::select(&store, &a.select.selection(range)?).await?;
+    if let Some(s) = &scorer {
+        let bar = progress_bar(!a.json, selected.episodes.len(), "episodes scored");
+        let tick = |done: usize, _total: usize| {
+            if let Some(b) = &bar {
+                b.set_position(done as u64);
+            }
+        };
+        let r = ::export::filter_by_score(&store, &mut selected, s, Some(&tick)).await;
+        if let Some(b) = &bar {
+            b.finish_and_clear();
+        }
+        r?;
+    }
+    let bar = progress_bar(!a.json, selected.episodes.len(), "episodes");
     let tick = |done: usize, _total: usize| {
         if let Some(b) = &bar {
             b.set_position(done as u64);
@@ -71,7 +140,12 @@ pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
     }
     let report = report?;
     if a.json {
-        return print_json(&report);
+        let mut v = serde_json::to_value(&report)?;
+        v["episodes_scored"] = serde_json::json!(selected.scored);
+        return print_json(&v);
+    }
+    if let Some(n) = selected.scored {
+        println!("scored {n} episodes with {}: {} in range", scorer.as_ref().map(|s| s.artifact.as_str()).unwrap_or_default(), report.episodes);
     }
     println!(
         "exported {} episodes, {} frames of version {} as {} to {} ({:.1} MB) — labels: {} success, {} failure, {} unknown",
@@ -87,6 +161,57 @@ pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
     );
     for w in &report.warnings {
         eprintln!("warning: {w}");
+    }
+    Ok(())
+}
+
+#[derive(clap::Args, Debug)]
+pub struct RankArgs {
+    /// The verifier artifact: id or POLICY/CHECKPOINT/KIND@ALIAS.
+    #[arg(long)]
+    pub artifact: String,
+    #[command(flatten)]
+    pub select: SelectionArgs,
+    /// Print only the N lowest-scored episodes.
+    #[arg(long)]
+    pub worst: Option<usize>,
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `ufops rank`: every selected episode's score, lowest first (ties by id).
+pub async fn rank(args: &StoreArgs, a: RankArgs) -> Result<()> {
+    let store = args.open().await?;
+    let v = StoreScorer::load(&store, &a.artifact).await?;
+    let selected = ::export::select(&store, &a.select.selection(None)?).await?;
+    let bar = progress_bar(!a.json, selected.episodes.len(), "episodes scored");
+    let tick = |done: usize, _total: usize| {
+        if let Some(b) = &bar {
+            b.set_position(done as u64);
+        }
+    };
+    let scores = ::export::score_episodes(&store, &selected.episodes, &v, Some(&tick)).await;
+    if let Some(b) = &bar {
+        b.finish_and_clear();
+    }
+    let scores = scores?;
+    let mut rows: Vec<(&store::EpisodeRecord, f64)> =
+        selected.episodes.iter().zip(scores).filter_map(|(e, s)| s.map(|s| (e, s))).collect();
+    rows.sort_by(|a, b| a.1.total_cmp(&b.1).then_with(|| a.0.id.cmp(&b.0.id)));
+    rows.truncate(a.worst.unwrap_or(usize::MAX));
+    if a.json {
+        let out: Vec<serde_json::Value> = rows
+            .iter()
+            .map(|(e, s)| serde_json::json!({
+                "episode_id": e.id, "score": s, "label": e.label.as_str(), "policy": e.policy,
+                "checkpoint": e.checkpoint, "source_name": e.source_name, "source_index": e.source_index,
+            }))
+            .collect();
+        return print_json(&serde_json::json!({ "artifact": v.artifact, "version": selected.version, "episodes": out }));
+    }
+    println!("{:<40} {:>8}  {:<8} source", "episode", "score", "label");
+    for (e, s) in rows {
+        println!("{:<40} {:>8.4}  {:<8} {}#{}", e.id, s, e.label.as_str(), e.source_name, e.source_index);
     }
     Ok(())
 }

@@ -99,6 +99,9 @@ pub enum Command {
     Ingest(serve_cmds::IngestArgs),
     /// Export a version, split or filter as a LeRobot v3.0 dataset or a robomimic HDF5 file.
     Export(export_cmd::ExportArgs),
+    /// Episodes ordered by a verifier's score, lowest first (which demonstrations or rollouts to
+    /// review, relabel or leave out).
+    Rank(export_cmd::RankArgs),
     /// Serve the HTTP API (and run queued jobs in-process unless --no-worker).
     Serve(serve_cmds::ServeArgs),
     /// Claim and run queued jobs (training, ingest) from the catalog.
@@ -168,6 +171,7 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Token { command } => catalog_cmds::token(&cli.store, command).await,
         Command::Ingest(a) => serve_cmds::ingest(&cli.store, a).await,
         Command::Export(a) => export_cmd::export(&cli.store, a).await,
+        Command::Rank(a) => export_cmd::rank(&cli.store, a).await,
         Command::Serve(a) => serve_cmds::serve(&cli.store, a).await,
         Command::Worker { id, lease_ms } => serve_cmds::worker(&cli.store, id, lease_ms).await,
         Command::Train(a) => run_cmds::train(&cli.store, a).await,

@@ -83,6 +83,7 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
     let worker = api::worker_identity("cli");
     let claimed = store.claim_job(&worker, 3_600_000).await?;
     anyhow::ensure!(claimed.as_ref().map(|j| j.id.as_str()) == Some(job.id.as_str()), "another queued job was claimed first; run `ufops worker`");
+    let attempt = claimed.map(|j| j.attempts).unwrap_or(1);
     let pb = if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
         let pb = ProgressBar::new(1);
         pb.set_style(ProgressStyle::with_template("{bar:30} epoch {pos}/{len} {msg}").expect("template"));
@@ -105,7 +106,7 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
     pb.finish_and_clear();
     match result {
         Ok(rec) => {
-            store.finish_job(&job.id, &worker, Ok(serde_json::json!({ "artifact": rec.id }))).await?;
+            store.finish_job(&job.id, &worker, attempt, Ok(serde_json::json!({ "artifact": rec.id }))).await?;
             if a.json {
                 return print_json(&rec);
             }
@@ -114,7 +115,7 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
             Ok(())
         }
         Err(e) => {
-            store.finish_job(&job.id, &worker, Err(format!("{e:#}"))).await?;
+            store.finish_job(&job.id, &worker, attempt, Err(format!("{e:#}"))).await?;
             Err(e)
         }
     }
@@ -140,11 +141,7 @@ pub async fn score(args: &StoreArgs, artifact: &str, input: &PathBuf, api: Optio
     } else if dir.join(verifier::MANIFEST_FILE).exists() {
         verifier::Verifier::load_dir(&dir)?
     } else {
-        let store = args.open().await?;
-        let rec = store.resolve_artifact(artifact).await?;
-        let tmp = tempfile::tempdir()?;
-        store.download_artifact(&rec.id, tmp.path()).await?;
-        verifier::Verifier::load_dir(tmp.path())?
+        super::export_cmd::StoreScorer::load(&args.open().await?, artifact).await?.verifier
     };
     let text = std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?;
     let mut rows = trainer::parse_rows(&text)?;

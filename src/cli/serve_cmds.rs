@@ -90,7 +90,8 @@ pub async fn ingest(args: &StoreArgs, a: IngestArgs) -> Result<()> {
     Ok(())
 }
 
-/// Runs the API's jobs: `train` through the trainer, `ingest` through the ingest crate.
+/// Runs the API's jobs: `train` through the trainer, `ingest` through the ingest crate, `export`
+/// through the export crate.
 pub struct Runner;
 
 fn train_spec(spec: &serde_json::Value) -> Result<trainer::TrainJobSpec, String> {
@@ -149,6 +150,21 @@ impl api::JobRunner for Runner {
                     let r = ingest::ingest(store, std::path::Path::new(&path), &opts).await.map_err(|e| format!("{e:#}"))?;
                     serde_json::to_value(&r).map_err(|e| e.to_string())
                 }
+                "export" => {
+                    let spec: ::export::job::ExportJobSpec =
+                        serde_json::from_value(job.spec.clone()).map_err(|e| format!("bad export job spec: {e}"))?;
+                    let scorer = match &spec.selection.score {
+                        Some(r) => Some(super::export_cmd::StoreScorer::load(store, &r.artifact).await.map_err(|e| format!("{e:#}"))?),
+                        None => None,
+                    };
+                    let progress = |v: serde_json::Value| ctx.progress(v);
+                    let cancelled = || ctx.is_cancelled();
+                    let scorer = scorer.as_ref().map(|s| s as &dyn ::export::StepScorer);
+                    let r = ::export::job::run_export_job(store, &job.id, &spec, scorer, &progress, &cancelled)
+                        .await
+                        .map_err(|e| e.to_string())?;
+                    serde_json::to_value(&r).map_err(|e| e.to_string())
+                }
                 other => Err(format!("unknown job kind {other:?}")),
             }
         })
@@ -163,10 +179,33 @@ pub struct ServeArgs {
     /// Do not run jobs in this process (leave them to `ufops worker`).
     #[arg(long)]
     pub no_worker: bool,
+    /// The URL browsers use when the server runs behind a TLS proxy (https://HOST[:PORT]):
+    /// session cookies get `Secure` and the CSRF origin check compares with it.
+    #[arg(long, env = "UFOPS_PUBLIC_URL")]
+    pub public_url: Option<String>,
 }
 
+/// Ctrl-C or SIGTERM (what `docker stop`, systemd and Kubernetes send): the server finishes the
+/// requests in flight (up to its deadline) and the worker releases its job.
 async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = tokio::signal::ctrl_c() => {}
+                    _ = term.recv() => {}
+                }
+            }
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
     let _ = tokio::signal::ctrl_c().await;
+    eprintln!("shutting down");
 }
 
 pub async fn serve(args: &StoreArgs, a: ServeArgs) -> Result<()> {
@@ -174,6 +213,7 @@ pub async fn serve(args: &StoreArgs, a: ServeArgs) -> Result<()> {
     let mut cfg = api::ServeConfig::new(&args.data_dir);
     cfg.addr = a.addr;
     cfg.run_worker_in_process = !a.no_worker;
+    cfg.public_url = a.public_url;
     api::serve(store, cfg, Arc::new(Runner), shutdown_signal()).await
 }
 

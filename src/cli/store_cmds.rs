@@ -150,8 +150,12 @@ pub async fn history(args: &StoreArgs, episode: &str, json: bool) -> Result<()> 
 
 pub async fn snapshot(args: &StoreArgs, message: &str, actor: &str) -> Result<()> {
     let store = args.open().await?;
-    let c = store.snapshot_labels(actor, message).await.context("label snapshot failed")?;
-    println!("version {}: labels of {} episodes frozen", c.version, c.episodes);
+    let (c, created) = store.snapshot_labels_if_changed(actor, message).await.context("label snapshot failed")?;
+    if created {
+        println!("version {}: labels of {} episodes frozen", c.version, c.episodes);
+    } else {
+        println!("no label changed since version {}: no new version", c.version);
+    }
     Ok(())
 }
 
@@ -162,12 +166,14 @@ pub async fn gc(args: &StoreArgs, grace_seconds: u64, dry_run: bool, json: bool)
         return print_json(&r);
     }
     println!(
-        "{} objects scanned, {} referenced, {} {}, {} unreferenced but younger than {grace_seconds}s kept",
+        "{} objects scanned, {} referenced, {} {}, {} unreferenced but younger than {grace_seconds}s kept, \
+         {} kept for writers in flight",
         r.objects_scanned,
         r.referenced,
         r.deleted.len(),
         if dry_run { "would be deleted" } else { "deleted" },
-        r.kept_recent
+        r.kept_recent,
+        r.kept_pending
     );
     Ok(())
 }

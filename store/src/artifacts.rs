@@ -98,6 +98,12 @@ impl Store {
             Some(s) => self.split(s).await?.mode == "off_policy",
             None => false,
         };
+        // Recorded before the existence check of each content-addressed put: gc keeps them until
+        // the artifact's row commits (gc.rs).
+        let publisher = format!("publish-{}", uuid::Uuid::new_v4().simple());
+        for (name, _) in &uploads {
+            self.register_pending(&publisher, &format!("{prefix}/{name}")).await?;
+        }
         for (name, data) in uploads {
             self.objects().put_content_addressed(&format!("{prefix}/{name}"), Bytes::from(data)).await?;
         }
@@ -121,6 +127,7 @@ impl Store {
         if !off_policy {
             upsert_alias(&mut tx, new.policy, new.checkpoint, new.kind, "latest", &id, &now).await?;
         }
+        sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(&publisher).execute(&mut *tx).await?;
         tx.commit().await?;
         self.artifact(&id).await
     }

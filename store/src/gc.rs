@@ -1,5 +1,15 @@
 //! Garbage collection: deletes objects no committed version references (left by crashed or
-//! aborted writers), after a grace period that protects writers still in flight.
+//! aborted writers), after a grace period.
+//!
+//! Writers in flight are protected whatever the grace period: a writer records each object in
+//! `pending_objects` before it uploads it or decides to re-use an existing one (content-addressed
+//! media and artifact files), renews its records while it lives (a lease, [`writer_lease_ms`]),
+//! and deletes them in the transaction that makes the objects referenced. A killed writer's
+//! records lapse with its lease, and gc collects what it left. gc re-checks every candidate in small batches inside the version write lock
+//! (Postgres: also an exclusive lock on `pending_objects`, which SQLite's single write lock gives
+//! already) and deletes the batch before releasing it. So a writer's registration comes either
+//! before the batch (the object is kept) or after it (the object is already gone, the writer's
+//! existence check says so, and it uploads the object again).
 
 use crate::catalog::RowExt;
 use crate::{Store, StoreError};
@@ -13,10 +23,31 @@ pub struct GcReport {
     pub deleted: Vec<String>,
     /// Unreferenced but younger than the grace period (maybe a writer in flight).
     pub kept_recent: usize,
+    /// Unreferenced but recorded by a writer in flight (`pending_objects`).
+    pub kept_pending: usize,
+}
+
+/// What one locked batch of [`Store::gc`] did.
+struct BatchOutcome {
+    referenced: usize,
+    pending: usize,
+    deleted: Vec<String>,
 }
 
 /// The longest grace period gc accepts: ten years, far beyond any writer in flight.
 pub const MAX_GRACE_SECONDS: u64 = 10 * 365 * 86_400;
+/// How long a writer's pending-object records protect its objects without being renewed: 60 s,
+/// or `UFOPS_WRITER_LEASE_SECONDS` (tests shorten it to see a killed writer's leftovers collected).
+pub fn writer_lease_ms() -> i64 {
+    std::env::var("UFOPS_WRITER_LEASE_SECONDS")
+        .ok()
+        .and_then(|v| v.parse::<f64>().ok())
+        .filter(|s| s.is_finite() && *s > 0.0 && *s <= 86_400.0)
+        .map(|s| (s * 1000.0) as i64)
+        .unwrap_or(60_000)
+}
+/// Candidates re-checked and deleted per locked batch (short lock holds; few SQL parameters).
+const GC_BATCH: usize = 200;
 
 impl Store {
     /// Paths of every object some catalog row points at.
@@ -54,19 +85,31 @@ impl Store {
         // seen as referenced, never deleted.
         let objects = self.objects().list_all().await?;
         let referenced = self.referenced_objects().await?;
+        // An export's files are referenced by its job (store/src/exports.rs).
+        let live_exports = self.live_export_ids().await?;
+        let export_is_live = |path: &str| {
+            path.strip_prefix(crate::EXPORTS_PREFIX)
+                .and_then(|r| r.strip_prefix('/'))
+                .and_then(|r| r.split('/').next())
+                .is_some_and(|id| live_exports.contains(id))
+        };
         let mut report =
-            GcReport { objects_scanned: objects.len(), referenced: 0, deleted: Vec::new(), kept_recent: 0 };
+            GcReport { objects_scanned: objects.len(), referenced: 0, deleted: Vec::new(), kept_recent: 0, kept_pending: 0 };
+        let mut candidates = Vec::new();
         for o in objects {
-            if referenced.contains(&o.path) {
+            if referenced.contains(&o.path) || export_is_live(&o.path) {
                 report.referenced += 1;
             } else if o.last_modified_ms > cutoff {
                 report.kept_recent += 1;
             } else {
-                if !dry_run {
-                    self.objects().delete(&o.path).await?;
-                }
-                report.deleted.push(o.path);
+                candidates.push(o.path);
             }
+        }
+        for batch in candidates.chunks(GC_BATCH) {
+            let kept = self.delete_unreferenced(batch, dry_run).await?;
+            report.referenced += kept.referenced;
+            report.kept_pending += kept.pending;
+            report.deleted.extend(kept.deleted);
         }
         for (path, modified_ms) in self.objects().local_staging_files() {
             if modified_ms > cutoff {
@@ -79,5 +122,84 @@ impl Store {
             report.deleted.push(path.display().to_string());
         }
         Ok(report)
+    }
+
+    /// Re-checks `paths` under the version write lock (and, on Postgres, with writers' new
+    /// pending records blocked) and deletes those still unreferenced and not pending before
+    /// releasing it.
+    async fn delete_unreferenced(&self, paths: &[String], dry_run: bool) -> Result<BatchOutcome, StoreError> {
+        let mut tx = self.db().begin_version_write().await?;
+        if self.backend() == crate::Backend::Postgres {
+            sqlx::query("LOCK TABLE pending_objects IN EXCLUSIVE MODE").execute(&mut *tx).await?;
+        }
+        let list = (1..=paths.len()).map(|i| format!("${i}")).collect::<Vec<_>>().join(", ");
+        let mut referenced = HashSet::new();
+        for table in ["data_files", "media_objects"] {
+            let sql = format!("SELECT path FROM {table} WHERE path IN ({list})");
+            let mut q = sqlx::query(&sql);
+            for p in paths {
+                q = q.bind(p);
+            }
+            for r in q.fetch_all(&mut *tx).await? {
+                referenced.insert(r.s("path")?);
+            }
+        }
+        let sql = format!("SELECT path FROM pending_objects WHERE created_ms > ${} AND path IN ({list})", paths.len() + 1);
+        let mut q = sqlx::query(&sql);
+        for p in paths {
+            q = q.bind(p);
+        }
+        let mut pending = HashSet::new();
+        for r in q.bind(crate::now_ms() - writer_lease_ms()).fetch_all(&mut *tx).await? {
+            pending.insert(r.s("path")?);
+        }
+        // Artifacts published since the listing (few rows: read them all).
+        for r in sqlx::query("SELECT prefix, files FROM artifacts").fetch_all(&mut *tx).await? {
+            let prefix = r.s("prefix")?;
+            let files: Vec<crate::ArtifactFile> = serde_json::from_str(&r.s("files")?)?;
+            referenced.extend(files.into_iter().map(|f| format!("{prefix}/{}", f.name)));
+        }
+        let mut out = BatchOutcome { referenced: 0, pending: 0, deleted: Vec::new() };
+        for p in paths {
+            if referenced.contains(p) {
+                out.referenced += 1;
+            } else if pending.contains(p) {
+                out.pending += 1;
+            } else {
+                if !dry_run {
+                    self.objects().delete(p).await?;
+                }
+                out.deleted.push(p.clone());
+            }
+        }
+        tx.commit().await?;
+        Ok(out)
+    }
+
+    /// Records that `writer` is about to upload or re-use the object `path` (see the module docs).
+    pub(crate) async fn register_pending(&self, writer: &str, path: &str) -> Result<(), StoreError> {
+        sqlx::query("INSERT INTO pending_objects (path, writer, created_ms) VALUES ($1, $2, $3) ON CONFLICT DO NOTHING")
+            .bind(path)
+            .bind(writer)
+            .bind(crate::now_ms())
+            .execute(&self.db().pool)
+            .await?;
+        Ok(())
+    }
+
+    /// Renews a writer's pending records (its lease): see [`writer_lease_ms`].
+    pub(crate) async fn renew_pending(&self, writer: &str) -> Result<(), StoreError> {
+        sqlx::query("UPDATE pending_objects SET created_ms = $1 WHERE writer = $2")
+            .bind(crate::now_ms())
+            .bind(writer)
+            .execute(&self.db().pool)
+            .await?;
+        Ok(())
+    }
+
+    /// Forgets a writer's pending records outside a commit (after a publish, or an abort).
+    pub(crate) async fn clear_pending(&self, writer: &str) -> Result<(), StoreError> {
+        sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(writer).execute(&self.db().pool).await?;
+        Ok(())
     }
 }

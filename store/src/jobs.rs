@@ -58,6 +58,11 @@ pub struct JobRecord {
     pub updated_at: String,
 }
 
+/// Cancels running jobs whose cancel was requested (callers add the lease condition on `$2`).
+const CANCEL_ORPHANS: &str = "UPDATE jobs SET state = 'cancelled', \
+    error = COALESCE(error, 'cancelled; its worker stopped before it could finish'), lease_until_ms = NULL, \
+    updated_at = $1 WHERE state = 'running' AND cancel_requested = 1";
+
 const JOB_COLS: &str = "id, kind, state, spec, progress, result, error, attempts, max_attempts, worker, \
     lease_until_ms, cancel_requested, created_by, created_at, updated_at";
 
@@ -121,6 +126,12 @@ impl Store {
     pub async fn claim_job(&self, worker: &str, lease_ms: i64) -> Result<Option<JobRecord>, StoreError> {
         let now = now_ms();
         let mut tx = self.db().begin_write().await?;
+        // A cancelled job whose worker died (lease expired) is cancelled now, not left running.
+        sqlx::query(&format!("{CANCEL_ORPHANS} AND lease_until_ms < $2"))
+            .bind(now_rfc3339())
+            .bind(now)
+            .execute(&mut *tx)
+            .await?;
         // Jobs whose lease ran out too often are failed for good.
         sqlx::query(
             "UPDATE jobs SET state = 'failed', error = 'worker lost too many times (lease expired)', updated_at = $1 \
@@ -158,33 +169,39 @@ impl Store {
     }
 
     /// Extends the lease and records progress. Returns `false` when the worker no longer owns
-    /// the job (lease lost) or a cancel was requested: the worker must stop.
+    /// the job (lease lost, or a later attempt holds it) or a cancel was requested: the worker
+    /// must stop. `attempt` is the claim's `attempts`: it fences a stale runner of the same
+    /// worker that re-claimed the job after its own lease expired.
     pub async fn heartbeat_job(
         &self,
         id: &str,
         worker: &str,
+        attempt: i64,
         lease_ms: i64,
         progress: &serde_json::Value,
     ) -> Result<bool, StoreError> {
         let r = sqlx::query(
             "UPDATE jobs SET lease_until_ms = $1, progress = $2, updated_at = $3 \
-             WHERE id = $4 AND worker = $5 AND state = 'running' AND cancel_requested = 0",
+             WHERE id = $4 AND worker = $5 AND attempts = $6 AND state = 'running' AND cancel_requested = 0",
         )
         .bind(now_ms() + lease_ms)
         .bind(serde_json::to_string(progress)?)
         .bind(now_rfc3339())
         .bind(id)
         .bind(worker)
+        .bind(attempt)
         .execute(&self.db().pool)
         .await?;
         Ok(r.rows_affected() == 1)
     }
 
-    /// Ends a job the worker owns: succeeded with a result, or failed/cancelled with an error.
+    /// Ends a job the worker owns (this `attempt` of it): succeeded with a result, or
+    /// failed/cancelled with an error. Returns `false` when the job is no longer this attempt's.
     pub async fn finish_job(
         &self,
         id: &str,
         worker: &str,
+        attempt: i64,
         outcome: Result<serde_json::Value, String>,
     ) -> Result<bool, StoreError> {
         let (state, result, error) = match outcome {
@@ -194,7 +211,7 @@ impl Store {
         let r = sqlx::query(
             "UPDATE jobs SET state = CASE WHEN cancel_requested = 1 AND CAST($1 AS TEXT) = 'failed' THEN 'cancelled' ELSE CAST($1 AS TEXT) END, \
              result = $2, error = $3, lease_until_ms = NULL, updated_at = $4 \
-             WHERE id = $5 AND worker = $6 AND state = 'running'",
+             WHERE id = $5 AND worker = $6 AND attempts = $7 AND state = 'running'",
         )
         .bind(state)
         .bind(result)
@@ -202,6 +219,26 @@ impl Store {
         .bind(now_rfc3339())
         .bind(id)
         .bind(worker)
+        .bind(attempt)
+        .execute(&self.db().pool)
+        .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    /// Gives back a job this attempt holds, when its worker stops before finishing it: queued
+    /// again without counting the attempt (a graceful restart is not a failure), or cancelled
+    /// if a cancel was requested. Returns `false` when the job was no longer this attempt's.
+    pub async fn release_job(&self, id: &str, worker: &str, attempt: i64) -> Result<bool, StoreError> {
+        let r = sqlx::query(
+            "UPDATE jobs SET state = CASE WHEN cancel_requested = 1 THEN 'cancelled' ELSE 'queued' END, \
+             attempts = CASE WHEN cancel_requested = 1 THEN attempts ELSE attempts - 1 END, \
+             worker = NULL, lease_until_ms = NULL, updated_at = $1 \
+             WHERE id = $2 AND worker = $3 AND attempts = $4 AND state = 'running'",
+        )
+        .bind(now_rfc3339())
+        .bind(id)
+        .bind(worker)
+        .bind(attempt)
         .execute(&self.db().pool)
         .await?;
         Ok(r.rows_affected() == 1)
@@ -217,6 +254,13 @@ impl Store {
             .await?;
         sqlx::query("UPDATE jobs SET cancel_requested = 1, updated_at = $1 WHERE id = $2 AND state = 'running'")
             .bind(&now)
+            .bind(id)
+            .execute(&self.db().pool)
+            .await?;
+        // Its worker already gone (lease expired): nobody will see the request, so finish it here.
+        sqlx::query(&format!("{CANCEL_ORPHANS} AND lease_until_ms < $2 AND id = $3"))
+            .bind(&now)
+            .bind(now_ms())
             .bind(id)
             .execute(&self.db().pool)
             .await?;

@@ -157,6 +157,20 @@ impl Store {
         Ok(CommitInfo { version, episodes: info.episode_count as usize })
     }
 
+    /// Freezes the current labels into a new version only if one changed since the head froze
+    /// them: `(head, false)` otherwise, so a client repeating the request (or many clients) does
+    /// not pile up identical versions, each a full copy of the label table.
+    pub async fn snapshot_labels_if_changed(&self, actor: &str, message: &str) -> Result<(CommitInfo, bool), StoreError> {
+        if !self.labels_changed_since_head().await? {
+            let head = self.head_version().await?;
+            if head > 0 {
+                let info = self.version(head).await?;
+                return Ok((CommitInfo { version: head, episodes: info.episode_count as usize }, false));
+            }
+        }
+        Ok((self.snapshot_labels(actor, message).await?, true))
+    }
+
     /// Whether any label changed since the head version froze them.
     pub async fn labels_changed_since_head(&self) -> Result<bool, StoreError> {
         let row = sqlx::query(

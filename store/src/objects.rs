@@ -243,6 +243,42 @@ impl Objects {
         }
     }
 
+    /// Copies a local file into the object `path` (replacing it), streamed in parts: memory is a
+    /// few parts whatever the file's size. Returns the number of bytes copied.
+    pub async fn put_file(&self, path: &str, local: &std::path::Path) -> Result<u64, StoreError> {
+        let io = |e: std::io::Error| StoreError::invalid(format!("cannot read {}: {e}", local.display()));
+        let mut f = tokio::fs::File::open(local).await.map_err(io)?;
+        let upload = self.store.put_multipart(&ObjPath::from(path)).await?;
+        let mut w = WriteMultipart::new_with_chunk_size(upload, FILE_PART_BYTES);
+        let mut total = 0u64;
+        let copied: Result<(), StoreError> = async {
+            while let Some(part) = read_part(&mut f).await.map_err(io)? {
+                total += part.len() as u64;
+                w.wait_for_capacity(FILE_PARTS_IN_FLIGHT).await?;
+                w.put(Bytes::from(part));
+            }
+            Ok(())
+        }
+        .await;
+        match copied {
+            Ok(()) => {
+                w.finish().await?;
+                Ok(total)
+            }
+            Err(e) => {
+                let _ = w.abort().await;
+                Err(e)
+            }
+        }
+    }
+
+    /// Objects under `prefix` (a folder: `a/b`), with their sizes.
+    pub async fn list_prefix(&self, prefix: &str) -> Result<Vec<(String, u64)>, StoreError> {
+        let p = ObjPath::from(prefix);
+        let metas: Vec<_> = self.store.list(Some(&p)).try_collect().await?;
+        Ok(metas.into_iter().map(|m| (m.location.to_string(), m.size)).collect())
+    }
+
     pub async fn exists(&self, path: &str) -> Result<bool, StoreError> {
         self.counters.head();
         match self.store.head(&ObjPath::from(path)).await {

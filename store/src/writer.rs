@@ -71,6 +71,18 @@ pub struct IngestWriter {
     media_paths: HashMap<String, String>,
     max_file_bytes: usize,
     max_row_group_bytes: usize,
+    /// Names this writer's `pending_objects` records (gc keeps those objects until the commit).
+    writer_id: String,
+    /// Renews those records every third of the lease while this writer lives (gc.rs).
+    lease_renewal: Option<tokio::task::JoinHandle<()>>,
+}
+
+impl Drop for IngestWriter {
+    fn drop(&mut self) {
+        if let Some(h) = self.lease_renewal.take() {
+            h.abort();
+        }
+    }
 }
 
 pub(crate) fn check_name(what: &str, s: &str) -> Result<(), StoreError> {
@@ -137,6 +149,8 @@ impl Store {
             media_paths: HashMap::new(),
             max_file_bytes: MAX_STEPS_FILE_BYTES,
             max_row_group_bytes: steps::ROW_GROUP_MAX_BYTES,
+            writer_id: format!("ingest-{}", uuid::Uuid::new_v4().simple()),
+            lease_renewal: None,
         })
     }
 
@@ -235,6 +249,9 @@ impl IngestWriter {
             .filter(|e| e.chars().all(|c| c.is_ascii_alphanumeric()))
             .unwrap_or("bin");
         let path = format!("media/{}.{ext}", file.sha256);
+        // Before the existence check inside: an object re-used from an earlier failed ingest must
+        // not be collected between that check and our commit (gc.rs).
+        self.protect(&path).await?;
         self.store
             .objects()
             .put_file_content_addressed(&path, &file.local_path, &file.sha256)
@@ -333,14 +350,34 @@ impl IngestWriter {
         let rows = w.rows as i64;
         let data = w.finish()?;
         let size = data.len() as i64;
+        self.protect(&path).await?;
         self.store.objects().put_new(&path, Bytes::from(data)).await?;
         self.files.push(WrittenFile { path, size, rows });
         Ok(())
     }
 
-    /// Gives up: nothing becomes visible (written files are left for `gc`).
-    pub async fn abort(self) -> Result<(), StoreError> {
+    /// Records `path` as this writer's pending object (before it is uploaded or re-used), and
+    /// starts renewing this writer's lease on the first one.
+    async fn protect(&mut self, path: &str) -> Result<(), StoreError> {
+        self.store.register_pending(&self.writer_id, path).await?;
+        if self.lease_renewal.is_none() {
+            let (store, id) = (self.store.clone(), self.writer_id.clone());
+            let every = std::time::Duration::from_millis((crate::gc::writer_lease_ms() / 3).max(50) as u64);
+            self.lease_renewal = Some(tokio::spawn(async move {
+                loop {
+                    tokio::time::sleep(every).await;
+                    if let Err(e) = store.renew_pending(&id).await {
+                        tracing::warn!("cannot renew the lease of writer {id} on its uploads: {e}");
+                    }
+                }
+            }));
+        }
         Ok(())
+    }
+
+    /// Gives up: nothing becomes visible (written files are left for `gc`, no longer protected).
+    pub async fn abort(self) -> Result<(), StoreError> {
+        self.store.clear_pending(&self.writer_id).await
     }
 
     /// Makes everything added so far visible as one new version.
@@ -366,6 +403,8 @@ impl IngestWriter {
         }
         let version = next_version(&mut tx).await?;
         let now = now_rfc3339();
+        // Referenced from this commit on: no longer pending.
+        sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(&self.writer_id).execute(&mut *tx).await?;
         ensure_checkpoint(&mut tx, &self.policy, &self.checkpoint, &now).await?;
         let tasks: HashSet<&String> = self.episodes.iter().filter_map(|e| e.task.as_ref()).collect();
         insert_rows(

@@ -104,3 +104,122 @@ pub fn fixtures() -> PathBuf {
         .map(PathBuf::from)
         .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures"))
 }
+
+/// A running `ufops serve` (killed when dropped) and its base URL.
+pub struct Server {
+    child: std::process::Child,
+    pub url: String,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Server {
+    pub fn child_mut(&mut self) -> &mut std::process::Child {
+        &mut self.child
+    }
+}
+
+impl Target {
+    /// Starts `ufops serve` on a free port (with its in-process worker unless `extra` says
+    /// otherwise) and waits for its "listening on" line.
+    pub fn serve(&self, extra: &[&str]) -> Server {
+        use std::io::BufRead;
+        let mut child = self
+            .command()
+            .args(["serve", "--addr", "127.0.0.1:0"])
+            .args(extra)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("start ufops serve");
+        let stdout = child.stdout.take().unwrap();
+        let mut line = String::new();
+        std::io::BufReader::new(stdout).read_line(&mut line).unwrap();
+        let url = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("unexpected: {line:?}")).to_string();
+        Server { child, url }
+    }
+}
+
+/// A response of [`http`]: status code, headers (lower-case names), body.
+pub struct HttpResponse {
+    pub status: u16,
+    pub headers: Vec<(String, String)>,
+    pub body: Vec<u8>,
+}
+
+impl HttpResponse {
+    pub fn json(&self) -> serde_json::Value {
+        serde_json::from_slice(&self.body)
+            .unwrap_or_else(|e| panic!("not JSON ({e}): {}", String::from_utf8_lossy(&self.body)))
+    }
+    pub fn header(&self, name: &str) -> Option<&str> {
+        self.headers.iter().find(|(k, _)| k == name).map(|(_, v)| v.as_str())
+    }
+}
+
+/// One HTTP/1.1 request (`Connection: close`, no chunked bodies sent) to a server of [`Target::serve`].
+pub fn http(url: &str, method: &str, path: &str, headers: &[(&str, &str)], body: Option<&serde_json::Value>) -> HttpResponse {
+    use std::io::{Read, Write};
+    let addr = url.trim_start_matches("http://").trim_end_matches('/');
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    let body = body.map(|b| b.to_string()).unwrap_or_default();
+    let mut req = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
+    if !body.is_empty() {
+        req.push_str("Content-Type: application/json\r\n");
+    }
+    for (k, v) in headers {
+        req.push_str(&format!("{k}: {v}\r\n"));
+    }
+    req.push_str("\r\n");
+    req.push_str(&body);
+    s.write_all(req.as_bytes()).unwrap();
+    let mut raw = Vec::new();
+    s.read_to_end(&mut raw).unwrap();
+    let end = raw.windows(4).position(|w| w == b"\r\n\r\n").expect("a complete response");
+    let head = String::from_utf8_lossy(&raw[..end]).into_owned();
+    let mut lines = head.lines();
+    let status = lines.next().unwrap_or_default().split(' ').nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
+    let headers: Vec<(String, String)> = lines
+        .filter_map(|l| l.split_once(':').map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string())))
+        .collect();
+    let mut body = raw[end + 4..].to_vec();
+    if headers.iter().any(|(k, v)| k == "transfer-encoding" && v.contains("chunked")) {
+        body = dechunk(&body);
+    }
+    HttpResponse { status, headers, body }
+}
+
+fn dechunk(mut raw: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    loop {
+        let Some(eol) = raw.windows(2).position(|w| w == b"\r\n") else { return out };
+        let size = usize::from_str_radix(String::from_utf8_lossy(&raw[..eol]).trim().split(';').next().unwrap_or("0"), 16).unwrap_or(0);
+        if size == 0 {
+            return out;
+        }
+        out.extend_from_slice(&raw[eol + 2..eol + 2 + size]);
+        raw = &raw[eol + 2 + size + 2..];
+    }
+}
+
+/// The robomimic low-dim Lift rollouts (12, 7 successes) ingested as `bc/e600` with their
+/// success labels, and a classifier trained on them; returns the artifact's alias reference.
+/// Real rollouts give a classifier that separates successes from failures (random synthetic
+/// episodes do not), so score thresholds such as 0.5 split them.
+pub fn lift_with_classifier(t: &Target) -> (&'static str, usize) {
+    let f = fixtures().join("robomimic");
+    t.ok(&[
+        "ingest", f.join("lift_rollouts_lowdim.hdf5").to_str().unwrap(), "--policy", "bc", "--checkpoint", "e600",
+        "--success-file", f.join("lift_rollouts_lowdim.success.json").to_str().unwrap(),
+    ]);
+    let split = t.json(&["split", "create", "--policy", "bc", "--checkpoint", "e600", "--json"]);
+    let cfg = t.data_dir.join("train.json");
+    std::fs::write(&cfg, r#"{"epochs": 60, "batch_size": 256}"#).unwrap();
+    t.ok(&["train", "--split", split["id"].as_str().unwrap(), "--kind", "classifier", "--config", cfg.to_str().unwrap()]);
+    ("bc/e600/classifier@latest", 12)
+}

@@ -76,6 +76,15 @@ pub struct TrainConfig {
     pub backend: Backend,
 }
 
+/// Bounds of [`TrainConfig::validate`].
+pub const MAX_BATCH: usize = 65_536;
+pub const MAX_EPOCHS: usize = 100_000;
+pub const MAX_THREADS: usize = 256;
+pub const MAX_LAYERS: usize = 16;
+pub const MAX_WIDTH: usize = 16_384;
+/// Elements (f32) of one layer's weights or one batch of its activations: 2^28 = 1 GiB.
+pub const MAX_ELEMENTS: usize = 1 << 28;
+
 impl Default for TrainConfig {
     fn default() -> Self {
         TrainConfig {
@@ -143,6 +152,28 @@ impl TrainConfig {
     pub fn validate(&self) -> Result<()> {
         self.architecture.validate()?;
         ensure!(self.batch_size > 0, "batch_size must be > 0");
+        // Bounds: a config comes from API clients, and sizes drive memory. Far beyond any
+        // verifier of the paper (widths 256-1024, batches 256-4096) and below what takes a
+        // worker down.
+        ensure!(self.batch_size <= MAX_BATCH, "batch_size {} is more than {MAX_BATCH}", self.batch_size);
+        ensure!((1..=MAX_EPOCHS).contains(&self.epochs), "epochs must be in 1..={MAX_EPOCHS}, got {}", self.epochs);
+        ensure!((1..=MAX_THREADS).contains(&self.threads), "threads must be in 1..={MAX_THREADS}, got {}", self.threads);
+        let a = &self.architecture;
+        ensure!(a.trunk_dims.len() <= MAX_LAYERS, "{} trunk layers: at most {MAX_LAYERS}", a.trunk_dims.len());
+        let widths = std::iter::once(a.encoder_width).chain([a.t_embed_dim]).chain(a.trunk_dims.iter().copied());
+        for w in widths.clone() {
+            ensure!(w <= MAX_WIDTH, "layer width {w} is more than {MAX_WIDTH}");
+        }
+        let widest = widths.max().unwrap_or(1);
+        // Weights of the widest layer pair, and one batch of its activations, in f32 elements.
+        let weights = widest.checked_mul(widest);
+        let activations = self.batch_size.checked_mul(widest);
+        ensure!(
+            weights.is_some_and(|n| n <= MAX_ELEMENTS) && activations.is_some_and(|n| n <= MAX_ELEMENTS),
+            "batch_size {} x width {widest} is too large (at most {MAX_ELEMENTS} f32 values per layer)",
+            self.batch_size
+        );
+        ensure!(self.optimizer.lr.is_finite(), "lr must be finite");
         ensure!(self.optimizer.lr > 0.0, "lr must be > 0");
         ensure!(self.gamma > 0.0 && self.gamma <= 1.0, "gamma must be in (0, 1]");
         ensure!(self.obs_noise_std >= 0.0 && self.obs_noise_std.is_finite(), "obs_noise_std must be >= 0");

@@ -63,7 +63,7 @@ async fn send_artifact_file(s: &AppState, a: &store::ArtifactRecord, name: &str)
         .ok_or_else(|| ApiError::not_found(format!("artifact {} has no file {name:?}", a.id)))?;
     let data = s.store().get_object(&format!("{}/{}", a.prefix, f.name)).await?;
     if store::sha256_hex(&data) != f.sha256 {
-        return Err(ApiError::internal(format!("artifact {} file {} fails its sha256 check", a.id, f.name)));
+        return Err(ApiError::internal_public(format!("artifact {} file {} fails its sha256 check", a.id, f.name)));
     }
     let ctype = if name.ends_with(".json") { "application/json" } else { "application/octet-stream" };
     let mut resp = Response::new(Body::from(data));

@@ -111,7 +111,9 @@ pub struct SnapshotRequest {
 
 /// Freezes the current labels into a new version.
 #[utoipa::path(post, path = "/v1/label-snapshots", tag = "labels", request_body = SnapshotRequest,
-    responses((status = 201, description = "{version, episodes}", body = Object), (status = 403, body = Problem)))]
+    responses((status = 201, description = "a new version: {version, episodes}", body = Object),
+              (status = 200, description = "no label changed since the head version: the head, {version, episodes}", body = Object),
+              (status = 403, body = Problem)))]
 pub async fn create_snapshot(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
@@ -122,11 +124,12 @@ pub async fn create_snapshot(
     if msg.len() > 4000 {
         return Err(ApiError::bad_request("message is longer than 4000 bytes"));
     }
-    let info = {
+    let (info, created) = {
         let _gate = s.write_gate().await;
-        s.store().snapshot_labels(&caller.name, &msg).await?
+        s.store().snapshot_labels_if_changed(&caller.name, &msg).await?
     };
-    Ok((StatusCode::CREATED, Json(info)))
+    // Nothing changed since the head froze the labels: the head is the snapshot (200, no new version).
+    Ok((if created { StatusCode::CREATED } else { StatusCode::OK }, Json(info)))
 }
 
 impl AppState {

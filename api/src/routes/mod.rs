@@ -13,6 +13,7 @@ mod admin;
 mod artifacts;
 mod catalog;
 mod episodes;
+mod exports;
 mod infra;
 mod jobs;
 mod labels;
@@ -22,6 +23,7 @@ pub use admin::*;
 pub use artifacts::*;
 pub use catalog::*;
 pub use episodes::*;
+pub use exports::*;
 pub use infra::*;
 pub use jobs::*;
 pub use labels::*;
@@ -58,6 +60,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
     Router::new()
         .merge(admin::router())
         .merge(artifacts::router())
+        .merge(exports::router())
         .merge(catalog::router())
         .merge(episodes::router())
         .merge(infra::router())

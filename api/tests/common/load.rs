@@ -50,8 +50,71 @@ impl Rng {
     }
 }
 
+/// Where the server under load runs.
+pub enum ServerAt {
+    /// In this process (the test): client and server share the runtime and the cores' scheduler.
+    InProcess,
+    /// In a child process started as `EXE --serve-child DATA_DIR [DATABASE_URL]` (the benchmark
+    /// re-runs itself, see `benches/label_load.rs`), so client and server are measured apart.
+    Child(std::path::PathBuf),
+}
+
+/// A server of the load test: in this process or a child (killed on drop).
+struct LoadServer {
+    base: String,
+    store: store::Store,
+    in_process: Option<TestServer>,
+    child: Option<std::process::Child>,
+    _dir: Option<tempfile::TempDir>,
+}
+
+impl LoadServer {
+    async fn start(db: Db, at: &ServerAt) -> LoadServer {
+        match at {
+            ServerAt::InProcess => {
+                let srv = TestServer::start(db, false).await;
+                LoadServer { base: srv.base.clone(), store: srv.store.clone(), in_process: Some(srv), child: None, _dir: None }
+            }
+            ServerAt::Child(exe) => {
+                use std::io::BufRead;
+                let dir = tempfile::tempdir().unwrap();
+                let url = match db {
+                    Db::Sqlite => None,
+                    Db::Postgres => Some(store::create_test_schema("load").await.expect("the Postgres server")),
+                };
+                let cfg = store::StoreConfig { data_dir: dir.path().into(), database_url: url.clone(), object_store_url: None };
+                let store = store::Store::open(&cfg).await.unwrap();
+                let mut cmd = std::process::Command::new(exe);
+                cmd.arg("--serve-child").arg(dir.path());
+                if let Some(u) = &url {
+                    cmd.arg(u);
+                }
+                let mut child = cmd.stdout(std::process::Stdio::piped()).spawn().expect("start the server process");
+                let mut line = String::new();
+                std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+                let base = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("server said {line:?}")).to_string();
+                LoadServer { base, store, in_process: None, child: Some(child), _dir: Some(dir) }
+            }
+        }
+    }
+
+    async fn stop(mut self) {
+        if let Some(srv) = self.in_process.take() {
+            srv.stop().await;
+        }
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
 pub async fn run_label_load(db: Db, labelers: usize, n_episodes: usize, duration: Duration) -> LoadReport {
-    let srv = TestServer::start(db, false).await;
+    run_label_load_at(db, &ServerAt::InProcess, labelers, n_episodes, duration).await
+}
+
+pub async fn run_label_load_at(db: Db, at: &ServerAt, labelers: usize, n_episodes: usize, duration: Duration) -> LoadReport {
+    let srv = LoadServer::start(db, at).await;
     // Episodes: several ingests so the pool has enough of them.
     let mut ids = Vec::new();
     let mut k = 0;

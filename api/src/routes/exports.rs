@@ -1,0 +1,162 @@
+//! Exports: a version, split or filter of the store (optionally curated by a verifier's
+//! episode scores) exported as a LeRobot v3.0 dataset or a robomimic HDF5 file by a worker, as a
+//! job; its files are then listed and downloaded (with range requests) from the store, and
+//! deleted when no longer wanted.
+
+use super::*;
+use axum::routing::delete;
+
+/// The routes of this resource (behind the token check).
+pub(crate) fn router() -> Router<AppState> {
+    Router::new()
+        .route("/v1/exports", get(list_exports).post(create_export.layer(need!(Role::Trainer))))
+        .route("/v1/exports/{id}", get(get_export).merge(delete(delete_export.layer(need!(Role::Trainer)))))
+        .route("/v1/exports/{id}/files/{*path}", get(export_file))
+}
+
+#[derive(Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ExportCreate {
+    /// `lerobot` (v3.0) or `robomimic`.
+    format: String,
+    /// Store version (default: the head at the time the job runs; a split pins its own).
+    version: Option<i64>,
+    split: Option<String>,
+    policy: Option<String>,
+    checkpoint: Option<String>,
+    task: Option<String>,
+    /// success, failure or unknown (the version's frozen labels).
+    label: Option<String>,
+    tag: Option<String>,
+    /// Keep only episodes this artifact (id or POLICY/CHECKPOINT/KIND@ALIAS) scores in
+    /// [min_score, max_score]; the alias is resolved now, so the job names one artifact.
+    score_artifact: Option<String>,
+    min_score: Option<f64>,
+    max_score: Option<f64>,
+}
+
+/// An export job and, once it succeeded, its files.
+#[derive(Serialize, ToSchema)]
+pub struct ExportStatus {
+    #[schema(value_type = Object)]
+    job: store::JobRecord,
+    #[schema(value_type = Vec<Object>)]
+    files: Vec<store::ExportFile>,
+}
+
+async fn export_job(s: &AppState, id: &str) -> ApiResult<store::JobRecord> {
+    check_id("export id", id)?;
+    let job = s.store().job(id).await?;
+    if job.kind != "export" {
+        return Err(ApiError::not_found(format!("export {id} not found")));
+    }
+    Ok(job)
+}
+
+/// Queues an export; the job's spec is `{format, selection}` (export::job::ExportJobSpec).
+#[utoipa::path(post, path = "/v1/exports", tag = "exports", request_body = ExportCreate,
+    responses((status = 201, description = "JobRecord", body = Object), (status = 400, body = Problem),
+              (status = 403, body = Problem), (status = 404, body = Problem)))]
+pub async fn create_export(
+    State(s): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    ApiJson(b): ApiJson<ExportCreate>,
+) -> ApiResult<(StatusCode, Json<store::JobRecord>)> {
+    caller.require(Role::Trainer)?;
+    for (what, v) in [("policy", &b.policy), ("checkpoint", &b.checkpoint), ("task", &b.task), ("tag", &b.tag)] {
+        if let Some(v) = v {
+            check_name(what, v)?;
+        }
+    }
+    if let Some(split) = &b.split {
+        check_id("split id", split)?;
+        s.store().split(split).await?;
+    }
+    if let Some(v) = b.version {
+        s.store().version(v).await?;
+    }
+    let label = b.label.as_deref().map(parse_label).transpose()?;
+    let score = match &b.score_artifact {
+        Some(r) => Some(::export::ScoreRange { artifact: s.store().resolve_artifact(r).await?.id, min: b.min_score, max: b.max_score }),
+        None if b.min_score.is_some() || b.max_score.is_some() => {
+            return Err(ApiError::bad_request("min_score and max_score need a score_artifact"))
+        }
+        None => None,
+    };
+    if let Some(r) = &score {
+        if [r.min, r.max].iter().flatten().any(|x| !x.is_finite()) || r.min.zip(r.max).is_some_and(|(a, z)| a > z) {
+            return Err(ApiError::bad_request("score range: finite bounds with min_score <= max_score"));
+        }
+    }
+    let spec = ::export::job::ExportJobSpec {
+        format: b.format,
+        selection: ::export::Selection {
+            version: b.version,
+            split: b.split,
+            policy: b.policy,
+            checkpoint: b.checkpoint,
+            task: b.task,
+            label,
+            tag: b.tag,
+            score,
+        },
+    };
+    spec.check().map_err(|e| ApiError::bad_request(e.to_string()))?;
+    let spec = serde_json::to_value(&spec).map_err(|e| ApiError::internal(e.to_string()))?;
+    let job = s.store().create_job("export", &spec, &caller.name).await?;
+    Ok((StatusCode::CREATED, Json(job)))
+}
+
+/// Export jobs, newest first.
+#[utoipa::path(get, path = "/v1/exports", tag = "exports",
+    responses((status = 200, description = "JobRecord list", body = Vec<Object>)))]
+pub async fn list_exports(State(s): State<AppState>) -> ApiResult<Json<Vec<store::JobRecord>>> {
+    let mut jobs: Vec<store::JobRecord> = s.store().jobs(None).await?.into_iter().filter(|j| j.kind == "export").collect();
+    jobs.sort_by(|a, b| b.created_at.cmp(&a.created_at));
+    Ok(Json(jobs))
+}
+
+/// An export: its job (state, progress, result) and, once it succeeded, its files.
+#[utoipa::path(get, path = "/v1/exports/{id}", tag = "exports", params(("id" = String, Path)),
+    responses((status = 200, body = ExportStatus), (status = 404, body = Problem)))]
+pub async fn get_export(State(s): State<AppState>, ApiPath(id): ApiPath<String>) -> ApiResult<Json<ExportStatus>> {
+    let job = export_job(&s, &id).await?;
+    let files = if job.state == store::JobState::Succeeded { s.store().export_files(&id).await? } else { Vec::new() };
+    Ok(Json(ExportStatus { job, files }))
+}
+
+/// One file of a finished export (range requests supported).
+#[utoipa::path(get, path = "/v1/exports/{id}/files/{path}", tag = "exports",
+    params(("id" = String, Path), ("path" = String, Path, description = "a path inside the export, e.g. meta/info.json")),
+    responses((status = 200, description = "the file"), (status = 206, description = "a range of the file"),
+              (status = 404, body = Problem), (status = 416, body = Problem)))]
+pub async fn export_file(
+    State(s): State<AppState>,
+    ApiPath((id, path)): ApiPath<(String, String)>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    let job = export_job(&s, &id).await?;
+    if job.state != store::JobState::Succeeded {
+        return Err(ApiError::not_found(format!("export {id} has no files (job {})", job.state.as_str())));
+    }
+    let (object, size) = s.store().export_object(&id, &path).await?;
+    crate::media::serve_object(s.store(), &object, Some(size), headers.get(header::RANGE)).await
+}
+
+/// Deletes a finished export's files (the job record stays, for its history).
+#[utoipa::path(delete, path = "/v1/exports/{id}", tag = "exports", params(("id" = String, Path)),
+    responses((status = 200, description = "files deleted", body = Object), (status = 403, body = Problem),
+              (status = 404, body = Problem), (status = 409, body = Problem)))]
+pub async fn delete_export(
+    State(s): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    ApiPath(id): ApiPath<String>,
+) -> ApiResult<Json<Value>> {
+    caller.require(Role::Trainer)?;
+    let job = export_job(&s, &id).await?;
+    if matches!(job.state, store::JobState::Queued | store::JobState::Running) {
+        return Err(ApiError::new(StatusCode::CONFLICT, "conflict", format!("export {id} is {}: cancel it first", job.state.as_str())));
+    }
+    let n = s.store().delete_export_files(&id).await?;
+    Ok(Json(json!({ "export_id": id, "files_deleted": n })))
+}

@@ -1,0 +1,69 @@
+//! The server survives its clients: metrics labels come from a fixed set whatever methods a
+//! client invents, and server-side failures are logged in full but answered without paths,
+//! bucket names or SQL (an incident id instead).
+
+mod common;
+use common::*;
+use reqwest::Method;
+
+fn files_with_ext(dir: &std::path::Path, ext: &str, out: &mut Vec<std::path::PathBuf>) {
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            files_with_ext(&p, ext, out);
+        } else if p.extension().is_some_and(|x| x == ext) {
+            out.push(p);
+        }
+    }
+}
+
+#[tokio::test]
+async fn invented_methods_do_not_grow_the_metrics() {
+    let srv = TestServer::start(Db::Sqlite, false).await;
+    for i in 0..40 {
+        let m = Method::from_bytes(format!("BREW{i}").as_bytes()).unwrap();
+        let r = srv.req(m, "/v1/policies", "viewer").send().await.unwrap();
+        assert!(r.status().is_client_error(), "{}", r.status());
+    }
+    let text = srv.req(Method::GET, "/metrics", "viewer").send().await.unwrap().text().await.unwrap();
+    assert!(!text.contains("BREW"), "a client-chosen method became a label:\n{text}");
+    let series = text.lines().filter(|l| l.starts_with("ufops_http_requests_total{")).count();
+    assert!(series <= 4, "{series} series:\n{text}");
+    assert!(text.contains("method=\"other\""), "{text}");
+    srv.stop().await;
+}
+
+#[tokio::test]
+async fn internal_errors_are_answered_without_paths() {
+    let srv = TestServer::start(Db::Sqlite, false).await;
+    let ids = common::ingest(&srv.store, "a", "c1", 4).await;
+    // Break the stored steps file behind the server's back (a disk error, a bad copy).
+    let mut parquet = Vec::new();
+    files_with_ext(srv.dir.path(), "parquet", &mut parquet);
+    let steps: Vec<_> = parquet.iter().filter(|p| !p.to_string_lossy().contains("label")).collect();
+    assert!(!steps.is_empty(), "{parquet:?}");
+    for p in &steps {
+        let n = std::fs::metadata(p).unwrap().len() as usize;
+        std::fs::write(p, vec![7u8; n]).unwrap();
+    }
+    let r = srv.req(Method::GET, &format!("/v1/episodes/{}/steps", ids[0]), "viewer").send().await.unwrap();
+    let status = r.status().as_u16();
+    let body = r.text().await.unwrap();
+    assert_eq!(status, 500, "{body}");
+    let dir = srv.dir.path().to_string_lossy().into_owned();
+    for leak in [dir.as_str(), ".parquet", "objects", "data/", "SELECT", "sqlite"] {
+        assert!(!body.contains(leak), "the answer names {leak:?}: {body}");
+    }
+    let problem: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert!(problem["incident"].as_str().is_some_and(|s| s.len() == 12), "{body}");
+    // A missing object is a 404 that does not name it either.
+    for p in &steps {
+        std::fs::remove_file(p).unwrap();
+    }
+    let r = srv.req(Method::GET, &format!("/v1/episodes/{}/steps", ids[1]), "viewer").send().await.unwrap();
+    let status = r.status().as_u16();
+    let body = r.text().await.unwrap();
+    assert!(status == 404 || status == 500, "{status} {body}");
+    assert!(!body.contains(dir.as_str()) && !body.contains(".parquet"), "{body}");
+    srv.stop().await;
+}
