@@ -3,7 +3,7 @@
 
 use anyhow::Result;
 use serde::Serialize;
-use sim::stats::{newcombe_diff, wilson};
+use evalstats::{newcombe_diff, wilson};
 use std::path::Path;
 
 #[derive(Debug, Clone, Serialize)]
