@@ -22,6 +22,7 @@ use utoipa::{Modify, OpenApi};
         routes::create_job, routes::list_jobs, routes::get_job, routes::cancel_job,
         routes::list_artifacts, routes::get_artifact, routes::artifact_file, routes::set_alias,
         routes::resolve_verifier, routes::resolve_verifier_file,
+        routes::get_scoreboard, routes::list_runs,
         upload::ingest, routes::gc, routes::create_token, routes::list_tokens, routes::revoke_token,
     ),
     components(schemas(Problem)),

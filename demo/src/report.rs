@@ -10,6 +10,10 @@ use std::path::Path;
 pub struct Row {
     pub method: String,
     pub verifier: String,
+    /// Where the row's rollouts are in the store: their checkpoint of `nav-dp` and run name
+    /// (`ufops scoreboard --policy nav-dp` gives the row back).
+    pub checkpoint: String,
+    pub run: String,
     pub successes: u64,
     pub episodes: u64,
     pub rate: f64,
@@ -34,6 +38,8 @@ impl Report {
         let row = Row {
             method: "base (DDPM)".into(),
             verifier: "-".into(),
+            checkpoint: crate::BASE.into(),
+            run: crate::BASE.into(),
             successes: k,
             episodes: n,
             rate,
@@ -44,12 +50,14 @@ impl Report {
         Report { rows: vec![row], diagnostics: vec![], seconds: 0.0, meta: serde_json::Value::Null }
     }
 
-    pub fn add(&mut self, method: &str, verifier: &str, eps: &[sim::Episode]) {
+    pub fn add(&mut self, method: &str, verifier: &str, checkpoint: &str, run: &str, eps: &[sim::Episode]) {
         let base = &self.rows[0];
         let (k, n, rate) = sim::success_rate(eps);
         let row = Row {
             method: method.into(),
             verifier: verifier.into(),
+            checkpoint: checkpoint.into(),
+            run: run.into(),
             successes: k,
             episodes: n,
             rate,

@@ -71,6 +71,8 @@ pub struct IngestWriter {
     media_paths: HashMap<String, String>,
     max_file_bytes: usize,
     max_row_group_bytes: usize,
+    /// The evaluation run every episode of this ingest belongs to (catalog `runs`).
+    run: Option<crate::RunInput>,
 }
 
 pub(crate) fn check_name(what: &str, s: &str) -> Result<(), StoreError> {
@@ -137,6 +139,7 @@ impl Store {
             media_paths: HashMap::new(),
             max_file_bytes: MAX_STEPS_FILE_BYTES,
             max_row_group_bytes: steps::ROW_GROUP_MAX_BYTES,
+            run: None,
         })
     }
 
@@ -241,6 +244,14 @@ impl IngestWriter {
             .await?;
         self.media_paths.insert(file.sha256.clone(), path.clone());
         self.media.insert(file.sha256.clone(), (path, file.content_type.clone(), file.size_bytes as i64));
+        Ok(())
+    }
+
+    /// Marks every episode of this ingest as produced by `run` (checked now; its artifact, if any,
+    /// must exist when the ingest commits).
+    pub fn set_run(&mut self, run: crate::RunInput) -> Result<(), StoreError> {
+        run.validate()?;
+        self.run = Some(run);
         Ok(())
     }
 
@@ -367,6 +378,10 @@ impl IngestWriter {
         let version = next_version(&mut tx).await?;
         let now = now_rfc3339();
         ensure_checkpoint(&mut tx, &self.policy, &self.checkpoint, &now).await?;
+        let run_id = match &self.run {
+            Some(run) => Some(crate::runs::ensure_run(&mut tx, run, &now).await?),
+            None => None,
+        };
         let tasks: HashSet<&String> = self.episodes.iter().filter_map(|e| e.task.as_ref()).collect();
         insert_rows(
             &mut tx,
@@ -443,6 +458,7 @@ impl IngestWriter {
                     "ingest".into(),
                     now.as_str().into(),
                     now.as_str().into(),
+                    run_id.clone().into(),
                 ]
             })
             .collect();
@@ -452,7 +468,7 @@ impl IngestWriter {
             &[
                 "id", "policy", "checkpoint", "task", "source_sha256", "source_name", "source_index", "length",
                 "tags", "metadata", "data_file", "row_group", "row_offset", "row_count", "version_added", "label",
-                "label_source", "label_revision", "label_actor", "label_updated_at", "created_at",
+                "label_source", "label_revision", "label_actor", "label_updated_at", "created_at", "run_id",
             ],
             ep_rows,
             "",
@@ -569,7 +585,7 @@ pub(crate) async fn finish_version(
     .execute(&mut *tx)
     .await?;
     let rows = sqlx::query(
-        "SELECT e.id, e.policy, e.checkpoint, e.task, e.length, l.label, l.label_source, l.revision, \
+        "SELECT e.id, e.policy, e.checkpoint, e.task, e.length, l.label, l.label_source, l.revision, e.run_id, \
          e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
          COALESCE(e.row_count, e.length) AS row_count FROM version_labels l JOIN episodes e ON e.id = l.episode_id \
          WHERE l.version = $1 ORDER BY e.id",
@@ -578,7 +594,9 @@ pub(crate) async fn finish_version(
     .fetch_all(&mut *tx)
     .await?;
     let mut label_rows = Vec::with_capacity(rows.len());
+    let mut run_ids = Vec::with_capacity(rows.len());
     for r in &rows {
+        run_ids.push(r.os("run_id")?);
         label_rows.push(steps::LabelRow {
             episode_id: r.s("id")?,
             policy: r.s("policy")?,
@@ -596,6 +614,11 @@ pub(crate) async fn finish_version(
     }
     let frozen = label_rows.iter().map(|r| (r.policy.as_str(), r.checkpoint.as_str(), r.task.as_deref(), r.label));
     insert_version_counts(&mut tx, v, frozen).await?;
+    let by_run = label_rows
+        .iter()
+        .zip(&run_ids)
+        .map(|(r, run)| (r.policy.as_str(), r.checkpoint.as_str(), r.task.as_deref(), run.as_deref(), r.label));
+    crate::scoreboard::insert_version_run_counts(&mut tx, v, by_run).await?;
     let changed = sqlx::query(
         "SELECT COUNT(*) AS n FROM version_labels a JOIN version_labels b \
          ON b.episode_id = a.episode_id AND b.version = $2 WHERE a.version = $1 AND a.revision <> b.revision",

@@ -16,6 +16,7 @@ mod episodes;
 mod infra;
 mod jobs;
 mod labels;
+mod scoreboard;
 mod splits;
 
 pub use admin::*;
@@ -25,6 +26,7 @@ pub use episodes::*;
 pub use infra::*;
 pub use jobs::*;
 pub use labels::*;
+pub use scoreboard::*;
 pub use splits::*;
 
 use crate::auth::Caller;
@@ -63,6 +65,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
         .merge(infra::router())
         .merge(jobs::router())
         .merge(labels::router())
+        .merge(scoreboard::router())
         .merge(splits::router())
 }
 
