@@ -88,6 +88,14 @@ fn quick_demo_rows_go_the_way_the_method_says() {
     let bon = sb_rows.iter().find(|s| s["checkpoint"] == "base" && s["run_name"] == "c-bon10").unwrap();
     assert_eq!(bon["run"]["steering"], serde_json::json!({"method": "bon", "n": 10}));
     assert_eq!(bon["run"]["artifact_id"], report["meta"]["artifacts"]["classifier"]);
+    // ... and its verifier's quality on the split's held-out samples, from the artifact.
+    let q = &bon["verifier_quality"];
+    assert_eq!(q["auroc"], report["meta"]["verifier_metrics"]["classifier"]["val_auc"]);
+    for k in ["accuracy", "brier", "ece"] {
+        let v = q[k].as_f64().unwrap_or_else(|| panic!("{k} in {q}"));
+        assert!((0.0..=1.0).contains(&v), "{k} = {v}");
+    }
+    assert_eq!(q["reliability"].as_array().unwrap().len(), 10);
     // The default table and CSV.
     let table = t.ok(&["scoreboard", "--policy", "nav-dp"]);
     assert!(table.contains("| base | two-gap-navigation | c-bon10 (on-policy) | bon:10 |"), "{table}");
