@@ -141,7 +141,7 @@ pub async fn artifacts(args: &StoreArgs, a: ArtifactsArgs) -> Result<()> {
                     r.checkpoint,
                     r.split_id.as_deref().unwrap_or("-"),
                     r.aliases.join(", "),
-                    m.get("best_val_loss").map(|v| v.to_string()).unwrap_or_else(|| "-".into()),
+                    num(&f["best_val_loss"]),
                     num(&f["val_auc"]),
                     num(&f["val_calibration"]["accuracy"]),
                     num(&f["val_calibration"]["brier"]),
