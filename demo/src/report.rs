@@ -96,7 +96,9 @@ impl Report {
 
     pub fn write(&self, dir: &Path) -> Result<()> {
         let md = format!(
-            "# ufops demo: two-gap navigation\n\n{}\n## What steering did\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
+            "# ufops demo: two-gap navigation\n\n{}\nEvery row's rollouts are in the store as a run (`checkpoint`/`run` in `report.json`): \
+             `ufops scoreboard --policy nav-dp --baseline-checkpoint base` gives this table back.\n\n\
+             ## What steering did\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
             self.markdown(),
             crate::diagnose::markdown(&self.diagnostics),
             self.seconds
