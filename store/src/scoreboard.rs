@@ -273,17 +273,25 @@ impl Store {
             None => self.head_version().await?,
         };
         let baseline = req.baseline.clone().unwrap_or_else(|| "base".to_string());
-        let cells = self.scoreboard_cells(req, version, false).await?;
+        // A baseline of another checkpoint than the one asked for: count both, show the asked one
+        // and the baseline's row.
+        let other_baseline = match (&req.checkpoint, &req.baseline_checkpoint) {
+            (Some(c), Some(b)) if c != b => Some(c.clone()),
+            _ => None,
+        };
+        let cells = match &other_baseline {
+            Some(_) => self.scoreboard_cells(&ScoreboardRequest { checkpoint: None, ..req.clone() }, version, false).await?,
+            None => self.scoreboard_cells(req, version, false).await?,
+        };
         // The runs named by the rows (a few dozen at most).
+        let ids: std::collections::BTreeSet<String> = cells.keys().filter_map(|k| k.2.clone()).collect();
         let mut runs: BTreeMap<String, RunRecord> = BTreeMap::new();
-        for id in cells.keys().filter_map(|k| k.2.clone()) {
-            if !runs.contains_key(&id) {
-                let row = sqlx::query("SELECT id, name, steering, artifact_id, tags, created_at FROM runs WHERE id = $1")
-                    .bind(&id)
-                    .fetch_one(&self.db().pool)
-                    .await?;
-                runs.insert(id, run_from_row(&row)?);
-            }
+        for id in ids {
+            let row = sqlx::query("SELECT id, name, steering, artifact_id, tags, created_at FROM runs WHERE id = $1")
+                .bind(&id)
+                .fetch_one(&self.db().pool)
+                .await?;
+            runs.insert(id, run_from_row(&row)?);
         }
         let mut rows: Vec<ScoreboardRow> = cells
             .into_iter()
@@ -348,6 +356,9 @@ impl Store {
             .collect();
         for (r, c) in rows.iter_mut().zip(comparisons) {
             r.baseline = c;
+        }
+        if let Some(c) = &other_baseline {
+            rows.retain(|r| &r.checkpoint == c || r.is_baseline);
         }
         // The verifiers' quality, once per artifact.
         let mut quality: BTreeMap<String, Option<serde_json::Value>> = BTreeMap::new();

@@ -143,6 +143,19 @@ async fn runs_and_scoreboard(store: Store) {
     let c2 = sb.rows.iter().find(|r| r.checkpoint == "c2" && r.task.as_deref() == Some("reach") && r.run_name == "-").unwrap();
     assert_eq!(c2.baseline.as_ref().unwrap().checkpoint, "c1");
     assert_eq!(c2.baseline.as_ref().unwrap().run_name, "c-bon10");
+    // The same, asking for c2 only: its rows, the baseline's rows, the same comparisons.
+    let only = store
+        .scoreboard(&ScoreboardRequest {
+            policy: "pol".into(),
+            checkpoint: Some("c2".into()),
+            baseline: Some("c-bon10".into()),
+            baseline_checkpoint: Some("c1".into()),
+            ..Default::default()
+        })
+        .await
+        .unwrap();
+    let want: Vec<&ScoreboardRow> = sb.rows.iter().filter(|r| r.checkpoint == "c2" || r.is_baseline).collect();
+    assert_eq!(only.rows.iter().collect::<Vec<_>>(), want);
 
     // Steered episodes stay out of splits: c1's split holds its base run's labeled episodes only.
     let split = store
