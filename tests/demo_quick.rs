@@ -59,6 +59,7 @@ fn quick_demo_rows_go_the_way_the_method_says() {
     // The scoreboard gives the demo's table back from the store alone: every row's counts, rate,
     // Wilson interval, and its Newcombe interval against the base policy (the DDPM base run).
     let sb = t.json(&["scoreboard", "--policy", "nav-dp", "--baseline-checkpoint", "base", "--format", "json"]);
+    assert_eq!(report["meta"]["scoreboard_version"], sb["version"], "the demo checked its table against this scoreboard");
     let sb_rows = sb["rows"].as_array().unwrap();
     assert_eq!(sb_rows.len(), rows.len() + 1, "one scoreboard row per report row, and the alt checkpoint's base run");
     for r in rows {

@@ -410,6 +410,17 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     // The learning-curve classifiers were published last: `latest` names the main one again.
     store.set_alias("latest", &c_rec.id).await?;
 
+    // The table, read back from the store alone: every row must be what the scoreboard says.
+    let sb = store
+        .scoreboard(&store::ScoreboardRequest {
+            policy: POLICY.into(),
+            baseline_checkpoint: Some(BASE.into()),
+            ..Default::default()
+        })
+        .await?;
+    report.check_against(&sb)?;
+    report.meta["scoreboard_version"] = serde_json::json!(sb.version);
+
     // 5. The report and the trajectory figure.
     let steered = keep_for_plot.context("no best-of-N row")?;
     sim::plot::plot_panels(

@@ -68,6 +68,25 @@ impl Report {
         self.rows.push(row);
     }
 
+    /// Checks every row against the store's scoreboard of the demo's policy (baseline: the base
+    /// run of the base checkpoint): same counts, rate, Wilson and Newcombe intervals.
+    pub fn check_against(&self, sb: &store::Scoreboard) -> Result<()> {
+        for r in &self.rows {
+            let s = sb
+                .rows
+                .iter()
+                .find(|s| s.checkpoint == r.checkpoint && s.run_name == r.run)
+                .ok_or_else(|| anyhow::anyhow!("the store has no scoreboard row for {}/{}", r.checkpoint, r.run))?;
+            let same = s.successes == r.successes
+                && s.successes + s.failures == r.episodes
+                && s.rate == Some(r.rate)
+                && s.wilson_95 == r.wilson_95
+                && s.baseline.as_ref().map(|b| b.newcombe_95) == r.newcombe_95;
+            anyhow::ensure!(same, "the store's scoreboard disagrees with the report on {} / {}: {s:?}", r.method, r.verifier);
+        }
+        Ok(())
+    }
+
     pub fn row(&self, method: &str, verifier_prefix: &str) -> Option<&Row> {
         self.rows.iter().find(|r| r.method == method && r.verifier.starts_with(verifier_prefix))
     }
