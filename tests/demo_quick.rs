@@ -3,6 +3,7 @@
 //! way the method says: on-policy best-of-N and classifier guidance lift the base policy, the
 //! flow twin's best-of-N too, a verifier trained on fewer rollouts still helps, and best-of-N with
 //! an off-policy classifier hurts. "Goes that way" is the Newcombe 95% interval of Δ excluding 0.
+//! Every row's rollouts are in the store as a run, and `ufops scoreboard` gives the table back.
 
 mod common;
 use common::*;
@@ -47,10 +48,63 @@ fn quick_demo_rows_go_the_way_the_method_says() {
     assert!(guided["total_push"].as_f64().unwrap() > 0.0);
     assert!(dir.path().join("demo/trajectories.png").exists());
 
-    // The rollouts are in the store as checkpoint nav-dp/base with the simulator's labels.
+    // Every row's rollouts are in the store as a run of nav-dp/base (the flow twin's of
+    // nav-dp/flow-twin) with the simulator's labels: 200 of the base run, 200 per steered row.
     let eps = t.json(&["episodes", "--policy", "nav-dp", "--checkpoint", "base", "--json"]);
-    assert_eq!(eps.as_array().unwrap().len(), 200);
-    assert!(eps.as_array().unwrap().iter().all(|e| e["label_source"] == "sim"));
+    let eps = eps.as_array().unwrap();
+    let base_rows = rows.iter().filter(|r| r["checkpoint"] == "base").count();
+    assert_eq!(eps.len(), 200 * base_rows);
+    assert!(eps.iter().all(|e| e["label_source"] == "sim" && e["run_id"].is_string()));
+
+    // The scoreboard gives the demo's table back from the store alone: every row's counts, rate,
+    // Wilson interval, and its Newcombe interval against the base policy (the DDPM base run).
+    let sb = t.json(&["scoreboard", "--policy", "nav-dp", "--baseline-checkpoint", "base", "--format", "json"]);
+    assert_eq!(report["meta"]["scoreboard_version"], sb["version"], "the demo checked its table against this scoreboard");
+    let sb_rows = sb["rows"].as_array().unwrap();
+    assert_eq!(sb_rows.len(), rows.len() + 1, "one scoreboard row per report row, and the alt checkpoint's base run");
+    for r in rows {
+        let s = sb_rows
+            .iter()
+            .find(|s| s["checkpoint"] == r["checkpoint"] && s["run_name"] == r["run"])
+            .unwrap_or_else(|| panic!("no scoreboard row for {r}"));
+        assert_eq!(s["task"], "two-gap-navigation");
+        assert_eq!(s["successes"], r["successes"], "{r} vs {s}");
+        assert_eq!(s["successes"].as_u64().unwrap() + s["failures"].as_u64().unwrap(), r["episodes"].as_u64().unwrap());
+        assert_eq!(s["unlabeled"], 0);
+        assert_eq!(s["rate"], r["rate"], "{r} vs {s}");
+        assert_eq!(s["wilson_95"], r["wilson_95"], "{r} vs {s}");
+        if r["run"] == "base" && r["checkpoint"] == "base" {
+            assert_eq!(s["is_baseline"], true);
+            assert!(s["baseline"].is_null());
+        } else {
+            assert_eq!(s["baseline"]["newcombe_95"], r["newcombe_95"], "{r} vs {s}");
+            assert_eq!(s["baseline"]["diff"], r["diff_to_base"], "{r} vs {s}");
+            let lo = r["newcombe_95"][0].as_f64().unwrap();
+            let hi = r["newcombe_95"][1].as_f64().unwrap();
+            assert_eq!(s["baseline"]["separates"], lo > 0.0 || hi < 0.0);
+        }
+    }
+    // The steering and artifact of each run are recorded: the on-policy C x BoN row's run was
+    // steered by the main classifier.
+    let bon = sb_rows.iter().find(|s| s["checkpoint"] == "base" && s["run_name"] == "c-bon10").unwrap();
+    assert_eq!(bon["run"]["steering"], serde_json::json!({"method": "bon", "n": 10}));
+    assert_eq!(bon["run"]["artifact_id"], report["meta"]["artifacts"]["classifier"]);
+    // ... and its verifier's quality on the split's held-out samples, from the artifact.
+    let q = &bon["verifier_quality"];
+    assert_eq!(q["auroc"], report["meta"]["verifier_metrics"]["classifier"]["val_auc"]);
+    for k in ["accuracy", "brier", "ece"] {
+        let v = q[k].as_f64().unwrap_or_else(|| panic!("{k} in {q}"));
+        assert!((0.0..=1.0).contains(&v), "{k} = {v}");
+    }
+    assert_eq!(q["reliability"].as_array().unwrap().len(), 10);
+    // The default table and CSV.
+    let table = t.ok(&["scoreboard", "--policy", "nav-dp"]);
+    assert!(table.contains("| base | two-gap-navigation | c-bon10 (on-policy) | bon:10 |"), "{table}");
+    let csv = t.ok(&["scoreboard", "--policy", "nav-dp", "--format", "csv"]);
+    assert_eq!(csv.lines().count(), sb_rows.len() + 1, "{csv}");
+    // The split of a later `split create` holds the base run's rollouts, not the steered ones.
+    let split = t.json(&["split", "create", "--policy", "nav-dp", "--checkpoint", "base", "--json"]);
+    assert_eq!(split["train_episodes"].as_i64().unwrap() + split["val_episodes"].as_i64().unwrap(), 200);
     let arts = t.json(&["artifacts", "--policy", "nav-dp", "--json"]);
     assert_eq!(arts.as_array().unwrap().len(), 4, "classifier, q, the off-policy classifier, the 50-rollout classifier");
     // `latest` of the base checkpoint's classifier is the on-policy one trained on every rollout

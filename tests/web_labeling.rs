@@ -3,7 +3,8 @@
 //! fixture without video, two labelers' tokens, `ufops serve` on a free loopback port, then
 //! `node tests/web/label_e2e.mjs` (playwright-core driving Debian's `chromium`): sign in, label
 //! three episodes with the keyboard only, auto-advance, a conflict from a second session resolved,
-//! bulk labels, the low-dim view. The labels are then checked through the HTTP API.
+//! bulk labels, the low-dim view. The labels are then checked through the HTTP API. The second
+//! test does the same for the scoreboard page (`tests/web/scoreboard_e2e.mjs`).
 //!
 //! Needs `chromium` (or `$CHROMIUM`), `node` and `tests/web/node_modules` (`npm ci` there);
 //! `scripts/test.sh` installs them (`ensure_browser`) and sets `UFOPS_REQUIRE_BROWSER=1`, which
@@ -231,4 +232,111 @@ fn labeling_page_in_headless_chromium() {
         result["advance_wall_ms"]["median"],
         result["advance_wall_ms"]["max"],
     );
+}
+
+/// The scoreboard page (`/ui/scoreboard.html`) in headless Chromium: synthetic evaluation runs of
+/// policy `synth` (a base run and two steered ones of checkpoint c1, a base run of c2, episodes
+/// without a run, a few labels taken back to unknown and frozen; the steered runs name a
+/// classifier trained on the base run), a viewer signs in, the page draws every row with its
+/// interval bars and the verifier's reliability diagram, its CSV and JSON links return the same
+/// rows, a second baseline is chosen; `tests/web/scoreboard_e2e.mjs` writes `scoreboard.png` to the artifacts
+/// directory. The rows the page shows are checked against `ufops scoreboard --format json`.
+#[test]
+fn scoreboard_page_in_headless_chromium() {
+    let missing = missing_prerequisites();
+    let probe = if missing.is_empty() { Ok(()) } else { Err(missing.join("; ")) };
+    if !store::test_support::require(store::test_support::Tool::Browser, probe) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let t = Target::sqlite(dir.path());
+    t.ok(&["init"]);
+    let synth = |ckpt: &str, seed: &str, n: &str, rate: &str, run: Option<(&str, &str)>, artifact: Option<&str>| {
+        let mut args = vec!["dev", "synth", "--policy", "synth", "--checkpoint", ckpt, "--seed", seed, "--episodes", n, "--steps", "20", "--success-rate", rate];
+        if let Some((name, steering)) = run {
+            args.extend(["--run", name, "--steering", steering]);
+        }
+        if let Some(a) = artifact {
+            args.extend(["--run-artifact", a]);
+        }
+        t.ok(&args);
+    };
+    synth("c1", "1", "120", "0.5", Some(("base", "base")), None);
+    // A classifier trained on the base run: its quality on the split's held-out episodes is what
+    // the page's verifier column and calibration plot show.
+    let split = t.json(&["split", "create", "--policy", "synth", "--checkpoint", "c1", "--json"]);
+    let cfg = dir.path().join("train.json");
+    std::fs::write(&cfg, r#"{"epochs": 3}"#).unwrap();
+    t.ok(&["train", "--split", split["id"].as_str().unwrap(), "--kind", "classifier", "--config", cfg.to_str().unwrap()]);
+    let arts = t.json(&["artifacts", "--policy", "synth", "--json"]);
+    let art = arts[0]["id"].as_str().unwrap().to_string();
+    assert!(arts[0]["config"]["metrics"]["final"]["val_calibration"]["ece"].is_number(), "{}", arts[0]["config"]["metrics"]);
+    synth("c1", "2", "120", "0.9", Some(("c-bon10", "bon:10")), Some(&art));
+    synth("c1", "3", "60", "0.55", Some(("c-cg3", "cg:3")), Some(&art));
+    synth("c2", "4", "60", "0.6", Some(("base", "base")), None);
+    synth("c2", "5", "20", "0.7", None, None);
+    let eps = t.json(&["episodes", "--policy", "synth", "--checkpoint", "c1", "--json"]);
+    for e in eps.as_array().unwrap().iter().take(6) {
+        t.ok(&["label", e["id"].as_str().unwrap(), "unknown"]);
+    }
+    t.ok(&["snapshot"]);
+    let want = t.json(&["scoreboard", "--policy", "synth", "--format", "json"]);
+    let viewer = token(&t, "vera", "viewer");
+    let srv = serve(&t);
+    let (st, _) = http(&srv.addr, "GET", "/ui/scoreboard.html", "", None);
+    assert_eq!(st, 200, "the scoreboard page is served");
+    let artifacts = artifacts_dir();
+    std::fs::create_dir_all(&artifacts).unwrap();
+    let shot = artifacts.join("scoreboard.png");
+    let _ = std::fs::remove_file(&shot);
+    let out = Command::new("node")
+        .arg(repo().join("tests/web/scoreboard_e2e.mjs"))
+        .current_dir(repo().join("tests/web"))
+        .env("UFOPS_URL", format!("http://{}", srv.addr))
+        .env("UFOPS_TOKEN", &viewer)
+        .env("UFOPS_ARTIFACTS", &artifacts)
+        .env("CHROMIUM", chromium().unwrap())
+        .stderr(Stdio::inherit())
+        .output()
+        .expect("run node tests/web/scoreboard_e2e.mjs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    println!("{stdout}");
+    assert!(out.status.success(), "the browser test failed (screenshots in {})", artifacts.display());
+    let line = stdout.lines().find_map(|l| l.strip_prefix("E2E_RESULT ")).expect("E2E_RESULT line");
+    let result: Value = serde_json::from_str(line).expect("E2E_RESULT json");
+    assert!(std::fs::metadata(&shot).map(|m| m.len() > 10_000).unwrap_or(false), "screenshot {}", shot.display());
+
+    // The page's rows are the store's: same runs and checkpoints, same counts and intervals.
+    let want = want["rows"].as_array().unwrap();
+    let shown = result["first"]["rows"].as_array().unwrap();
+    assert_eq!(shown.len(), want.len());
+    assert_eq!(want.len(), 5, "c1: base, c-bon10, c-cg3; c2: base, no run");
+    let pct = |x: &Value| format!("{:.1}", 100.0 * x.as_f64().unwrap());
+    for (s, w) in shown.iter().zip(want) {
+        assert_eq!((&s["checkpoint"], &s["run"]), (&w["checkpoint"], &w["run_name"]));
+        let cells: Vec<&str> = s["cells"].as_array().unwrap().iter().map(|c| c.as_str().unwrap()).collect();
+        let labeled = w["successes"].as_u64().unwrap() + w["failures"].as_u64().unwrap();
+        assert_eq!(cells[5], format!("{}/{labeled}", w["successes"]));
+        assert_eq!(cells[6], format!("{}% [{}, {}]", pct(&w["rate"]), pct(&w["wilson_95"][0]), pct(&w["wilson_95"][1])));
+        assert_eq!(cells[7], w["unlabeled"].to_string());
+        if let Some(b) = w["baseline"].as_object() {
+            let pp = |x: &Value| {
+                let v = 100.0 * x.as_f64().unwrap();
+                format!("{}{v:.1}", if v >= 0.0 { "+" } else { "" })
+            };
+            let ci = &b["newcombe_95"];
+            assert_eq!(cells[8], format!("{} pp [{}, {}]", pp(&b["diff"]), pp(&ci[0]), pp(&ci[1])));
+        }
+    }
+    let unlabeled: u64 = want.iter().map(|w| w["unlabeled"].as_u64().unwrap()).sum();
+    assert_eq!(unlabeled, 6, "the labels taken back are unlabeled at the snapshot");
+    assert_eq!(result["download"]["csv_lines"].as_u64().unwrap() as usize, want.len() + 1);
+    // The calibration plot: one reliability diagram for the one verifier, with a point per
+    // non-empty bin of its held-out samples.
+    let plots = result["first"]["calibration"].as_array().unwrap();
+    assert_eq!(plots.len(), 1, "{plots:?}");
+    assert_eq!(plots[0]["artifact"], art.as_str());
+    let bins = arts[0]["config"]["metrics"]["final"]["val_calibration"]["bins"].as_array().unwrap();
+    let nonempty = bins.iter().filter(|b| b["count"].as_u64().unwrap() > 0).count();
+    assert_eq!(plots[0]["points"].as_u64().unwrap() as usize, nonempty);
 }

@@ -23,6 +23,7 @@ use utoipa::{Modify, OpenApi};
         routes::list_artifacts, routes::get_artifact, routes::artifact_file, routes::set_alias,
         routes::resolve_verifier, routes::resolve_verifier_file,
         routes::create_export, routes::list_exports, routes::get_export, routes::export_file, routes::delete_export,
+        routes::get_scoreboard, routes::list_runs,
         upload::ingest, routes::gc, routes::create_token, routes::list_tokens, routes::revoke_token,
     ),
     components(schemas(Problem)),

@@ -31,6 +31,14 @@ pub struct IngestQuery {
     filename: Option<String>,
     /// The format, if the extension does not tell (`robomimic`, `lerobot`, `mcap`, ...).
     format: Option<String>,
+    /// The evaluation run the rollouts belong to (see `GET /v1/scoreboard`).
+    run: Option<String>,
+    /// How the run was steered: `base`, `bon:N`, `cg:LAMBDA` or `flow:LAMBDA` (default `base`).
+    steering: Option<String>,
+    /// The verifier artifact that steered the run.
+    run_artifact: Option<String>,
+    /// The run's tags, comma-separated.
+    run_tags: Option<String>,
 }
 
 /// A file name safe to use under our own directory: no separators, no leading dots.
@@ -66,6 +74,27 @@ pub async fn ingest(
     if let Some(f) = &q.format {
         crate::extract::check_id("format", f)?;
     }
+    let run_tags: Vec<String> =
+        q.run_tags.as_deref().map(|t| t.split(',').filter(|x| !x.is_empty()).map(String::from).collect()).unwrap_or_default();
+    match &q.run {
+        Some(name) => {
+            let steering: store::Steering = q.steering.as_deref().unwrap_or("base").parse()?;
+            let run = store::RunInput {
+                name: name.clone(),
+                steering,
+                artifact_id: q.run_artifact.clone(),
+                tags: run_tags.clone(),
+            };
+            run.validate()?;
+            if let Some(a) = &run.artifact_id {
+                s.store().artifact(a).await?;
+            }
+        }
+        None if q.steering.is_some() || q.run_artifact.is_some() || !run_tags.is_empty() => {
+            return Err(ApiError::bad_request("steering, run_artifact and run_tags describe a run: name it with run"));
+        }
+        None => {}
+    }
     let filename = sanitize_filename(q.filename.as_deref().unwrap_or("upload.bin"));
     let dir = s.inner.cfg.upload_dir.join(uuid::Uuid::new_v4().simple().to_string());
     tokio::fs::create_dir_all(&dir)
@@ -90,6 +119,10 @@ pub async fn ingest(
         "format": q.format,
         "sha256": sha,
         "size_bytes": size,
+        "run": q.run,
+        "steering": q.steering,
+        "run_artifact": q.run_artifact,
+        "run_tags": run_tags,
     });
     let job = s.store().create_job("ingest", &spec, &caller.name).await?;
     Ok((StatusCode::ACCEPTED, Json(job)))

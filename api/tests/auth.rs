@@ -46,6 +46,8 @@ async fn authorization_matrix() {
         (Method::POST, "/v1/jobs".into(), body(json!({"split_id": "split-nope", "kind": "classifier"})), Need::Trainer),
         (Method::GET, "/v1/jobs/job-nope".into(), None, Need::Viewer),
         (Method::POST, "/v1/jobs/job-nope/cancel".into(), None, Need::Trainer),
+        (Method::GET, "/v1/scoreboard?policy=pol".into(), None, Need::Viewer),
+        (Method::GET, "/v1/runs".into(), None, Need::Viewer),
         (Method::GET, "/v1/artifacts".into(), None, Need::Viewer),
         (Method::GET, "/v1/artifacts/0123456789abcdef".into(), None, Need::Viewer),
         (Method::GET, "/v1/artifacts/0123456789abcdef/files/config.json".into(), None, Need::Viewer),

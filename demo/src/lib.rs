@@ -16,11 +16,34 @@ use indicatif::{ProgressBar, ProgressStyle};
 use sim::{rollout, ChunkPolicy, DiffusionPolicy, EnvConfig, FlowPolicy, PolicyConfig, Steering};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use store::{EpisodeInput, Label, SourceInput, Store, VectorColumn};
+use store::{EpisodeInput, Label, RunInput, SourceInput, Steering as RunSteering, Store, VectorColumn};
 
 pub const POLICY: &str = "nav-dp";
 pub const BASE: &str = "base";
 pub const ALT: &str = "alt";
+/// The checkpoint the flow-matching twin's rollouts are stored under (another policy network,
+/// trained on the same demonstrations).
+pub const FLOW: &str = "flow-twin";
+
+/// A run of the demo: its name, steering and artifact, and tags.
+fn demo_run(name: &str, steering: RunSteering, artifact: Option<&str>, tags: &[&str]) -> RunInput {
+    RunInput {
+        name: name.to_string(),
+        steering,
+        artifact_id: artifact.map(str::to_string),
+        tags: tags.iter().map(|t| t.to_string()).collect(),
+    }
+}
+
+/// A λ as a run name shows it (`0.1`, `3`).
+fn lambda_name(l: f32) -> String {
+    format!("{l}")
+}
+
+/// The λ of a run's steering: the decimal the sweep was given (0.1, not 0.10000000149).
+fn lambda_f64(l: f32) -> f64 {
+    lambda_name(l).parse().unwrap_or(f64::from(l))
+}
 
 /// The scale of a demo run.
 #[derive(Debug, Clone)]
@@ -125,8 +148,16 @@ fn to_episodes(eps: &[sim::Episode], horizon: usize) -> Vec<EpisodeInput> {
         .collect()
 }
 
-/// Ingests rollouts as one version (or finds the version that already holds the same rollouts).
-async fn ingest_rollouts(store: &Store, eps: &[sim::Episode], checkpoint: &str, horizon: usize, seed: u64) -> Result<i64> {
+/// Ingests rollouts as one version of `run` (or finds the version that already holds the same
+/// rollouts).
+async fn ingest_rollouts(
+    store: &Store,
+    eps: &[sim::Episode],
+    checkpoint: &str,
+    run: RunInput,
+    horizon: usize,
+    seed: u64,
+) -> Result<i64> {
     let inputs = to_episodes(eps, horizon);
     let mut bytes = Vec::new();
     for e in &inputs {
@@ -136,7 +167,7 @@ async fn ingest_rollouts(store: &Store, eps: &[sim::Episode], checkpoint: &str, 
         bytes.push(u8::from(e.label == Label::Success));
     }
     let source = SourceInput {
-        path: format!("sim://{POLICY}/{checkpoint}?seed={seed}"),
+        path: format!("sim://{POLICY}/{checkpoint}?seed={seed}&run={}", run.name),
         sha256: store::sha256_hex(&bytes),
         format: "sim".into(),
         size_bytes: bytes.len() as u64,
@@ -147,10 +178,30 @@ async fn ingest_rollouts(store: &Store, eps: &[sim::Episode], checkpoint: &str, 
         Err(store::StoreError::AlreadyIngested { version, .. }) => return Ok(version),
         Err(e) => return Err(e.into()),
     };
+    w.set_run(run)?;
     for e in inputs {
         w.add_episode(e).await?;
     }
     Ok(w.commit(&format!("demo rollouts of {POLICY}/{checkpoint}")).await?.version)
+}
+
+/// One row of the report: its rates go into the report, its rollouts into the store as `run` of
+/// `checkpoint` (so `ufops scoreboard` gives the row back from the store alone).
+#[allow(clippy::too_many_arguments)]
+async fn record(
+    store: &Store,
+    report: &mut Report,
+    eps: &[sim::Episode],
+    checkpoint: &str,
+    run: RunInput,
+    method: &str,
+    verifier: &str,
+    horizon: usize,
+    seed: u64,
+) -> Result<()> {
+    report.add(method, verifier, checkpoint, &run.name, eps);
+    ingest_rollouts(store, eps, checkpoint, run, horizon, seed).await?;
+    Ok(())
 }
 
 /// Trains one verifier on a split and loads it through its published artifact (sha256-checked).
@@ -236,9 +287,10 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
 
     // 2. Evaluate the base policy and ingest its rollouts (success from the simulator).
     let base_eps = eval(&base, Steering::None, "evaluating the base policy", cfg.seed + 100)?;
-    let v_base = ingest_rollouts(store, &base_eps, BASE, pc.horizon, cfg.seed + 100).await?;
-    let alt_eps = eval(&alt, Steering::None, "evaluating the alt checkpoint", cfg.seed + 200)?;
-    let v_alt = ingest_rollouts(store, &alt_eps, ALT, pc.horizon, cfg.seed + 200).await?;
+    let base_run = || demo_run(BASE, RunSteering::Base, None, &[]);
+    let v_base = ingest_rollouts(store, &base_eps, BASE, base_run(), pc.horizon, cfg.seed + 100).await?;
+    let alt_eps = eval(&alt, sim::Steering::None, "evaluating the alt checkpoint", cfg.seed + 200)?;
+    let v_alt = ingest_rollouts(store, &alt_eps, ALT, base_run(), pc.horizon, cfg.seed + 200).await?;
 
     // 3. On-policy split; classifier and Q verifiers. Off-policy: a classifier on alt's rollouts.
     let split_req = |off: Vec<(String, String)>| store::SplitRequest {
@@ -277,6 +329,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     let mut seed = cfg.seed + 1000;
     let mut keep_for_plot = None;
     let verifiers: [(&str, &steer::Verifier); 2] = [("C", &clf), ("Q", &q)];
+    let artifact_of = |name: &str| if name == "C" { c_rec.id.as_str() } else { q_rec.id.as_str() };
     for (name, v) in verifiers {
         let label = format!("base (DDPM), scored by {name}");
         report.diagnostics.push(diagnose::run_diagnostics(&label, &base_eps, v, &norm, env.max_speed, None)?);
@@ -286,7 +339,8 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
             seed += 1;
             let label = format!("{name} x BoN (N={nn})");
             let eps = eval(&base, Steering::BestOfN { scorer: v, n: nn }, &label, seed)?;
-            report.add(&label, "on-policy", &eps);
+            let r = demo_run(&format!("{}-bon{nn}", name.to_lowercase()), RunSteering::Bon { n: nn as u32 }, Some(artifact_of(name)), &["on-policy"]);
+            record(store, &mut report, &eps, BASE, r, &label, "on-policy", pc.horizon, seed).await?;
             report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, &norm, env.max_speed, None)?);
             if name == "C" && keep_for_plot.is_none() {
                 keep_for_plot = Some(eps);
@@ -301,40 +355,71 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
             // diagnostics table explains a collapse or a gain from them).
             let trace = diagnose::TracingScorer::new(v, pc.diffusion_steps, lambda);
             let eps = eval(&base, Steering::Guided { scorer: &trace, lambda }, &label, seed)?;
-            report.add(&label, "on-policy", &eps);
+            let r = demo_run(
+                &format!("{}-cg{}", name.to_lowercase(), lambda_name(lambda)),
+                RunSteering::Cg { lambda: lambda_f64(lambda) },
+                Some(artifact_of(name)),
+                &["on-policy"],
+            );
+            record(store, &mut report, &eps, BASE, r, &label, "on-policy", pc.horizon, seed).await?;
             report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, &norm, env.max_speed, Some(&trace))?);
         }
     }
     // Flow twin: same verifier, guidance from the second Euler step on.
     seed += 1;
     let flow_base = eval(&flow, Steering::None, "flow twin, unsteered", seed)?;
-    report.add("flow twin, unsteered", "-", &flow_base);
+    let r = demo_run(BASE, RunSteering::Base, None, &[]);
+    record(store, &mut report, &flow_base, FLOW, r, "flow twin, unsteered", "-", pc.horizon, seed).await?;
     seed += 1;
     let nn = cfg.bon_n[0];
     let eps = eval(&flow, Steering::BestOfN { scorer: &clf, n: nn }, "flow twin, C x BoN", seed)?;
-    report.add(&format!("flow twin, C x BoN (N={nn})"), "on-policy (DDPM rollouts)", &eps);
+    let r = demo_run(&format!("c-bon{nn}"), RunSteering::Bon { n: nn as u32 }, Some(&c_rec.id), &["on-policy", "ddpm-rollouts"]);
+    let label = format!("flow twin, C x BoN (N={nn})");
+    record(store, &mut report, &eps, FLOW, r, &label, "on-policy (DDPM rollouts)", pc.horizon, seed).await?;
     // 6. Off-policy ablation: the verifier trained on the alt checkpoint's rollouts.
     seed += 1;
     let eps = eval(&base, Steering::BestOfN { scorer: &off_clf, n: nn }, "off-policy C x BoN", seed)?;
-    report.add(&format!("C x BoN (N={nn})"), "off-policy (alt rollouts)", &eps);
+    let r = demo_run(&format!("off-c-bon{nn}"), RunSteering::Bon { n: nn as u32 }, Some(&off_rec.id), &["off-policy"]);
+    let label = format!("C x BoN (N={nn})");
+    record(store, &mut report, &eps, BASE, r, &label, "off-policy (alt rollouts)", pc.horizon, seed).await?;
     seed += 1;
     let lambda = cfg.lambdas[cfg.lambdas.len() / 2];
     let eps = eval(&base, Steering::Guided { scorer: &off_clf, lambda }, "off-policy C x CG", seed)?;
-    report.add(&format!("C x CG (lambda={lambda})"), "off-policy (alt rollouts)", &eps);
+    let r = demo_run(
+        &format!("off-c-cg{}", lambda_name(lambda)),
+        RunSteering::Cg { lambda: lambda_f64(lambda) },
+        Some(&off_rec.id),
+        &["off-policy"],
+    );
+    let label = format!("C x CG (lambda={lambda})");
+    record(store, &mut report, &eps, BASE, r, &label, "off-policy (alt rollouts)", pc.horizon, seed).await?;
 
     // 7. The verifier's learning curve: classifiers on nested samples of the on-policy rollouts.
     let nn_ablation = cfg.bon_n.iter().copied().min().unwrap_or(10);
     for &size in cfg.ablation_sizes.iter().filter(|&&s| s < n) {
         let split = store.create_split(&store::SplitRequest { max_episodes: Some(size as u64), ..split_req(vec![]) }).await?;
-        let (_, v) = train_verifier(store, &split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir).await?;
+        let (rec, v) = train_verifier(store, &split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir).await?;
         seed += 1;
         let label = format!("C x BoN (N={nn_ablation})");
         let eps = eval(&base, Steering::BestOfN { scorer: &v, n: nn_ablation }, &format!("{label}, {size} rollouts"), seed)?;
-        report.add(&label, &format!("on-policy, {size} rollouts"), &eps);
+        let tag = format!("trained-on-{size}");
+        let r = demo_run(&format!("c-bon{nn_ablation}-n{size}"), RunSteering::Bon { n: nn_ablation as u32 }, Some(&rec.id), &["on-policy", tag.as_str()]);
+        record(store, &mut report, &eps, BASE, r, &label, &format!("on-policy, {size} rollouts"), pc.horizon, seed).await?;
     }
 
     // The learning-curve classifiers were published last: `latest` names the main one again.
     store.set_alias("latest", &c_rec.id).await?;
+
+    // The table, read back from the store alone: every row must be what the scoreboard says.
+    let sb = store
+        .scoreboard(&store::ScoreboardRequest {
+            policy: POLICY.into(),
+            baseline_checkpoint: Some(BASE.into()),
+            ..Default::default()
+        })
+        .await?;
+    report.check_against(&sb)?;
+    report.meta["scoreboard_version"] = serde_json::json!(sb.version);
 
     // 5. The report and the trajectory figure.
     let steered = keep_for_plot.context("no best-of-N row")?;

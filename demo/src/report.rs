@@ -3,13 +3,17 @@
 
 use anyhow::Result;
 use serde::Serialize;
-use sim::stats::{newcombe_diff, wilson};
+use evalstats::{newcombe_diff, wilson};
 use std::path::Path;
 
 #[derive(Debug, Clone, Serialize)]
 pub struct Row {
     pub method: String,
     pub verifier: String,
+    /// Where the row's rollouts are in the store: their checkpoint of `nav-dp` and run name
+    /// (`ufops scoreboard --policy nav-dp` gives the row back).
+    pub checkpoint: String,
+    pub run: String,
     pub successes: u64,
     pub episodes: u64,
     pub rate: f64,
@@ -34,6 +38,8 @@ impl Report {
         let row = Row {
             method: "base (DDPM)".into(),
             verifier: "-".into(),
+            checkpoint: crate::BASE.into(),
+            run: crate::BASE.into(),
             successes: k,
             episodes: n,
             rate,
@@ -44,12 +50,14 @@ impl Report {
         Report { rows: vec![row], diagnostics: vec![], seconds: 0.0, meta: serde_json::Value::Null }
     }
 
-    pub fn add(&mut self, method: &str, verifier: &str, eps: &[sim::Episode]) {
+    pub fn add(&mut self, method: &str, verifier: &str, checkpoint: &str, run: &str, eps: &[sim::Episode]) {
         let base = &self.rows[0];
         let (k, n, rate) = sim::success_rate(eps);
         let row = Row {
             method: method.into(),
             verifier: verifier.into(),
+            checkpoint: checkpoint.into(),
+            run: run.into(),
             successes: k,
             episodes: n,
             rate,
@@ -58,6 +66,25 @@ impl Report {
             newcombe_95: Some(newcombe_diff(k, n, base.successes, base.episodes)),
         };
         self.rows.push(row);
+    }
+
+    /// Checks every row against the store's scoreboard of the demo's policy (baseline: the base
+    /// run of the base checkpoint): same counts, rate, Wilson and Newcombe intervals.
+    pub fn check_against(&self, sb: &store::Scoreboard) -> Result<()> {
+        for r in &self.rows {
+            let s = sb
+                .rows
+                .iter()
+                .find(|s| s.checkpoint == r.checkpoint && s.run_name == r.run)
+                .ok_or_else(|| anyhow::anyhow!("the store has no scoreboard row for {}/{}", r.checkpoint, r.run))?;
+            let same = s.successes == r.successes
+                && s.successes + s.failures == r.episodes
+                && s.rate == Some(r.rate)
+                && s.wilson_95 == r.wilson_95
+                && s.baseline.as_ref().map(|b| b.newcombe_95) == r.newcombe_95;
+            anyhow::ensure!(same, "the store's scoreboard disagrees with the report on {} / {}: {s:?}", r.method, r.verifier);
+        }
+        Ok(())
     }
 
     pub fn row(&self, method: &str, verifier_prefix: &str) -> Option<&Row> {
@@ -88,7 +115,9 @@ impl Report {
 
     pub fn write(&self, dir: &Path) -> Result<()> {
         let md = format!(
-            "# ufops demo: two-gap navigation\n\n{}\n## What steering did\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
+            "# ufops demo: two-gap navigation\n\n{}\nEvery row's rollouts are in the store as a run (`checkpoint`/`run` in `report.json`): \
+             `ufops scoreboard --policy nav-dp --baseline-checkpoint base` gives this table back.\n\n\
+             ## What steering did\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
             self.markdown(),
             crate::diagnose::markdown(&self.diagnostics),
             self.seconds

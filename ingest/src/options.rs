@@ -74,6 +74,8 @@ pub struct IngestOptions {
     pub progress: bool,
     /// How much memory the ingest may hold (the defaults suit any source size).
     pub memory: MemoryBudget,
+    /// `--run NAME --steering SPEC …`: the evaluation run every episode belongs to.
+    pub run: Option<store::RunInput>,
 }
 
 /// What one ingest may hold in memory, whatever the source's size: readers decode one episode

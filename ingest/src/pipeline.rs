@@ -280,7 +280,13 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
     // object storage before the hash is known (and checked against the store).
     let writer = store
         .begin_ingest_unhashed(source, &opts.policy, &opts.checkpoint)
-        .map(|w| w.with_max_file_bytes(file_bytes).with_max_row_group_bytes(row_group_bytes));
+        .map(|w| w.with_max_file_bytes(file_bytes).with_max_row_group_bytes(row_group_bytes))
+        .and_then(|mut w| {
+            if let Some(run) = &opts.run {
+                w.set_run(run.clone())?;
+            }
+            Ok(w)
+        });
     let mut writer = match writer {
         Ok(w) => w,
         Err(e) => {

@@ -6,15 +6,16 @@
 //! policies ([`policy`]: a small candle MLP DDPM noise predictor implementing
 //! `steer::NoisePredictor`, and a flow-matching twin implementing `steer::VelocityField`), rollouts
 //! returning per-episode trajectories, unsteered or steered with any `steer::Scorer` ([`rollout`]),
-//! the statistics used in the report ([`stats`]: Wilson and Newcombe intervals) and a PNG
-//! trajectory plot ([`plot`]). It does not train verifiers (the `trainer` crate does).
+//! the statistics used in the report ([`stats`]: Wilson and Newcombe intervals, re-exported from
+//! `evalstats`) and a PNG trajectory plot ([`plot`]). It does not train verifiers (the `trainer` crate does).
 
 pub mod demos;
 pub mod env;
 pub mod plot;
 pub mod policy;
 pub mod rollout;
-pub mod stats;
+/// The interval arithmetic, from the one crate that owns it.
+pub use evalstats as stats;
 
 pub use demos::{expert_demos, Demo};
 pub use env::{EnvConfig, NavEnv};

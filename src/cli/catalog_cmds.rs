@@ -130,15 +130,22 @@ pub async fn artifacts(args: &StoreArgs, a: ArtifactsArgs) -> Result<()> {
             }
             for r in list {
                 let m = &r.config["metrics"];
+                // Verifier quality on the split's held-out samples (classifier calibration).
+                let f = &m["final"];
+                let num = |v: &serde_json::Value| v.as_f64().map(|x| format!("{x:.3}")).unwrap_or_else(|| "-".into());
                 println!(
-                    "{}  {:<10} {}/{}  split {}  aliases [{}]  val_loss {}",
+                    "{}  {:<10} {}/{}  split {}  aliases [{}]  val_loss {}  auroc {}  acc {}  brier {}  ece {}",
                     r.id,
                     r.kind,
                     r.policy,
                     r.checkpoint,
                     r.split_id.as_deref().unwrap_or("-"),
                     r.aliases.join(", "),
-                    m.get("best_val_loss").map(|v| v.to_string()).unwrap_or_else(|| "-".into())
+                    num(&f["best_val_loss"]),
+                    num(&f["val_auc"]),
+                    num(&f["val_calibration"]["accuracy"]),
+                    num(&f["val_calibration"]["brier"]),
+                    num(&f["val_calibration"]["ece"]),
                 );
             }
         }

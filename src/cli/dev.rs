@@ -21,6 +21,16 @@ pub enum DevCommand {
         /// Roll over to a new data file past this many bytes.
         #[arg(long)]
         max_file_bytes: Option<usize>,
+        /// The chance of each episode's success label.
+        #[arg(long, default_value_t = 0.5)]
+        success_rate: f32,
+        /// The evaluation run of the episodes (see `ufops ingest --run`).
+        #[arg(long)]
+        run: Option<String>,
+        #[arg(long)]
+        steering: Option<String>,
+        #[arg(long)]
+        run_artifact: Option<String>,
     },
     /// Check every visible version: its episodes' steps read back whole, its label snapshot
     /// file matches; prints a JSON report and fails on any problem.
@@ -29,9 +39,14 @@ pub enum DevCommand {
 
 pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
     match cmd {
-        DevCommand::Synth { episodes, steps, seed, policy, checkpoint, max_file_bytes } => {
+        DevCommand::Synth { episodes, steps, seed, policy, checkpoint, max_file_bytes, success_rate, run, steering, run_artifact } => {
             let store = args.open().await?;
-            let sha = store::sha256_hex(format!("synth:{seed}:{episodes}:{steps}:{policy}:{checkpoint}").as_bytes());
+            let run = super::serve_cmds::run_input(run.as_deref(), steering.as_deref(), run_artifact.as_deref(), &[])?;
+            let mut key = format!("synth:{seed}:{episodes}:{steps}:{policy}:{checkpoint}");
+            if let Some(r) = &run {
+                key.push_str(&format!(":{}:{success_rate}", r.id()));
+            }
+            let sha = store::sha256_hex(key.as_bytes());
             let source = SourceInput {
                 path: format!("synth://{seed}"),
                 sha256: sha,
@@ -43,6 +58,9 @@ pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
             if let Some(n) = max_file_bytes {
                 w = w.with_max_file_bytes(n);
             }
+            if let Some(r) = run {
+                w.set_run(r)?;
+            }
             let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
             let mut rnd = move || {
                 state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
@@ -51,7 +69,7 @@ pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
             for i in 0..episodes {
                 let obs: Vec<f32> = (0..steps * 3).map(|_| rnd()).collect();
                 let act: Vec<f32> = (0..steps * 2).map(|_| rnd() - 0.5).collect();
-                let label = if rnd() < 0.5 { Label::Success } else { Label::Failure };
+                let label = if rnd() < success_rate { Label::Success } else { Label::Failure };
                 w.add_episode(EpisodeInput {
                     source_name: format!("episode_{i}"),
                     source_index: i,

@@ -4,6 +4,7 @@ mod catalog_cmds;
 mod dev;
 mod export_cmd;
 mod run_cmds;
+mod scoreboard_cmd;
 mod serve_cmds;
 mod view_cmd;
 mod store_cmds;
@@ -147,6 +148,9 @@ pub enum Command {
         #[arg(long, value_delimiter = ',')]
         ablation_sizes: Option<Vec<usize>>,
     },
+    /// Success per checkpoint × task × run at a version, with Wilson intervals and Newcombe
+    /// intervals against a baseline run.
+    Scoreboard(scoreboard_cmd::ScoreboardArgs),
     /// Write a rerun recording (.rrd) of success vs failure trajectories and verifier scores.
     View(view_cmd::ViewArgs),
     /// Developer tools used by the tests.
@@ -182,6 +186,7 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Demo { quick, lambdas, ablation_sizes } => {
             run_cmds::demo(&cli.store, quick, lambdas, ablation_sizes).await
         }
+        Command::Scoreboard(a) => scoreboard_cmd::scoreboard(&cli.store, a).await,
         Command::View(a) => view_cmd::view(&cli.store, a).await,
         Command::Dev { command } => dev::run(&cli.store, command).await,
     }

@@ -36,8 +36,42 @@ pub struct IngestArgs {
     /// Ingest what is complete in a truncated recording instead of refusing it.
     #[arg(long)]
     pub recover: bool,
+    /// The evaluation run these rollouts belong to (a name; see `ufops scoreboard`).
+    #[arg(long)]
+    pub run: Option<String>,
+    /// How the run was steered: base | bon:N | cg:LAMBDA | flow:LAMBDA (default base; needs --run).
+    #[arg(long)]
+    pub steering: Option<String>,
+    /// The verifier artifact that steered the run (needs --run).
+    #[arg(long)]
+    pub run_artifact: Option<String>,
+    /// Free-form tags of the run (repeatable; needs --run).
+    #[arg(long = "run-tag")]
+    pub run_tags: Vec<String>,
     #[arg(long)]
     pub json: bool,
+}
+
+/// The run named by `--run`, `--steering`, `--run-artifact` and `--run-tag`.
+pub fn run_input(
+    run: Option<&str>,
+    steering: Option<&str>,
+    artifact: Option<&str>,
+    tags: &[String],
+) -> Result<Option<store::RunInput>> {
+    let Some(name) = run else {
+        if steering.is_some() || artifact.is_some() || !tags.is_empty() {
+            anyhow::bail!("--steering, --run-artifact and --run-tag describe a run: name it with --run");
+        }
+        return Ok(None);
+    };
+    let steering = match steering {
+        Some(s) => s.parse()?,
+        None => store::Steering::Base,
+    };
+    let r = store::RunInput { name: name.to_string(), steering, artifact_id: artifact.map(str::to_string), tags: tags.to_vec() };
+    r.validate()?;
+    Ok(Some(r))
 }
 
 pub fn ingest_options(a: &IngestArgs) -> Result<ingest::IngestOptions> {
@@ -57,6 +91,7 @@ pub fn ingest_options(a: &IngestArgs) -> Result<ingest::IngestOptions> {
         recover: a.recover,
         progress: !a.json,
         memory: Default::default(),
+        run: run_input(a.run.as_deref(), a.steering.as_deref(), a.run_artifact.as_deref(), &a.run_tags)?,
     })
 }
 
@@ -146,6 +181,15 @@ impl api::JobRunner for Runner {
                         recover: s.get("recover").and_then(|v| v.as_bool()).unwrap_or(false),
                         progress: false,
                         memory: Default::default(),
+                        run: {
+                            let tags: Vec<String> = s
+                                .get("run_tags")
+                                .and_then(|v| v.as_array())
+                                .map(|a| a.iter().filter_map(|t| t.as_str().map(String::from)).collect())
+                                .unwrap_or_default();
+                            let (run, steering, artifact) = (field("run"), field("steering"), field("run_artifact"));
+                            run_input(run.as_deref(), steering.as_deref(), artifact.as_deref(), &tags).map_err(|e| format!("{e:#}"))?
+                        },
                     };
                     let r = ingest::ingest(store, std::path::Path::new(&path), &opts).await.map_err(|e| format!("{e:#}"))?;
                     serde_json::to_value(&r).map_err(|e| e.to_string())

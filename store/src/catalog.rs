@@ -30,6 +30,7 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (3, "episode_row_ranges", include_str!("../../migrations/sqlite/0003_episode_row_ranges.sql")),
     (4, "catalog_indexes_and_counts", include_str!("../../migrations/sqlite/0004_catalog_indexes_and_counts.sql")),
     (5, "episode_media", include_str!("../../migrations/sqlite/0005_episode_media.sql")),
+    (6, "runs", include_str!("../../migrations/sqlite/0006_runs.sql")),
     (7, "pending_objects", include_str!("../../migrations/sqlite/0007_pending_objects.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
@@ -38,6 +39,7 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (3, "episode_row_ranges", include_str!("../../migrations/postgres/0003_episode_row_ranges.sql")),
     (4, "catalog_indexes_and_counts", include_str!("../../migrations/postgres/0004_catalog_indexes_and_counts.sql")),
     (5, "episode_media", include_str!("../../migrations/postgres/0005_episode_media.sql")),
+    (6, "runs", include_str!("../../migrations/postgres/0006_runs.sql")),
     (7, "pending_objects", include_str!("../../migrations/postgres/0007_pending_objects.sql")),
 ];
 

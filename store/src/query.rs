@@ -43,6 +43,8 @@ pub struct EpisodeRecord {
     pub label_actor: String,
     pub label_updated_at: String,
     pub created_at: String,
+    /// The evaluation run that produced it (`Store::run`), if its ingest named one.
+    pub run_id: Option<String>,
 }
 
 /// Filters for listing episodes; `version: None` means the current state (latest labels).
@@ -125,7 +127,7 @@ impl Store {
         let mut sql = String::from(
             "SELECT e.id, e.policy, e.checkpoint, e.task, e.source_sha256, e.source_name, e.source_index, \
              e.length, e.tags, e.metadata, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
-             COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, ",
+             COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, e.run_id, ",
         );
         let mut conds: Vec<String> = Vec::new();
         // Label conditions go here, on `label_cols`' table.
@@ -309,5 +311,6 @@ fn episode_from_row(r: &sqlx::any::AnyRow) -> Result<EpisodeRecord, StoreError> 
         label_actor: r.s("label_actor")?,
         label_updated_at: r.s("label_updated_at")?,
         created_at: r.s("created_at")?,
+        run_id: r.os("run_id")?,
     })
 }

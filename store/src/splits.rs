@@ -100,6 +100,10 @@ impl Store {
         } else {
             ("off_policy", req.off_policy_from.clone())
         };
+        // Only what the checkpoint's policy did on its own: episodes of steered runs (best-of-N,
+        // guidance) are evaluations of the policy plus a verifier, not its on-policy rollouts.
+        let steered: std::collections::HashSet<String> =
+            sqlx::query("SELECT id FROM runs WHERE steering <> 'base'").fetch_all(&self.db().pool).await?.iter().map(|r| r.s("id")).collect::<Result<_, _>>()?;
         let mut members = Vec::new();
         for (p, c) in &sources {
             let eps = self
@@ -110,7 +114,9 @@ impl Store {
                     ..Default::default()
                 })
                 .await?;
-            members.extend(eps.into_iter().filter(|e| e.label != Label::Unknown));
+            members.extend(
+                eps.into_iter().filter(|e| e.label != Label::Unknown && !e.run_id.as_ref().is_some_and(|r| steered.contains(r))),
+            );
         }
         if let Some(cap) = req.max_episodes {
             if cap == 0 {

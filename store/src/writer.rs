@@ -75,6 +75,8 @@ pub struct IngestWriter {
     writer_id: String,
     /// Renews those records every third of the lease while this writer lives (gc.rs).
     lease_renewal: Option<tokio::task::JoinHandle<()>>,
+    /// The evaluation run every episode of this ingest belongs to (catalog `runs`).
+    run: Option<crate::RunInput>,
 }
 
 impl Drop for IngestWriter {
@@ -151,6 +153,7 @@ impl Store {
             max_row_group_bytes: steps::ROW_GROUP_MAX_BYTES,
             writer_id: format!("ingest-{}", uuid::Uuid::new_v4().simple()),
             lease_renewal: None,
+            run: None,
         })
     }
 
@@ -258,6 +261,14 @@ impl IngestWriter {
             .await?;
         self.media_paths.insert(file.sha256.clone(), path.clone());
         self.media.insert(file.sha256.clone(), (path, file.content_type.clone(), file.size_bytes as i64));
+        Ok(())
+    }
+
+    /// Marks every episode of this ingest as produced by `run` (checked now; its artifact, if any,
+    /// must exist when the ingest commits).
+    pub fn set_run(&mut self, run: crate::RunInput) -> Result<(), StoreError> {
+        run.validate()?;
+        self.run = Some(run);
         Ok(())
     }
 
@@ -406,6 +417,10 @@ impl IngestWriter {
         // Referenced from this commit on: no longer pending.
         sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(&self.writer_id).execute(&mut *tx).await?;
         ensure_checkpoint(&mut tx, &self.policy, &self.checkpoint, &now).await?;
+        let run_id = match &self.run {
+            Some(run) => Some(crate::runs::ensure_run(&mut tx, run, &now).await?),
+            None => None,
+        };
         let tasks: HashSet<&String> = self.episodes.iter().filter_map(|e| e.task.as_ref()).collect();
         insert_rows(
             &mut tx,
@@ -482,6 +497,7 @@ impl IngestWriter {
                     "ingest".into(),
                     now.as_str().into(),
                     now.as_str().into(),
+                    run_id.clone().into(),
                 ]
             })
             .collect();
@@ -491,7 +507,7 @@ impl IngestWriter {
             &[
                 "id", "policy", "checkpoint", "task", "source_sha256", "source_name", "source_index", "length",
                 "tags", "metadata", "data_file", "row_group", "row_offset", "row_count", "version_added", "label",
-                "label_source", "label_revision", "label_actor", "label_updated_at", "created_at",
+                "label_source", "label_revision", "label_actor", "label_updated_at", "created_at", "run_id",
             ],
             ep_rows,
             "",
@@ -608,7 +624,7 @@ pub(crate) async fn finish_version(
     .execute(&mut *tx)
     .await?;
     let rows = sqlx::query(
-        "SELECT e.id, e.policy, e.checkpoint, e.task, e.length, l.label, l.label_source, l.revision, \
+        "SELECT e.id, e.policy, e.checkpoint, e.task, e.length, l.label, l.label_source, l.revision, e.run_id, \
          e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
          COALESCE(e.row_count, e.length) AS row_count FROM version_labels l JOIN episodes e ON e.id = l.episode_id \
          WHERE l.version = $1 ORDER BY e.id",
@@ -617,7 +633,9 @@ pub(crate) async fn finish_version(
     .fetch_all(&mut *tx)
     .await?;
     let mut label_rows = Vec::with_capacity(rows.len());
+    let mut run_ids = Vec::with_capacity(rows.len());
     for r in &rows {
+        run_ids.push(r.os("run_id")?);
         label_rows.push(steps::LabelRow {
             episode_id: r.s("id")?,
             policy: r.s("policy")?,
@@ -635,6 +653,11 @@ pub(crate) async fn finish_version(
     }
     let frozen = label_rows.iter().map(|r| (r.policy.as_str(), r.checkpoint.as_str(), r.task.as_deref(), r.label));
     insert_version_counts(&mut tx, v, frozen).await?;
+    let by_run = label_rows
+        .iter()
+        .zip(&run_ids)
+        .map(|(r, run)| (r.policy.as_str(), r.checkpoint.as_str(), r.task.as_deref(), run.as_deref(), r.label));
+    crate::scoreboard::insert_version_run_counts(&mut tx, v, by_run).await?;
     let changed = sqlx::query(
         "SELECT COUNT(*) AS n FROM version_labels a JOIN version_labels b \
          ON b.episode_id = a.episode_id AND b.version = $2 WHERE a.version = $1 AND a.revision <> b.revision",

@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use crate::data::{build_samples, Episode, Fitted, InputSpec, Normalization, Samples, TimeEmbedTable};
 use crate::fast::{BatchSource, FastModel};
 use crate::loss::{objective, objective_host, LossConfig};
-use crate::metrics::{pearson, roc_auc};
+use crate::metrics::{calibration, pearson, roc_auc, Calibration};
 use crate::model::{Architecture, CandleModel, ExtraInput, Kind, ModelSpec, ParamSet, Variant};
 use crate::optim::{clip_grad_norm, linear_factor, AdamW, AdamWConfig};
 use verifier::ActionSpace;
@@ -209,6 +209,9 @@ pub struct Metrics {
     pub best_val_loss: Option<f64>,
     pub val_auc: Option<f64>,
     pub val_pearson: Option<f64>,
+    /// Classifier only: the best epoch's calibration on the split's held-out (val) samples.
+    #[serde(default)]
+    pub val_calibration: Option<Calibration>,
     pub final_train_loss: f64,
     pub epochs_run: usize,
     pub early_stopped: bool,
@@ -356,6 +359,8 @@ pub fn train_samples(
     let mut tgt = vec![0f32; bs];
     let mut grads = params.zeros_like();
     let mut best: Option<(f64, usize, ParamSet, EpochReport)> = None;
+    // The best epoch's calibration on val (kept beside `best`, not in every epoch's report).
+    let mut best_calibration: Option<Calibration> = None;
     let mut history = Vec::new();
     let mut since_best = 0usize;
     let mut early_stopped = false;
@@ -414,8 +419,8 @@ pub fn train_samples(
         last_train_loss = loss_sum / n as f64;
         let lr_now = cfg.optimizer.lr * linear_factor(opt.steps(), total_steps, 1.0, cfg.lr_end_factor);
 
-        let (val_loss, val_auc, val_pearson) = if va.is_empty() {
-            (None, None, None)
+        let (val_loss, val_auc, val_pearson, val_calibration) = if va.is_empty() {
+            (None, None, None, None)
         } else {
             let (y, loss) = evaluate(&mut engine, &params, &spec, &va, &va_target, &va_order, &temb, cfg)?;
             let labels: Vec<f32> = va_order.iter().map(|&i| va.label[i as usize]).collect();
@@ -426,7 +431,13 @@ pub fn train_samples(
             } else {
                 None
             };
-            (Some(loss), auc, pr)
+            let cal = if cfg.kind == Kind::Classifier {
+                let p: Vec<f64> = y.iter().map(|&l| 1.0 / (1.0 + (-(l as f64)).exp())).collect();
+                calibration(&p, &labels, 10)
+            } else {
+                None
+            };
+            (Some(loss), auc, pr, cal)
         };
         let sel = val_loss.unwrap_or(last_train_loss);
         let is_best = best.as_ref().is_none_or(|b| sel < b.0);
@@ -447,6 +458,7 @@ pub fn train_samples(
                 _ => params.clone(),
             };
             best = Some((sel, epoch, p, rep.clone()));
+            best_calibration = val_calibration;
             since_best = 0;
         } else {
             since_best += 1;
@@ -467,6 +479,7 @@ pub fn train_samples(
                 best_val_loss: Some(sel),
                 val_auc: rep.val_auc,
                 val_pearson: rep.val_pearson,
+                val_calibration: best_calibration.take(),
                 final_train_loss: last_train_loss,
                 epochs_run: history.len(),
                 early_stopped,

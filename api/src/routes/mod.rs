@@ -17,6 +17,7 @@ mod exports;
 mod infra;
 mod jobs;
 mod labels;
+mod scoreboard;
 mod splits;
 
 pub use admin::*;
@@ -27,6 +28,7 @@ pub use exports::*;
 pub use infra::*;
 pub use jobs::*;
 pub use labels::*;
+pub use scoreboard::*;
 pub use splits::*;
 
 use crate::auth::Caller;
@@ -66,6 +68,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
         .merge(infra::router())
         .merge(jobs::router())
         .merge(labels::router())
+        .merge(scoreboard::router())
         .merge(splits::router())
 }
 

@@ -1,0 +1,201 @@
+// The scoreboard page: GET /v1/scoreboard for a policy (and a baseline run), drawn as a table with
+// small SVG interval bars, and the same query's CSV and JSON as download links. It only reads.
+
+import { call, ApiError } from './api.js';
+
+const $ = (id) => document.getElementById(id);
+const SVG = 'http://www.w3.org/2000/svg';
+const W = 180;
+const H = 16;
+
+const q = (params) => {
+  const u = new URLSearchParams();
+  for (const [k, v] of Object.entries(params)) if (v !== undefined && v !== null && v !== '') u.set(k, v);
+  return u.toString();
+};
+
+function el(tag, attrs = {}, text) {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
+  if (text !== undefined) e.textContent = text;
+  return e;
+}
+
+function svg(tag, attrs) {
+  const e = document.createElementNS(SVG, tag);
+  for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, String(v));
+  return e;
+}
+
+/** A bar of [lo, hi] with a point at x on the axis [min, max]; a zero line when 0 is inside. */
+function intervalBar(lo, hi, x, min, max, color, title) {
+  const s = svg('svg', { width: W, height: H, viewBox: `0 0 ${W} ${H}`, class: 'ci' });
+  const px = (v) => 4 + ((v - min) / (max - min)) * (W - 8);
+  s.appendChild(svg('line', { x1: 4, x2: W - 4, y1: H / 2, y2: H / 2, stroke: '#e5e7eb', 'stroke-width': 1 }));
+  if (min < 0 && max > 0) s.appendChild(svg('line', { x1: px(0), x2: px(0), y1: 1, y2: H - 1, stroke: '#9ca3af', 'stroke-width': 1 }));
+  s.appendChild(svg('rect', { x: px(lo), y: 4, width: Math.max(1, px(hi) - px(lo)), height: H - 8, fill: color, 'fill-opacity': 0.35, class: 'ci-bar' }));
+  s.appendChild(svg('circle', { cx: px(x), cy: H / 2, r: 3, fill: color, class: 'ci-point' }));
+  const t = svg('title', {});
+  t.textContent = title;
+  s.appendChild(t);
+  return s;
+}
+
+const pct = (x) => (100 * x).toFixed(1);
+const pp = (x) => `${x >= 0 ? '+' : ''}${(100 * x).toFixed(1)}`;
+
+function render(sb) {
+  const body = $('rows').querySelector('tbody');
+  body.replaceChildren();
+  for (const r of sb.rows) {
+    const tr = el('tr', { 'data-run': r.run_name, 'data-checkpoint': r.checkpoint });
+    if (r.is_baseline) tr.classList.add('baseline');
+    const run = r.run;
+    const tags = run && run.tags.length ? ` (${run.tags.join(', ')})` : '';
+    const steering = !run ? '-' : run.steering.method === 'bon' ? `bon:${run.steering.n}`
+      : run.steering.method === 'base' ? 'base' : `${run.steering.method}:${run.steering.lambda}`;
+    const labeled = r.successes + r.failures;
+    for (const text of [r.checkpoint, r.task || '-', r.run_name + tags, steering, (run && run.artifact_id) || '-',
+      `${r.successes}/${labeled}`]) tr.appendChild(el('td', {}, text));
+    const rateTd = el('td', { class: 'rate' });
+    const rate = rateTd.appendChild(el('div', { class: 'cell' }));
+    if (r.rate !== null) {
+      rate.appendChild(el('span', { class: 'num' }, `${pct(r.rate)}% [${pct(r.wilson_95[0])}, ${pct(r.wilson_95[1])}]`));
+      rate.appendChild(intervalBar(r.wilson_95[0], r.wilson_95[1], r.rate, 0, 1, '#2563eb', `Wilson 95%: ${pct(r.wilson_95[0])}–${pct(r.wilson_95[1])}%`));
+    } else rate.textContent = 'no labels';
+    tr.appendChild(rateTd);
+    tr.appendChild(el('td', {}, String(r.unlabeled)));
+    const dTd = el('td', { class: 'diff' });
+    const d = dTd.appendChild(el('div', { class: 'cell' }));
+    const b = r.baseline;
+    if (b) {
+      const [lo, hi] = b.newcombe_95;
+      const color = lo > 0 ? '#16a34a' : hi < 0 ? '#dc2626' : '#6b7280';
+      d.appendChild(el('span', { class: 'num' }, `${pp(b.diff)} pp [${pp(lo)}, ${pp(hi)}]`));
+      d.appendChild(intervalBar(lo, hi, b.diff, -1, 1, color, `vs ${b.checkpoint}/${b.run_name}: Newcombe 95% ${pp(lo)} to ${pp(hi)} pp`));
+    } else d.textContent = r.is_baseline ? 'baseline' : '-';
+    tr.appendChild(dTd);
+    tr.appendChild(el('td', {}, b ? (b.rollouts_to_separate ?? '-').toString() : '-'));
+    tr.appendChild(el('td', {}, b ? (b.unlabeled_to_flip ?? 'none').toString() : '-'));
+    const vq = r.verifier_quality;
+    const num = (x) => (typeof x === 'number' ? x.toFixed(3) : '-');
+    tr.appendChild(el('td', {}, vq ? `${num(vq.auroc)} / ${num(vq.ece)}` : '-'));
+    body.appendChild(tr);
+  }
+  renderVerifiers(sb);
+  $('summary').textContent = `${sb.policy} at version ${sb.version}: ${sb.rows.length} rows, baseline run ${sb.baseline}` +
+    (sb.baseline_checkpoint ? ` of ${sb.baseline_checkpoint}` : ' of each row\'s checkpoint');
+}
+
+/** One reliability diagram per verifier the rows name (classifiers with calibration metrics). */
+function renderVerifiers(sb) {
+  const box = $('reliability');
+  box.replaceChildren();
+  const seen = new Set();
+  for (const r of sb.rows) {
+    const vq = r.verifier_quality;
+    if (!vq || seen.has(vq.artifact_id) || !Array.isArray(vq.reliability)) continue;
+    seen.add(vq.artifact_id);
+    const S = 180;
+    const pad = 24;
+    const px = (v) => pad + v * (S - pad - 6);
+    const py = (v) => S - pad - v * (S - pad - 6);
+    const fig = el('figure', { class: 'reliability' });
+    const s = svg('svg', { width: S, height: S, viewBox: `0 0 ${S} ${S}`, class: 'reliability', 'data-artifact': vq.artifact_id });
+    s.appendChild(svg('rect', { x: px(0), y: py(1), width: px(1) - px(0), height: py(0) - py(1), fill: '#f8fafc', stroke: '#d1d5db' }));
+    s.appendChild(svg('line', { x1: px(0), y1: py(0), x2: px(1), y2: py(1), stroke: '#9ca3af', 'stroke-dasharray': '3 3' }));
+    for (const t of [0, 0.5, 1]) {
+      const tx = svg('text', { x: px(t), y: S - 8, 'font-size': 10, 'text-anchor': 'middle', fill: '#6b7280' });
+      tx.textContent = String(t);
+      s.appendChild(tx);
+      const ty = svg('text', { x: 4, y: py(t) + 3, 'font-size': 10, fill: '#6b7280' });
+      ty.textContent = String(t);
+      s.appendChild(ty);
+    }
+    const total = vq.reliability.reduce((a, bin) => a + bin.count, 0) || 1;
+    for (const bin of vq.reliability) {
+      if (!bin.count) continue;
+      const c = svg('circle', { cx: px(bin.mean_predicted), cy: py(bin.fraction_positive), r: 2 + 6 * Math.sqrt(bin.count / total), fill: '#2563eb', 'fill-opacity': 0.7 });
+      const t = svg('title', {});
+      t.textContent = `${bin.count} samples: predicted ${bin.mean_predicted.toFixed(2)}, observed ${bin.fraction_positive.toFixed(2)}`;
+      c.appendChild(t);
+      s.appendChild(c);
+    }
+    fig.appendChild(s);
+    const num = (x) => (typeof x === 'number' ? x.toFixed(3) : '-');
+    fig.appendChild(el('figcaption', {}, `${vq.kind} ${vq.artifact_id.slice(0, 12)}: AUROC ${num(vq.auroc)}, accuracy ${num(vq.accuracy)}, Brier ${num(vq.brier)}, ECE ${num(vq.ece)} (${vq.val_samples} samples)`));
+    box.appendChild(fig);
+  }
+  $('verifiers').hidden = seen.size === 0;
+}
+
+function params() {
+  return {
+    policy: $('f-policy').value,
+    baseline: $('f-baseline').value,
+    baseline_checkpoint: $('f-baseline-checkpoint').value,
+    version: $('f-version').value,
+  };
+}
+
+function syncHash(p) {
+  history.replaceState(null, '', `#${q(p)}`);
+}
+
+async function load() {
+  const p = params();
+  syncHash(p);
+  document.body.dataset.ready = '';
+  $('error').textContent = '';
+  $('dl-csv').href = `/v1/scoreboard?${q({ ...p, format: 'csv' })}`;
+  $('dl-json').href = `/v1/scoreboard?${q(p)}`;
+  $('dl-csv').setAttribute('download', `scoreboard-${p.policy}.csv`);
+  $('dl-json').setAttribute('download', `scoreboard-${p.policy}.json`);
+  try {
+    const sb = await call('GET', `/v1/scoreboard?${q(p)}`);
+    // The choices of baseline: the runs and checkpoints the rows name.
+    const runs = [...new Set(sb.rows.map((r) => r.run_name))].sort();
+    const ckpts = [...new Set(sb.rows.map((r) => r.checkpoint))].sort();
+    fill($('f-baseline'), runs, sb.baseline);
+    fill($('f-baseline-checkpoint'), ckpts, sb.baseline_checkpoint || '', "each row's own");
+    render(sb);
+    window.ufopsScoreboard = sb;
+    document.body.dataset.ready = String(sb.version);
+  } catch (e) {
+    $('error').textContent = e instanceof ApiError ? e.message : String(e);
+    document.body.dataset.ready = 'error';
+  }
+}
+
+function fill(select, values, current, emptyLabel) {
+  select.replaceChildren();
+  if (emptyLabel !== undefined) select.appendChild(el('option', { value: '' }, emptyLabel));
+  const all = values.includes(current) || current === '' ? values : [current, ...values];
+  for (const v of all) select.appendChild(el('option', { value: v }, v));
+  select.value = current;
+}
+
+async function main() {
+  let me;
+  try {
+    me = await call('GET', '/ui/session');
+  } catch (e) {
+    $('need-signin').hidden = false;
+    return;
+  }
+  $('me').textContent = `${me.name} (${me.role})`;
+  $('board').hidden = false;
+  const hash = new URLSearchParams(location.hash.slice(1));
+  const policies = await call('GET', '/v1/policies');
+  const names = policies.map((p) => (typeof p === 'string' ? p : p.name));
+  const want = hash.get('policy') || names[0] || '';
+  fill($('f-policy'), names, want);
+  fill($('f-baseline'), [], hash.get('baseline') || 'base');
+  fill($('f-baseline-checkpoint'), [], hash.get('baseline_checkpoint') || '', "each row's own");
+  $('f-version').value = hash.get('version') || '';
+  for (const id of ['f-policy', 'f-baseline', 'f-baseline-checkpoint', 'f-version']) $(id).addEventListener('change', load);
+  $('controls').addEventListener('submit', (e) => { e.preventDefault(); load(); });
+  await load();
+}
+
+main();
