@@ -7,6 +7,16 @@ use common::*;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// A child killed when the test ends, also when an assertion fails (a worker left behind would
+/// go on training for hours).
+struct Killed(Child);
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
 fn sigterm_and_wait(child: &mut Child, within: Duration) -> std::process::ExitStatus {
     let status = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
     assert!(status.success());
@@ -38,7 +48,7 @@ fn sigterm_stops_gracefully_and_releases_the_running_job() {
     let id = r.json()["id"].as_str().unwrap().to_string();
     let job = || http(&url, "GET", &format!("/v1/jobs/{id}"), &[("Authorization", &auth)], None).json();
 
-    let mut worker = t.command().args(["worker", "--lease-ms", "3000"]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    let mut worker = Killed(t.command().args(["worker", "--lease-ms", "3000"]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap());
     let t0 = Instant::now();
     loop {
         let j = job();
@@ -48,7 +58,7 @@ fn sigterm_stops_gracefully_and_releases_the_running_job() {
         assert!(t0.elapsed() < Duration::from_secs(60), "the job never ran: {j}");
         std::thread::sleep(Duration::from_millis(100));
     }
-    let status = sigterm_and_wait(&mut worker, Duration::from_secs(15));
+    let status = sigterm_and_wait(&mut worker.0, Duration::from_secs(15));
     assert!(status.success(), "worker exit after SIGTERM: {status:?}");
     // Given back (an expired lease would leave it `running` until another worker claims it),
     // the attempt not counted.
