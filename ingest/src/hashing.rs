@@ -49,8 +49,12 @@ pub fn hash_bytes(bytes: &[u8]) -> String {
 }
 
 /// All regular files under `root`, as (relative path with `/`, absolute path), sorted.
-/// Hidden entries (`.git`, `.cache`, ...) are skipped.
+/// Hidden entries (`.git`, `.cache`, ...) are skipped. A symlink that resolves outside `root` is
+/// refused with an error naming it (a source may not pull in files from elsewhere, see
+/// [`crate::confine`]); a folder reached twice through symlinks (a loop) is walked once.
 pub fn list_files(root: &Path) -> Result<Vec<(String, PathBuf)>> {
+    let canon_root = std::fs::canonicalize(root).map_err(|e| IngestError::io(root, e))?;
+    let mut seen_dirs = std::collections::HashSet::from([canon_root.clone()]);
     let mut out = Vec::new();
     let mut stack = vec![root.to_path_buf()];
     while let Some(dir) = stack.pop() {
@@ -64,12 +68,26 @@ pub fn list_files(root: &Path) -> Result<Vec<(String, PathBuf)>> {
             let p = ent.path();
             let ft = ent.file_type().map_err(|e| IngestError::io(&p, e))?;
             let ft = if ft.is_symlink() {
+                let target = std::fs::canonicalize(&p).map_err(|e| IngestError::io(&p, e))?;
+                if !target.starts_with(&canon_root) {
+                    return Err(IngestError::invalid(
+                        &p,
+                        format!(
+                            "a symlink to {}, outside the source folder {}: refused (copy the files in instead)",
+                            target.display(),
+                            canon_root.display()
+                        ),
+                    ));
+                }
                 std::fs::metadata(&p).map_err(|e| IngestError::io(&p, e))?.file_type()
             } else {
                 ft
             };
             if ft.is_dir() {
-                stack.push(p);
+                let c = std::fs::canonicalize(&p).map_err(|e| IngestError::io(&p, e))?;
+                if seen_dirs.insert(c) {
+                    stack.push(p);
+                }
             } else if ft.is_file() {
                 let rel = p
                     .strip_prefix(root)
