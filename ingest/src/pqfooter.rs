@@ -73,7 +73,8 @@ pub fn check_pages<R: ChunkReader>(r: &R, meta: &parquet::file::metadata::Parque
 
 /// (header length, uncompressed_page_size, compressed_page_size) of the page header at `pos`.
 fn read_page_header<R: ChunkReader>(r: &R, pos: u64, end: u64) -> Result<(u64, i64, i64), String> {
-    let mut want = (end - pos).min(64 << 10);
+    // most headers are tens of bytes (more with statistics): start small, grow when cut off
+    let mut want = (end - pos).min(1 << 10);
     loop {
         let buf = r.get_bytes(pos, want as usize).map_err(|e| format!("cannot read it: {e}"))?;
         let mut w = Walker { buf: &buf, pos: 0 };
