@@ -142,3 +142,32 @@ pub fn hash_path_progress(path: &Path, progress: Option<&AtomicU64>) -> Result<(
         hash_file_progress(path, progress)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A symlink loop inside the folder is walked once (it used to be walked forever), and a
+    /// symlink inside that stays inside is followed.
+    #[test]
+    fn symlink_loops_end_and_inner_links_are_followed() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(d.path().join("data")).unwrap();
+        std::fs::write(d.path().join("data/a.parquet"), b"a").unwrap();
+        std::os::unix::fs::symlink(d.path(), d.path().join("data/loop")).unwrap();
+        std::os::unix::fs::symlink(d.path().join("data/a.parquet"), d.path().join("b.parquet")).unwrap();
+        let files: Vec<String> = list_files(d.path()).unwrap().into_iter().map(|(r, _)| r).collect();
+        assert_eq!(files, ["b.parquet", "data/a.parquet"]);
+    }
+
+    #[test]
+    fn symlinks_out_of_the_folder_are_refused() {
+        let outside = tempfile::tempdir().unwrap();
+        std::fs::write(outside.path().join("id_ed25519"), b"secret").unwrap();
+        let d = tempfile::tempdir().unwrap();
+        std::os::unix::fs::symlink(outside.path().join("id_ed25519"), d.path().join("video.mp4")).unwrap();
+        let e = list_files(d.path()).unwrap_err().to_string();
+        assert!(e.contains("video.mp4") && e.contains("outside the source folder"), "{e}");
+        assert!(hash_path(d.path()).is_err());
+    }
+}
