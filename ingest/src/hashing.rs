@@ -49,8 +49,12 @@ pub fn hash_bytes(bytes: &[u8]) -> String {
 }
 
 /// All regular files under `root`, as (relative path with `/`, absolute path), sorted.
-/// Hidden entries (`.git`, `.cache`, ...) are skipped.
+/// Hidden entries (`.git`, `.cache`, ...) are skipped. A symlink that resolves outside `root` is
+/// refused with an error naming it (a source may not pull in files from elsewhere, see
+/// [`crate::confine`]); a folder reached twice through symlinks (a loop) is walked once.
 pub fn list_files(root: &Path) -> Result<Vec<(String, PathBuf)>> {
+    let canon_root = std::fs::canonicalize(root).map_err(|e| IngestError::io(root, e))?;
+    let mut seen_dirs = std::collections::HashSet::from([canon_root.clone()]);
     let mut out = Vec::new();
     let mut stack = vec![root.to_path_buf()];
     while let Some(dir) = stack.pop() {
@@ -64,12 +68,26 @@ pub fn list_files(root: &Path) -> Result<Vec<(String, PathBuf)>> {
             let p = ent.path();
             let ft = ent.file_type().map_err(|e| IngestError::io(&p, e))?;
             let ft = if ft.is_symlink() {
+                let target = std::fs::canonicalize(&p).map_err(|e| IngestError::io(&p, e))?;
+                if !target.starts_with(&canon_root) {
+                    return Err(IngestError::invalid(
+                        &p,
+                        format!(
+                            "a symlink to {}, outside the source folder {}: refused (copy the files in instead)",
+                            target.display(),
+                            canon_root.display()
+                        ),
+                    ));
+                }
                 std::fs::metadata(&p).map_err(|e| IngestError::io(&p, e))?.file_type()
             } else {
                 ft
             };
             if ft.is_dir() {
-                stack.push(p);
+                let c = std::fs::canonicalize(&p).map_err(|e| IngestError::io(&p, e))?;
+                if seen_dirs.insert(c) {
+                    stack.push(p);
+                }
             } else if ft.is_file() {
                 let rel = p
                     .strip_prefix(root)
@@ -122,5 +140,34 @@ pub fn hash_path_progress(path: &Path, progress: Option<&AtomicU64>) -> Result<(
         hash_folder_progress(path, progress)
     } else {
         hash_file_progress(path, progress)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A symlink loop inside the folder is walked once (it used to be walked forever), and a
+    /// symlink inside that stays inside is followed.
+    #[test]
+    fn symlink_loops_end_and_inner_links_are_followed() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(d.path().join("data")).unwrap();
+        std::fs::write(d.path().join("data/a.parquet"), b"a").unwrap();
+        std::os::unix::fs::symlink(d.path(), d.path().join("data/loop")).unwrap();
+        std::os::unix::fs::symlink(d.path().join("data/a.parquet"), d.path().join("b.parquet")).unwrap();
+        let files: Vec<String> = list_files(d.path()).unwrap().into_iter().map(|(r, _)| r).collect();
+        assert_eq!(files, ["b.parquet", "data/a.parquet"]);
+    }
+
+    #[test]
+    fn symlinks_out_of_the_folder_are_refused() {
+        let outside = tempfile::tempdir().unwrap();
+        std::fs::write(outside.path().join("id_ed25519"), b"secret").unwrap();
+        let d = tempfile::tempdir().unwrap();
+        std::os::unix::fs::symlink(outside.path().join("id_ed25519"), d.path().join("video.mp4")).unwrap();
+        let e = list_files(d.path()).unwrap_err().to_string();
+        assert!(e.contains("video.mp4") && e.contains("outside the source folder"), "{e}");
+        assert!(hash_path(d.path()).is_err());
     }
 }

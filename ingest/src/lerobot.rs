@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 
 use arrow::array::{Array, ArrayRef, AsArray, RecordBatch};
 use arrow::datatypes::{DataType, Float32Type, Float64Type, Int64Type};
-use parquet::arrow::arrow_reader::{ArrowReaderOptions, ParquetRecordBatchReaderBuilder};
+use parquet::arrow::arrow_reader::{ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReaderBuilder};
 use parquet::file::reader::ChunkReader;
 use serde_json::{json, Map, Value};
 
@@ -124,15 +124,20 @@ pub fn parse_info(path: &Path, bytes: &[u8]) -> Result<Info> {
     })
 }
 
+/// Widest zero padding a template may ask for (a u64 has 20 digits): `{episode_index:0999999999d}`
+/// would otherwise allocate a GB-long path.
+const MAX_TEMPLATE_WIDTH: usize = 32;
+
 /// Fills a LeRobot path template such as `data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet`.
-pub fn fill_template(t: &str, vars: &[(&str, &str, u64)]) -> String {
+/// The result is untrusted: callers confine it to the dataset with [`crate::confine::Root::file`].
+pub fn fill_template(t: &str, vars: &[(&str, &str, u64)]) -> std::result::Result<String, String> {
     let mut out = String::new();
     let mut rest = t;
     while let Some(i) = rest.find('{') {
         out.push_str(&rest[..i]);
         let Some(j) = rest[i..].find('}') else {
             out.push_str(&rest[i..]);
-            return out;
+            return Ok(out);
         };
         let inner = &rest[i + 1..i + j];
         let (name, fmt) = inner.split_once(':').unwrap_or((inner, ""));
@@ -143,6 +148,9 @@ pub fn fill_template(t: &str, vars: &[(&str, &str, u64)]) -> String {
                     out.push_str(s);
                 } else {
                     let width: usize = fmt.trim_start_matches('0').trim_end_matches('d').parse().unwrap_or(0);
+                    if width > MAX_TEMPLATE_WIDTH {
+                        return Err(format!("{{{inner}}} asks for a width of {width} digits (at most {MAX_TEMPLATE_WIDTH})"));
+                    }
                     out.push_str(&format!("{:0width$}", v, width = width));
                 }
                 done = true;
@@ -154,7 +162,29 @@ pub fn fill_template(t: &str, vars: &[(&str, &str, u64)]) -> String {
         rest = &rest[i + j + 1..];
     }
     out.push_str(rest);
-    out
+    Ok(out)
+}
+
+/// Largest metadata files read whole (`meta/info.json`, `meta/*.jsonl`): far above real ones
+/// (a v2.1 `episodes.jsonl` of 100,000 episodes is ~20 MB), so that a huge one is refused instead
+/// of being loaded.
+const MAX_INFO_BYTES: u64 = 16 << 20;
+const MAX_JSONL_BYTES: u64 = 512 << 20;
+
+/// A metadata file read whole, refused when larger than `max` bytes.
+fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let f = std::fs::File::open(path).map_err(|e| IngestError::io(path, e))?;
+    let len = f.metadata().map_err(|e| IngestError::io(path, e))?.len();
+    if len > max {
+        return Err(IngestError::invalid(path, format!("metadata file of {len} bytes (at most {max} are read): refused")));
+    }
+    let mut out = Vec::with_capacity(len as usize);
+    f.take(max + 1).read_to_end(&mut out).map_err(|e| IngestError::io(path, e))?;
+    if out.len() as u64 > max {
+        return Err(IngestError::invalid(path, format!("metadata file grew past {max} bytes while read: refused")));
+    }
+    Ok(out)
 }
 
 #[derive(Debug, Clone, Default)]
@@ -177,7 +207,8 @@ struct EpisodeMeta {
 }
 
 fn read_jsonl(path: &Path) -> Result<Vec<Value>> {
-    let text = std::fs::read_to_string(path).map_err(|e| IngestError::io(path, e))?;
+    let text = String::from_utf8(read_bounded(path, MAX_JSONL_BYTES)?)
+        .map_err(|e| IngestError::invalid(path, format!("not UTF-8 text: {e}")))?;
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate() {
         if line.trim().is_empty() {
@@ -215,31 +246,20 @@ pub(crate) fn guarded<T>(path: &Path, f: impl FnOnce() -> Result<T>) -> Result<T
 }
 
 fn checked_builder_inner<R: ChunkReader + 'static>(path: &Path, r: R) -> Result<ParquetRecordBatchReaderBuilder<R>> {
-    let len = r.len();
+    let bad = |e: String| IngestError::invalid(path, format!("not a readable Parquet file: {e}"));
     // The parquet crate trusts the element counts in the footer when it allocates: check them first.
-    crate::pqfooter::check(&r).map_err(|e| IngestError::invalid(path, format!("not a readable Parquet file: {e}")))?;
+    crate::pqfooter::check(&r).map_err(bad)?;
+    let meta = parquet::file::metadata::ParquetMetaDataReader::new()
+        .parse_and_finish(&r)
+        .map_err(|e| bad(e.to_string()))?;
+    // ... and the page sizes the page headers declare (the decompression buffers' sizes); this
+    // also checks that every column chunk lies inside the file.
+    crate::pqfooter::check_pages(&r, &meta).map_err(|e| IngestError::invalid(path, format!("corrupt Parquet data: {e}")))?;
     // The embedded Arrow schema (IPC flatbuffer in the footer) is skipped: the schema derived from
     // the Parquet types is enough here, and arrow-ipc panics on some corrupt ones (fuzzing).
     let opts = ArrowReaderOptions::new().with_skip_arrow_metadata(true);
-    let b = ParquetRecordBatchReaderBuilder::try_new_with_options(r, opts)
-        .map_err(|e| IngestError::invalid(path, format!("not a readable Parquet file: {e}")))?;
-    for (g, rg) in b.metadata().row_groups().iter().enumerate() {
-        for c in rg.columns() {
-            let start = c.dictionary_page_offset().unwrap_or(c.data_page_offset());
-            let size = c.compressed_size();
-            let ok = start >= 0
-                && size >= 0
-                && c.data_page_offset() >= 0
-                && (start as u64).checked_add(size as u64).map(|e| e <= len).unwrap_or(false);
-            if !ok {
-                return Err(IngestError::invalid(
-                    path,
-                    format!("corrupt Parquet footer: row group {g}, column {} has byte range {start}+{size} outside the {len}-byte file", c.column_path()),
-                ));
-            }
-        }
-    }
-    Ok(b)
+    let meta = ArrowReaderMetadata::try_new(std::sync::Arc::new(meta), opts).map_err(|e| bad(e.to_string()))?;
+    Ok(ParquetRecordBatchReaderBuilder::new_with_metadata(r, meta))
 }
 
 /// All record batches of a (small) Parquet file.
@@ -370,13 +390,15 @@ fn list_strings(a: &ArrayRef) -> Option<Vec<Vec<String>>> {
     }
 }
 
-fn load_tasks(root: &Path, info: &Info) -> Result<HashMap<i64, String>> {
+fn load_tasks(confine: &crate::confine::Root, info: &Info) -> Result<HashMap<i64, String>> {
+    let root = confine.dir();
     let mut tasks = HashMap::new();
     if info.is_v3() {
         let p = root.join("meta/tasks.parquet");
         if !p.exists() {
             return Ok(tasks);
         }
+        confine.check_inside(&p, "meta/tasks.parquet")?;
         for b in open_parquet(&p)? {
             let idx = col(&b, "task_index")
                 .ok_or_else(|| IngestError::invalid(&p, "no task_index column"))?;
@@ -397,6 +419,7 @@ fn load_tasks(root: &Path, info: &Info) -> Result<HashMap<i64, String>> {
         if !p.exists() {
             return Ok(tasks);
         }
+        confine.check_inside(&p, "meta/tasks.jsonl")?;
         for v in read_jsonl(&p)? {
             if let (Some(i), Some(t)) = (v.get("task_index").and_then(|x| x.as_i64()), v.get("task").and_then(|x| x.as_str())) {
                 tasks.insert(i, t.to_string());
@@ -406,12 +429,17 @@ fn load_tasks(root: &Path, info: &Info) -> Result<HashMap<i64, String>> {
     Ok(tasks)
 }
 
-fn load_episodes(root: &Path, info: &Info) -> Result<Vec<EpisodeMeta>> {
+fn load_episodes(confine: &crate::confine::Root, info: &Info) -> Result<Vec<EpisodeMeta>> {
+    let root = confine.dir();
     let mut eps = Vec::new();
     if info.is_v3() {
         let dir = root.join("meta/episodes");
+        confine.check_inside(&dir, "meta/episodes")?;
         let mut files: Vec<PathBuf> = crate::hashing::list_files(&dir)
-            .map_err(|_| IngestError::invalid(&dir, "missing: a v3.0 dataset needs meta/episodes/chunk-*/file-*.parquet"))?
+            .map_err(|e| match e {
+                IngestError::Io { .. } => IngestError::invalid(&dir, "missing: a v3.0 dataset needs meta/episodes/chunk-*/file-*.parquet"),
+                refused => refused,
+            })?
             .into_iter()
             .filter(|(r, _)| r.ends_with(".parquet"))
             .map(|(_, p)| p)
@@ -485,6 +513,7 @@ fn load_episodes(root: &Path, info: &Info) -> Result<Vec<EpisodeMeta>> {
         if !p.exists() {
             return Err(IngestError::invalid(&p, "missing: a v2.1 dataset needs meta/episodes.jsonl"));
         }
+        confine.check_inside(&p, "meta/episodes.jsonl")?;
         for v in read_jsonl(&p)? {
             let idx = v
                 .get("episode_index")
@@ -719,6 +748,8 @@ fn png_shape(png: &[u8]) -> Option<[usize; 3]> {
 
 struct Ctx<'a> {
     root: &'a Path,
+    confine: &'a crate::confine::Root,
+    info_path: &'a Path,
     info: &'a Info,
     plan: &'a Plan,
     tasks: &'a HashMap<i64, String>,
@@ -741,6 +772,7 @@ impl Ctx<'_> {
             Some(v) => (v.chunk_index, v.file_index, v.from_timestamp),
             None => (episode_index / self.info.chunks_size, 0, 0.0),
         };
+        let field = format!("`video_path` template {tpl:?} (feature {key:?}, episode {episode_index})");
         let rel = fill_template(
             &tpl,
             &[
@@ -750,11 +782,13 @@ impl Ctx<'_> {
                 ("episode_chunk", "", episode_index / self.info.chunks_size),
                 ("episode_index", "", episode_index),
             ],
-        );
-        let abs = self.root.join(&rel);
+        )
+        .map_err(|m| IngestError::invalid(self.info_path, format!("{field}: {m}")))?;
+        let abs = self.confine.join(self.info_path, &field, &rel)?;
         if let Some(m) = self.emitted_media.get(&abs) {
             return Ok((m.clone(), from));
         }
+        self.confine.check_inside(&abs, &field)?;
         if !abs.is_file() {
             return Err(IngestError::invalid(&abs, format!("missing video file for feature {key}, episode {episode_index}")));
         }
@@ -784,7 +818,7 @@ impl Ctx<'_> {
                 return Err(IngestError::invalid(path, format!("episode {e} has {} rows but dataset_from_index..dataset_to_index is {f}..{t}", b.rows)));
             }
             if let (Some(first), Some(last)) = (b.global_index.first(), b.global_index.last()) {
-                if *first as u64 != f || (*last + 1) as u64 != t {
+                if u64::try_from(*first).ok() != Some(f) || u64::try_from(*last).ok().and_then(|l| l.checked_add(1)) != Some(t) {
                     return Err(IngestError::invalid(path, format!("episode {e}: index column {first}..={last} does not match dataset_from_index..dataset_to_index {f}..{t}")));
                 }
             }
@@ -872,21 +906,22 @@ impl Ctx<'_> {
 }
 
 /// Reads a LeRobot dataset folder.
+///
+/// Every path the dataset's metadata names is confined to `root` ([`crate::confine`]).
 pub fn read_dir(root: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<()> {
+    let confine = crate::confine::Root::new(root)?;
     let info_path = root.join("meta/info.json");
-    let bytes = match std::fs::read(&info_path) {
-        Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            return Err(IngestError::invalid(&info_path, "missing: not a LeRobot dataset (no meta/info.json)"));
-        }
-        Err(e) => return Err(IngestError::io(&info_path, e)),
-    };
+    if !info_path.exists() {
+        return Err(IngestError::invalid(&info_path, "missing: not a LeRobot dataset (no meta/info.json)"));
+    }
+    confine.check_inside(&info_path, "meta/info.json")?;
+    let bytes = read_bounded(&info_path, MAX_INFO_BYTES)?;
     let info = parse_info(&info_path, &bytes)?;
     if info.feature("action").is_none() {
         return Err(IngestError::invalid(&info_path, "no `action` feature"));
     }
-    let tasks = load_tasks(root, &info)?;
-    let episodes = load_episodes(root, &info)?;
+    let tasks = load_tasks(&confine, &info)?;
+    let episodes = load_episodes(&confine, &info)?;
     if let Some(t) = info.total_episodes {
         if t as usize != episodes.len() {
             return Err(IngestError::invalid(
@@ -918,6 +953,7 @@ pub fn read_dir(root: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> 
     // Data files in episode order.
     let mut files: Vec<(PathBuf, Vec<u64>)> = Vec::new();
     for ep in &episodes {
+        let field = format!("`data_path` template {:?} (episode {})", info.data_path, ep.episode_index);
         let rel = fill_template(
             &info.data_path,
             &[
@@ -926,15 +962,21 @@ pub fn read_dir(root: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> 
                 ("episode_chunk", "", ep.data_chunk),
                 ("episode_index", "", ep.episode_index),
             ],
-        );
-        let abs = root.join(rel);
+        )
+        .map_err(|m| IngestError::invalid(&info_path, format!("{field}: {m}")))?;
+        let abs = confine.join(&info_path, &field, &rel)?;
         match files.last_mut() {
             Some((p, v)) if *p == abs => v.push(ep.episode_index),
-            _ => files.push((abs, vec![ep.episode_index])),
+            _ => {
+                confine.check_inside(&abs, &field)?;
+                files.push((abs, vec![ep.episode_index]))
+            }
         }
     }
     let mut ctx = Ctx {
         root,
+        confine: &confine,
+        info_path: &info_path,
         info: &info,
         plan: &plan,
         tasks: &tasks,

@@ -8,11 +8,18 @@
 //! * the async glue ([`ingest`]) runs a reader on a blocking thread, hashes the source on another,
 //!   and forwards everything to the store's `IngestWriter` through a bounded channel, committing
 //!   once at the end (all or nothing).
+//!
+//! Sources are untrusted: [`confine`] keeps every path a source's metadata names inside it, and
+//! the readers check every declared size against the file's size and a cap before allocating
+//! (see the README, *Sources are untrusted*); [`hostile`] generates the corpus of hostile sources
+//! the tests run.
 
+pub mod confine;
 pub mod dvalue;
 pub mod error;
 pub mod fuzzing;
 pub mod hashing;
+pub mod hostile;
 pub mod lerobot;
 pub mod mapping;
 pub mod mcapfmt;

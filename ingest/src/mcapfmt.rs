@@ -28,9 +28,17 @@ use crate::sink::{EpisodeSink, SourceMeta};
 /// complete (tolerates slightly out-of-order chunks).
 const GRACE_NS: u64 = 2_000_000_000;
 
-/// Largest believable compression ratio / size of one chunk.
-const MAX_CHUNK_RATIO: u64 = 4096;
-const MAX_CHUNK_BYTES: u64 = 4 << 30;
+/// Largest believable compression ratio / decompressed size of one chunk. A chunk is decompressed
+/// whole, so its declared `uncompressed_size` is checked against both before anything is
+/// allocated (writers cut chunks at a few MB: the mcap CLI and rosbag2 at 4 MiB, a chunk holding
+/// one big message is that message's size).
+pub const MAX_CHUNK_RATIO: u64 = 4096;
+pub const MAX_CHUNK_BYTES: u64 = 256 << 20;
+
+/// Largest message decoded on a mapped topic (actions, observations, rewards, episode events are
+/// small vectors): decoding expands a message up to ~30 times (one `DValue` per list element),
+/// so a huge one is refused instead.
+pub const MAX_MAPPED_MESSAGE_BYTES: usize = 8 << 20;
 
 /// What a linear read of an MCAP file saw.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -123,7 +131,7 @@ fn unpack_chunk(
         let max = (data.len() as u64).saturating_mul(MAX_CHUNK_RATIO).saturating_add(1 << 16).min(MAX_CHUNK_BYTES);
         if header.uncompressed_size > max {
             return Err(bad(format!(
-                "claims {} uncompressed bytes from {} compressed bytes (more than {max}): corrupt header",
+                "claims {} uncompressed bytes from {} compressed bytes (more than {max}: at most {MAX_CHUNK_RATIO}:1 and {MAX_CHUNK_BYTES} bytes): refused",
                 header.uncompressed_size,
                 data.len()
             )));
@@ -550,6 +558,12 @@ impl<'a> Assembler<'a> {
             Some(Err(e)) => return Err(IngestError::invalid(&path, format!("topic {topic}: {e}"))),
             None => unreachable!("channel checked above"),
         };
+        if data.len() > MAX_MAPPED_MESSAGE_BYTES {
+            return Err(IngestError::invalid(
+                &path,
+                format!("topic {topic}, message at log time {t}: {} bytes, more than the {MAX_MAPPED_MESSAGE_BYTES} decoded on a mapped topic: refused", data.len()),
+            ));
+        }
         let v = dec.decode(data).map_err(|e| IngestError::invalid(&path, format!("topic {topic}, message at log time {t}: {e}")))?;
         let to_f32 = |x: Vec<f64>| x.into_iter().map(|v| v as f32).collect::<Vec<f32>>();
         let mut first = true;
@@ -640,7 +654,7 @@ impl<'a> Assembler<'a> {
 
     fn emit(&mut self, p: PendingEp, sink: &mut dyn EpisodeSink) -> Result<()> {
         let index = p.index.unwrap_or(self.next_index);
-        self.next_index = self.next_index.max(index + 1);
+        self.next_index = self.next_index.max(index.saturating_add(1));
         let mut samples: Vec<&Sample> = self.buf.iter().filter(|s| s.t >= p.start && s.t <= p.end).collect();
         samples.sort_by_key(|s| s.t);
         let mut counts: BTreeMap<String, u64> = BTreeMap::new();

@@ -8,11 +8,89 @@
 //! (each element takes at least one byte), lists hold at most [`MAX_LIST`] elements, nesting is
 //! bounded, and the whole structure must end inside the footer. A footer that passes can only
 //! make the parquet crate allocate in proportion to its real size.
+//!
+//! [`check_pages`] then walks the page headers of every column chunk the footer lists: the parquet
+//! crate sizes a page's decompression buffer from the header's `uncompressed_page_size` (snappy
+//! zero-fills it: a 100-byte page declaring 2 GB makes the process touch 2 GB). Each page must lie
+//! inside its column chunk and declare at most [`MAX_PAGE_RATIO`] times its compressed size (plus
+//! [`PAGE_SLACK`]) and at most [`MAX_PAGE_BYTES`].
 
 use parquet::file::reader::ChunkReader;
 
 /// More elements than any real footer list holds (row groups, columns, schema elements, …).
 pub const MAX_LIST: u64 = 1 << 20;
+
+/// Largest believable ratio of a page's declared uncompressed size to its compressed size
+/// (snappy cannot pass ~22:1, gzip 1032:1; zstd of constant data can, hence the margin).
+pub const MAX_PAGE_RATIO: u64 = 4096;
+/// Declared uncompressed bytes allowed on top of the ratio (tiny pages, v2 level bytes).
+pub const PAGE_SLACK: u64 = 1 << 20;
+/// Largest declared uncompressed page (writers cut pages at ~1 MB; a page holding one large
+/// binary value is that value's size).
+pub const MAX_PAGE_BYTES: u64 = 256 << 20;
+/// Largest page header read (headers hold statistics: min/max values of the page).
+const MAX_PAGE_HEADER: u64 = 16 << 20;
+
+/// Checks the page headers of every column chunk of `meta` (see the module doc); the error names
+/// the row group, the column and the sizes.
+pub fn check_pages<R: ChunkReader>(r: &R, meta: &parquet::file::metadata::ParquetMetaData) -> Result<(), String> {
+    let len = r.len();
+    for (g, rg) in meta.row_groups().iter().enumerate() {
+        for c in rg.columns() {
+            let col = c.column_path().string();
+            let start = c.dictionary_page_offset().unwrap_or(c.data_page_offset());
+            let size = c.compressed_size();
+            let (Ok(start), Ok(size)) = (u64::try_from(start), u64::try_from(size)) else {
+                return Err(format!("row group {g}, column {col}: negative byte range {start}+{size}"));
+            };
+            let end = start.checked_add(size).filter(|&e| e <= len).ok_or_else(|| {
+                format!("row group {g}, column {col}: byte range {start}+{size} outside the {len}-byte file")
+            })?;
+            let mut pos = start;
+            let mut page = 0usize;
+            while pos < end {
+                let (hlen, unc, comp) = read_page_header(r, pos, end)
+                    .map_err(|e| format!("row group {g}, column {col}, page {page} at byte {pos}: corrupt page header: {e}"))?;
+                let (Ok(unc), Ok(comp)) = (u64::try_from(unc), u64::try_from(comp)) else {
+                    return Err(format!("row group {g}, column {col}, page {page}: negative page sizes ({unc} uncompressed, {comp} compressed)"));
+                };
+                let next = pos.checked_add(hlen).and_then(|p| p.checked_add(comp)).filter(|&p| p <= end).ok_or_else(|| {
+                    format!("row group {g}, column {col}, page {page} at byte {pos}: {comp} compressed bytes run past the column chunk's end at byte {end}")
+                })?;
+                let max = comp.saturating_mul(MAX_PAGE_RATIO).saturating_add(PAGE_SLACK).min(MAX_PAGE_BYTES);
+                if unc > max {
+                    return Err(format!(
+                        "row group {g}, column {col}, page {page}: declares {unc} uncompressed bytes from {comp} compressed bytes (at most {max}: {MAX_PAGE_RATIO}:1 and {MAX_PAGE_BYTES} bytes): refused"
+                    ));
+                }
+                pos = next;
+                page += 1;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// (header length, uncompressed_page_size, compressed_page_size) of the page header at `pos`.
+fn read_page_header<R: ChunkReader>(r: &R, pos: u64, end: u64) -> Result<(u64, i64, i64), String> {
+    // most headers are tens of bytes (more with statistics): start small, grow when cut off
+    let mut want = (end - pos).min(1 << 10);
+    loop {
+        let buf = r.get_bytes(pos, want as usize).map_err(|e| format!("cannot read it: {e}"))?;
+        let mut w = Walker { buf: &buf, pos: 0 };
+        match w.page_header() {
+            Ok((unc, comp)) => return Ok((w.pos as u64, unc, comp)),
+            Err(e) if w.pos >= buf.len() || e.contains("left") || e == "unexpected end" => {
+                let more = (want * 8).min(end - pos).min(MAX_PAGE_HEADER);
+                if more <= want {
+                    return Err(e);
+                }
+                want = more;
+            }
+            Err(e) => return Err(e),
+        }
+    }
+}
 const MAX_DEPTH: usize = 64;
 
 /// Checks the footer of the Parquet file `r`; the error says what is wrong.
@@ -146,6 +224,31 @@ impl Walker<'_> {
         }
     }
 
+    /// A PageHeader struct: its `uncompressed_page_size` (field 2) and `compressed_page_size`
+    /// (field 3); other fields are skipped.
+    fn page_header(&mut self) -> Result<(i64, i64), String> {
+        let (mut unc, mut comp) = (None, None);
+        let mut id: i64 = 0;
+        loop {
+            let h = self.byte()?;
+            if h == 0 {
+                break;
+            }
+            let t = h & 0x0f;
+            id = if h >> 4 == 0 { zigzag(self.varint()?) } else { id + (h >> 4) as i64 };
+            match (id, t) {
+                (2, I32) => unc = Some(zigzag(self.varint()?)),
+                (3, I32) => comp = Some(zigzag(self.varint()?)),
+                (_, BOOL_TRUE | BOOL_FALSE) => {}
+                _ => self.value(t, 1)?,
+            }
+        }
+        match (unc, comp) {
+            (Some(u), Some(c)) => Ok((u, c)),
+            _ => Err("no uncompressed_page_size/compressed_page_size".into()),
+        }
+    }
+
     fn structure(&mut self, depth: usize) -> Result<(), String> {
         if depth > MAX_DEPTH {
             return Err("nested too deeply".into());
@@ -167,6 +270,10 @@ impl Walker<'_> {
             }
         }
     }
+}
+
+fn zigzag(v: u64) -> i64 {
+    ((v >> 1) as i64) ^ -((v & 1) as i64)
 }
 
 #[cfg(test)]

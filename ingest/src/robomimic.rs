@@ -34,6 +34,74 @@ const METADATA_CACHE_BYTES: usize = 8 << 20;
 /// copied into episode metadata; their sha256 and length are kept instead.
 const MAX_ATTR_CHARS: usize = 4096;
 
+/// Decoded size of one dataset that is believed whatever the file's size (small datasets
+/// holding only the fill value cost nothing to allow).
+const DECLARED_BYTES_FLOOR: u64 = 1 << 20;
+
+/// Largest believable ratio of a dataset's decoded size to the file's size: deflate, the
+/// strongest filter robomimic files use, cannot exceed 1032:1.
+pub const MAX_DECLARED_RATIO: u64 = 1100;
+
+/// Largest decoded size of one dataset, whatever the file's size: a demo is decoded whole, so
+/// this bounds memory (a 2,000-step demo of 480x640 RGB frames is 1.8 GB).
+pub const MAX_DATASET_BYTES: u64 = 2 << 30;
+
+/// The file being read: its path (errors name it) and how many decoded bytes one of its
+/// datasets may declare. Derefs to the path.
+struct Src<'a> {
+    path: &'a Path,
+    file_len: u64,
+}
+
+impl Src<'_> {
+    fn new(path: &Path, file_len: u64) -> Src<'_> {
+        Src { path, file_len }
+    }
+
+    /// What one dataset may declare: the file's size times [`MAX_DECLARED_RATIO`] (at least
+    /// [`DECLARED_BYTES_FLOOR`]), never more than [`MAX_DATASET_BYTES`].
+    fn max_dataset_bytes(&self) -> u64 {
+        self.file_len.saturating_mul(MAX_DECLARED_RATIO).max(DECLARED_BYTES_FLOOR).min(MAX_DATASET_BYTES)
+    }
+}
+
+impl std::ops::Deref for Src<'_> {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        self.path
+    }
+}
+
+impl AsRef<Path> for Src<'_> {
+    fn as_ref(&self) -> &Path {
+        self.path
+    }
+}
+
+/// Refuses a dataset whose declared shape x element size (computed with checked arithmetic)
+/// is more than the file can hold: a chunked dataset whose chunks were never written, or a
+/// corrupt dataspace, would otherwise make a read allocate and fill that many bytes (a 12 kB file
+/// declaring 10 GB). Called before every read of a dataset.
+fn check_declared(ds: &Dataset, path: &Src, what: &str, shape: &[u64]) -> Result<u64> {
+    let elem = ds.element_size().map_err(h5err(path, format!("cannot read the datatype of {what}")))?;
+    let impossible = || IngestError::invalid(path, format!("{what} declares shape {shape:?} of {elem}-byte elements: the size overflows 64 bits"));
+    let elements = shape.iter().try_fold(1u64, |a, &d| a.checked_mul(d)).ok_or_else(impossible)?;
+    let bytes = elements.checked_mul(elem).ok_or_else(impossible)?;
+    let max = path.max_dataset_bytes();
+    if bytes > max {
+        let why = if max == MAX_DATASET_BYTES && path.file_len.saturating_mul(MAX_DECLARED_RATIO) >= MAX_DATASET_BYTES {
+            format!("more than the {max} bytes one dataset may decode to")
+        } else {
+            format!("more than the {}-byte file can hold (at most {max} at a {MAX_DECLARED_RATIO}:1 compression ratio)", path.file_len)
+        };
+        return Err(IngestError::invalid(
+            path,
+            format!("{what} declares shape {shape:?} of {elem}-byte elements = {bytes} bytes, {why}: refused (unwritten chunks or a corrupt header)"),
+        ));
+    }
+    Ok(bytes)
+}
+
 /// The file read with positioned reads (`pread`): no shared cursor, no lock, no whole-file copy.
 struct PositionedFile {
     file: std::fs::File,
@@ -174,9 +242,10 @@ struct DatasetInfo {
     dtype: DType,
 }
 
-fn info(ds: &Dataset, path: &Path, what: &str) -> Result<DatasetInfo> {
+fn info(ds: &Dataset, path: &Src, what: &str) -> Result<DatasetInfo> {
     let shape = ds.shape().map_err(h5err(path, format!("cannot read the shape of {what}")))?;
     let dtype = ds.dtype().map_err(h5err(path, format!("cannot read the datatype of {what}")))?;
+    check_declared(ds, path, what, &shape)?;
     Ok(DatasetInfo { shape, dtype })
 }
 
@@ -197,7 +266,7 @@ fn is_numeric(d: &DType) -> bool {
 }
 
 /// Rows x columns of a (T, ...) numeric dataset, read as f32.
-fn read_matrix(ds: &Dataset, path: &Path, what: &str, steps: Option<usize>) -> Result<(usize, usize, Vec<f32>)> {
+fn read_matrix(ds: &Dataset, path: &Src, what: &str, steps: Option<usize>) -> Result<(usize, usize, Vec<f32>)> {
     let inf = info(ds, path, what)?;
     if !is_numeric(&inf.dtype) {
         return Err(IngestError::invalid(
@@ -253,12 +322,13 @@ fn read_env_args(data: &Group, path: &Path) -> Result<(Value, Map<String, Value>
 }
 
 /// Reads `mask/<filter>` lists (demo names as strings) into demo → tags.
-fn read_masks(file: &File, path: &Path) -> Result<HashMap<String, Vec<String>>> {
+fn read_masks(file: &File, path: &Src) -> Result<HashMap<String, Vec<String>>> {
     let mut tags: HashMap<String, Vec<String>> = HashMap::new();
     let Ok(mask) = file.group("mask") else { return Ok(tags) };
     let names = mask.datasets().map_err(h5err(path, "cannot list mask/"))?;
     for filter in names {
         let ds = mask.dataset(&filter).map_err(h5err(path, format!("cannot open mask/{filter}")))?;
+        info(&ds, path, &format!("mask/{filter}"))?;
         let demos = ds
             .read_string()
             .map_err(h5err(path, format!("mask/{filter} is not a list of demo names")))?;
@@ -284,6 +354,7 @@ fn read_h5(
     opts: &ReadOptions,
     sink: &mut dyn EpisodeSink,
 ) -> Result<Vec<String>> {
+    let path = &Src::new(path, file.file_size());
     let data = file
         .group("data")
         .map_err(h5err(path, "no `data` group: not a robomimic file"))?;
@@ -374,7 +445,7 @@ fn extra(name: String, values: ArrayRef, dtype: &DType, row_shape: &[u64], extra
 
 /// A per-step dataset (`T` rows) as an extra column: u8 kept as u8, floats of 32 bits as f32,
 /// every other number type as f64 (exact for integers up to 2^53).
-fn read_extra(ds: &Dataset, path: &Path, what: &str, name: String, steps: usize) -> Result<Option<ExtraColumn>> {
+fn read_extra(ds: &Dataset, path: &Src, what: &str, name: String, steps: usize) -> Result<Option<ExtraColumn>> {
     let inf = info(ds, path, what)?;
     if inf.shape.first().copied() != Some(steps as u64) || !(is_numeric(&inf.dtype) || matches!(inf.dtype, DType::Enum(_))) {
         return Ok(None);
@@ -392,7 +463,7 @@ fn read_extra(ds: &Dataset, path: &Path, what: &str, name: String, steps: usize)
 
 /// `next_obs/<key>` keeping only the rows that differ from `obs/<key>` of the next step (robomimic
 /// writes `next_obs[t] == obs[t + 1]` but for the last step; rendered images may differ).
-fn read_next_obs(ds: &Dataset, path: &Path, what: &str, key: &str, obs: Option<&ObsValues>, steps: usize) -> Result<Option<ExtraColumn>> {
+fn read_next_obs(ds: &Dataset, path: &Src, what: &str, key: &str, obs: Option<&ObsValues>, steps: usize) -> Result<Option<ExtraColumn>> {
     let inf = info(ds, path, what)?;
     if inf.shape.first().copied() != Some(steps as u64) {
         return Ok(None);
@@ -433,7 +504,7 @@ enum ObsValues {
 #[allow(clippy::too_many_arguments)]
 fn read_demo(
     g: &Group,
-    path: &Path,
+    path: &Src,
     name: &str,
     index: u32,
     freq: Option<f64>,
@@ -603,7 +674,7 @@ fn read_demo(
     Ok((ep, extras, skipped))
 }
 
-fn read_dones(g: &Group, path: &Path, name: &str, steps: usize) -> Result<Vec<bool>> {
+fn read_dones(g: &Group, path: &Src, name: &str, steps: usize) -> Result<Vec<bool>> {
     let what = format!("data/{name}/dones");
     let ds = g.dataset("dones").map_err(h5err(path, format!("cannot open {what}")))?;
     let inf = info(&ds, path, &what)?;
@@ -647,7 +718,7 @@ fn read_dones(g: &Group, path: &Path, name: &str, steps: usize) -> Result<Vec<bo
 
 fn read_images(
     ds: &Dataset,
-    path: &Path,
+    path: &Src,
     what: &str,
     key: &str,
     shape: &[u64],
