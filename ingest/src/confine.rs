@@ -20,12 +20,35 @@ use crate::error::{IngestError, Result};
 pub struct Root {
     dir: PathBuf,
     canon: PathBuf,
+    /// Where the dataset's symlinks may also lead: see [`hub_cache_blobs`].
+    blobs: Option<PathBuf>,
+}
+
+/// A dataset read straight from the Hugging Face hub cache
+/// (`…/datasets--ORG--NAME/snapshots/REV/`) is a tree of symlinks into the same repository's
+/// `…/datasets--ORG--NAME/blobs/`: those links stay inside what was downloaded, so they are
+/// followed. Returns that `blobs` folder (canonical) for such a snapshot folder.
+pub fn hub_cache_blobs(canon_root: &Path) -> Option<PathBuf> {
+    let snapshots = canon_root.parent()?;
+    let repo = snapshots.parent()?;
+    let is_repo = repo.file_name()?.to_str().is_some_and(|n| n.starts_with("datasets--") || n.starts_with("models--"));
+    if snapshots.file_name()? != "snapshots" || !is_repo {
+        return None;
+    }
+    std::fs::canonicalize(repo.join("blobs")).ok().filter(|b| b.starts_with(repo))
+}
+
+/// Whether a canonical path lies inside the canonical root or, for a hub-cache snapshot, in its
+/// repository's `blobs` folder.
+pub fn inside(c: &Path, canon_root: &Path, blobs: Option<&Path>) -> bool {
+    c.starts_with(canon_root) || blobs.is_some_and(|b| c.starts_with(b))
 }
 
 impl Root {
     pub fn new(dir: &Path) -> Result<Root> {
         let canon = std::fs::canonicalize(dir).map_err(|e| IngestError::io(dir, e))?;
-        Ok(Root { dir: dir.to_path_buf(), canon })
+        let blobs = hub_cache_blobs(&canon);
+        Ok(Root { dir: dir.to_path_buf(), canon, blobs })
     }
 
     /// The folder as given.
@@ -61,7 +84,7 @@ impl Root {
     /// root. A missing file passes: the caller reports it as missing.
     pub fn check_inside(&self, abs: &Path, what: &str) -> Result<()> {
         match std::fs::canonicalize(abs) {
-            Ok(c) if c.starts_with(&self.canon) => Ok(()),
+            Ok(c) if inside(&c, &self.canon, self.blobs.as_deref()) => Ok(()),
             Ok(c) => Err(IngestError::invalid(
                 abs,
                 format!(
@@ -130,5 +153,28 @@ mod tests {
         assert!(e.contains("outside the dataset folder") && e.contains("link.parquet"), "{e}");
         let e = r.file(&src, "`video_path` template", "../x.mp4").unwrap_err().to_string();
         assert!(e.contains("`video_path` template") && e.contains("\"../x.mp4\""), "{e}");
+    }
+
+    /// A hub-cache snapshot's links into its own repository's `blobs/` are followed; a link to
+    /// another repository's blobs, or anywhere else, is still refused.
+    #[test]
+    fn hub_cache_snapshots_may_link_into_their_own_blobs() {
+        let cache = tempfile::tempdir().unwrap();
+        let repo = cache.path().join("datasets--org--name");
+        let other = cache.path().join("datasets--org--other");
+        for d in [repo.join("blobs"), repo.join("snapshots/abc123/data"), other.join("blobs")] {
+            std::fs::create_dir_all(d).unwrap();
+        }
+        std::fs::write(repo.join("blobs/f00d"), b"x").unwrap();
+        std::fs::write(other.join("blobs/beef"), b"y").unwrap();
+        let snap = repo.join("snapshots/abc123");
+        std::os::unix::fs::symlink(repo.join("blobs/f00d"), snap.join("data/ok.parquet")).unwrap();
+        std::os::unix::fs::symlink(other.join("blobs/beef"), snap.join("data/bad.parquet")).unwrap();
+        let r = Root::new(&snap).unwrap();
+        let src = snap.join("meta/info.json");
+        r.file(&src, "data_path", "data/ok.parquet").unwrap();
+        assert!(r.file(&src, "data_path", "data/bad.parquet").is_err());
+        // The same layout outside a hub cache gets no such allowance.
+        assert!(hub_cache_blobs(&std::fs::canonicalize(repo.join("blobs")).unwrap()).is_none());
     }
 }

@@ -54,6 +54,7 @@ pub fn hash_bytes(bytes: &[u8]) -> String {
 /// [`crate::confine`]); a folder reached twice through symlinks (a loop) is walked once.
 pub fn list_files(root: &Path) -> Result<Vec<(String, PathBuf)>> {
     let canon_root = std::fs::canonicalize(root).map_err(|e| IngestError::io(root, e))?;
+    let blobs = crate::confine::hub_cache_blobs(&canon_root);
     let mut seen_dirs = std::collections::HashSet::from([canon_root.clone()]);
     let mut out = Vec::new();
     let mut stack = vec![root.to_path_buf()];
@@ -69,7 +70,7 @@ pub fn list_files(root: &Path) -> Result<Vec<(String, PathBuf)>> {
             let ft = ent.file_type().map_err(|e| IngestError::io(&p, e))?;
             let ft = if ft.is_symlink() {
                 let target = std::fs::canonicalize(&p).map_err(|e| IngestError::io(&p, e))?;
-                if !target.starts_with(&canon_root) {
+                if !crate::confine::inside(&target, &canon_root, blobs.as_deref()) {
                     return Err(IngestError::invalid(
                         &p,
                         format!(
