@@ -24,7 +24,7 @@ pub use auth::Caller;
 pub use error::{ApiError, Problem};
 pub use media::parse_range;
 pub use openapi::openapi;
-pub use upload::sanitize_filename;
+pub use upload::{sanitize_filename, sweep as sweep_uploads};
 pub use worker::{run_worker, run_worker_with, worker_identity, JobContext, JobRunner, WorkerOptions};
 
 use axum::extract::DefaultBodyLimit;
@@ -248,6 +248,20 @@ pub async fn serve_on(
     std::fs::create_dir_all(&cfg.upload_dir)
         .map_err(|e| anyhow::anyhow!("cannot create the upload dir {}: {e}", cfg.upload_dir.display()))?;
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    // Uploads nobody will ingest (their job ended, or none was queued): at start, then hourly.
+    let sweeper = {
+        let (store, dir) = (store.clone(), cfg.upload_dir.clone());
+        tokio::spawn(async move {
+            loop {
+                match upload::sweep(&store, &dir, Duration::from_secs(3600)).await {
+                    Ok(0) => {}
+                    Ok(n) => tracing::info!("deleted {n} stale uploads"),
+                    Err(e) => tracing::warn!("cannot sweep the uploads: {e}"),
+                }
+                tokio::time::sleep(Duration::from_secs(3600)).await;
+            }
+        })
+    };
     let stop_tx = Arc::new(stop_tx);
     let stop_tx2 = stop_tx.clone();
     let worker = cfg.run_worker_in_process.then(|| {
@@ -274,6 +288,7 @@ pub async fn serve_on(
         }
     };
     let _ = stop_tx.send(true);
+    sweeper.abort();
     if let Some(w) = worker {
         let _ = w.await;
     }

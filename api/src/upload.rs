@@ -1,6 +1,11 @@
 //! `POST /v1/ingest`: the request body (a rollout file or archive) is streamed to a fresh file
 //! under the server's upload dir — never held in memory — hashed on the way, and an `ingest`
 //! job is queued whose spec names the server-side path. The runner does the ingest itself.
+//!
+//! Uploads do not pile up: the worker deletes an upload's folder once its job has finished
+//! (succeeded or failed; a worker that dies leaves it for the retry), [`sweep`] deletes folders
+//! of jobs that ended otherwise (cancelled, lost) and folders no job names, and an upload is
+//! refused with 507 when the disk would be left with less than [`MIN_FREE_BYTES`].
 
 use crate::auth::Caller;
 use crate::error::{ApiError, ApiResult, Problem};
@@ -8,7 +13,7 @@ use crate::extract::{check_name, ApiQuery};
 use crate::AppState;
 use axum::body::Body;
 use axum::extract::State;
-use axum::http::StatusCode;
+use axum::http::{header, StatusCode};
 use axum::{Extension, Json};
 use futures::StreamExt;
 use serde::Deserialize;
@@ -41,6 +46,67 @@ pub struct IngestQuery {
     run_tags: Option<String>,
 }
 
+/// Free space an upload must leave on the upload dir's filesystem.
+pub const MIN_FREE_BYTES: u64 = 1 << 30;
+
+/// Bytes available to us on the filesystem holding `dir`.
+fn free_bytes(dir: &std::path::Path) -> Option<u64> {
+    use std::os::unix::ffi::OsStrExt;
+    let c = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
+    let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+    // SAFETY: `c` is a valid NUL-terminated path and `st` a properly sized out-parameter.
+    let rc = unsafe { libc::statvfs(c.as_ptr(), &mut st) };
+    (rc == 0).then(|| (st.f_bavail as u64).saturating_mul(st.f_frsize as u64))
+}
+
+/// An upload folder is named by 32 hex digits (a v4 uuid) directly under the upload dir.
+fn is_upload_folder(dir: &std::path::Path) -> bool {
+    dir.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.len() == 32 && n.bytes().all(|b| b.is_ascii_hexdigit()))
+}
+
+/// Deletes the upload folder an ingest job's spec names (after the job finished).
+pub(crate) async fn remove_upload(spec: &serde_json::Value) {
+    let Some(dir) = spec.get("upload_dir").and_then(|v| v.as_str()).map(std::path::PathBuf::from) else { return };
+    if is_upload_folder(&dir) {
+        if let Err(e) = tokio::fs::remove_dir_all(&dir).await {
+            if e.kind() != std::io::ErrorKind::NotFound {
+                tracing::warn!("cannot delete the upload {}: {e}", dir.display());
+            }
+        }
+    }
+}
+
+/// Deletes upload folders nobody will ingest: those of ingest jobs that are no longer queued or
+/// running, and those older than `orphan_age` that no job names (a server stopped between the
+/// upload and queueing its job). Returns how many it deleted.
+pub async fn sweep(store: &store::Store, upload_dir: &std::path::Path, orphan_age: std::time::Duration) -> anyhow::Result<usize> {
+    use store::JobState::*;
+    let Ok(mut rd) = tokio::fs::read_dir(upload_dir).await else { return Ok(0) };
+    let mut live = std::collections::HashSet::new();
+    let mut named = std::collections::HashSet::new();
+    for j in store.jobs(None).await?.into_iter().filter(|j| j.kind == "ingest") {
+        if let Some(d) = j.spec.get("upload_dir").and_then(|v| v.as_str()) {
+            named.insert(std::path::PathBuf::from(d));
+            if matches!(j.state, Queued | Running) {
+                live.insert(std::path::PathBuf::from(d));
+            }
+        }
+    }
+    let mut deleted = 0;
+    while let Some(e) = rd.next_entry().await? {
+        let dir = e.path();
+        if !is_upload_folder(&dir) || live.contains(&dir) {
+            continue;
+        }
+        let old = e.metadata().await.ok().and_then(|m| m.modified().ok()).and_then(|t| t.elapsed().ok()).is_some_and(|a| a >= orphan_age);
+        if named.contains(&dir) || old {
+            tokio::fs::remove_dir_all(&dir).await?;
+            deleted += 1;
+        }
+    }
+    Ok(deleted)
+}
+
 /// A file name safe to use under our own directory: no separators, no leading dots.
 pub fn sanitize_filename(name: &str) -> String {
     let base = name.rsplit(['/', '\\']).next().unwrap_or("");
@@ -61,11 +127,12 @@ pub fn sanitize_filename(name: &str) -> String {
 #[utoipa::path(post, path = "/v1/ingest", tag = "admin", params(IngestQuery),
     request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "the file, raw"),
     responses((status = 202, description = "JobRecord of the queued ingest job", body = Object),
-              (status = 413, body = Problem), (status = 403, body = Problem)))]
+              (status = 413, body = Problem), (status = 403, body = Problem), (status = 507, body = Problem)))]
 pub async fn ingest(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
     ApiQuery(q): ApiQuery<IngestQuery>,
+    headers: axum::http::HeaderMap,
     body: Body,
 ) -> ApiResult<(StatusCode, Json<store::JobRecord>)> {
     caller.require(Role::Admin)?;
@@ -96,6 +163,19 @@ pub async fn ingest(
         None => {}
     }
     let filename = sanitize_filename(q.filename.as_deref().unwrap_or("upload.bin"));
+    // Refuse what would fill the disk (the declared length; the floor alone without one).
+    let declared = headers.get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok());
+    if let Some(free) = free_bytes(&s.inner.cfg.upload_dir) {
+        let need = declared.unwrap_or(0).saturating_add(MIN_FREE_BYTES);
+        if free < need {
+            return Err(ApiError::new(
+                StatusCode::INSUFFICIENT_STORAGE,
+                "insufficient-storage",
+                format!("the server has {} MB free for uploads; this one needs {} MB (with {} MB to spare)",
+                    free >> 20, need >> 20, MIN_FREE_BYTES >> 20),
+            ));
+        }
+    }
     let dir = s.inner.cfg.upload_dir.join(uuid::Uuid::new_v4().simple().to_string());
     tokio::fs::create_dir_all(&dir)
         .await
@@ -113,6 +193,7 @@ pub async fn ingest(
     tokio::fs::rename(&part, &path).await.map_err(|e| ApiError::internal(format!("cannot place the upload: {e}")))?;
     let spec = json!({
         "path": path.display().to_string(),
+        "upload_dir": dir.display().to_string(),
         "filename": filename,
         "policy": q.policy,
         "checkpoint": q.checkpoint,

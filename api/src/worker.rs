@@ -235,7 +235,12 @@ pub(crate) async fn run_one(store: &Store, runner: &dyn JobRunner, opts: &Worker
     };
     let ok = outcome.is_ok();
     match store.finish_job(&job.id, &opts.worker_id, job.attempts, outcome).await {
-        Ok(true) => tracing::info!(worker = %opts.worker_id, job = %job.id, ok, "job finished"),
+        Ok(true) => {
+            tracing::info!(worker = %opts.worker_id, job = %job.id, ok, "job finished");
+            if job.kind == "ingest" {
+                crate::upload::remove_upload(&job.spec).await; // finished: nobody will ingest it again
+            }
+        }
         Ok(false) => tracing::warn!(worker = %opts.worker_id, job = %job.id, "job no longer ours; outcome dropped"),
         Err(e) => tracing::error!(worker = %opts.worker_id, job = %job.id, "cannot record the outcome: {e}"),
     }

@@ -164,20 +164,26 @@ impl HttpResponse {
 
 /// One HTTP/1.1 request (`Connection: close`, no chunked bodies sent) to a server of [`Target::serve`].
 pub fn http(url: &str, method: &str, path: &str, headers: &[(&str, &str)], body: Option<&serde_json::Value>) -> HttpResponse {
+    let body = body.map(|b| b.to_string()).unwrap_or_default();
+    let ctype = (!body.is_empty()).then_some("application/json");
+    http_bytes(url, method, path, headers, body.as_bytes(), ctype)
+}
+
+/// [`http`] with a raw body.
+pub fn http_bytes(url: &str, method: &str, path: &str, headers: &[(&str, &str)], body: &[u8], content_type: Option<&str>) -> HttpResponse {
     use std::io::{Read, Write};
     let addr = url.trim_start_matches("http://").trim_end_matches('/');
     let mut s = std::net::TcpStream::connect(addr).unwrap();
-    let body = body.map(|b| b.to_string()).unwrap_or_default();
     let mut req = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
-    if !body.is_empty() {
-        req.push_str("Content-Type: application/json\r\n");
+    if let Some(ct) = content_type {
+        req.push_str(&format!("Content-Type: {ct}\r\n"));
     }
     for (k, v) in headers {
         req.push_str(&format!("{k}: {v}\r\n"));
     }
     req.push_str("\r\n");
-    req.push_str(&body);
     s.write_all(req.as_bytes()).unwrap();
+    s.write_all(body).unwrap();
     let mut raw = Vec::new();
     s.read_to_end(&mut raw).unwrap();
     let end = raw.windows(4).position(|w| w == b"\r\n\r\n").expect("a complete response");
