@@ -182,11 +182,14 @@ pub fn http_bytes(url: &str, method: &str, path: &str, headers: &[(&str, &str)],
         req.push_str(&format!("{k}: {v}\r\n"));
     }
     req.push_str("\r\n");
-    s.write_all(req.as_bytes()).unwrap();
-    s.write_all(body).unwrap();
+    // A server may answer (413, 401) and close before taking the whole body: keep what it said.
+    let wrote = s.write_all(req.as_bytes()).and_then(|_| s.write_all(body));
     let mut raw = Vec::new();
-    s.read_to_end(&mut raw).unwrap();
-    let end = raw.windows(4).position(|w| w == b"\r\n\r\n").expect("a complete response");
+    let read = s.read_to_end(&mut raw);
+    let Some(end) = raw.windows(4).position(|w| w == b"\r\n\r\n") else {
+        // No response at all (status 0): the connection was closed on us.
+        return HttpResponse { status: 0, headers: Vec::new(), body: format!("no response; write: {wrote:?}, read: {read:?}").into_bytes() };
+    };
     let head = String::from_utf8_lossy(&raw[..end]).into_owned();
     let mut lines = head.lines();
     let status = lines.next().unwrap_or_default().split(' ').nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
