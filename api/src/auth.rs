@@ -7,6 +7,7 @@ use axum::http::header;
 use axum::middleware::Next;
 use axum::response::Response;
 use std::collections::HashMap;
+use std::sync::Arc;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 use store::Role;
@@ -83,6 +84,12 @@ async fn authenticate(state: &AppState, secret: &str, mut req: Request, next: Ne
     let caller = match state.inner.tokens.get(&key) {
         Some(c) => c,
         None => {
+            // A burst of new clients waits its turn briefly; a flood of made-up tokens gets 429.
+            let _check = tokio::time::timeout(Duration::from_secs(2), state.inner.token_checks.acquire())
+                .await
+                .ok()
+                .and_then(Result::ok)
+                .ok_or_else(|| too_many("too many token checks at once"))?;
             let rec = state
                 .inner
                 .store
@@ -94,8 +101,25 @@ async fn authenticate(state: &AppState, secret: &str, mut req: Request, next: Ne
             c
         }
     };
+    // One token's requests in flight are bounded (held until the handler has answered).
+    let permits = {
+        let mut map = state.inner.in_flight.lock().unwrap_or_else(|e| e.into_inner());
+        map.entry(caller.token_id.clone())
+            .or_insert_with(|| Arc::new(tokio::sync::Semaphore::new(state.inner.cfg.max_in_flight_per_token.max(1))))
+            .clone()
+    };
+    let _permit = permits.try_acquire_owned().map_err(|_| {
+        too_many(&format!("token {} has {} requests in flight, the limit", caller.name, state.inner.cfg.max_in_flight_per_token))
+    })?;
     req.extensions_mut().insert(caller);
     Ok(next.run(req).await)
+}
+
+/// 429 with `Retry-After: 1`.
+fn too_many(why: &str) -> ApiError {
+    let mut e = ApiError::new(axum::http::StatusCode::TOO_MANY_REQUESTS, "too-many-requests", format!("{why}; retry shortly"));
+    e.headers.push((header::RETRY_AFTER, axum::http::HeaderValue::from_static("1")));
+    e
 }
 
 /// Route-level middleware: 403 unless the caller (set by [`require_token`]) has at least this

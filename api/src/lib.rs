@@ -66,6 +66,12 @@ pub struct ServeConfig {
     /// (`https://label.example.com`, see [`public_origin`]): the CSRF origin check compares with
     /// it, and https makes the session cookie `Secure`. None: the request's `Host`.
     pub public_url: Option<String>,
+    /// Requests one token may have in flight at once (default 64); more get 429. A stalled or
+    /// greedy client cannot take every connection the server has.
+    pub max_in_flight_per_token: usize,
+    /// Catalog lookups of tokens not in the cache at once (default 16); more get 429, so a flood
+    /// of made-up tokens cannot keep the catalog busy.
+    pub max_token_checks_in_flight: usize,
 }
 
 /// `scheme://host[:port]` of a public URL (a trailing `/` allowed; no path, query or user info).
@@ -97,6 +103,8 @@ impl ServeConfig {
             token_cache_ttl: Duration::from_secs(5),
             shutdown_deadline: Duration::from_secs(10),
             public_url: None,
+            max_in_flight_per_token: 64,
+            max_token_checks_in_flight: 16,
         }
     }
 }
@@ -122,6 +130,10 @@ pub(crate) struct Inner {
     pub label_writer: label_writer::LabelWriter,
     /// `cfg.public_url` reduced to its origin.
     pub public_origin: Option<String>,
+    /// Per token id: permits for its requests in flight (`cfg.max_in_flight_per_token`).
+    pub in_flight: std::sync::Mutex<std::collections::HashMap<String, Arc<tokio::sync::Semaphore>>>,
+    /// Permits for catalog lookups of uncached tokens (`cfg.max_token_checks_in_flight`).
+    pub token_checks: tokio::sync::Semaphore,
 }
 
 impl AppState {
@@ -130,6 +142,7 @@ impl AppState {
         let tokens = auth::TokenCache::new(cfg.token_cache_ttl);
         // `serve` checked the URL already; an invalid one here (embedding) is treated as absent.
         let public_origin = cfg.public_url.as_deref().and_then(|u| public_origin(u).ok());
+        let token_checks = tokio::sync::Semaphore::new(cfg.max_token_checks_in_flight.max(1));
         AppState {
             inner: Arc::new(Inner {
                 store,
@@ -140,6 +153,8 @@ impl AppState {
                 write_gate,
                 label_writer: Default::default(),
                 public_origin,
+                in_flight: Default::default(),
+                token_checks,
             }),
         }
     }

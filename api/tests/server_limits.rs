@@ -67,3 +67,50 @@ async fn internal_errors_are_answered_without_paths() {
     assert!(!body.contains(dir.as_str()) && !body.contains(".parquet"), "{body}");
     srv.stop().await;
 }
+
+/// A token's requests in flight are bounded: two stalled uploads of a label (headers sent, body
+/// never finished) hold that token's two slots, so its next request gets 429 with Retry-After
+/// while other tokens are served; when the stalled connections go, the token works again.
+#[tokio::test]
+async fn a_stalled_client_cannot_take_more_than_its_tokens_share() {
+    use tokio::io::AsyncWriteExt;
+    let srv = TestServer::start_with(Db::Sqlite, false, |c| c.max_in_flight_per_token = 2).await;
+    let ids = common::ingest(&srv.store, "a", "c1", 2).await;
+    let addr = srv.base.trim_start_matches("http://").to_string();
+    let token = srv.tokens["labeler"].clone();
+    let mut stalled = Vec::new();
+    for _ in 0..2 {
+        let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
+        let head = format!(
+            "PUT /v1/episodes/{}/label HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {token}\r\nIf-Match: \"1\"\r\n\
+             Content-Type: application/json\r\nContent-Length: 100\r\n\r\n{{\"label\":",
+            ids[0]
+        );
+        s.write_all(head.as_bytes()).await.unwrap();
+        stalled.push(s);
+    }
+    let t0 = std::time::Instant::now();
+    let r = loop {
+        let r = srv.req(Method::GET, "/v1/policies", "labeler").send().await.unwrap();
+        if r.status() == 429 || t0.elapsed() > std::time::Duration::from_secs(5) {
+            break r;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    };
+    assert_eq!(r.status(), 429);
+    assert_eq!(r.headers()["retry-after"], "1");
+    assert!(r.text().await.unwrap().contains("requests in flight"));
+    let r = srv.req(Method::GET, "/v1/policies", "viewer").send().await.unwrap();
+    assert_eq!(r.status(), 200, "another token is served");
+    drop(stalled);
+    let t0 = std::time::Instant::now();
+    loop {
+        let r = srv.req(Method::GET, "/v1/policies", "labeler").send().await.unwrap();
+        if r.status() == 200 {
+            break;
+        }
+        assert!(t0.elapsed() < std::time::Duration::from_secs(5), "the token's slots were not given back: {}", r.status());
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    srv.stop().await;
+}

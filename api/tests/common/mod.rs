@@ -232,6 +232,11 @@ pub struct TestServer {
 
 impl TestServer {
     pub async fn start(db: Db, worker: bool) -> TestServer {
+        Self::start_with(db, worker, |_| {}).await
+    }
+
+    /// [`TestServer::start`] with the server's configuration adjusted by `adjust`.
+    pub async fn start_with(db: Db, worker: bool, adjust: impl FnOnce(&mut api::ServeConfig)) -> TestServer {
         let dir = tempfile::tempdir().unwrap();
         let store = open_store(db, dir.path()).await;
         let runner = TestRunner::new(50);
@@ -239,6 +244,7 @@ impl TestServer {
         cfg.addr = "127.0.0.1:0".parse().unwrap();
         cfg.run_worker_in_process = worker;
         cfg.worker_lease_ms = 2_000;
+        adjust(&mut cfg);
         let server = api::spawn(store.clone(), cfg, runner.clone()).await.unwrap();
         let mut tokens = std::collections::BTreeMap::new();
         for (name, role) in
