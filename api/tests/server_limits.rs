@@ -71,31 +71,42 @@ async fn internal_errors_are_answered_without_paths() {
 /// A token's requests in flight are bounded: two stalled uploads of a label (headers sent, body
 /// never finished) hold that token's two slots, so its next request gets 429 with Retry-After
 /// while other tokens are served; when the stalled connections go, the token works again.
-#[tokio::test]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stalled_client_cannot_take_more_than_its_tokens_share() {
-    use tokio::io::AsyncWriteExt;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let srv = TestServer::start_with(Db::Sqlite, false, |c| c.max_in_flight_per_token = 2).await;
     let ids = common::ingest(&srv.store, "a", "c1", 2).await;
     let addr = srv.base.trim_start_matches("http://").to_string();
     let token = srv.tokens["labeler"].clone();
-    let mut stalled = Vec::new();
-    for _ in 0..2 {
-        let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
-        let head = format!(
-            "PUT /v1/episodes/{}/label HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {token}\r\nIf-Match: \"1\"\r\n\
-             Content-Type: application/json\r\nContent-Length: 100\r\n\r\n{{\"label\":",
-            ids[0]
-        );
-        s.write_all(head.as_bytes()).await.unwrap();
-        stalled.push(s);
-    }
+    let stall = || {
+        let (addr, token, id) = (addr.clone(), token.clone(), ids[0].clone());
+        async move {
+            let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
+            let head = format!(
+                "PUT /v1/episodes/{id}/label HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {token}\r\nIf-Match: \"1\"\r\n\
+                 Content-Type: application/json\r\nContent-Length: 100\r\n\r\n{{\"label\":"
+            );
+            s.write_all(head.as_bytes()).await.unwrap();
+            s
+        }
+    };
+    let mut stalled = vec![stall().await, stall().await];
+    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
     let t0 = std::time::Instant::now();
     let r = loop {
         let r = srv.req(Method::GET, "/v1/policies", "labeler").send().await.unwrap();
-        if r.status() == 429 || t0.elapsed() > std::time::Duration::from_secs(5) {
+        if r.status() == 429 {
             break r;
         }
-        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        assert!(t0.elapsed() < std::time::Duration::from_secs(10), "the stalled requests never held the token's slots");
+        // A stall that arrived while a probe held a slot was itself refused: stall again.
+        for s in stalled.iter_mut() {
+            let mut buf = [0u8; 64];
+            if let Ok(Ok(_)) = tokio::time::timeout(std::time::Duration::from_millis(50), s.read(&mut buf)).await {
+                *s = stall().await;
+            }
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
     };
     assert_eq!(r.status(), 429);
     assert_eq!(r.headers()["retry-after"], "1");
