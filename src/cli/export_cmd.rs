@@ -102,6 +102,15 @@ fn progress_bar(show: bool, len: usize, what: &str) -> Option<indicatif::Progres
     })
 }
 
+/// The progress callback the export crate takes, moving `bar` (if any).
+fn ticker(bar: &Option<indicatif::ProgressBar>) -> impl Fn(usize, usize) + Send + Sync + '_ {
+    move |done, _total| {
+        if let Some(b) = bar {
+            b.set_position(done as u64);
+        }
+    }
+}
+
 pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
     let store = args.open().await?;
     let scorer = match &a.score_artifact {
@@ -112,11 +121,7 @@ pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
     let mut selected = ::export::select(&store, &a.select.selection(range)?).await?;
     if let Some(s) = &scorer {
         let bar = progress_bar(!a.json, selected.episodes.len(), "episodes scored");
-        let tick = |done: usize, _total: usize| {
-            if let Some(b) = &bar {
-                b.set_position(done as u64);
-            }
-        };
+        let tick = ticker(&bar);
         let r = ::export::filter_by_score(&store, &mut selected, s, Some(&tick)).await;
         if let Some(b) = &bar {
             b.finish_and_clear();
@@ -124,11 +129,7 @@ pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
         r?;
     }
     let bar = progress_bar(!a.json, selected.episodes.len(), "episodes");
-    let tick = |done: usize, _total: usize| {
-        if let Some(b) = &bar {
-            b.set_position(done as u64);
-        }
-    };
+    let tick = ticker(&bar);
     let progress: ::export::Progress<'_> = Some(&tick);
     let report = match a.format.as_str() {
         "lerobot" => ::export::lerobot::export(&store, &selected, &a.out, progress).await,
@@ -185,11 +186,7 @@ pub async fn rank(args: &StoreArgs, a: RankArgs) -> Result<()> {
     let v = StoreScorer::load(&store, &a.artifact).await?;
     let selected = ::export::select(&store, &a.select.selection(None)?).await?;
     let bar = progress_bar(!a.json, selected.episodes.len(), "episodes scored");
-    let tick = |done: usize, _total: usize| {
-        if let Some(b) = &bar {
-            b.set_position(done as u64);
-        }
-    };
+    let tick = ticker(&bar);
     let scores = ::export::score_episodes(&store, &selected.episodes, &v, Some(&tick)).await;
     if let Some(b) = &bar {
         b.finish_and_clear();

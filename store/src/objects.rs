@@ -215,32 +215,17 @@ impl Objects {
             let actual = hex::encode(hasher.finalize());
             return if actual == sha256 { Ok(total) } else { Err(changed(actual)) };
         }
-        let upload = self.store.put_multipart(&ObjPath::from(path)).await?;
-        let mut w = WriteMultipart::new_with_chunk_size(upload, FILE_PART_BYTES);
-        let copied: Result<(), StoreError> = async {
-            while let Some(part) = read_part(&mut f).await.map_err(io)? {
-                hasher.update(&part);
-                total += part.len() as u64;
-                w.wait_for_capacity(FILE_PARTS_IN_FLIGHT).await?;
-                w.put(Bytes::from(part));
+        self.upload_parts(path, &mut f, io, |part| match part {
+            Some(p) => {
+                hasher.update(p);
+                Ok(())
             }
-            let actual = hex::encode(hasher.finalize_reset());
-            if actual != sha256 {
-                return Err(changed(actual));
+            None => {
+                let actual = hex::encode(hasher.finalize_reset());
+                if actual == sha256 { Ok(()) } else { Err(changed(actual)) }
             }
-            Ok(())
-        }
-        .await;
-        match copied {
-            Ok(()) => {
-                w.finish().await?;
-                Ok(total)
-            }
-            Err(e) => {
-                let _ = w.abort().await;
-                Err(e)
-            }
-        }
+        })
+        .await
     }
 
     /// Copies a local file into the object `path` (replacing it), streamed in parts: memory is a
@@ -248,16 +233,30 @@ impl Objects {
     pub async fn put_file(&self, path: &str, local: &std::path::Path) -> Result<u64, StoreError> {
         let io = |e: std::io::Error| StoreError::invalid(format!("cannot read {}: {e}", local.display()));
         let mut f = tokio::fs::File::open(local).await.map_err(io)?;
+        self.upload_parts(path, &mut f, io, |_| Ok(())).await
+    }
+
+    /// Streams the rest of `f` into the object `path` as a multipart upload (a few parts in
+    /// memory at once). `check` sees each part (`Some`) and then the end (`None`); an error from
+    /// it, or from reading, aborts the upload so nothing becomes visible. Returns the bytes copied.
+    async fn upload_parts(
+        &self,
+        path: &str,
+        f: &mut tokio::fs::File,
+        io: impl Fn(std::io::Error) -> StoreError,
+        mut check: impl FnMut(Option<&[u8]>) -> Result<(), StoreError>,
+    ) -> Result<u64, StoreError> {
         let upload = self.store.put_multipart(&ObjPath::from(path)).await?;
         let mut w = WriteMultipart::new_with_chunk_size(upload, FILE_PART_BYTES);
         let mut total = 0u64;
         let copied: Result<(), StoreError> = async {
-            while let Some(part) = read_part(&mut f).await.map_err(io)? {
+            while let Some(part) = read_part(f).await.map_err(&io)? {
+                check(Some(&part))?;
                 total += part.len() as u64;
                 w.wait_for_capacity(FILE_PARTS_IN_FLIGHT).await?;
                 w.put(Bytes::from(part));
             }
-            Ok(())
+            check(None)
         }
         .await;
         match copied {
