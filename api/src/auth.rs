@@ -51,6 +51,11 @@ impl TokenCache {
         let map = self.map.lock().expect("token cache lock");
         map.get(key).filter(|(_, t)| t.elapsed() < self.ttl).map(|(c, _)| c.clone())
     }
+    /// Whether this token was valid when last checked, however long ago (while the cache
+    /// holds it): its re-check is not a guess, so the per-address limit does not apply.
+    fn seen_valid(&self, key: &str) -> bool {
+        self.map.lock().expect("token cache lock").contains_key(key)
+    }
     fn put(&self, key: String, caller: Caller) {
         let mut map = self.map.lock().expect("token cache lock");
         if map.len() > 10_000 {
@@ -84,6 +89,7 @@ async fn authenticate(state: &AppState, secret: &str, mut req: Request, next: Ne
     let caller = match state.inner.tokens.get(&key) {
         Some(c) => c,
         None => {
+            check_unverified(state, &key, peer(&req))?;
             // A burst of new clients waits its turn briefly; a flood of made-up tokens gets 429.
             let _check = tokio::time::timeout(Duration::from_secs(2), state.inner.token_checks.acquire())
                 .await
@@ -101,6 +107,14 @@ async fn authenticate(state: &AppState, secret: &str, mut req: Request, next: Ne
             c
         }
     };
+    if let Some(limiter) = &state.inner.token_rate {
+        if limiter.check_key(&caller.token_id).is_err() {
+            return Err(too_many(&format!(
+                "token {} made more than {} requests per second, the limit",
+                caller.name, state.inner.cfg.rate_limit_per_token
+            )));
+        }
+    }
     // One token's requests in flight are bounded (held until the handler has answered).
     let permits = {
         let mut map = state.inner.in_flight.lock().unwrap_or_else(|e| e.into_inner());
@@ -113,6 +127,34 @@ async fn authenticate(state: &AppState, secret: &str, mut req: Request, next: Ne
     })?;
     req.extensions_mut().insert(caller);
     Ok(next.run(req).await)
+}
+
+/// A rate limiter per key (GCRA, the `governor` crate): `per_second` on average, bursts of
+/// `burst_factor` seconds' worth.
+pub(crate) type KeyedLimiter<K> = governor::DefaultKeyedRateLimiter<K>;
+
+/// None when `per_second` is 0 (no limit).
+pub(crate) fn keyed_limiter<K: std::hash::Hash + Eq + Clone>(per_second: u32, burst_factor: u32) -> Option<KeyedLimiter<K>> {
+    let rate = std::num::NonZeroU32::new(per_second)?;
+    let burst = std::num::NonZeroU32::new(per_second.saturating_mul(burst_factor.max(1))).unwrap_or(rate);
+    Some(governor::RateLimiter::keyed(governor::Quota::per_second(rate).allow_burst(burst)))
+}
+
+/// A secret never seen valid costs a catalog read: such checks are bounded per peer address
+/// (`cfg.unverified_checks_per_peer`), before the catalog is asked. `key` is the secret's hash.
+pub(crate) fn check_unverified(state: &AppState, key: &str, peer: Option<std::net::IpAddr>) -> Result<(), ApiError> {
+    if let (Some(limiter), Some(peer)) = (&state.inner.unverified_checks, peer) {
+        if !state.inner.tokens.seen_valid(key) && limiter.check_key(&peer).is_err() {
+            return Err(too_many(&format!("too many checks of unknown tokens from {peer}")));
+        }
+    }
+    Ok(())
+}
+
+/// The peer's address (set by the accept loop, `conn.rs`; absent when the router is called
+/// directly, as in some tests).
+pub(crate) fn peer(req: &Request) -> Option<std::net::IpAddr> {
+    req.extensions().get::<axum::extract::ConnectInfo<std::net::SocketAddr>>().map(|c| c.0.ip())
 }
 
 /// 429 with `Retry-After: 1`.

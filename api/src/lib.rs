@@ -8,6 +8,7 @@
 //! `store` crate, which the CLI uses too; the real job runner (training, ingest) is the binary's.
 
 mod auth;
+mod conn;
 mod error;
 mod extract;
 mod label_writer;
@@ -72,6 +73,22 @@ pub struct ServeConfig {
     /// Catalog lookups of tokens not in the cache at once (default 16); more get 429, so a flood
     /// of made-up tokens cannot keep the catalog busy.
     pub max_token_checks_in_flight: usize,
+    /// Requests per second one token may make on average (default 1000, bursts of twice that);
+    /// more get 429. 0: no limit.
+    pub rate_limit_per_token: u32,
+    /// Checks of tokens the server has not seen valid, per second per peer address (default 100,
+    /// bursts of 1000); more get 429 before the catalog is asked. Bounds token guessing and a
+    /// flood of made-up tokens; tokens seen valid recently are re-checked without this limit.
+    pub unverified_checks_per_peer: u32,
+    /// A request's headers must arrive within this time, counted from when the connection waits
+    /// for them (default 30 s); idle keep-alive connections are closed after the same time.
+    pub header_read_timeout: Duration,
+    /// A request body that sends nothing for this long fails (default 30 s).
+    pub body_idle_timeout: Duration,
+    /// A response the client does not read for this long fails (default 60 s).
+    pub write_stall_timeout: Duration,
+    /// Open connections at once (default 4096); more wait in the kernel's backlog.
+    pub max_connections: usize,
 }
 
 /// `scheme://host[:port]` of a public URL (a trailing `/` allowed; no path, query or user info).
@@ -105,6 +122,12 @@ impl ServeConfig {
             public_url: None,
             max_in_flight_per_token: 64,
             max_token_checks_in_flight: 16,
+            rate_limit_per_token: 1000,
+            unverified_checks_per_peer: 100,
+            header_read_timeout: Duration::from_secs(30),
+            body_idle_timeout: Duration::from_secs(30),
+            write_stall_timeout: Duration::from_secs(60),
+            max_connections: 4096,
         }
     }
 }
@@ -134,6 +157,10 @@ pub(crate) struct Inner {
     pub in_flight: std::sync::Mutex<std::collections::HashMap<String, Arc<tokio::sync::Semaphore>>>,
     /// Permits for catalog lookups of uncached tokens (`cfg.max_token_checks_in_flight`).
     pub token_checks: tokio::sync::Semaphore,
+    /// Per token id: `cfg.rate_limit_per_token` (None when 0).
+    pub token_rate: Option<auth::KeyedLimiter<String>>,
+    /// Per peer address: `cfg.unverified_checks_per_peer` (None when 0).
+    pub unverified_checks: Option<auth::KeyedLimiter<std::net::IpAddr>>,
 }
 
 impl AppState {
@@ -143,6 +170,8 @@ impl AppState {
         // `serve` checked the URL already; an invalid one here (embedding) is treated as absent.
         let public_origin = cfg.public_url.as_deref().and_then(|u| public_origin(u).ok());
         let token_checks = tokio::sync::Semaphore::new(cfg.max_token_checks_in_flight.max(1));
+        let token_rate = auth::keyed_limiter(cfg.rate_limit_per_token, 2);
+        let unverified_checks = auth::keyed_limiter(cfg.unverified_checks_per_peer, 10);
         AppState {
             inner: Arc::new(Inner {
                 store,
@@ -155,6 +184,8 @@ impl AppState {
                 public_origin,
                 in_flight: Default::default(),
                 token_checks,
+                token_rate,
+                unverified_checks,
             }),
         }
     }
@@ -184,6 +215,7 @@ impl AppState {
 pub fn router(state: AppState) -> Router {
     use routes as r;
     let body_limit = state.inner.cfg.body_limit_bytes;
+    let body_idle = state.inner.cfg.body_idle_timeout;
     let authed = r::authed_routes()
         .route("/openapi.json", get(openapi::serve_openapi))
         .route(
@@ -199,6 +231,7 @@ pub fn router(state: AppState) -> Router {
         .merge(web::router::<AppState>())
         .fallback(r::not_found)
         .layer(DefaultBodyLimit::max(body_limit))
+        .layer(tower_http::timeout::RequestBodyTimeoutLayer::new(body_idle))
         .layer(from_fn_with_state(state.clone(), metrics::track))
         .with_state(state)
 }
@@ -286,20 +319,24 @@ pub async fn serve_on(
         }))
     });
     let deadline = cfg.shutdown_deadline;
+    let limits = conn::ConnLimits {
+        header_read_timeout: cfg.header_read_timeout,
+        write_stall_timeout: cfg.write_stall_timeout,
+        max_connections: cfg.max_connections,
+    };
     let app = router(AppState::new(store, cfg));
-    let server = axum::serve(listener, app.into_make_service()).with_graceful_shutdown(async move {
+    let server = conn::serve_connections(listener, app, limits, async move {
         shutdown.await;
         let _ = stop_tx2.send(true);
     });
     let mut stopping = stop_rx.clone();
-    let result = tokio::select! {
-        r = server => r,
+    tokio::select! {
+        _ = server => {}
         _ = async move {
             let _ = stopping.wait_for(|s| *s).await;
             tokio::time::sleep(deadline).await;
         } => {
             tracing::warn!("requests still in flight {deadline:?} after the shutdown signal: closing them");
-            Ok(())
         }
     };
     let _ = stop_tx.send(true);
@@ -307,7 +344,7 @@ pub async fn serve_on(
     if let Some(w) = worker {
         let _ = w.await;
     }
-    result.map_err(|e| anyhow::anyhow!("server error: {e}"))
+    Ok(())
 }
 
 #[cfg(test)]

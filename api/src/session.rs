@@ -178,12 +178,19 @@ pub(crate) struct SignIn {
 }
 
 /// `POST /ui/session {token}` → 200 `{name, role, token_id}` + the cookie; 401 for a bad token.
-async fn sign_in(State(s): State<AppState>, headers: HeaderMap, ApiJson(body): ApiJson<SignIn>) -> ApiResult<Response> {
+async fn sign_in(
+    State(s): State<AppState>,
+    peer: Option<axum::Extension<axum::extract::ConnectInfo<std::net::SocketAddr>>>,
+    headers: HeaderMap,
+    ApiJson(body): ApiJson<SignIn>,
+) -> ApiResult<Response> {
     check_csrf(&headers, s.public_origin())?;
     let secret = body.token.trim().to_string();
     if secret.is_empty() || secret.len() > 256 {
         return Err(ApiError::unauthorized("unknown or revoked token"));
     }
+    // Guessing tokens through the sign-in form is bounded like guessing them in a header.
+    crate::auth::check_unverified(&s, &store::sha256_hex(secret.as_bytes()), peer.map(|p| p.0 .0.ip()))?;
     let rec = s
         .store()
         .verify_token(&secret)

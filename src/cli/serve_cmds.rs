@@ -227,6 +227,21 @@ pub struct ServeArgs {
     /// session cookies get `Secure` and the CSRF origin check compares with it.
     #[arg(long, env = "UFOPS_PUBLIC_URL")]
     pub public_url: Option<String>,
+    /// Seconds a request's headers may take to arrive (also the idle keep-alive time).
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=3600))]
+    pub header_timeout_secs: u64,
+    /// Seconds a request body may send nothing, and a response may go unread, before it fails.
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=3600))]
+    pub body_idle_timeout_secs: u64,
+    /// Requests per second one token may make on average (bursts of twice that); 0: no limit.
+    #[arg(long, default_value_t = 1000)]
+    pub rate_limit_per_token: u32,
+    /// Checks of unknown tokens per second per peer address (bursts of ten times that); 0: no limit.
+    #[arg(long, default_value_t = 100)]
+    pub unverified_checks_per_peer: u32,
+    /// Open connections at once; more wait in the kernel's backlog.
+    #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
+    pub max_connections: u64,
 }
 
 /// Ctrl-C or SIGTERM (what `docker stop`, systemd and Kubernetes send): the server finishes the
@@ -258,6 +273,12 @@ pub async fn serve(args: &StoreArgs, a: ServeArgs) -> Result<()> {
     cfg.addr = a.addr;
     cfg.run_worker_in_process = !a.no_worker;
     cfg.public_url = a.public_url;
+    cfg.header_read_timeout = std::time::Duration::from_secs(a.header_timeout_secs);
+    cfg.body_idle_timeout = std::time::Duration::from_secs(a.body_idle_timeout_secs);
+    cfg.write_stall_timeout = std::time::Duration::from_secs(a.body_idle_timeout_secs.saturating_mul(2));
+    cfg.rate_limit_per_token = a.rate_limit_per_token;
+    cfg.unverified_checks_per_peer = a.unverified_checks_per_peer;
+    cfg.max_connections = a.max_connections as usize;
     api::serve(store, cfg, Arc::new(Runner), shutdown_signal()).await
 }
 

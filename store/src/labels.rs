@@ -3,9 +3,13 @@
 
 use crate::catalog::{RowExt, Tx};
 use crate::counts::CountDeltas;
-use crate::writer::{finish_version, next_version, VersionHead};
+use crate::writer::{finish_version, next_version, write_labels_file_ahead, LabelsFileAhead, VersionHead};
 use crate::{now_rfc3339, Backend, CommitInfo, Label, Store, StoreError};
 use serde::Serialize;
+
+/// A label snapshot's labels file, written ahead of the version lock
+/// ([`Store::prepare_label_snapshot`]); commit it with [`Store::commit_label_snapshot`].
+pub struct PreparedLabelSnapshot(LabelsFileAhead);
 
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct LabelEvent {
@@ -141,6 +145,35 @@ impl Store {
 
     /// Freezes the current labels into a new version.
     pub async fn snapshot_labels(&self, actor: &str, message: &str) -> Result<CommitInfo, StoreError> {
+        let prepared = PreparedLabelSnapshot(write_labels_file_ahead(self).await?);
+        self.commit_label_snapshot(prepared, actor, message).await
+    }
+
+    /// Freezes the current labels into a new version only if one changed since the head froze
+    /// them: `(head, false)` otherwise, so a client repeating the request (or many clients) does
+    /// not pile up identical versions, each a full copy of the label table.
+    pub async fn snapshot_labels_if_changed(&self, actor: &str, message: &str) -> Result<(CommitInfo, bool), StoreError> {
+        match self.prepare_label_snapshot().await? {
+            None => Ok((self.head_commit().await?, false)),
+            Some(p) => Ok((self.commit_label_snapshot(p, actor, message).await?, true)),
+        }
+    }
+
+    /// A label snapshot's first step, outside the version lock: None when no label changed since
+    /// the head froze them; otherwise the labels file, written to the object store now, so that
+    /// label writes go on while it uploads (on SQLite the version lock stops them all). A caller
+    /// that serialises writers (the API's write gate) holds its gate only for
+    /// [`Store::commit_label_snapshot`].
+    pub async fn prepare_label_snapshot(&self) -> Result<Option<PreparedLabelSnapshot>, StoreError> {
+        if !self.labels_changed_since_head().await? && self.head_version().await? > 0 {
+            return Ok(None);
+        }
+        Ok(Some(PreparedLabelSnapshot(write_labels_file_ahead(self).await?)))
+    }
+
+    /// A label snapshot's second step, under the version lock: the new version, with the file
+    /// written ahead if the labels did not change meanwhile (else with a new file).
+    pub async fn commit_label_snapshot(&self, prepared: PreparedLabelSnapshot, actor: &str, message: &str) -> Result<CommitInfo, StoreError> {
         let mut tx = self.db().begin_version_write().await?;
         let version = next_version(&mut tx).await?;
         let head = VersionHead {
@@ -152,23 +185,16 @@ impl Store {
             episodes_added: 0,
             episodes_removed: 0,
         };
-        finish_version(self, tx, head, CountDeltas::default()).await?;
+        finish_version(self, tx, head, CountDeltas::default(), Some(prepared.0)).await?;
         let info = self.version(version).await?;
         Ok(CommitInfo { version, episodes: info.episode_count as usize })
     }
 
-    /// Freezes the current labels into a new version only if one changed since the head froze
-    /// them: `(head, false)` otherwise, so a client repeating the request (or many clients) does
-    /// not pile up identical versions, each a full copy of the label table.
-    pub async fn snapshot_labels_if_changed(&self, actor: &str, message: &str) -> Result<(CommitInfo, bool), StoreError> {
-        if !self.labels_changed_since_head().await? {
-            let head = self.head_version().await?;
-            if head > 0 {
-                let info = self.version(head).await?;
-                return Ok((CommitInfo { version: head, episodes: info.episode_count as usize }, false));
-            }
-        }
-        Ok((self.snapshot_labels(actor, message).await?, true))
+    /// The head version as a commit.
+    pub async fn head_commit(&self) -> Result<CommitInfo, StoreError> {
+        let head = self.head_version().await?;
+        let episodes = if head > 0 { self.version(head).await?.episode_count as usize } else { 0 };
+        Ok(CommitInfo { version: head, episodes })
     }
 
     /// Whether any label changed since the head version froze them.
@@ -211,7 +237,7 @@ impl Store {
             episodes_added: 0,
             episodes_removed: ids.len() as i64,
         };
-        finish_version(self, tx, head, counts).await?;
+        finish_version(self, tx, head, counts, None).await?;
         let info = self.version(version).await?;
         Ok(CommitInfo { version, episodes: info.episode_count as usize })
     }

@@ -34,7 +34,7 @@ pub use error::StoreError;
 pub use exports::{check_export_path, ExportFile, EXPORTS_PREFIX};
 pub use gc::{GcReport, MAX_GRACE_SECONDS};
 pub use jobs::{JobRecord, JobState};
-pub use labels::{LabelChange, LabelEvent, LabelUpdate};
+pub use labels::{LabelChange, LabelEvent, LabelUpdate, PreparedLabelSnapshot};
 pub use model::*;
 pub use media::EpisodeMedia;
 pub use objects::FetchCounts;

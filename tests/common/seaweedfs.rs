@@ -140,6 +140,11 @@ impl SeaweedFs {
         ]
     }
 
+    /// The server's process id (to freeze it with SIGSTOP: an object store that stalls).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
     /// The last lines of the server's output, for failure messages.
     pub fn log(&self) -> String {
         ["weed.log", "weed.err"]

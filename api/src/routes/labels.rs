@@ -124,9 +124,14 @@ pub async fn create_snapshot(
     if msg.len() > 4000 {
         return Err(ApiError::bad_request("message is longer than 4000 bytes"));
     }
-    let (info, created) = {
-        let _gate = s.write_gate().await;
-        s.store().snapshot_labels_if_changed(&caller.name, &msg).await?
+    // The labels file is uploaded before the write gate and the version lock are taken: label
+    // writes go on meanwhile, however slow the object store.
+    let (info, created) = match s.store().prepare_label_snapshot().await? {
+        None => (s.store().head_commit().await?, false),
+        Some(prepared) => {
+            let _gate = s.write_gate().await;
+            (s.store().commit_label_snapshot(prepared, &caller.name, &msg).await?, true)
+        }
     };
     // Nothing changed since the head froze the labels: the head is the snapshot (200, no new version).
     Ok((if created { StatusCode::CREATED } else { StatusCode::OK }, Json(info)))
