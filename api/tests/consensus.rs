@@ -204,3 +204,52 @@ async fn consensus_postgres() {
     }
     labelers_agree_or_get_adjudicated(Db::Postgres).await;
 }
+
+/// Two labelers voting on the same episodes at the same moment: every episode ends agreed with
+/// exactly one consensus event (the vote that completes the agreement sees the other one: the
+/// episode row is locked on Postgres, the write is serialized on SQLite).
+async fn concurrent_votes_agree_once(db: Db) {
+    let mut srv = TestServer::start(db, false).await;
+    let (second, _) = srv.store.create_token("labeler2-user", Role::Labeler).await.unwrap();
+    srv.tokens.insert("labeler2", second);
+    let ids = common::ingest(&srv.store, "concurrent", "c1", 24).await;
+    let (st, _) = send(&srv, Method::PUT, "/v1/campaigns/pol", "admin", json!({"labels_needed": 2})).await;
+    assert_eq!(st, 200);
+    let srv = std::sync::Arc::new(srv);
+    let mut tasks = Vec::new();
+    for who in ["labeler", "labeler2"] {
+        for id in ids.clone() {
+            let srv = srv.clone();
+            tasks.push(tokio::spawn(async move {
+                let (st, out) = send(&srv, Method::POST, &format!("/v1/episodes/{id}/votes"), who, json!({"label": "unknown"})).await;
+                assert_eq!(st, 200, "{out}");
+            }));
+        }
+    }
+    for t in tasks {
+        t.await.unwrap();
+    }
+    for id in &ids {
+        let ep = srv.get_json(&format!("/v1/episodes/{id}"), "viewer").await;
+        assert_eq!(ep["episode"]["label"], "unknown", "{ep}");
+        let consensus = ep["history"].as_array().unwrap().iter().filter(|h| h["source"] == "consensus").count();
+        assert_eq!(consensus, 1, "{ep}");
+    }
+    let ag = srv.get_json("/v1/agreement?policy=pol", "viewer").await;
+    assert_eq!((ag["agreed"].as_u64(), ag["pending"].as_u64()), (Some(24), Some(0)), "{ag}");
+    // One label throughout: κ is undefined (null), not a number made up.
+    assert!(ag["pairs"][0]["kappa"].is_null() && ag["krippendorff_alpha"].is_null(), "{ag}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn concurrent_votes_sqlite() {
+    concurrent_votes_agree_once(Db::Sqlite).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn concurrent_votes_postgres() {
+    if !store::test_support::require_postgres() {
+        return;
+    }
+    concurrent_votes_agree_once(Db::Postgres).await;
+}
