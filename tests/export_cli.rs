@@ -145,8 +145,9 @@ fn export_curated_by_verifier_score_keeps_what_the_scorer_keeps() {
 }
 
 /// A verdict's failure cause and time spans (issue 17) travel with the episode: the LeRobot
-/// export's episode table has them in `ufops/failure_cause` and `ufops/label_spans` (JSON), for
-/// exactly the episodes whose frozen label carries them.
+/// export's episode table has them in `ufops/failure_cause` and `ufops/label_spans` (JSON), the
+/// robomimic export's demos as attributes (read with h5py), for exactly the episodes whose frozen
+/// label carries them.
 #[test]
 fn export_carries_failure_causes_and_spans() {
     use arrow::array::{Array, StringArray};
@@ -200,4 +201,21 @@ fn export_carries_failure_causes_and_spans() {
             assert_eq!((c, s), (None, None), "{id}");
         }
     }
+    // robomimic: the same as attributes of the demo, read back with h5py.
+    if !store::test_support::require_python(&["h5py"]) {
+        return;
+    }
+    let h5 = dir.path().join("ds.hdf5");
+    t.ok(&["export", h5.to_str().unwrap(), "--format", "robomimic", "--policy", "p"]);
+    let code = "import h5py, json, sys\n\
+        d = h5py.File(sys.argv[1], 'r')['data']\n\
+        print(json.dumps({k: {a: str(v) for a, v in d[k].attrs.items() if a in ('failure_cause', 'label_spans')} for k in d}))";
+    let out = std::process::Command::new("python3").args(["-c", code, h5.to_str().unwrap()]).output().unwrap();
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let attrs: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let with: Vec<&serde_json::Value> = attrs.as_object().unwrap().values().filter(|a| !a.as_object().unwrap().is_empty()).collect();
+    assert_eq!(with.len(), 1, "one demo carries a cause and spans: {attrs}");
+    assert_eq!(with[0]["failure_cause"], "collision");
+    let spans: serde_json::Value = serde_json::from_str(with[0]["label_spans"].as_str().unwrap()).unwrap();
+    assert_eq!(spans, serde_json::json!([{"start_step": 2, "end_step": 5}]));
 }
