@@ -48,6 +48,8 @@ pub async fn put_label(
     caller.require(Role::Labeler)?;
     check_id("episode id", &id)?;
     let expect = if_match(&headers)?;
+    // One small read per PUT: in a campaign where several labelers vote, a labeler's PUT would
+    // bypass the votes (admins may still overrule).
     if caller.role < Role::Admin && s.store().votes_required(&id).await? {
         return Err(super::consensus::votes_required(&id));
     }
