@@ -143,3 +143,79 @@ fn export_curated_by_verifier_score_keeps_what_the_scorer_keeps() {
     assert!(!out.status.success());
     assert!(text(&out.stderr).contains("min <= max"), "{}", text(&out.stderr));
 }
+
+/// A verdict's failure cause and time spans (issue 17) travel with the episode: the LeRobot
+/// export's episode table has them in `ufops/failure_cause` and `ufops/label_spans` (JSON), the
+/// robomimic export's demos as attributes (read with h5py), for exactly the episodes whose frozen
+/// label carries them.
+#[test]
+fn export_carries_failure_causes_and_spans() {
+    use arrow::array::{Array, StringArray};
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("store");
+    let t = Target::sqlite(&data);
+    t.ok(&["init"]);
+    t.ok(&["dev", "synth", "--policy", "p", "--checkpoint", "c", "--seed", "3", "--episodes", "4", "--steps", "12", "--success-rate", "0.5"]);
+    let eps = t.json(&["episodes", "--policy", "p", "--json"]);
+    let ids: Vec<String> = eps.as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap().to_string()).collect();
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let store = store::Store::open(&store::StoreConfig::local(&data)).await.unwrap();
+        store.set_failure_causes("*", &["missed grasp".to_string(), "collision".to_string()], "admin").await.unwrap();
+        let vote = store::NewVote {
+            episode_id: ids[1].clone(),
+            label: store::Label::Failure,
+            data: store::VerdictData {
+                failure_cause: Some("collision".into()),
+                spans: vec![store::Span { start_step: 2, end_step: 5 }],
+            },
+            note: None,
+            expect_revision: None,
+        };
+        let out = store.cast_vote(vote, "alice").await.unwrap();
+        assert!(out.change.is_some(), "one labeler per episode: the vote is the label write");
+    });
+    t.ok(&["snapshot"]);
+    let ds = dir.path().join("ds");
+    t.ok(&["export", ds.to_str().unwrap(), "--format", "lerobot", "--policy", "p"]);
+    let f = std::fs::File::open(ds.join("meta/episodes/chunk-000/file-000.parquet")).unwrap();
+    let reader = parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(f).unwrap().build().unwrap();
+    let mut seen = Vec::new();
+    for batch in reader {
+        let batch = batch.unwrap();
+        let col = |n: &str| batch.column_by_name(n).unwrap().as_any().downcast_ref::<StringArray>().unwrap().clone();
+        let (id, cause, spans) = (col("ufops/episode_id"), col("ufops/failure_cause"), col("ufops/label_spans"));
+        for i in 0..id.len() {
+            let c = (!cause.is_null(i)).then(|| cause.value(i).to_string());
+            let s = (!spans.is_null(i)).then(|| spans.value(i).to_string());
+            seen.push((id.value(i).to_string(), c, s));
+        }
+    }
+    assert_eq!(seen.len(), 4);
+    for (id, c, s) in seen {
+        if id == ids[1] {
+            assert_eq!(c.as_deref(), Some("collision"));
+            let spans: serde_json::Value = serde_json::from_str(&s.unwrap()).unwrap();
+            assert_eq!(spans, serde_json::json!([{"start_step": 2, "end_step": 5}]));
+        } else {
+            assert_eq!((c, s), (None, None), "{id}");
+        }
+    }
+    // robomimic: the same as attributes of the demo, read back with h5py.
+    if !store::test_support::require_python(&["h5py"]) {
+        return;
+    }
+    let h5 = dir.path().join("ds.hdf5");
+    t.ok(&["export", h5.to_str().unwrap(), "--format", "robomimic", "--policy", "p"]);
+    let code = "import h5py, json, sys\n\
+        d = h5py.File(sys.argv[1], 'r')['data']\n\
+        print(json.dumps({k: {a: str(v) for a, v in d[k].attrs.items() if a in ('failure_cause', 'label_spans')} for k in d}))";
+    let out = std::process::Command::new("python3").args(["-c", code, h5.to_str().unwrap()]).output().unwrap();
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let attrs: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let with: Vec<&serde_json::Value> = attrs.as_object().unwrap().values().filter(|a| !a.as_object().unwrap().is_empty()).collect();
+    assert_eq!(with.len(), 1, "one demo carries a cause and spans: {attrs}");
+    assert_eq!(with[0]["failure_cause"], "collision");
+    let spans: serde_json::Value = serde_json::from_str(with[0]["label_spans"].as_str().unwrap()).unwrap();
+    assert_eq!(spans, serde_json::json!([{"start_step": 2, "end_step": 5}]));
+}

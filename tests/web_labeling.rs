@@ -340,3 +340,87 @@ fn scoreboard_page_in_headless_chromium() {
     let nonempty = bins.iter().filter(|b| b["count"].as_u64().unwrap() > 0).count();
     assert_eq!(plots[0]["points"].as_u64().unwrap() as usize, nonempty);
 }
+
+/// Several labelers in headless Chromium (issue 17, Must show 1): six synthetic episodes of
+/// policy `synth`, all unknown, in a blind campaign needing two labelers, with failure causes.
+/// `tests/web/consensus_e2e.mjs` has alice and bob label four of them with the keyboard (bob
+/// blind until he votes, one disagreement) and the admin settle the dispute on the page; κ from
+/// the API and the page equals κ computed in the script. Checked again here through the API:
+/// each episode's label and source, and κ recomputed from the verdicts the script reports.
+#[test]
+fn consensus_page_in_headless_chromium() {
+    let missing = missing_prerequisites();
+    let probe = if missing.is_empty() { Ok(()) } else { Err(missing.join("; ")) };
+    if !store::test_support::require(store::test_support::Tool::Browser, probe) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let t = Target::sqlite(dir.path());
+    t.ok(&["init"]);
+    t.ok(&["dev", "synth", "--policy", "synth", "--checkpoint", "c1", "--seed", "7", "--episodes", "6", "--steps", "20", "--success-rate", "0.5"]);
+    let eps = t.json(&["episodes", "--policy", "synth", "--json"]);
+    for e in eps.as_array().unwrap() {
+        t.ok(&["label", e["id"].as_str().unwrap(), "unknown", "--actor", "campaign"]);
+    }
+    let admin = token(&t, "admin", "admin");
+    let alice = token(&t, "alice", "labeler");
+    let bob = token(&t, "bob", "labeler");
+    let srv = serve(&t);
+    let (st, v) = http(&srv.addr, "PUT", "/v1/campaigns/synth", &admin, Some(r#"{"labels_needed": 2, "blind": true}"#));
+    assert_eq!(st, 200, "{v}");
+    let (st, v) = http(&srv.addr, "PUT", "/v1/tasks/*/failure-causes", &admin, Some(r#"{"causes": ["missed grasp", "collision", "timeout"]}"#));
+    assert_eq!(st, 200, "{v}");
+
+    let artifacts = artifacts_dir();
+    std::fs::create_dir_all(&artifacts).unwrap();
+    let out = Command::new("node")
+        .arg(repo().join("tests/web/consensus_e2e.mjs"))
+        .current_dir(repo().join("tests/web"))
+        .env("UFOPS_URL", format!("http://{}", srv.addr))
+        .env("UFOPS_TOKEN_A", &alice)
+        .env("UFOPS_TOKEN_B", &bob)
+        .env("UFOPS_TOKEN_ADMIN", &admin)
+        .env("UFOPS_ARTIFACTS", &artifacts)
+        .env("CHROMIUM", chromium().unwrap())
+        .stderr(Stdio::inherit())
+        .output()
+        .expect("run node tests/web/consensus_e2e.mjs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    println!("{stdout}");
+    assert!(out.status.success(), "the browser test failed (screenshots in {})", artifacts.display());
+    let line = stdout.lines().find_map(|l| l.strip_prefix("E2E_RESULT ")).expect("E2E_RESULT line");
+    let result: Value = serde_json::from_str(line).expect("E2E_RESULT json");
+
+    let alice_v = result["alice"].as_object().unwrap();
+    let bob_v = result["bob"].as_object().unwrap();
+    assert_eq!(alice_v.len(), 4);
+    let disputed = result["disputed"].as_str().unwrap();
+    for (id, a) in alice_v {
+        let (st, v) = http(&srv.addr, "GET", &format!("/v1/episodes/{id}"), &admin, None);
+        assert_eq!(st, 200, "{v}");
+        let (label, source) = (&v["episode"]["label"], &v["episode"]["label_source"]);
+        if id == disputed {
+            assert_eq!((label.as_str(), source.as_str()), (Some("failure"), Some("adjudication")), "{v}");
+        } else {
+            assert_eq!(a, &bob_v[id]);
+            assert_eq!((label, source.as_str()), (a, Some("consensus")), "{v}");
+        }
+    }
+    let span_ep = result["span_episode"].as_str().unwrap();
+    let (_, v) = http(&srv.addr, "GET", &format!("/v1/episodes/{span_ep}"), &admin, None);
+    let last = v["history"].as_array().unwrap().last().unwrap().clone();
+    assert_eq!(last["data"]["spans"][0]["end_step"], 3, "the span alice marked is in the label event: {last}");
+    // The two episodes nobody labeled are still unknown.
+    let (_, page) = http(&srv.addr, "GET", "/v1/episodes?policy=synth&label=unknown", &admin, None);
+    assert_eq!(page["episodes"].as_array().unwrap().len(), 2, "{page}");
+    // κ once more, from the reported verdicts, against the API.
+    let n = alice_v.len() as f64;
+    let po = alice_v.iter().filter(|(id, a)| &&bob_v[id.as_str()] == a).count() as f64 / n;
+    let share = |m: &serde_json::Map<String, Value>, c: &str| m.values().filter(|v| *v == c).count() as f64 / n;
+    let pe: f64 = ["success", "failure"].iter().map(|c| share(alice_v, c) * share(bob_v, c)).sum();
+    let kappa = (po - pe) / (1.0 - pe);
+    let (_, ag) = http(&srv.addr, "GET", "/v1/agreement?policy=synth", &admin, None);
+    assert!((ag["pairs"][0]["kappa"].as_f64().unwrap() - kappa).abs() < 1e-12, "{ag} vs {kappa}");
+    assert_eq!((ag["agreed"].as_u64(), ag["settled"].as_u64(), ag["disputed"].as_u64()), (Some(3), Some(1), Some(0)), "{ag}");
+    println!("consensus: kappa {kappa:.4} (API {}, page {}), alpha {}", result["kappa_api"], result["kappa_page"], ag["krippendorff_alpha"]);
+}

@@ -4,7 +4,11 @@
 //! method 10) of the difference of two independent rates, the number of rollouts per arm an
 //! evaluation needs for that difference's interval to exclude 0 at given rates, and how many
 //! unlabeled episodes could change whether it does. The sim's summaries, the demo's report and the
-//! store's scoreboard all call it, so their numbers agree to the last bit. No dependencies.
+//! store's scoreboard all call it, so their numbers agree to the last bit. It also owns the
+//! agreement between labelers (Cohen's κ, Krippendorff's α; [`agreement`]). No dependencies.
+
+pub mod agreement;
+pub use agreement::{cohen_kappa, krippendorff_alpha_nominal};
 
 /// z for a two-sided 95% interval (the 0.975 quantile of the standard normal).
 pub const Z95: f64 = 1.959963984540054;

@@ -176,6 +176,10 @@ struct EpisodeRow {
     part: Option<String>,
     /// The episode's verifier score when the export was curated by one.
     score: Option<f64>,
+    /// From the label event that set the exported label: the failure cause and the time spans
+    /// (JSON), when the labelers gave them.
+    failure_cause: Option<String>,
+    spans: Option<String>,
 }
 
 fn data_props() -> WriterProperties {
@@ -221,7 +225,15 @@ impl Writer<'_> {
         steps.column_by_name(name).ok_or_else(|| ExportError::invalid(format!("episode {}: no column {name}", e.id)))
     }
 
-    fn add(&mut self, index: usize, e: &EpisodeRecord, steps: RecordBatch, part: Option<&String>, score: Option<f64>) -> Result<()> {
+    fn add(
+        &mut self,
+        index: usize,
+        e: &EpisodeRecord,
+        steps: RecordBatch,
+        part: Option<&String>,
+        score: Option<f64>,
+        label_data: Option<&serde_json::Value>,
+    ) -> Result<()> {
         let l = layout_of(&steps.schema())?;
         if l.action == 0 {
             return Err(no_actions(e));
@@ -319,6 +331,8 @@ impl Writer<'_> {
             source_name: e.source_name.clone(),
             part: part.cloned(),
             score,
+            failure_cause: crate::failure_cause(label_data),
+            spans: crate::label_spans(label_data),
         });
         self.frames += n as i64;
         if df.writer.bytes_written() + df.writer.in_progress_size() > DATA_FILE_BYTES {
@@ -436,6 +450,12 @@ fn episodes_batch(rows: &[EpisodeRow], video_keys: &[String]) -> Result<RecordBa
         fields.push(Field::new("ufops/verifier_score", DataType::Float64, true));
         cols.push(Arc::new(arrow::array::Float64Array::from_iter(rows.iter().map(|r| r.score))));
     }
+    if rows.iter().any(|r| r.failure_cause.is_some() || r.spans.is_some()) {
+        fields.push(Field::new("ufops/failure_cause", DataType::Utf8, true));
+        fields.push(Field::new("ufops/label_spans", DataType::Utf8, true));
+        cols.push(Arc::new(StringArray::from_iter(rows.iter().map(|r| r.failure_cause.as_deref()))));
+        cols.push(Arc::new(StringArray::from_iter(rows.iter().map(|r| r.spans.as_deref()))));
+    }
     RecordBatch::try_new(Arc::new(Schema::new(fields)), cols).map_err(|e| ExportError::invalid(e.to_string()))
 }
 
@@ -529,7 +549,7 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
             });
         }
         let w = writer.as_mut().expect("set above");
-        w.add(i, e, steps, sel.parts.get(&e.id), sel.scores.get(&e.id).copied())?;
+        w.add(i, e, steps, sel.parts.get(&e.id), sel.scores.get(&e.id).copied(), sel.label_data.get(&e.id))?;
         count_label(&mut report.labels, e.label);
         if let Some(p) = progress {
             p(i + 1, total);

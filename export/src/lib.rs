@@ -148,6 +148,19 @@ pub struct Selected {
     pub scores: HashMap<String, f64>,
     /// With a score range: how many episodes were scored before the range was applied.
     pub scored: Option<usize>,
+    /// The data of the label event behind each exported label (failure cause, time spans,
+    /// votes), for the episodes whose labelers gave any.
+    pub label_data: HashMap<String, serde_json::Value>,
+}
+
+/// The failure cause in a label event's data.
+pub(crate) fn failure_cause(data: Option<&serde_json::Value>) -> Option<String> {
+    data?.get("failure_cause")?.as_str().map(str::to_string)
+}
+
+/// The time spans in a label event's data, as JSON (`[{start_step, end_step, actor?}]`).
+pub(crate) fn label_spans(data: Option<&serde_json::Value>) -> Option<String> {
+    data?.get("spans").filter(|s| s.as_array().is_some_and(|a| !a.is_empty())).map(|s| s.to_string())
 }
 
 impl Selected {
@@ -212,7 +225,10 @@ pub async fn select(store: &Store, sel: &Selection) -> Result<Selected> {
             return Err(ExportError::invalid(format!("score range [{:?}, {:?}]: bounds must be finite with min <= max", r.min, r.max)));
         }
     }
+    let keys: Vec<(String, i64)> = episodes.iter().map(|e| (e.id.clone(), e.label_revision)).collect();
+    let label_data = store.label_event_data(&keys).await?;
     Ok(Selected {
+        label_data,
         version,
         labels_path: info.labels_path,
         episodes,

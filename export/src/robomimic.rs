@@ -310,6 +310,12 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
         if let Some(score) = sel.scores.get(&e.id) {
             g.set_attr("verifier_score", AttrValue::F64(*score));
         }
+        if let Some(c) = crate::failure_cause(sel.label_data.get(&e.id)) {
+            g.set_attr("failure_cause", AttrValue::VarLenString(c));
+        }
+        if let Some(spans) = crate::label_spans(sel.label_data.get(&e.id)) {
+            g.set_attr("label_spans", AttrValue::VarLenString(spans));
+        }
         data.add_group(g.finish());
         for tag in &e.tags {
             if filters.contains(tag) {

@@ -21,6 +21,10 @@ pub struct LabelEvent {
     pub actor: String,
     pub note: Option<String>,
     pub created_at: String,
+    /// What the verdict carries besides the label (a failure cause, time spans, the votes it
+    /// agreed from), as JSON; `None` for a plain label write.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub data: Option<serde_json::Value>,
 }
 
 /// One requested label change.
@@ -34,6 +38,7 @@ pub struct LabelUpdate {
 }
 
 #[derive(Debug, Clone, Serialize, PartialEq)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct LabelChange {
     pub episode_id: String,
     pub old_label: Label,
@@ -118,7 +123,7 @@ impl Store {
     /// Every label event of an episode, oldest first.
     pub async fn label_history(&self, episode_id: &str) -> Result<Vec<LabelEvent>, StoreError> {
         let rows = sqlx::query(
-            "SELECT episode_id, revision, old_label, new_label, source, actor, note, created_at \
+            "SELECT episode_id, revision, old_label, new_label, source, actor, note, created_at, data \
              FROM label_events WHERE episode_id = $1 ORDER BY revision",
         )
         .bind(episode_id)
@@ -133,7 +138,7 @@ impl Store {
     /// All label events after `after_id` (for replaying the audit log), with their ids.
     pub async fn label_events_since(&self, after_id: i64, limit: i64) -> Result<Vec<(i64, LabelEvent)>, StoreError> {
         let rows = sqlx::query(
-            "SELECT id, episode_id, revision, old_label, new_label, source, actor, note, created_at \
+            "SELECT id, episode_id, revision, old_label, new_label, source, actor, note, created_at, data \
              FROM label_events WHERE id > $1 ORDER BY id LIMIT $2",
         )
         .bind(after_id)
@@ -291,7 +296,7 @@ fn item_error(e: &StoreError) -> bool {
 /// Applies one label change inside `tx` in one round trip. On success the episode row and its
 /// audit event are written and the count change is added to `counts` (applied by the caller
 /// before it commits); on an item error (invalid note, unknown episode, stale revision) nothing is.
-async fn apply_one(
+pub(crate) async fn apply_one(
     tx: &mut Tx,
     backend: Backend,
     u: &LabelUpdate,
@@ -402,6 +407,10 @@ fn event_from_row(r: &sqlx::any::AnyRow) -> Result<LabelEvent, StoreError> {
         actor: r.s("actor")?,
         note: r.os("note")?,
         created_at: r.s("created_at")?,
+        data: match r.os("data")? {
+            Some(t) => Some(serde_json::from_str(&t).map_err(|e| StoreError::Corrupt(format!("label event data: {e}")))?),
+            None => None,
+        },
     })
 }
 

@@ -7,6 +7,7 @@
 
 mod artifacts;
 mod catalog;
+mod consensus;
 mod counts;
 mod error;
 mod exports;
@@ -29,6 +30,10 @@ mod writer;
 
 pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
 pub use catalog::{migration_names, Backend};
+pub use consensus::{
+    Agreement, Campaign, ConsensusState, Dispute, EpisodeVotes, LabelerCounts, NewVote, PairAgreement, Span, VerdictData,
+    Vote, VoteOutcome, MAX_FAILURE_CAUSES, MAX_LABELS_NEEDED, MAX_SPANS,
+};
 pub use counts::{CountFilter, LabelCounts};
 pub use error::StoreError;
 pub use exports::{check_export_path, ExportFile, EXPORTS_PREFIX};

@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 /// An episode's success label.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub enum Label {
     Success,
     Failure,

@@ -9,6 +9,7 @@
 import * as api from './api.js';
 import { Player, prepare, dispose } from './player.js';
 import { drawPlots, drawTrajectory } from './plots.js';
+import * as consensus from './consensus.js';
 
 const $ = (id) => document.getElementById(id);
 const LABELS = ['success', 'failure', 'unknown'];
@@ -79,6 +80,7 @@ async function enter() {
   $('signin').hidden = true;
   $('app').hidden = false;
   $('me').textContent = `${S.me.name} (${S.me.role})`;
+  consensus.init(S.me);
   if (document.activeElement && document.activeElement !== document.body) document.activeElement.blur();
   readHash();
   await loadFilters();
@@ -280,7 +282,7 @@ function trimCache(keep) {
   }
 }
 
-const todo = (i) => S.queue[i].label === 'unknown' && !S.queue[i].pending;
+const todo = (i) => S.queue[i].label === 'unknown' && !S.queue[i].pending && !consensus.voted(S.queue[i].id);
 
 /** The next unlabeled entry among those loaded, wrapping around. */
 function nextUnlabeled(from) {
@@ -328,6 +330,7 @@ async function show(i, t0) {
   S.cur = p;
   writeHash();
   renderEpisode(p);
+  consensus.show(p.detail.episode);
   if (S.plots) S.plots.destroy();
   if (S.traj) { S.traj.destroy(); S.traj = null; }
   player.attach(p, $('preload'));
@@ -454,7 +457,7 @@ async function save(p, label, revision, note, before) {
   S.pendingWrites += 1;
   S.writeGen += 1;
   try {
-    const ch = await api.putLabel(id, label, revision, note);
+    const ch = await consensus.save(p.detail.episode, label, revision, note); // a PUT, or a vote
     setLocal(id, ch.label, ch.revision, ch.actor, false);
     p.detail.episode = { ...p.detail.episode, label: ch.label, label_revision: ch.revision, label_actor: ch.actor };
     refreshDetail(p);
@@ -578,7 +581,10 @@ function onKey(ev) {
     '.': () => { player.pause(); player.step(1); },
     x: () => toggleSelect(S.idx),
   }[k];
-  if (!act) return;
+  if (!act) {
+    if (consensus.onKey(k, player.frame)) { ev.preventDefault(); metrics.keyActions++; }
+    return;
+  }
   ev.preventDefault();
   metrics.keyActions++;
   act();
@@ -624,6 +630,7 @@ function wire() {
   $('play').addEventListener('click', () => player.toggle());
   $('prev-frame').addEventListener('click', () => player.step(-1));
   $('next-frame').addEventListener('click', () => player.step(1));
+  consensus.wire();
   document.addEventListener('keydown', onKey);
   window.addEventListener('unhandledrejection', (ev) => {
     const e = ev.reason;

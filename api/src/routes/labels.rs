@@ -48,6 +48,11 @@ pub async fn put_label(
     caller.require(Role::Labeler)?;
     check_id("episode id", &id)?;
     let expect = if_match(&headers)?;
+    // One small read per PUT: in a campaign where several labelers vote, a labeler's PUT would
+    // bypass the votes (admins may still overrule).
+    if caller.role < Role::Admin && s.store().votes_required(&id).await? {
+        return Err(super::consensus::votes_required(&id));
+    }
     let update =
         LabelUpdate { episode_id: id, label: parse_label(&body.label)?, expect_revision: Some(expect), note: body.note };
     // SQLite: group-committed with concurrent PUTs (one transaction per batch, one outcome each).
@@ -87,8 +92,12 @@ pub async fn bulk_labels(
         return Err(ApiError::bad_request("at most 10000 updates per request"));
     }
     let mut updates = Vec::with_capacity(body.updates.len());
+    let check_votes = caller.role < Role::Admin && s.store().any_multi_labeler_campaign().await?;
     for u in body.updates {
         check_id("episode id", &u.episode_id)?;
+        if check_votes && s.store().votes_required(&u.episode_id).await? {
+            return Err(super::consensus::votes_required(&u.episode_id));
+        }
         updates.push(LabelUpdate {
             episode_id: u.episode_id,
             label: parse_label(&u.label)?,
@@ -138,7 +147,7 @@ pub async fn create_snapshot(
 }
 
 impl AppState {
-    fn count_label_result(&self, r: Result<store::LabelChange, store::StoreError>) -> ApiResult<store::LabelChange> {
+    pub(super) fn count_label_result(&self, r: Result<store::LabelChange, store::StoreError>) -> ApiResult<store::LabelChange> {
         self.count_labels_result(r.map(|c| vec![c])).map(|mut v| v.remove(0))
     }
     fn count_labels_result(

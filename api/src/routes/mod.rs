@@ -12,6 +12,7 @@ macro_rules! need {
 mod admin;
 mod artifacts;
 mod catalog;
+mod consensus;
 mod episodes;
 mod exports;
 mod infra;
@@ -23,6 +24,7 @@ mod splits;
 pub use admin::*;
 pub use artifacts::*;
 pub use catalog::*;
+pub use consensus::*;
 pub use episodes::*;
 pub use exports::*;
 pub use infra::*;
@@ -64,6 +66,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
         .merge(artifacts::router())
         .merge(exports::router())
         .merge(catalog::router())
+        .merge(consensus::router())
         .merge(episodes::router())
         .merge(infra::router())
         .merge(jobs::router())
