@@ -62,7 +62,7 @@ pub fn check_id(what: &str, s: &str) -> Result<(), ApiError> {
 
 /// A policy, checkpoint or task name given in a URL: 1-200 printable characters, no '/'.
 pub fn check_name(what: &str, s: &str) -> Result<(), ApiError> {
-    let ok = !s.is_empty() && s.len() <= 200 && s.trim() == s && !s.chars().any(|c| c.is_control() || c == '/');
+    let ok = !s.is_empty() && s.chars().count() <= 200 && s.trim() == s && !s.chars().any(|c| c.is_control() || c == '/');
     if ok {
         Ok(())
     } else {

@@ -7,6 +7,7 @@ use crate::writer::{finish_version, next_version, VersionHead};
 use crate::{now_rfc3339, Backend, CommitInfo, Label, Store, StoreError};
 use serde::Serialize;
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct LabelEvent {
     pub episode_id: String,
@@ -29,6 +30,7 @@ pub struct LabelUpdate {
     pub note: Option<String>,
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct LabelChange {
     pub episode_id: String,

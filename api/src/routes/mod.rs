@@ -32,7 +32,8 @@ pub use scoreboard::*;
 pub use splits::*;
 
 use crate::auth::Caller;
-use crate::error::{ApiError, ApiResult, Problem};
+use crate::error::{ApiError, ApiResult};
+use crate::openapi::FileBytes;
 use crate::extract::{check_id, check_name, ApiJson, ApiPath, ApiQuery};
 use crate::AppState;
 use axum::body::Body;
