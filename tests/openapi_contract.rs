@@ -49,8 +49,9 @@ fn schemathesis_finds_no_failures() {
     // No worker: generated ingests and training jobs stay queued, so the run stays bounded.
     let server = t.serve(&["--no-worker"]);
     let report = dir.path().join("schemathesis.json");
+    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/openapi/schemathesis.toml");
     let out = std::process::Command::new("python3")
-        .args(["-m", "schemathesis.cli", "run", &format!("{}/openapi.json", server.url)])
+        .args(["-m", "schemathesis.cli", "--config-file", config.to_str().unwrap(), "run", &format!("{}/openapi.json", server.url)])
         .args(["--checks", "all", "--phases", "examples,coverage,fuzzing,stateful"])
         .args(["--max-examples", "25", "--seed", "18", "--workers", "1", "--no-shrink"])
         .args(["--header", &format!("Authorization: Bearer {admin}")])

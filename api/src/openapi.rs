@@ -34,7 +34,7 @@ use utoipa::{Modify, OpenApi, ToSchema};
         routes::get_scoreboard, routes::list_runs,
         upload::ingest, routes::gc, routes::create_token, routes::list_tokens, routes::revoke_token,
     ),
-    components(schemas(Problem)),
+    components(schemas(Problem, routes::EpisodeSort, routes::ScoreboardFormat)),
     modifiers(&Bearer, &Contract),
     security(("bearer" = [])),
 )]
@@ -65,6 +65,55 @@ pub const ID_PATTERN: &str = r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}$";
 pub const NAME_PATTERN: &str =
     r"^[^/\s\x00-\x1f\x7f-\x9f]([^/\x00-\x1f\x7f-\x9f]{0,198}[^/\s\x00-\x1f\x7f-\x9f])?$";
 
+/// A token name (`store::writer::check_name`): printable, no whitespace at either end.
+pub const TOKEN_NAME_PATTERN: &str = r"^[^\s\x00-\x1f\x7f-\x9f]([^\x00-\x1f\x7f-\x9f]{0,198}[^\s\x00-\x1f\x7f-\x9f])?$";
+/// `If-Match` of a label write: a label revision, quoted or not, weak or not.
+pub const IF_MATCH_PATTERN: &str = r#"^(W/)?("[0-9]{1,18}"|[0-9]{1,18})$"#;
+
+/// Query parameters the handlers check as names (`extract::check_name`) or ids, per path.
+const CHECKED_QUERY: &[(&str, &str, &str)] = &[
+    ("/v1/scoreboard", "policy", NAME_PATTERN),
+    ("/v1/scoreboard", "checkpoint", NAME_PATTERN),
+    ("/v1/scoreboard", "task", NAME_PATTERN),
+    ("/v1/scoreboard", "baseline", NAME_PATTERN),
+    ("/v1/scoreboard", "baseline_checkpoint", NAME_PATTERN),
+    ("/v1/runs", "name", NAME_PATTERN),
+    ("/v1/ingest", "policy", NAME_PATTERN),
+    ("/v1/ingest", "checkpoint", NAME_PATTERN),
+    ("/v1/ingest", "format", ID_PATTERN),
+];
+
+/// Request-body fields the handlers check, per component schema.
+const CHECKED_FIELDS: &[(&str, &str, &str)] = &[
+    ("SplitCreate", "policy", NAME_PATTERN),
+    ("SplitCreate", "checkpoint", NAME_PATTERN),
+    ("ExportCreate", "policy", NAME_PATTERN),
+    ("ExportCreate", "checkpoint", NAME_PATTERN),
+    ("ExportCreate", "task", NAME_PATTERN),
+    ("ExportCreate", "tag", NAME_PATTERN),
+    ("ExportCreate", "split", ID_PATTERN),
+    ("JobCreate", "split_id", ID_PATTERN),
+    ("BulkLabelItem", "episode_id", ID_PATTERN),
+    ("TokenCreate", "name", TOKEN_NAME_PATTERN),
+];
+
+/// Sets `pattern` on a string schema, or on the string branch of a nullable one.
+fn set_pattern(schema: &mut RefOr<Schema>, pattern: &str) {
+    match schema {
+        RefOr::T(Schema::Object(o)) => o.pattern = Some(pattern.to_string()),
+        RefOr::T(Schema::OneOf(one)) => {
+            for item in one.items.iter_mut() {
+                if let RefOr::T(Schema::Object(o)) = item {
+                    if o.schema_type != utoipa::openapi::schema::SchemaType::Type(Type::Null) {
+                        o.pattern = Some(pattern.to_string());
+                    }
+                }
+            }
+        }
+        _ => {}
+    }
+}
+
 /// The shared part of the contract, added to every operation.
 struct Contract;
 
@@ -82,8 +131,20 @@ fn string_schema(pattern: &str) -> RefOr<Schema> {
 }
 
 impl Contract {
-    fn operation(op: &mut Operation, public: bool) {
+    fn operation(op: &mut Operation, path: &str, public: bool) {
         let params = op.parameters.get_or_insert_with(Vec::new);
+        for p in params.iter_mut() {
+            if p.parameter_in == ParameterIn::Query {
+                if let Some((_, _, pattern)) = CHECKED_QUERY.iter().find(|(at, name, _)| *at == path && *name == p.name) {
+                    if let Some(s) = p.schema.as_mut() {
+                        set_pattern(s, pattern);
+                    }
+                }
+            }
+            if p.parameter_in == ParameterIn::Header && p.name == "If-Match" {
+                p.schema = Some(string_schema(IF_MATCH_PATTERN));
+            }
+        }
         let mut has_path = false;
         // A version that does not exist is a 404, like a path id.
         let names_version = params.iter().any(|p| p.name == "version");
@@ -145,7 +206,16 @@ impl Modify for Contract {
         for (path, item) in openapi.paths.paths.iter_mut() {
             let public = path == "/healthz";
             for op in [&mut item.get, &mut item.put, &mut item.post, &mut item.delete, &mut item.patch].into_iter().flatten() {
-                Contract::operation(op, public);
+                Contract::operation(op, path, public);
+            }
+        }
+        if let Some(components) = openapi.components.as_mut() {
+            for (schema, field, pattern) in CHECKED_FIELDS {
+                if let Some(RefOr::T(Schema::Object(o))) = components.schemas.get_mut(*schema) {
+                    if let Some(prop) = o.properties.get_mut(*field) {
+                        set_pattern(prop, pattern);
+                    }
+                }
             }
         }
     }

@@ -28,12 +28,13 @@ subprocess.run(
 )
 spec = importlib.util.spec_from_file_location("ufops_models", models_py)
 models = importlib.util.module_from_spec(spec)
+sys.modules["ufops_models"] = models
 spec.loader.exec_module(models)
 for obj in list(vars(models).values()):
     if isinstance(obj, type) and issubclass(obj, pydantic.BaseModel) and obj is not pydantic.BaseModel \
             and obj.__name__ != "Problem" and "root" not in obj.model_fields:
         obj.model_config["extra"] = "forbid"
-        obj.model_rebuild(force=True)
+        obj.model_rebuild(force=True, _types_namespace=vars(models))
 
 
 def py_type(schema):
@@ -84,7 +85,8 @@ def call(method, path, body=None, headers=None, want=None):
         parsed.append(f"{method} {templ} {status}")
         return None, rh
     assert ctype in content or "*/*" in content, f"{method} {templ} {status}: {ctype} not among {list(content)}"
-    if ctype not in ("application/json", "application/problem+json"):
+    if ctype not in content or ctype not in ("application/json", "application/problem+json"):
+        # A file download (`*/*`): its bytes are the artifact's or export's, not a record.
         parsed.append(f"{method} {templ} {status} ({ctype})")
         return raw, rh
     value = json.loads(raw)

@@ -25,10 +25,15 @@ fn if_match(headers: &HeaderMap) -> ApiResult<i64> {
             "PUT a label with If-Match: <label revision> (the ETag of GET /v1/episodes/{id})",
         )
     })?;
-    let s = v.to_str().unwrap_or("").trim();
-    let s = s.strip_prefix("W/").unwrap_or(s).trim_matches('"');
-    s.parse::<i64>()
-        .map_err(|_| ApiError::bad_request(format!("If-Match {s:?} is not a label revision (an integer)")))
+    // `W/"7"`, `"7"` or `7` (the document's pattern, crate::openapi::IF_MATCH_PATTERN).
+    let raw = v.to_str().unwrap_or("").trim();
+    let s = raw.strip_prefix("W/").unwrap_or(raw);
+    let s = s.strip_prefix('"').and_then(|x| x.strip_suffix('"')).unwrap_or(s);
+    let digits = (1..=18).contains(&s.len()) && s.bytes().all(|b| b.is_ascii_digit());
+    digits
+        .then(|| s.parse::<i64>().ok())
+        .flatten()
+        .ok_or_else(|| ApiError::bad_request(format!("If-Match {raw:?} is not a label revision (an integer)")))
 }
 
 /// Sets an episode's label; `If-Match: <revision>` is required, a stale revision gets 409 with
