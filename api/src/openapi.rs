@@ -65,7 +65,7 @@ pub const ID_PATTERN: &str = r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}$";
 pub const NAME_PATTERN: &str =
     r"^[^/\s\x00-\x1f\x7f-\x9f]([^/\x00-\x1f\x7f-\x9f]{0,198}[^/\s\x00-\x1f\x7f-\x9f])?$";
 
-/// A token name (`store::writer::check_name`): printable, no whitespace at either end.
+/// A token or run name (`store::writer::check_name`): printable, no whitespace at either end.
 pub const TOKEN_NAME_PATTERN: &str = r"^[^\s\x00-\x1f\x7f-\x9f]([^\x00-\x1f\x7f-\x9f]{0,198}[^\s\x00-\x1f\x7f-\x9f])?$";
 /// `If-Match` of a label write: a label revision, quoted or not, weak or not.
 pub const IF_MATCH_PATTERN: &str = r#"^(W/)?("[0-9]{1,18}"|[0-9]{1,18})$"#;
@@ -81,6 +81,8 @@ const CHECKED_QUERY: &[(&str, &str, &str)] = &[
     ("/v1/ingest", "policy", NAME_PATTERN),
     ("/v1/ingest", "checkpoint", NAME_PATTERN),
     ("/v1/ingest", "format", ID_PATTERN),
+    ("/v1/ingest", "run", TOKEN_NAME_PATTERN),
+    ("/v1/ingest", "run_artifact", TOKEN_NAME_PATTERN),
 ];
 
 /// Request-body fields the handlers check, per component schema.

@@ -12,7 +12,9 @@ pub(crate) fn router() -> Router<AppState> {
 
 #[derive(Deserialize, ToSchema)]
 pub struct GcRequest {
-    /// Keep unreferenced objects younger than this (default 3600).
+    /// Keep unreferenced objects younger than this (default 3600; at most ten years,
+    /// store::gc::MAX_GRACE_SECONDS).
+    #[schema(maximum = 315_360_000)]
     grace_seconds: Option<u64>,
     /// Only report (default false).
     dry_run: Option<bool>,

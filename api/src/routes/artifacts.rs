@@ -46,7 +46,8 @@ pub async fn get_artifact(State(s): State<AppState>, ApiPath(id): ApiPath<String
 /// One file of an artifact, checked against its sha256 (sent as `X-Checksum-Sha256` and `ETag`).
 #[utoipa::path(get, path = "/v1/artifacts/{id}/files/{name}", tag = "artifacts",
     params(("id" = String, Path), ("name" = String, Path)),
-    responses((status = 200, description = "the file", content_type = "*/*", body = FileBytes, headers(("X-Checksum-Sha256" = String))),
+    responses((status = 200, description = "the file (`application/json` for a .json file)", headers(("X-Checksum-Sha256" = String)),
+               content((Object = "application/json"), (FileBytes = "application/octet-stream"))),
               (status = 404, description = "no such artifact or file")))]
 pub async fn artifact_file(State(s): State<AppState>, ApiPath((id, name)): ApiPath<(String, String)>) -> ApiResult<Response> {
     check_id("artifact id", &id)?;
@@ -105,8 +106,9 @@ pub async fn resolve_verifier(
     tag = "artifacts",
     params(("policy" = String, Path), ("checkpoint" = String, Path), ("kind_at_alias" = String, Path),
            ("name" = String, Path)),
-    responses((status = 200, description = "the file", content_type = "*/*", body = FileBytes,
-               headers(("X-Checksum-Sha256" = String), ("X-Artifact-Id" = String))),
+    responses((status = 200, description = "the file (`application/json` for a .json file)",
+               headers(("X-Checksum-Sha256" = String), ("X-Artifact-Id" = String)),
+               content((Object = "application/json"), (FileBytes = "application/octet-stream"))),
               (status = 404, description = "no artifact has that alias, or it has no such file")))]
 pub async fn resolve_verifier_file(
     State(s): State<AppState>,

@@ -23,6 +23,7 @@ pub struct SplitCreate {
     /// Default 0.
     seed: Option<u64>,
     /// Keep at most this many labeled episodes, a seeded sample (nested across sizes).
+    #[schema(minimum = 1)]
     max_episodes: Option<u64>,
 }
 
