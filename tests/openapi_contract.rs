@@ -50,13 +50,21 @@ fn schemathesis_finds_no_failures() {
     let server = t.serve(&["--no-worker"]);
     let report = dir.path().join("schemathesis.json");
     let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/openapi/schemathesis.toml");
+    // The failures accepted for now, each a rule across fields or of the store's state that the
+    // document cannot state: an export's min/max_score need its score_artifact, an ingest's
+    // steering/run_artifact/run_tags need its run, and a split needs labeled episodes (all 400).
+    // Any other failure fails this test.
+    let baseline = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/openapi/schemathesis-baseline.json");
     let out = std::process::Command::new("python3")
         .args(["-m", "schemathesis.cli", "--config-file", config.to_str().unwrap(), "run", &format!("{}/openapi.json", server.url)])
         .args(["--checks", "all", "--phases", "examples,coverage,fuzzing,stateful"])
         .args(["--max-examples", "25", "--seed", "18", "--workers", "1", "--no-shrink"])
+        .args(["--baseline", baseline.to_str().unwrap()])
         .args(["--header", &format!("Authorization: Bearer {admin}")])
         .args(["--report", "json", "--report-json-path", report.to_str().unwrap()])
         .env("NO_COLOR", "1")
+        // Its example cache goes to the temp dir, not the checkout.
+        .current_dir(dir.path())
         .output()
         .expect("run schemathesis");
     let stdout = String::from_utf8_lossy(&out.stdout);

@@ -67,6 +67,8 @@ pub const NAME_PATTERN: &str =
 
 /// A token or run name (`store::writer::check_name`): printable, no whitespace at either end.
 pub const TOKEN_NAME_PATTERN: &str = r"^[^\s\x00-\x1f\x7f-\x9f]([^\x00-\x1f\x7f-\x9f]{0,198}[^\s\x00-\x1f\x7f-\x9f])?$";
+/// A run's steering (`store::Steering`'s text form): `base`, `bon:N`, `cg:LAMBDA`, `flow:LAMBDA`.
+pub const STEERING_PATTERN: &str = r"^(base|bon:[1-9][0-9]{0,8}|(cg|flow):[0-9]{1,6}(\.[0-9]{1,6})?)$";
 /// `If-Match` of a label write: a label revision, quoted or not, weak or not.
 pub const IF_MATCH_PATTERN: &str = r#"^(W/)?("[0-9]{1,18}"|[0-9]{1,18})$"#;
 
@@ -83,6 +85,7 @@ const CHECKED_QUERY: &[(&str, &str, &str)] = &[
     ("/v1/ingest", "format", ID_PATTERN),
     ("/v1/ingest", "run", TOKEN_NAME_PATTERN),
     ("/v1/ingest", "run_artifact", TOKEN_NAME_PATTERN),
+    ("/v1/ingest", "steering", STEERING_PATTERN),
 ];
 
 /// Request-body fields the handlers check, per component schema.

@@ -128,6 +128,7 @@ pub fn sanitize_filename(name: &str) -> String {
     request_body(content = crate::openapi::FileBytes, content_type = "application/octet-stream", description = "the file, raw"),
     responses((status = 202, description = "the queued ingest job", body = store::JobRecord),
               (status = 413, description = "larger than the server's upload limit"),
+              (status = 404, description = "no such run artifact"),
               (status = 403, description = "the token's role is below admin"),
               (status = 507, description = "the upload would leave too little free disk")))]
 pub async fn ingest(
