@@ -24,7 +24,7 @@ mod worker;
 pub use auth::Caller;
 pub use error::{ApiError, Problem};
 pub use media::parse_range;
-pub use openapi::openapi;
+pub use openapi::{openapi, openapi_json};
 pub use upload::{sanitize_filename, sweep as sweep_uploads};
 pub use worker::{run_worker, run_worker_with, worker_identity, JobContext, JobRunner, WorkerOptions};
 

@@ -1,11 +1,19 @@
-//! The OpenAPI 3.1 document, generated from the handlers' annotations.
+//! The OpenAPI 3.1 document, generated from the handlers' annotations and the Rust types they
+//! return (store records derive their schemas with the store's `openapi` feature), so it cannot
+//! drift from the code. [`Contract`] adds what every route shares: the errors of the token, role,
+//! size and rate layers and of the extractors, all as `application/problem+json`, and the
+//! patterns of ids and names the handlers check. `ufops openapi --write api/openapi.json`
+//! regenerates the committed copy (tests/openapi_contract.rs fails when it is stale).
 
 use crate::error::Problem;
 use crate::routes;
 use crate::upload;
 use axum::Json;
+use utoipa::openapi::path::{Operation, ParameterIn};
+use utoipa::openapi::schema::{ObjectBuilder, Schema, Type};
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
-use utoipa::{Modify, OpenApi};
+use utoipa::openapi::{ContentBuilder, Ref, RefOr, ResponseBuilder};
+use utoipa::{Modify, OpenApi, ToSchema};
 
 #[derive(OpenApi)]
 #[openapi(
@@ -28,11 +36,17 @@ use utoipa::{Modify, OpenApi};
         routes::get_scoreboard, routes::list_runs,
         upload::ingest, routes::gc, routes::create_token, routes::list_tokens, routes::revoke_token,
     ),
-    components(schemas(Problem)),
-    modifiers(&Bearer),
+    components(schemas(Problem, routes::EpisodeSort, routes::ScoreboardFormat)),
+    modifiers(&Bearer, &Contract),
     security(("bearer" = [])),
 )]
 struct ApiDoc;
+
+/// A file's bytes (downloads and uploads).
+#[derive(ToSchema)]
+#[schema(value_type = String, format = Binary)]
+#[allow(dead_code)]
+pub(crate) struct FileBytes(Vec<u8>);
 
 struct Bearer;
 
@@ -46,14 +60,189 @@ impl Modify for Bearer {
     }
 }
 
+/// An id a handler checks with `extract::check_id`.
+pub const ID_PATTERN: &str = r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}$";
+/// A policy or checkpoint name in a URL (`extract::check_name`): printable, no '/', no
+/// whitespace at either end.
+pub const NAME_PATTERN: &str =
+    r"^[^/\s\x00-\x1f\x7f-\x9f]([^/\x00-\x1f\x7f-\x9f]{0,198}[^/\s\x00-\x1f\x7f-\x9f])?$";
+
+/// A token or run name (`store::writer::check_name`): printable, no whitespace at either end.
+pub const TOKEN_NAME_PATTERN: &str = r"^[^\s\x00-\x1f\x7f-\x9f]([^\x00-\x1f\x7f-\x9f]{0,198}[^\s\x00-\x1f\x7f-\x9f])?$";
+/// A run's steering (`store::Steering`'s text form): `base`, `bon:N`, `cg:LAMBDA`, `flow:LAMBDA`.
+pub const STEERING_PATTERN: &str = r"^(base|bon:[1-9][0-9]{0,8}|(cg|flow):[0-9]{1,6}(\.[0-9]{1,6})?)$";
+/// `If-Match` of a label write: a label revision, quoted or not, weak or not.
+pub const IF_MATCH_PATTERN: &str = r#"^(W/)?("[0-9]{1,18}"|[0-9]{1,18})$"#;
+
+/// Query parameters the handlers check as names (`extract::check_name`) or ids, per path.
+const CHECKED_QUERY: &[(&str, &str, &str)] = &[
+    ("/v1/scoreboard", "policy", NAME_PATTERN),
+    ("/v1/scoreboard", "checkpoint", NAME_PATTERN),
+    ("/v1/scoreboard", "task", NAME_PATTERN),
+    ("/v1/scoreboard", "baseline", NAME_PATTERN),
+    ("/v1/scoreboard", "baseline_checkpoint", NAME_PATTERN),
+    ("/v1/runs", "name", NAME_PATTERN),
+    ("/v1/ingest", "policy", NAME_PATTERN),
+    ("/v1/ingest", "checkpoint", NAME_PATTERN),
+    ("/v1/ingest", "format", ID_PATTERN),
+    ("/v1/ingest", "run", TOKEN_NAME_PATTERN),
+    ("/v1/ingest", "run_artifact", TOKEN_NAME_PATTERN),
+    ("/v1/ingest", "steering", STEERING_PATTERN),
+];
+
+/// Request-body fields the handlers check, per component schema.
+const CHECKED_FIELDS: &[(&str, &str, &str)] = &[
+    ("SplitCreate", "policy", NAME_PATTERN),
+    ("SplitCreate", "checkpoint", NAME_PATTERN),
+    ("ExportCreate", "policy", NAME_PATTERN),
+    ("ExportCreate", "checkpoint", NAME_PATTERN),
+    ("ExportCreate", "task", NAME_PATTERN),
+    ("ExportCreate", "tag", NAME_PATTERN),
+    ("ExportCreate", "split", ID_PATTERN),
+    ("JobCreate", "split_id", ID_PATTERN),
+    ("BulkLabelItem", "episode_id", ID_PATTERN),
+    ("TokenCreate", "name", TOKEN_NAME_PATTERN),
+];
+
+/// Sets `pattern` on a string schema, or on the string branch of a nullable one.
+fn set_pattern(schema: &mut RefOr<Schema>, pattern: &str) {
+    match schema {
+        RefOr::T(Schema::Object(o)) => o.pattern = Some(pattern.to_string()),
+        RefOr::T(Schema::OneOf(one)) => {
+            for item in one.items.iter_mut() {
+                if let RefOr::T(Schema::Object(o)) = item {
+                    if o.schema_type != utoipa::openapi::schema::SchemaType::Type(Type::Null) {
+                        o.pattern = Some(pattern.to_string());
+                    }
+                }
+            }
+        }
+        _ => {}
+    }
+}
+
+/// The shared part of the contract, added to every operation.
+struct Contract;
+
+fn problem(description: &str) -> RefOr<utoipa::openapi::Response> {
+    RefOr::T(
+        ResponseBuilder::new()
+            .description(description)
+            .content("application/problem+json", ContentBuilder::new().schema(Some(Ref::from_schema_name("Problem"))).build())
+            .build(),
+    )
+}
+
+fn string_schema(pattern: &str) -> RefOr<Schema> {
+    RefOr::T(Schema::Object(ObjectBuilder::new().schema_type(Type::String).pattern(Some(pattern)).build()))
+}
+
+impl Contract {
+    fn operation(op: &mut Operation, path: &str, public: bool) {
+        let params = op.parameters.get_or_insert_with(Vec::new);
+        for p in params.iter_mut() {
+            if p.parameter_in == ParameterIn::Query {
+                if let Some((_, _, pattern)) = CHECKED_QUERY.iter().find(|(at, name, _)| *at == path && *name == p.name) {
+                    if let Some(s) = p.schema.as_mut() {
+                        set_pattern(s, pattern);
+                    }
+                }
+            }
+            if p.parameter_in == ParameterIn::Header && p.name == "If-Match" {
+                p.schema = Some(string_schema(IF_MATCH_PATTERN));
+            }
+        }
+        let mut has_path = false;
+        // A version that does not exist is a 404, like a path id.
+        let names_version = params.iter().any(|p| p.name == "version");
+        for p in params.iter_mut() {
+            if p.parameter_in == ParameterIn::Path {
+                has_path = true;
+                let pattern = match p.name.as_str() {
+                    "policy" | "checkpoint" => Some(NAME_PATTERN.to_string()),
+                    "kind_at_alias" => Some(format!("{}@{}", ID_PATTERN.trim_end_matches('$'), ID_PATTERN.trim_start_matches('^'))),
+                    "id" | "key" | "alias" | "name" => Some(ID_PATTERN.to_string()),
+                    _ => None,
+                };
+                if let Some(pattern) = pattern {
+                    p.schema = Some(string_schema(&pattern));
+                }
+            }
+        }
+        let has_body = op.request_body.is_some();
+        let responses = &mut op.responses.responses;
+        let mut add = |status: &str, description: &str| {
+            responses.entry(status.to_string()).or_insert_with(|| problem(description));
+        };
+        if !params_empty(&op.parameters) || has_body {
+            add("400", "a parameter or the body is invalid");
+        }
+        if has_path || names_version {
+            add("404", "not found");
+        }
+        if has_body {
+            add("413", "the body is larger than the server's limit");
+            add("415", "the body is not of the documented content type");
+            add("422", "the body does not have the documented shape");
+        }
+        if !public {
+            add("401", "no valid bearer token");
+            add("429", "too many requests in flight for this token, or token checks; see Retry-After");
+            add("503", "the catalog is busy; retry");
+        }
+        add("500", "a server-side failure (the problem names an incident id the server's log explains)");
+        // Every error is a problem document, whatever the annotation said.
+        for (status, r) in responses.iter_mut() {
+            if status.starts_with('4') || status.starts_with('5') {
+                let description = match r {
+                    RefOr::T(r) => r.description.clone(),
+                    RefOr::Ref(_) => String::new(),
+                };
+                *r = problem(&description);
+            }
+        }
+    }
+}
+
+fn params_empty(p: &Option<Vec<utoipa::openapi::path::Parameter>>) -> bool {
+    p.as_ref().is_none_or(|v| v.is_empty())
+}
+
+impl Modify for Contract {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        for (path, item) in openapi.paths.paths.iter_mut() {
+            let public = path == "/healthz";
+            for op in [&mut item.get, &mut item.put, &mut item.post, &mut item.delete, &mut item.patch].into_iter().flatten() {
+                Contract::operation(op, path, public);
+            }
+        }
+        if let Some(components) = openapi.components.as_mut() {
+            for (schema, field, pattern) in CHECKED_FIELDS {
+                if let Some(RefOr::T(Schema::Object(o))) = components.schemas.get_mut(*schema) {
+                    if let Some(prop) = o.properties.get_mut(*field) {
+                        set_pattern(prop, pattern);
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// The OpenAPI document of this API.
 pub fn openapi() -> utoipa::openapi::OpenApi {
     ApiDoc::openapi()
 }
 
+/// The document as `ufops openapi` prints it and `api/openapi.json` holds it.
+pub fn openapi_json() -> String {
+    let mut s = serde_json::to_string_pretty(&openapi()).expect("the document serializes");
+    s.push('\n');
+    s
+}
+
 /// This document.
 #[utoipa::path(get, path = "/openapi.json", tag = "infra",
-    responses((status = 200, description = "the OpenAPI document", body = Object), (status = 401, body = Problem)))]
+    responses((status = 200, description = "the OpenAPI document", body = Object)))]
 pub(crate) async fn serve_openapi() -> Json<utoipa::openapi::OpenApi> {
     Json(openapi())
 }

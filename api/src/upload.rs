@@ -8,7 +8,7 @@
 //! refused with 507 when the disk would be left with less than [`MIN_FREE_BYTES`].
 
 use crate::auth::Caller;
-use crate::error::{ApiError, ApiResult, Problem};
+use crate::error::{ApiError, ApiResult};
 use crate::extract::{check_name, ApiQuery};
 use crate::AppState;
 use axum::body::Body;
@@ -125,9 +125,12 @@ pub fn sanitize_filename(name: &str) -> String {
 
 /// Uploads a rollout file (raw request body) and queues an ingest job (admin).
 #[utoipa::path(post, path = "/v1/ingest", tag = "admin", params(IngestQuery),
-    request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "the file, raw"),
-    responses((status = 202, description = "JobRecord of the queued ingest job", body = Object),
-              (status = 413, body = Problem), (status = 403, body = Problem), (status = 507, body = Problem)))]
+    request_body(content = crate::openapi::FileBytes, content_type = "application/octet-stream", description = "the file, raw"),
+    responses((status = 202, description = "the queued ingest job", body = store::JobRecord),
+              (status = 413, description = "larger than the server's upload limit"),
+              (status = 404, description = "no such run artifact"),
+              (status = 403, description = "the token's role is below admin"),
+              (status = 507, description = "the upload would leave too little free disk")))]
 pub async fn ingest(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,

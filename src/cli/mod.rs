@@ -9,7 +9,7 @@ mod serve_cmds;
 mod view_cmd;
 mod store_cmds;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 
@@ -105,6 +105,12 @@ pub enum Command {
     Rank(export_cmd::RankArgs),
     /// Serve the HTTP API (and run queued jobs in-process unless --no-worker).
     Serve(serve_cmds::ServeArgs),
+    /// Print the HTTP API's OpenAPI document (what `ufops serve` serves at /openapi.json), or
+    /// write it to a file: `ufops openapi --write api/openapi.json` regenerates the committed copy.
+    Openapi {
+        #[arg(long, value_name = "PATH")]
+        write: Option<std::path::PathBuf>,
+    },
     /// Claim and run queued jobs (training, ingest) from the catalog.
     Worker {
         #[arg(long)]
@@ -177,6 +183,13 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Export(a) => export_cmd::export(&cli.store, a).await,
         Command::Rank(a) => export_cmd::rank(&cli.store, a).await,
         Command::Serve(a) => serve_cmds::serve(&cli.store, a).await,
+        Command::Openapi { write } => match write {
+            Some(path) => std::fs::write(&path, api::openapi_json()).with_context(|| format!("write {}", path.display())),
+            None => {
+                print!("{}", api::openapi_json());
+                Ok(())
+            }
+        },
         Command::Worker { id, lease_ms } => serve_cmds::worker(&cli.store, id, lease_ms).await,
         Command::Train(a) => run_cmds::train(&cli.store, a).await,
         Command::Score { artifact, input, api, token, grad, raw_actions } => {

@@ -12,6 +12,7 @@ use std::collections::HashSet;
 pub const EXPORTS_PREFIX: &str = "exports";
 
 /// One file of an export: its path inside the exported dataset and its size.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize)]
 pub struct ExportFile {
     pub path: String,

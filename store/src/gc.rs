@@ -16,6 +16,7 @@ use crate::{Store, StoreError};
 use serde::Serialize;
 use std::collections::HashSet;
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize)]
 pub struct GcReport {
     pub objects_scanned: usize,

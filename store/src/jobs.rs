@@ -6,6 +6,7 @@ use crate::catalog::{Backend, RowExt};
 use crate::{now_ms, now_rfc3339, Store, StoreError};
 use serde::Serialize;
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum JobState {
@@ -38,6 +39,7 @@ impl JobState {
     }
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize)]
 pub struct JobRecord {
     pub id: String,

@@ -11,6 +11,7 @@ use serde::Serialize;
 /// ([`Store::prepare_label_snapshot`]); commit it with [`Store::commit_label_snapshot`].
 pub struct PreparedLabelSnapshot(LabelsFileAhead);
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct LabelEvent {
     pub episode_id: String,
@@ -37,8 +38,8 @@ pub struct LabelUpdate {
     pub note: Option<String>,
 }
 
-#[derive(Debug, Clone, Serialize, PartialEq)]
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct LabelChange {
     pub episode_id: String,
     pub old_label: Label,

@@ -4,6 +4,7 @@ use crate::catalog::{bind_val, RowExt, Val};
 use crate::{Backend, Label, Store, StoreError};
 use serde::Serialize;
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct VersionInfo {
     pub version: i64,
@@ -19,6 +20,7 @@ pub struct VersionInfo {
     pub episode_count: i64,
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct EpisodeRecord {
     pub id: String,

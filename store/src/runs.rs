@@ -9,6 +9,7 @@ use crate::{Store, StoreError};
 use serde::{Deserialize, Serialize};
 
 /// How a run's actions were chosen.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "method", rename_all = "lowercase")]
 pub enum Steering {
@@ -114,6 +115,7 @@ impl RunInput {
 }
 
 /// A run as the catalog holds it.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct RunRecord {
     pub id: String,

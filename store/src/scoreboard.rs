@@ -34,6 +34,7 @@ pub struct ScoreboardRequest {
 }
 
 /// A row's comparison with its baseline row.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct BaselineComparison {
     pub checkpoint: String,
@@ -41,6 +42,8 @@ pub struct BaselineComparison {
     pub run_id: Option<String>,
     /// This row's rate minus the baseline's, and its Newcombe (method 10) 95% interval.
     pub diff: f64,
+    /// `[low, high]`.
+    #[cfg_attr(feature = "openapi", schema(value_type = Vec<f64>))]
     pub newcombe_95: (f64, f64),
     /// Whether that interval excludes 0.
     pub separates: bool,
@@ -52,6 +55,7 @@ pub struct BaselineComparison {
     pub unlabeled_to_flip: Option<u64>,
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct ScoreboardRow {
     pub policy: String,
@@ -67,6 +71,7 @@ pub struct ScoreboardRow {
     /// successes / (successes + failures); none when nothing is labeled.
     pub rate: Option<f64>,
     /// Wilson 95% interval of the rate over the labeled episodes ((0, 1) when none).
+    #[cfg_attr(feature = "openapi", schema(value_type = Vec<f64>))]
     pub wilson_95: (f64, f64),
     pub is_baseline: bool,
     pub baseline: Option<BaselineComparison>,
@@ -82,6 +87,7 @@ impl ScoreboardRow {
     }
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct Scoreboard {
     pub version: i64,

@@ -21,6 +21,7 @@ pub struct SplitRequest {
     pub max_episodes: Option<u64>,
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct SplitRecord {
     pub id: String,
@@ -28,6 +29,8 @@ pub struct SplitRecord {
     pub checkpoint: String,
     /// `on_policy` or `off_policy`
     pub mode: String,
+    /// `[policy, checkpoint]` pairs.
+    #[cfg_attr(feature = "openapi", schema(value_type = Vec<Vec<String>>))]
     pub source_checkpoints: Vec<(String, String)>,
     pub version: i64,
     pub val_fraction: f64,
@@ -38,6 +41,7 @@ pub struct SplitRecord {
     pub created_at: String,
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct SplitEpisode {
     pub episode_id: String,

@@ -5,6 +5,7 @@ use crate::{now_rfc3339, Store, StoreError};
 use serde::{Deserialize, Serialize};
 
 /// Roles, each including the rights of the ones before it.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Role {
@@ -38,6 +39,7 @@ impl std::str::FromStr for Role {
     }
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize)]
 pub struct TokenRecord {
     pub id: String,

@@ -13,6 +13,7 @@ use std::collections::{HashMap, HashSet};
 /// built in memory, then uploaded with one put).
 pub const MAX_STEPS_FILE_BYTES: usize = 64 << 20;
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct CommitInfo {
     pub version: i64,

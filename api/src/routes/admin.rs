@@ -12,7 +12,9 @@ pub(crate) fn router() -> Router<AppState> {
 
 #[derive(Deserialize, ToSchema)]
 pub struct GcRequest {
-    /// Keep unreferenced objects younger than this (default 3600).
+    /// Keep unreferenced objects younger than this (default 3600; at most ten years,
+    /// store::gc::MAX_GRACE_SECONDS).
+    #[schema(maximum = 315_360_000)]
     grace_seconds: Option<u64>,
     /// Only report (default false).
     dry_run: Option<bool>,
@@ -20,7 +22,7 @@ pub struct GcRequest {
 
 /// Deletes objects no committed version references (admin).
 #[utoipa::path(post, path = "/v1/gc", tag = "admin", request_body = GcRequest,
-    responses((status = 200, description = "GcReport", body = Object), (status = 403, body = Problem)))]
+    responses((status = 200, body = store::GcReport), (status = 403, description = "the token's role is below admin")))]
 pub async fn gc(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
@@ -33,35 +35,44 @@ pub async fn gc(
 #[derive(Deserialize, ToSchema)]
 pub struct TokenCreate {
     name: String,
-    /// viewer, labeler, trainer or admin.
+    #[schema(value_type = store::Role)]
     role: String,
 }
 
 /// Creates a token; the secret is in the response only (admin).
 #[utoipa::path(post, path = "/v1/tokens", tag = "admin", request_body = TokenCreate,
-    responses((status = 201, description = "{token, record}", body = Object), (status = 403, body = Problem)))]
+    responses((status = 201, body = TokenCreated), (status = 403, description = "the token's role is below admin")))]
 pub async fn create_token(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
     ApiJson(b): ApiJson<TokenCreate>,
-) -> ApiResult<(StatusCode, Json<Value>)> {
+) -> ApiResult<(StatusCode, Json<TokenCreated>)> {
     caller.require(Role::Admin)?;
     let role: Role = b.role.parse()?;
-    let (secret, rec) = s.store().create_token(&b.name, role).await?;
-    Ok((StatusCode::CREATED, Json(json!({"token": secret, "record": rec}))))
+    let (token, record) = s.store().create_token(&b.name, role).await?;
+    Ok((StatusCode::CREATED, Json(TokenCreated { token, record })))
+}
+
+/// A new token: its secret (shown this once) and its record.
+#[derive(Serialize, ToSchema)]
+pub struct TokenCreated {
+    token: String,
+    record: store::TokenRecord,
 }
 
 /// Tokens (never their secrets) (admin).
 #[utoipa::path(get, path = "/v1/tokens", tag = "admin",
-    responses((status = 200, description = "TokenRecord list", body = Vec<Object>), (status = 403, body = Problem)))]
+    responses((status = 200, body = Vec<store::TokenRecord>), (status = 403, description = "the token's role is below admin")))]
 pub async fn list_tokens(State(s): State<AppState>, Extension(caller): Extension<Caller>) -> ApiResult<Json<Vec<store::TokenRecord>>> {
     caller.require(Role::Admin)?;
     Ok(Json(s.store().tokens().await?))
 }
 
-/// Revokes a token (admin).
+/// Revokes a token (admin). A caller cannot revoke the token it is using (409): an admin cannot
+/// lock itself out by mistake, and a fuzzer holding an admin token cannot end its own run.
 #[utoipa::path(delete, path = "/v1/tokens/{id}", tag = "admin", params(("id" = String, Path)),
-    responses((status = 204), (status = 404, body = Problem), (status = 403, body = Problem)))]
+    responses((status = 204, description = "revoked"), (status = 404, description = "no such token"),
+              (status = 409, description = "the token making the request"), (status = 403, description = "the token's role is below admin")))]
 pub async fn revoke_token(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
@@ -69,6 +80,9 @@ pub async fn revoke_token(
 ) -> ApiResult<StatusCode> {
     caller.require(Role::Admin)?;
     check_id("token id", &id)?;
+    if id == caller.token_id {
+        return Err(ApiError::new(StatusCode::CONFLICT, "conflict", "a token cannot revoke itself: use another admin token or `ufops token revoke`"));
+    }
     s.store().revoke_token(&id).await?;
     s.inner.tokens.clear();
     Ok(StatusCode::NO_CONTENT)

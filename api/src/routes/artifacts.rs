@@ -27,7 +27,7 @@ pub struct ArtifactQuery {
 
 /// Artifacts, optionally filtered.
 #[utoipa::path(get, path = "/v1/artifacts", tag = "artifacts", params(ArtifactQuery),
-    responses((status = 200, description = "ArtifactRecord list", body = Vec<Object>)))]
+    responses((status = 200, body = Vec<store::ArtifactRecord>)))]
 pub async fn list_artifacts(
     State(s): State<AppState>,
     ApiQuery(q): ApiQuery<ArtifactQuery>,
@@ -37,7 +37,7 @@ pub async fn list_artifacts(
 
 /// An artifact by id.
 #[utoipa::path(get, path = "/v1/artifacts/{id}", tag = "artifacts", params(("id" = String, Path)),
-    responses((status = 200, description = "ArtifactRecord", body = Object), (status = 404, body = Problem)))]
+    responses((status = 200, body = store::ArtifactRecord), (status = 404, description = "no such artifact")))]
 pub async fn get_artifact(State(s): State<AppState>, ApiPath(id): ApiPath<String>) -> ApiResult<Json<store::ArtifactRecord>> {
     check_id("artifact id", &id)?;
     Ok(Json(s.store().artifact(&id).await?))
@@ -46,8 +46,9 @@ pub async fn get_artifact(State(s): State<AppState>, ApiPath(id): ApiPath<String
 /// One file of an artifact, checked against its sha256 (sent as `X-Checksum-Sha256` and `ETag`).
 #[utoipa::path(get, path = "/v1/artifacts/{id}/files/{name}", tag = "artifacts",
     params(("id" = String, Path), ("name" = String, Path)),
-    responses((status = 200, description = "the file", headers(("X-Checksum-Sha256" = String))),
-              (status = 404, body = Problem)))]
+    responses((status = 200, description = "the file (`application/json` for a .json file)", headers(("X-Checksum-Sha256" = String)),
+               content((Object = "application/json"), (FileBytes = "application/octet-stream"))),
+              (status = 404, description = "no such artifact or file")))]
 pub async fn artifact_file(State(s): State<AppState>, ApiPath((id, name)): ApiPath<(String, String)>) -> ApiResult<Response> {
     check_id("artifact id", &id)?;
     check_id("file name", &name)?;
@@ -88,8 +89,8 @@ fn split_kind_alias(s: &str) -> ApiResult<(&str, &str)> {
 /// Resolves `policies/{p}/checkpoints/{c}/verifiers/{kind}@{alias}` to an artifact.
 #[utoipa::path(get, path = "/v1/policies/{policy}/checkpoints/{checkpoint}/verifiers/{kind_at_alias}", tag = "artifacts",
     params(("policy" = String, Path), ("checkpoint" = String, Path),
-           ("kind_at_alias" = String, Path, description = "e.g. classifier@latest")),
-    responses((status = 200, description = "ArtifactRecord", body = Object), (status = 404, body = Problem)))]
+           ("kind_at_alias" = String, Path, description = "KIND@ALIAS, e.g. classifier@latest")),
+    responses((status = 200, body = store::ArtifactRecord), (status = 404, description = "no artifact has that alias")))]
 pub async fn resolve_verifier(
     State(s): State<AppState>,
     ApiPath((policy, checkpoint, ka)): ApiPath<(String, String, String)>,
@@ -105,8 +106,10 @@ pub async fn resolve_verifier(
     tag = "artifacts",
     params(("policy" = String, Path), ("checkpoint" = String, Path), ("kind_at_alias" = String, Path),
            ("name" = String, Path)),
-    responses((status = 200, description = "the file", headers(("X-Checksum-Sha256" = String), ("X-Artifact-Id" = String))),
-              (status = 404, body = Problem)))]
+    responses((status = 200, description = "the file (`application/json` for a .json file)",
+               headers(("X-Checksum-Sha256" = String), ("X-Artifact-Id" = String)),
+               content((Object = "application/json"), (FileBytes = "application/octet-stream"))),
+              (status = 404, description = "no artifact has that alias, or it has no such file")))]
 pub async fn resolve_verifier_file(
     State(s): State<AppState>,
     ApiPath((policy, checkpoint, ka, name)): ApiPath<(String, String, String, String)>,
@@ -122,8 +125,8 @@ pub async fn resolve_verifier_file(
 /// Points an alias of the artifact's (policy, checkpoint, kind) at it.
 #[utoipa::path(put, path = "/v1/artifacts/{id}/aliases/{alias}", tag = "artifacts",
     params(("id" = String, Path), ("alias" = String, Path)),
-    responses((status = 200, description = "ArtifactRecord", body = Object), (status = 404, body = Problem),
-              (status = 403, body = Problem)))]
+    responses((status = 200, body = store::ArtifactRecord), (status = 404, description = "no such artifact"),
+              (status = 409, description = "the alias cannot be moved"), (status = 403, description = "the token's role is below trainer")))]
 pub async fn set_alias(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,

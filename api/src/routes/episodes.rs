@@ -19,23 +19,33 @@ pub struct EpisodeQuery {
     policy: Option<String>,
     checkpoint: Option<String>,
     task: Option<String>,
-    /// `success`, `failure` or `unknown`.
+    #[param(value_type = Option<store::Label>)]
     label: Option<String>,
     label_source: Option<String>,
     tag: Option<String>,
     /// Read the store as of this version (labels frozen in it); default: now.
     version: Option<i64>,
     /// Cursor: the `next_cursor` of the previous page.
+    #[param(pattern = r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}$")]
     after: Option<String>,
     /// Page size, 1-1000 (default 100).
+    #[param(minimum = 1, maximum = 1000)]
     limit: Option<i64>,
     /// Sort order; only `id` (ascending, the cursor order) is supported.
+    #[param(value_type = Option<EpisodeSort>)]
     sort: Option<String>,
+}
+
+/// The sort orders of `GET /v1/episodes` (the doc's enum; the handler matches the same words).
+#[derive(ToSchema)]
+#[schema(rename_all = "lowercase")]
+#[allow(dead_code)]
+pub enum EpisodeSort {
+    Id,
 }
 
 #[derive(Serialize, ToSchema)]
 pub struct EpisodePage {
-    #[schema(value_type = Vec<Object>)]
     episodes: Vec<store::EpisodeRecord>,
     /// Pass as `after` for the next page; absent on the last page.
     next_cursor: Option<String>,
@@ -45,7 +55,7 @@ pub struct EpisodePage {
 /// `after` for the next one. Pages are keyset pages, so they stay fast at any depth and, while
 /// labels change, never repeat an episode nor skip one that still matches the filters.
 #[utoipa::path(get, path = "/v1/episodes", tag = "episodes", params(EpisodeQuery),
-    responses((status = 200, body = EpisodePage), (status = 400, body = Problem), (status = 401, body = Problem)))]
+    responses((status = 200, body = EpisodePage)))]
 pub async fn list_episodes(State(s): State<AppState>, ApiQuery(q): ApiQuery<EpisodeQuery>) -> ApiResult<Json<EpisodePage>> {
     match q.sort.as_deref() {
         None | Some("id") => {}
@@ -105,8 +115,7 @@ pub struct EpisodeCounts {
 /// page's progress bar). The counts are maintained with every label write and version, so this
 /// reads a few rows whatever the catalog's size.
 #[utoipa::path(get, path = "/v1/episodes/counts", tag = "episodes", params(CountsQuery),
-    responses((status = 200, body = EpisodeCounts), (status = 400, body = Problem), (status = 401, body = Problem),
-              (status = 404, description = "no such version", body = Problem)))]
+    responses((status = 200, body = EpisodeCounts), (status = 404, description = "no such version")))]
 pub async fn episode_counts(State(s): State<AppState>, ApiQuery(q): ApiQuery<CountsQuery>) -> ApiResult<Json<EpisodeCounts>> {
     let filter = store::CountFilter { version: q.version, policy: q.policy, checkpoint: q.checkpoint, task: q.task };
     let c = s.store().episode_counts(&filter).await?;
@@ -120,10 +129,30 @@ pub struct VersionQuery {
     version: Option<i64>,
 }
 
+/// An episode and its label history, oldest first.
+#[derive(Serialize, ToSchema)]
+pub struct EpisodeDetail {
+    episode: store::EpisodeRecord,
+    history: Vec<store::LabelEvent>,
+}
+
+/// An episode's step table as columns.
+#[derive(Serialize, ToSchema)]
+pub struct StepColumns {
+    episode_id: String,
+    num_rows: usize,
+    /// `{column name: [value per row]}`; vector columns hold arrays.
+    #[schema(value_type = Object)]
+    columns: serde_json::Map<String, Value>,
+    /// Binary columns left out (read them as Arrow IPC).
+    omitted: Vec<String>,
+}
+
 /// An episode: metadata, current label (its revision is also the `ETag`) and label history.
 #[utoipa::path(get, path = "/v1/episodes/{id}", tag = "episodes",
     params(("id" = String, Path), VersionQuery),
-    responses((status = 200, description = "{episode, history}", body = Object), (status = 404, body = Problem)))]
+    responses((status = 200, body = EpisodeDetail, headers(("ETag" = String, description = "the label revision"))),
+              (status = 404, description = "no such episode or version")))]
 pub async fn get_episode(
     State(s): State<AppState>,
     ApiPath(id): ApiPath<String>,
@@ -133,7 +162,7 @@ pub async fn get_episode(
     let ep = s.store().episode(&id, q.version).await?;
     let history = s.store().label_history(&id).await?;
     let rev = ep.label_revision;
-    let mut resp = Json(json!({"episode": ep, "history": history})).into_response();
+    let mut resp = Json(EpisodeDetail { episode: ep, history }).into_response();
     resp.headers_mut().insert(header::ETAG, etag(rev));
     Ok(resp)
 }
@@ -142,10 +171,9 @@ pub async fn get_episode(
 #[utoipa::path(get, path = "/v1/episodes/{id}/steps", tag = "episodes",
     params(("id" = String, Path), VersionQuery),
     responses(
-        (status = 200, description = "columnar JSON {episode_id, num_rows, columns, omitted}", body = Object,
-         content_type = "application/json"),
-        (status = 200, description = "Arrow IPC stream", content_type = "application/vnd.apache.arrow.stream"),
-        (status = 404, body = Problem)))]
+        (status = 200, description = "columnar JSON, or with `Accept: application/vnd.apache.arrow.stream` an Arrow IPC stream",
+         content((StepColumns = "application/json"), (FileBytes = "application/vnd.apache.arrow.stream"))),
+        (status = 404, description = "no such episode or version")))]
 pub async fn get_steps(
     State(s): State<AppState>,
     ApiPath(id): ApiPath<String>,
@@ -169,16 +197,16 @@ pub async fn get_steps(
         return Ok(([(header::CONTENT_TYPE, ARROW_STREAM)], buf).into_response());
     }
     let (columns, omitted) = crate::steps_json::columns(&batch);
-    Ok(Json(json!({"episode_id": id, "num_rows": batch.num_rows(), "columns": columns, "omitted": omitted}))
-        .into_response())
+    Ok(Json(StepColumns { episode_id: id, num_rows: batch.num_rows(), columns, omitted }).into_response())
 }
 
 /// The episode's video `key` (a `media.<key>.path` column of its steps, found in the catalog), with
 /// HTTP range requests: a range is fetched from the object store as asked, nothing more.
 #[utoipa::path(get, path = "/v1/episodes/{id}/media/{key}", tag = "episodes",
     params(("id" = String, Path), ("key" = String, Path), ("Range" = Option<String>, Header)),
-    responses((status = 200, description = "the whole file"), (status = 206, description = "a byte range"),
-              (status = 416, body = Problem), (status = 404, body = Problem)))]
+    responses((status = 200, description = "the whole file", content_type = "*/*", body = FileBytes),
+              (status = 206, description = "a byte range", content_type = "*/*", body = FileBytes),
+              (status = 416, description = "the range is outside the file"), (status = 404, description = "no such episode or media key")))]
 pub async fn get_media(
     State(s): State<AppState>,
     ApiPath((id, key)): ApiPath<(String, String)>,

@@ -14,10 +14,26 @@ pub(crate) fn router() -> Router<AppState> {
         .route("/v1/exports/{id}/files/{*path}", get(export_file))
 }
 
+/// The formats an export writes: LeRobot v3.0 or a robomimic HDF5 file.
+#[derive(ToSchema)]
+#[schema(rename_all = "lowercase")]
+#[allow(dead_code)]
+pub enum ExportFormat {
+    Lerobot,
+    Robomimic,
+}
+
+/// A deleted export.
+#[derive(Serialize, ToSchema)]
+pub struct ExportDeleted {
+    export_id: String,
+    files_deleted: u64,
+}
+
 #[derive(Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ExportCreate {
-    /// `lerobot` (v3.0) or `robomimic`.
+    #[schema(value_type = ExportFormat)]
     format: String,
     /// Store version (default: the head at the time the job runs; a split pins its own).
     version: Option<i64>,
@@ -25,7 +41,8 @@ pub struct ExportCreate {
     policy: Option<String>,
     checkpoint: Option<String>,
     task: Option<String>,
-    /// success, failure or unknown (the version's frozen labels).
+    /// The version's frozen labels.
+    #[schema(value_type = Option<store::Label>)]
     label: Option<String>,
     tag: Option<String>,
     /// Keep only episodes this artifact (id or POLICY/CHECKPOINT/KIND@ALIAS) scores in
@@ -38,9 +55,7 @@ pub struct ExportCreate {
 /// An export job and, once it succeeded, its files.
 #[derive(Serialize, ToSchema)]
 pub struct ExportStatus {
-    #[schema(value_type = Object)]
     job: store::JobRecord,
-    #[schema(value_type = Vec<Object>)]
     files: Vec<store::ExportFile>,
 }
 
@@ -55,8 +70,8 @@ async fn export_job(s: &AppState, id: &str) -> ApiResult<store::JobRecord> {
 
 /// Queues an export; the job's spec is `{format, selection}` (export::job::ExportJobSpec).
 #[utoipa::path(post, path = "/v1/exports", tag = "exports", request_body = ExportCreate,
-    responses((status = 201, description = "JobRecord", body = Object), (status = 400, body = Problem),
-              (status = 403, body = Problem), (status = 404, body = Problem)))]
+    responses((status = 201, description = "the queued export job", body = store::JobRecord),
+              (status = 403, description = "the token's role is below trainer"), (status = 404, description = "no such split, version or artifact")))]
 pub async fn create_export(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
@@ -109,7 +124,7 @@ pub async fn create_export(
 
 /// Export jobs, newest first.
 #[utoipa::path(get, path = "/v1/exports", tag = "exports",
-    responses((status = 200, description = "JobRecord list", body = Vec<Object>)))]
+    responses((status = 200, body = Vec<store::JobRecord>)))]
 pub async fn list_exports(State(s): State<AppState>) -> ApiResult<Json<Vec<store::JobRecord>>> {
     let mut jobs: Vec<store::JobRecord> = s.store().jobs(None).await?.into_iter().filter(|j| j.kind == "export").collect();
     jobs.sort_by(|a, b| b.created_at.cmp(&a.created_at));
@@ -118,7 +133,7 @@ pub async fn list_exports(State(s): State<AppState>) -> ApiResult<Json<Vec<store
 
 /// An export: its job (state, progress, result) and, once it succeeded, its files.
 #[utoipa::path(get, path = "/v1/exports/{id}", tag = "exports", params(("id" = String, Path)),
-    responses((status = 200, body = ExportStatus), (status = 404, body = Problem)))]
+    responses((status = 200, body = ExportStatus), (status = 404, description = "no such export")))]
 pub async fn get_export(State(s): State<AppState>, ApiPath(id): ApiPath<String>) -> ApiResult<Json<ExportStatus>> {
     let job = export_job(&s, &id).await?;
     let files = if job.state == store::JobState::Succeeded { s.store().export_files(&id).await? } else { Vec::new() };
@@ -128,8 +143,9 @@ pub async fn get_export(State(s): State<AppState>, ApiPath(id): ApiPath<String>)
 /// One file of a finished export (range requests supported).
 #[utoipa::path(get, path = "/v1/exports/{id}/files/{path}", tag = "exports",
     params(("id" = String, Path), ("path" = String, Path, description = "a path inside the export, e.g. meta/info.json")),
-    responses((status = 200, description = "the file"), (status = 206, description = "a range of the file"),
-              (status = 404, body = Problem), (status = 416, body = Problem)))]
+    responses((status = 200, description = "the file", content_type = "*/*", body = FileBytes),
+              (status = 206, description = "a range of the file", content_type = "*/*", body = FileBytes),
+              (status = 404, description = "no such export or file"), (status = 416, description = "the range is outside the file")))]
 pub async fn export_file(
     State(s): State<AppState>,
     ApiPath((id, path)): ApiPath<(String, String)>,
@@ -145,18 +161,18 @@ pub async fn export_file(
 
 /// Deletes a finished export's files (the job record stays, for its history).
 #[utoipa::path(delete, path = "/v1/exports/{id}", tag = "exports", params(("id" = String, Path)),
-    responses((status = 200, description = "files deleted", body = Object), (status = 403, body = Problem),
-              (status = 404, body = Problem), (status = 409, body = Problem)))]
+    responses((status = 200, body = ExportDeleted), (status = 403, description = "the token's role is below trainer"),
+              (status = 404, description = "no such export"), (status = 409, description = "the export is queued or running")))]
 pub async fn delete_export(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
     ApiPath(id): ApiPath<String>,
-) -> ApiResult<Json<Value>> {
+) -> ApiResult<Json<ExportDeleted>> {
     caller.require(Role::Trainer)?;
     let job = export_job(&s, &id).await?;
     if matches!(job.state, store::JobState::Queued | store::JobState::Running) {
         return Err(ApiError::new(StatusCode::CONFLICT, "conflict", format!("export {id} is {}: cancel it first", job.state.as_str())));
     }
     let n = s.store().delete_export_files(&id).await?;
-    Ok(Json(json!({ "export_id": id, "files_deleted": n })))
+    Ok(Json(ExportDeleted { export_id: id, files_deleted: n as u64 }))
 }

@@ -10,14 +10,20 @@ pub(crate) fn router() -> Router<AppState> {
 
 /// Liveness (no token needed).
 #[utoipa::path(get, path = "/healthz", tag = "infra", security(()),
-    responses((status = 200, description = "ok")))]
-pub async fn healthz() -> Json<Value> {
-    Json(json!({"status": "ok"}))
+    responses((status = 200, body = Health)))]
+pub async fn healthz() -> Json<Health> {
+    Json(Health { status: "ok".into() })
+}
+
+/// Liveness: `{"status": "ok"}`.
+#[derive(Serialize, ToSchema)]
+pub struct Health {
+    status: String,
 }
 
 /// Prometheus metrics (text format).
 #[utoipa::path(get, path = "/metrics", tag = "infra",
-    responses((status = 200, description = "Prometheus text", content_type = "text/plain")))]
+    responses((status = 200, description = "Prometheus text", content_type = "text/plain", body = String)))]
 pub async fn metrics(State(s): State<AppState>) -> ApiResult<Response> {
     let mut by_state = std::collections::BTreeMap::new();
     for st in ["queued", "running", "succeeded", "failed", "cancelled"] {

@@ -10,10 +10,20 @@ pub(crate) fn router() -> Router<AppState> {
         .route("/v1/jobs/{id}/cancel", post(cancel_job.layer(need!(Role::Trainer))))
 }
 
+/// The verifier kinds a training job can train.
+#[derive(ToSchema)]
+#[schema(rename_all = "lowercase")]
+#[allow(dead_code)]
+pub enum VerifierKind {
+    Classifier,
+    Q,
+}
+
 #[derive(Deserialize, ToSchema)]
 pub struct JobCreate {
     split_id: String,
-    /// Verifier kind: `classifier` or `q`.
+    /// Verifier kind.
+    #[schema(value_type = VerifierKind)]
     kind: String,
     /// Training configuration (hyper-parameters), passed to the trainer.
     #[serde(default)]
@@ -23,8 +33,8 @@ pub struct JobCreate {
 
 /// Queues a training job; the job's spec is `{split_id, kind, config, policy, checkpoint}`.
 #[utoipa::path(post, path = "/v1/jobs", tag = "jobs", request_body = JobCreate,
-    responses((status = 201, description = "JobRecord", body = Object), (status = 400, body = Problem),
-              (status = 403, body = Problem)))]
+    responses((status = 201, description = "the queued job", body = store::JobRecord),
+              (status = 403, description = "the token's role is below trainer"), (status = 404, description = "no such split")))]
 pub async fn create_job(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
@@ -52,7 +62,7 @@ pub async fn create_job(
 #[derive(Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct JobQuery {
-    /// queued, running, succeeded, failed or cancelled.
+    #[param(value_type = Option<store::JobState>)]
     state: Option<String>,
 }
 
@@ -70,7 +80,7 @@ fn parse_state(s: &str) -> ApiResult<store::JobState> {
 
 /// Jobs, optionally by state.
 #[utoipa::path(get, path = "/v1/jobs", tag = "jobs", params(JobQuery),
-    responses((status = 200, description = "JobRecord list", body = Vec<Object>)))]
+    responses((status = 200, body = Vec<store::JobRecord>)))]
 pub async fn list_jobs(State(s): State<AppState>, ApiQuery(q): ApiQuery<JobQuery>) -> ApiResult<Json<Vec<store::JobRecord>>> {
     let state = q.state.as_deref().map(parse_state).transpose()?;
     Ok(Json(s.store().jobs(state).await?))
@@ -78,7 +88,7 @@ pub async fn list_jobs(State(s): State<AppState>, ApiQuery(q): ApiQuery<JobQuery
 
 /// A job: state, progress (epoch, losses), result (metrics, artifact), error.
 #[utoipa::path(get, path = "/v1/jobs/{id}", tag = "jobs", params(("id" = String, Path)),
-    responses((status = 200, description = "JobRecord", body = Object), (status = 404, body = Problem)))]
+    responses((status = 200, body = store::JobRecord), (status = 404, description = "no such job")))]
 pub async fn get_job(State(s): State<AppState>, ApiPath(id): ApiPath<String>) -> ApiResult<Json<store::JobRecord>> {
     check_id("job id", &id)?;
     Ok(Json(s.store().job(&id).await?))
@@ -86,8 +96,8 @@ pub async fn get_job(State(s): State<AppState>, ApiPath(id): ApiPath<String>) ->
 
 /// Cancels a job: at once when queued, at its next heartbeat when running.
 #[utoipa::path(post, path = "/v1/jobs/{id}/cancel", tag = "jobs", params(("id" = String, Path)),
-    responses((status = 200, description = "JobRecord", body = Object), (status = 404, body = Problem),
-              (status = 403, body = Problem)))]
+    responses((status = 200, body = store::JobRecord), (status = 404, description = "no such job"),
+              (status = 403, description = "the token's role is below trainer")))]
 pub async fn cancel_job(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,

@@ -12,7 +12,7 @@ pub(crate) fn router() -> Router<AppState> {
 
 #[derive(Deserialize, ToSchema)]
 pub struct LabelRequest {
-    /// `success`, `failure` or `unknown`.
+    #[schema(value_type = store::Label)]
     label: String,
     note: Option<String>,
 }
@@ -25,19 +25,26 @@ fn if_match(headers: &HeaderMap) -> ApiResult<i64> {
             "PUT a label with If-Match: <label revision> (the ETag of GET /v1/episodes/{id})",
         )
     })?;
-    let s = v.to_str().unwrap_or("").trim();
-    let s = s.strip_prefix("W/").unwrap_or(s).trim_matches('"');
-    s.parse::<i64>()
-        .map_err(|_| ApiError::bad_request(format!("If-Match {s:?} is not a label revision (an integer)")))
+    // `W/"7"`, `"7"` or `7` (the document's pattern, crate::openapi::IF_MATCH_PATTERN).
+    let raw = v.to_str().unwrap_or("").trim();
+    let s = raw.strip_prefix("W/").unwrap_or(raw);
+    let s = s.strip_prefix('"').and_then(|x| x.strip_suffix('"')).unwrap_or(s);
+    let digits = (1..=18).contains(&s.len()) && s.bytes().all(|b| b.is_ascii_digit());
+    digits
+        .then(|| s.parse::<i64>().ok())
+        .flatten()
+        .ok_or_else(|| ApiError::bad_request(format!("If-Match {raw:?} is not a label revision (an integer)")))
 }
 
 /// Sets an episode's label; `If-Match: <revision>` is required, a stale revision gets 409 with
 /// the current label, its revision and who set it when.
 #[utoipa::path(put, path = "/v1/episodes/{id}/label", tag = "labels",
-    params(("id" = String, Path), ("If-Match" = String, Header, description = "the label revision you read")),
+    params(("id" = String, Path), ("If-Match" = String, Header, description = "the label revision you read (an integer, quoted or not)")),
     request_body = LabelRequest,
-    responses((status = 200, description = "LabelChange; ETag = the new revision", body = Object),
-              (status = 409, body = Problem), (status = 428, body = Problem), (status = 403, body = Problem)))]
+    responses((status = 200, body = store::LabelChange, headers(("ETag" = String, description = "the new label revision"))),
+              (status = 404, description = "no such episode"),
+              (status = 409, description = "a stale revision: the problem names the current label, its revision, who set it and when"),
+              (status = 428, description = "no If-Match header"), (status = 403, description = "the token's role is below labeler")))]
 pub async fn put_label(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
@@ -67,6 +74,7 @@ pub async fn put_label(
 #[derive(Deserialize, ToSchema)]
 pub struct BulkLabelItem {
     episode_id: String,
+    #[schema(value_type = store::Label)]
     label: String,
     /// Fail the whole request unless the episode is at this revision.
     expect_revision: Option<i64>,
@@ -80,8 +88,8 @@ pub struct BulkLabelRequest {
 
 /// Labels many episodes in one transaction: all succeed or none does.
 #[utoipa::path(post, path = "/v1/labels/bulk", tag = "labels", request_body = BulkLabelRequest,
-    responses((status = 200, description = "LabelChange list", body = Vec<Object>), (status = 409, body = Problem),
-              (status = 404, body = Problem), (status = 403, body = Problem)))]
+    responses((status = 200, body = Vec<store::LabelChange>), (status = 409, description = "a stale expected revision"),
+              (status = 404, description = "no such episode"), (status = 403, description = "the token's role is below labeler")))]
 pub async fn bulk_labels(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
@@ -120,9 +128,9 @@ pub struct SnapshotRequest {
 
 /// Freezes the current labels into a new version.
 #[utoipa::path(post, path = "/v1/label-snapshots", tag = "labels", request_body = SnapshotRequest,
-    responses((status = 201, description = "a new version: {version, episodes}", body = Object),
-              (status = 200, description = "no label changed since the head version: the head, {version, episodes}", body = Object),
-              (status = 403, body = Problem)))]
+    responses((status = 201, description = "a new version", body = store::CommitInfo),
+              (status = 200, description = "no label changed since the head version: the head", body = store::CommitInfo),
+              (status = 403, description = "the token's role is below labeler")))]
 pub async fn create_snapshot(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,

@@ -34,7 +34,8 @@ pub use scoreboard::*;
 pub use splits::*;
 
 use crate::auth::Caller;
-use crate::error::{ApiError, ApiResult, Problem};
+use crate::error::{ApiError, ApiResult};
+use crate::openapi::FileBytes;
 use crate::extract::{check_id, check_name, ApiJson, ApiPath, ApiQuery};
 use crate::AppState;
 use axum::body::Body;
@@ -55,8 +56,13 @@ use axum::Router;
 
 pub const ARROW_STREAM: &str = "application/vnd.apache.arrow.stream";
 
+/// A label as the API spells it: exactly `success`, `failure` or `unknown` (the document's enum;
+/// the CLI's shorthands such as `s` or `true` are not part of the HTTP contract).
 fn parse_label(s: &str) -> ApiResult<Label> {
-    s.parse::<Label>().map_err(ApiError::from)
+    match s {
+        "success" | "failure" | "unknown" => s.parse::<Label>().map_err(ApiError::from),
+        _ => Err(ApiError::bad_request(format!("unknown label {s:?}: expected success, failure or unknown"))),
+    }
 }
 
 /// Every resource's routes (the token check is layered on by the caller).

@@ -9,6 +9,15 @@ pub(crate) fn router() -> Router<AppState> {
     Router::new().route("/v1/scoreboard", get(get_scoreboard)).route("/v1/runs", get(list_runs))
 }
 
+/// The scoreboard's formats.
+#[derive(ToSchema)]
+#[schema(rename_all = "lowercase")]
+#[allow(dead_code)]
+pub enum ScoreboardFormat {
+    Json,
+    Csv,
+}
+
 #[derive(Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct ScoreboardQuery {
@@ -23,13 +32,15 @@ pub struct ScoreboardQuery {
     /// The baseline's checkpoint (default: each row's own).
     baseline_checkpoint: Option<String>,
     /// `json` (default) or `csv`.
+    #[param(value_type = Option<ScoreboardFormat>)]
     format: Option<String>,
 }
 
 /// The scoreboard of a policy, computed in SQL from a version's frozen labels.
 #[utoipa::path(get, path = "/v1/scoreboard", tag = "scoreboard", params(ScoreboardQuery),
-    responses((status = 200, description = "Scoreboard (JSON) or its rows as text/csv", body = Object),
-              (status = 400, body = Problem), (status = 404, body = Problem)))]
+    responses((status = 200, description = "the scoreboard (JSON) or its rows as CSV",
+               content((store::Scoreboard = "application/json"), (String = "text/csv"))),
+              (status = 404, description = "no such policy or version")))]
 pub async fn get_scoreboard(State(s): State<AppState>, ApiQuery(q): ApiQuery<ScoreboardQuery>) -> ApiResult<Response> {
     check_name("policy", &q.policy)?;
     for (what, v) in [("checkpoint", &q.checkpoint), ("task", &q.task), ("baseline_checkpoint", &q.baseline_checkpoint)] {
@@ -74,7 +85,7 @@ pub struct RunQuery {
 
 /// The evaluation runs ingests have named.
 #[utoipa::path(get, path = "/v1/runs", tag = "scoreboard", params(RunQuery),
-    responses((status = 200, description = "RunRecord list", body = Vec<Object>)))]
+    responses((status = 200, body = Vec<store::RunRecord>)))]
 pub async fn list_runs(State(s): State<AppState>, ApiQuery(q): ApiQuery<RunQuery>) -> ApiResult<Json<Vec<store::RunRecord>>> {
     if let Some(n) = &q.name {
         check_name("run", n)?;

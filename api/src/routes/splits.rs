@@ -23,6 +23,7 @@ pub struct SplitCreate {
     /// Default 0.
     seed: Option<u64>,
     /// Keep at most this many labeled episodes, a seeded sample (nested across sizes).
+    #[schema(minimum = 1)]
     max_episodes: Option<u64>,
 }
 
@@ -34,8 +35,8 @@ pub struct CheckpointRefIn {
 
 /// Creates a split (on-policy for a checkpoint, or off-policy from other checkpoints).
 #[utoipa::path(post, path = "/v1/splits", tag = "splits", request_body = SplitCreate,
-    responses((status = 201, description = "SplitRecord", body = Object), (status = 400, body = Problem),
-              (status = 403, body = Problem)))]
+    responses((status = 201, body = store::SplitRecord), (status = 403, description = "the token's role is below trainer"),
+              (status = 404, description = "no such version")))]
 pub async fn create_split(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
@@ -63,17 +64,24 @@ pub async fn create_split(
 
 /// All splits.
 #[utoipa::path(get, path = "/v1/splits", tag = "splits",
-    responses((status = 200, description = "SplitRecord list", body = Vec<Object>)))]
+    responses((status = 200, body = Vec<store::SplitRecord>)))]
 pub async fn list_splits(State(s): State<AppState>) -> ApiResult<Json<Vec<store::SplitRecord>>> {
     Ok(Json(s.store().splits().await?))
 }
 
 /// A split and its episodes (train/val, label).
 #[utoipa::path(get, path = "/v1/splits/{id}", tag = "splits", params(("id" = String, Path)),
-    responses((status = 200, description = "{split, episodes}", body = Object), (status = 404, body = Problem)))]
-pub async fn get_split(State(s): State<AppState>, ApiPath(id): ApiPath<String>) -> ApiResult<Json<Value>> {
+    responses((status = 200, body = SplitDetail), (status = 404, description = "no such split")))]
+pub async fn get_split(State(s): State<AppState>, ApiPath(id): ApiPath<String>) -> ApiResult<Json<SplitDetail>> {
     check_id("split id", &id)?;
     let split = s.store().split(&id).await?;
     let episodes = s.store().split_episodes(&id).await?;
-    Ok(Json(json!({"split": split, "episodes": episodes})))
+    Ok(Json(SplitDetail { split, episodes }))
+}
+
+/// A split and its episodes.
+#[derive(Serialize, ToSchema)]
+pub struct SplitDetail {
+    split: store::SplitRecord,
+    episodes: Vec<store::SplitEpisode>,
 }
