@@ -32,6 +32,7 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (5, "episode_media", include_str!("../../migrations/sqlite/0005_episode_media.sql")),
     (6, "runs", include_str!("../../migrations/sqlite/0006_runs.sql")),
     (7, "pending_objects", include_str!("../../migrations/sqlite/0007_pending_objects.sql")),
+    (8, "review_scores", include_str!("../../migrations/sqlite/0008_review_scores.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
@@ -41,6 +42,7 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (5, "episode_media", include_str!("../../migrations/postgres/0005_episode_media.sql")),
     (6, "runs", include_str!("../../migrations/postgres/0006_runs.sql")),
     (7, "pending_objects", include_str!("../../migrations/postgres/0007_pending_objects.sql")),
+    (8, "review_scores", include_str!("../../migrations/postgres/0008_review_scores.sql")),
 ];
 
 fn migrator(backend: Backend) -> Migrator {

@@ -17,6 +17,7 @@ mod exports;
 mod infra;
 mod jobs;
 mod labels;
+mod review;
 mod scoreboard;
 mod splits;
 
@@ -28,6 +29,7 @@ pub use exports::*;
 pub use infra::*;
 pub use jobs::*;
 pub use labels::*;
+pub use review::*;
 pub use scoreboard::*;
 pub use splits::*;
 
@@ -68,6 +70,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
         .merge(infra::router())
         .merge(jobs::router())
         .merge(labels::router())
+        .merge(review::router())
         .merge(scoreboard::router())
         .merge(splits::router())
 }
