@@ -56,11 +56,22 @@ fn urlencode(s: &str) -> String {
 }
 
 #[test]
-fn uncertain_first_orders_by_stored_scores() {
+fn uncertain_first_on_sqlite() {
     let dir = tempfile::tempdir().unwrap();
-    let t = Target::sqlite(dir.path());
+    uncertain_first_orders_by_stored_scores(&Target::sqlite(dir.path()));
+}
+
+/// The order's SQL (float keys, keyset bounds, the artifact joins) on the other catalog backend.
+#[test]
+fn uncertain_first_on_postgres() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some(t) = postgres_target(dir.path()) else { return };
+    uncertain_first_orders_by_stored_scores(&t);
+}
+
+fn uncertain_first_orders_by_stored_scores(t: &Target) {
     t.ok(&["init"]);
-    let (artifact, n) = lift_with_classifier(&t);
+    let (artifact, n) = lift_with_classifier(t);
     let ranked = t.json(&["rank", "--artifact", artifact, "--policy", "bc", "--json"]);
     let trainer = t.json(&["token", "create", "--name", "curator", "--role", "trainer", "--json"]);
     let trainer = format!("Bearer {}", trainer["token"].as_str().unwrap());
