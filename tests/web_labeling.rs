@@ -4,7 +4,8 @@
 //! `node tests/web/label_e2e.mjs` (playwright-core driving Debian's `chromium`): sign in, label
 //! three episodes with the keyboard only, auto-advance, a conflict from a second session resolved,
 //! bulk labels, the low-dim view. The labels are then checked through the HTTP API. The second
-//! test does the same for the scoreboard page (`tests/web/scoreboard_e2e.mjs`).
+//! test does the same for the scoreboard page (`tests/web/scoreboard_e2e.mjs`), the third the
+//! verifier-ordered review queue and its score on the timeline (`tests/web/review_e2e.mjs`).
 //!
 //! Needs `chromium` (or `$CHROMIUM`), `node` and `tests/web/node_modules` (`npm ci` there);
 //! `scripts/test.sh` installs them (`ensure_browser`) and sets `UFOPS_REQUIRE_BROWSER=1`, which
@@ -72,9 +73,15 @@ impl Drop for Server {
 }
 
 fn serve(t: &Target) -> Server {
+    serve_with(t, &["--no-worker"])
+}
+
+/// `ufops serve` with `extra` arguments (without `--no-worker` it runs jobs too).
+fn serve_with(t: &Target, extra: &[&str]) -> Server {
     let mut child = t
         .command()
-        .args(["serve", "--addr", "127.0.0.1:0", "--no-worker"])
+        .args(["serve", "--addr", "127.0.0.1:0"])
+        .args(extra)
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit())
         .spawn()
@@ -423,4 +430,60 @@ fn consensus_page_in_headless_chromium() {
     assert!((ag["pairs"][0]["kappa"].as_f64().unwrap() - kappa).abs() < 1e-12, "{ag} vs {kappa}");
     assert_eq!((ag["agreed"].as_u64(), ag["settled"].as_u64(), ag["disputed"].as_u64()), (Some(3), Some(1), Some(0)), "{ag}");
     println!("consensus: kappa {kappa:.4} (API {}, page {}), alpha {}", result["kappa_api"], result["kappa_page"], ag["krippendorff_alpha"]);
+}
+
+/// Issue 17, Must show 2 in the page: the Lift rollouts scored by a trained classifier (a score
+/// job through the API), the order selector set to "uncertain first": the page's queue is the
+/// API's order, nearest 0.5 first, and the score is plotted on the timeline (screenshot
+/// `review-uncertain-score-timeline.png`).
+#[test]
+fn review_queue_in_headless_chromium() {
+    let missing = missing_prerequisites();
+    let probe = if missing.is_empty() { Ok(()) } else { Err(missing.join("; ")) };
+    if !store::test_support::require(store::test_support::Tool::Browser, probe) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let t = Target::sqlite(dir.path());
+    t.ok(&["init"]);
+    common::lift_with_classifier(&t);
+    let trainer = token(&t, "curator", "trainer");
+    let alice = token(&t, "alice", "labeler");
+    let srv = serve_with(&t, &[]);
+    let (st, job) = http(&srv.addr, "POST", "/v1/review/score", &trainer, Some(r#"{"policy": "bc", "checkpoint": "e600"}"#));
+    assert_eq!(st, 201, "{job}");
+    let job_id = job["id"].as_str().unwrap().to_string();
+    let t0 = std::time::Instant::now();
+    loop {
+        let (_, j) = http(&srv.addr, "GET", &format!("/v1/jobs/{job_id}"), &trainer, None);
+        match j["state"].as_str() {
+            Some("succeeded") => break,
+            Some("failed") | Some("cancelled") => panic!("score job: {j}"),
+            _ => assert!(t0.elapsed() < Duration::from_secs(120), "score job still running: {j}"),
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let (st, page) = http(&srv.addr, "GET", "/v1/episodes?policy=bc&order=uncertain&limit=1000", &alice, None);
+    assert_eq!(st, 200, "{page}");
+    let expect: Vec<&str> = page["episodes"].as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap()).collect();
+    let scores: Vec<f64> = page["review"].as_array().unwrap().iter().map(|r| r["score"].as_f64().unwrap()).collect();
+    assert!(scores.windows(2).all(|w| (w[0] - 0.5).abs() <= (w[1] - 0.5).abs()), "{scores:?}");
+
+    let artifacts = artifacts_dir();
+    std::fs::create_dir_all(&artifacts).unwrap();
+    let out = Command::new("node")
+        .arg(repo().join("tests/web/review_e2e.mjs"))
+        .current_dir(repo().join("tests/web"))
+        .env("UFOPS_URL", format!("http://{}", srv.addr))
+        .env("UFOPS_TOKEN_A", &alice)
+        .env("UFOPS_EXPECT", expect.join(","))
+        .env("UFOPS_ARTIFACTS", &artifacts)
+        .env("CHROMIUM", chromium().unwrap())
+        .stderr(Stdio::inherit())
+        .output()
+        .expect("run node tests/web/review_e2e.mjs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    println!("{stdout}");
+    assert!(out.status.success(), "the review page test failed (screenshots in {})", artifacts.display());
+    assert!(stdout.contains("E2E_RESULT "), "{stdout}");
 }

@@ -34,6 +34,8 @@ use utoipa::{Modify, OpenApi, ToSchema};
         routes::resolve_verifier, routes::resolve_verifier_file,
         routes::create_export, routes::list_exports, routes::get_export, routes::export_file, routes::delete_export,
         routes::get_scoreboard, routes::list_runs,
+        routes::get_episode_scores, routes::get_review_artifact, routes::put_review_artifact,
+        routes::delete_review_artifact, routes::create_score_job,
         upload::ingest, routes::gc, routes::create_token, routes::list_tokens, routes::revoke_token,
     ),
     components(schemas(Problem, routes::EpisodeSort, routes::ScoreboardFormat)),

@@ -8,6 +8,7 @@
 
 pub mod diagnose;
 mod report;
+pub mod review_campaign;
 
 pub use report::{Report, Row};
 

@@ -9,6 +9,7 @@
 pub mod job;
 pub mod lerobot;
 pub mod robomimic;
+pub mod score_job;
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -92,7 +93,25 @@ pub fn episode_score(step_scores: &[f32]) -> Option<f64> {
     (!step_scores.is_empty()).then(|| step_scores.iter().map(|&x| x as f64).sum::<f64>() / step_scores.len() as f64)
 }
 
-/// Scores each episode (in order) with `scorer`, reading steps with bounded memory.
+/// Scores every step of each episode (in order) with `scorer`, reading steps with bounded
+/// memory, and hands `f` the episode's index, record and step scores (all finite).
+pub async fn score_each_episode(
+    store: &Store,
+    episodes: &[EpisodeRecord],
+    scorer: &dyn StepScorer,
+    mut f: impl FnMut(usize, &EpisodeRecord, Vec<f32>) -> Result<()>,
+) -> Result<()> {
+    for_each_episode(store, episodes, |i, e, steps| {
+        let s = scorer.score_steps(&steps).map_err(|m| ExportError::invalid(format!("scoring episode {}: {m}", e.id)))?;
+        if s.iter().any(|x| !x.is_finite()) {
+            return Err(ExportError::invalid(format!("scoring episode {}: the verifier returned a non-finite score", e.id)));
+        }
+        f(i, e, s)
+    })
+    .await
+}
+
+/// Scores each episode (in order) with `scorer`: its [`episode_score`].
 pub async fn score_episodes(
     store: &Store,
     episodes: &[EpisodeRecord],
@@ -101,11 +120,7 @@ pub async fn score_episodes(
 ) -> Result<Vec<Option<f64>>> {
     let mut scores = vec![None; episodes.len()];
     let total = episodes.len();
-    for_each_episode(store, episodes, |i, e, steps| {
-        let s = scorer.score_steps(&steps).map_err(|m| ExportError::invalid(format!("scoring episode {}: {m}", e.id)))?;
-        if s.iter().any(|x| !x.is_finite()) {
-            return Err(ExportError::invalid(format!("scoring episode {}: the verifier returned a non-finite score", e.id)));
-        }
+    score_each_episode(store, episodes, scorer, |i, _, s| {
         scores[i] = episode_score(&s);
         if let Some(p) = progress {
             p(i + 1, total);

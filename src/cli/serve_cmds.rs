@@ -209,6 +209,17 @@ impl api::JobRunner for Runner {
                         .map_err(|e| e.to_string())?;
                     serde_json::to_value(&r).map_err(|e| e.to_string())
                 }
+                "score" => {
+                    let spec: ::export::score_job::ScoreJobSpec =
+                        serde_json::from_value(job.spec.clone()).map_err(|e| format!("bad score job spec: {e}"))?;
+                    let scorer = super::export_cmd::StoreScorer::load(store, &spec.artifact_id).await.map_err(|e| format!("{e:#}"))?;
+                    let progress = |v: serde_json::Value| ctx.progress(v);
+                    let cancelled = || ctx.is_cancelled();
+                    let r = ::export::score_job::run_score_job(store, Some(&job.id), &spec, &scorer, &progress, &cancelled)
+                        .await
+                        .map_err(|e| e.to_string())?;
+                    serde_json::to_value(&r).map_err(|e| e.to_string())
+                }
                 other => Err(format!("unknown job kind {other:?}")),
             }
         })

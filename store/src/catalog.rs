@@ -32,6 +32,7 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (5, "episode_media", include_str!("../../migrations/sqlite/0005_episode_media.sql")),
     (6, "runs", include_str!("../../migrations/sqlite/0006_runs.sql")),
     (7, "pending_objects", include_str!("../../migrations/sqlite/0007_pending_objects.sql")),
+    (8, "review_scores", include_str!("../../migrations/sqlite/0008_review_scores.sql")),
     (9, "label_campaigns", include_str!("../../migrations/sqlite/0009_label_campaigns.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
@@ -42,6 +43,7 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (5, "episode_media", include_str!("../../migrations/postgres/0005_episode_media.sql")),
     (6, "runs", include_str!("../../migrations/postgres/0006_runs.sql")),
     (7, "pending_objects", include_str!("../../migrations/postgres/0007_pending_objects.sql")),
+    (8, "review_scores", include_str!("../../migrations/postgres/0008_review_scores.sql")),
     (9, "label_campaigns", include_str!("../../migrations/postgres/0009_label_campaigns.sql")),
 ];
 

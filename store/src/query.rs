@@ -290,7 +290,7 @@ impl Store {
     }
 }
 
-fn episode_from_row(r: &sqlx::any::AnyRow) -> Result<EpisodeRecord, StoreError> {
+pub(crate) fn episode_from_row(r: &sqlx::any::AnyRow) -> Result<EpisodeRecord, StoreError> {
     Ok(EpisodeRecord {
         id: r.s("id")?,
         policy: r.s("policy")?,

@@ -10,13 +10,14 @@ import * as api from './api.js';
 import { Player, prepare, dispose } from './player.js';
 import { drawPlots, drawTrajectory } from './plots.js';
 import * as consensus from './consensus.js';
+import { drawScore } from './review_queue.js';
 
 const $ = (id) => document.getElementById(id);
 const LABELS = ['success', 'failure', 'unknown'];
 
 const S = {
   me: null,
-  filters: { policy: '', checkpoint: '', task: '', label: '' },
+  filters: { policy: '', checkpoint: '', task: '', label: '', order: '' },
   pageSize: 100,    // episodes per page of the queue (`#pagesize=N`)
   queue: [],        // the loaded part of the queue, in order (unknown first by default)
   seen: new Set(),  // ids in `queue`
@@ -30,6 +31,7 @@ const S = {
   cache: new Map(), // id -> prepared episode (prefetch)
   selected: new Set(),
   plots: null,
+  score: null,      // the verifier score plot (review_queue.js)
   traj: null,
   showSeq: 0,
   conflicts: [],    // pending conflicts to ask about
@@ -57,7 +59,7 @@ function status(el, text, kind) {
 async function start() {
   player = new Player({
     grid: $('videos'), scrub: $('scrub'), frameOut: $('frame'), playButton: $('play'),
-    onFrame: (f) => { if (S.plots) S.plots.setFrame(f); if (S.traj) S.traj.setFrame(f); },
+    onFrame: (f) => { if (S.plots) S.plots.setFrame(f); if (S.score) S.score.setFrame(f); if (S.traj) S.traj.setFrame(f); },
   });
   wire();
   try {
@@ -116,6 +118,7 @@ async function loadFilters() {
   fill($('f-checkpoint'), [...new Set(cks.map((c) => c.checkpoint))], S.filters.checkpoint);
   fill($('f-task'), tks, S.filters.task);
   $('f-label').value = S.filters.label;
+  $('f-order').value = S.filters.order;
   S.filters.policy = $('f-policy').value;
   S.filters.checkpoint = $('f-checkpoint').value;
   S.filters.task = $('f-task').value;
@@ -124,15 +127,17 @@ async function loadFilters() {
 /** Starts the queue over for the current filters: counts, the first page, the episode to show. */
 async function loadQueue(focusId) {
   const seq = ++S.queueSeq;
-  const { policy, checkpoint, task, label } = S.filters;
+  const { policy, checkpoint, task, label, order } = S.filters;
   S.queue = [];
   S.seen = new Set();
   S.idx = -1;
   S.selected.clear();
   $('queue-list').replaceChildren();
   // "all, unknown first": every unknown episode, then every episode not shown yet.
-  S.pager = { base: { policy, checkpoint, task }, phases: label ? [label] : ['unknown', ''], phase: 0, after: undefined, done: false, loading: null };
+  S.pager = { base: { policy, checkpoint, task, order }, phases: label ? [label] : ['unknown', ''], phase: 0, after: undefined, done: false, loading: null };
   await Promise.all([refreshCounts(), loadMore()]);
+  // An empty first phase (no unknown episode left) moves on to the next one.
+  while (!S.queue.length && S.pager && !S.pager.done && seq === S.queueSeq) await loadMore();
   if (seq !== S.queueSeq) return;
   if (focusId && !S.seen.has(focusId)) await addFocus(focusId);
   renderQueue();
@@ -335,6 +340,8 @@ async function show(i, t0) {
   if (S.traj) { S.traj.destroy(); S.traj = null; }
   player.attach(p, $('preload'));
   S.plots = drawPlots($('plots'), p.steps, (f) => player.seek(f));
+  if (S.score) S.score.destroy();
+  S.score = drawScore($('score-plot'), e.id, p.steps.num_rows || 0, (f) => player.seek(f));
   const traj = $('traj');
   traj.hidden = p.cams.length > 0;
   if (!traj.hidden) S.traj = drawTrajectory(traj, p.steps);
@@ -607,7 +614,7 @@ function wire() {
     player.pause();
     showSignIn('signed out');
   });
-  for (const k of ['policy', 'checkpoint', 'task', 'label']) {
+  for (const k of ['policy', 'checkpoint', 'task', 'label', 'order']) {
     $(`f-${k}`).addEventListener('change', async (ev) => {
       S.filters[k] = ev.target.value;
       if (k === 'policy') { S.filters.checkpoint = ''; await loadFilters(); }

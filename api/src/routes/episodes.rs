@@ -16,24 +16,32 @@ pub(crate) fn router() -> Router<AppState> {
 #[derive(Deserialize, IntoParams, Default)]
 #[into_params(parameter_in = Query)]
 pub struct EpisodeQuery {
-    policy: Option<String>,
-    checkpoint: Option<String>,
-    task: Option<String>,
+    pub(crate) policy: Option<String>,
+    pub(crate) checkpoint: Option<String>,
+    pub(crate) task: Option<String>,
     #[param(value_type = Option<store::Label>)]
-    label: Option<String>,
-    label_source: Option<String>,
-    tag: Option<String>,
+    pub(crate) label: Option<String>,
+    pub(crate) label_source: Option<String>,
+    pub(crate) tag: Option<String>,
     /// Read the store as of this version (labels frozen in it); default: now.
-    version: Option<i64>,
+    pub(crate) version: Option<i64>,
     /// Cursor: the `next_cursor` of the previous page.
-    #[param(pattern = r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}$")]
-    after: Option<String>,
+    /// Any printable text works as a position in id order; a review order's cursors are its own.
+    #[param(pattern = r"^[^\x00-\x1f\x7f]{1,400}$")]
+    pub(crate) after: Option<String>,
     /// Page size, 1-1000 (default 100).
     #[param(minimum = 1, maximum = 1000)]
-    limit: Option<i64>,
+    pub(crate) limit: Option<i64>,
     /// Sort order; only `id` (ascending, the cursor order) is supported.
     #[param(value_type = Option<EpisodeSort>)]
-    sort: Option<String>,
+    pub(crate) sort: Option<String>,
+    /// Review queue order: `id` (default), `uncertain` (verifier score nearest 0.5 first),
+    /// `disagreement` (score furthest from the current label first) or `source` (by label
+    /// source). Orders other than `id` use the stored scores of each policy's review artifact
+    /// (`/v1/review/artifacts/{policy}`), list the current episodes (no `version`), put
+    /// episodes without a score last, and page with their own cursors (`next_cursor`).
+    #[param(value_type = Option<EpisodeOrder>)]
+    pub(crate) order: Option<String>,
 }
 
 /// The sort orders of `GET /v1/episodes` (the doc's enum; the handler matches the same words).
@@ -44,11 +52,25 @@ pub enum EpisodeSort {
     Id,
 }
 
+/// The review orders of `GET /v1/episodes` (the doc's enum; `store::ReviewOrder` parses them).
+#[derive(ToSchema)]
+#[schema(rename_all = "lowercase")]
+#[allow(dead_code)]
+pub enum EpisodeOrder {
+    Id,
+    Uncertain,
+    Disagreement,
+    Source,
+}
+
 #[derive(Serialize, ToSchema)]
 pub struct EpisodePage {
-    episodes: Vec<store::EpisodeRecord>,
+    pub(crate) episodes: Vec<store::EpisodeRecord>,
     /// Pass as `after` for the next page; absent on the last page.
-    next_cursor: Option<String>,
+    pub(crate) next_cursor: Option<String>,
+    /// With a review `order`: each listed episode's stored score, in the same order as `episodes`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(crate) review: Option<Vec<super::review::ReviewScoreRef>>,
 }
 
 /// Lists episodes with filters, in id order, a page at a time: pass the page's `next_cursor` as
@@ -57,6 +79,9 @@ pub struct EpisodePage {
 #[utoipa::path(get, path = "/v1/episodes", tag = "episodes", params(EpisodeQuery),
     responses((status = 200, body = EpisodePage)))]
 pub async fn list_episodes(State(s): State<AppState>, ApiQuery(q): ApiQuery<EpisodeQuery>) -> ApiResult<Json<EpisodePage>> {
+    if let Some(order) = q.order.clone().filter(|o| o != "id") {
+        return super::review::list_review_queue(&s, &order, q).await.map(Json);
+    }
     match q.sort.as_deref() {
         None | Some("id") => {}
         Some(other) => {
@@ -68,7 +93,10 @@ pub async fn list_episodes(State(s): State<AppState>, ApiQuery(q): ApiQuery<Epis
         return Err(ApiError::bad_request(format!("limit {limit} must be in 1..=1000")));
     }
     if let Some(a) = &q.after {
-        check_id("cursor", a)?;
+        // A keyset bound, compared with ids: any printable text is a position.
+        if a.is_empty() || a.len() > 400 || a.chars().any(|c| c.is_control()) {
+            return Err(ApiError::bad_request("cursor: 1-400 printable characters"));
+        }
     }
     let filter = EpisodeFilter {
         version: q.version,
@@ -89,7 +117,7 @@ pub async fn list_episodes(State(s): State<AppState>, ApiQuery(q): ApiQuery<Epis
     } else {
         None
     };
-    Ok(Json(EpisodePage { episodes, next_cursor }))
+    Ok(Json(EpisodePage { episodes, next_cursor, review: None }))
 }
 
 #[derive(Deserialize, IntoParams, Default)]

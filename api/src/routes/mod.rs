@@ -18,6 +18,7 @@ mod exports;
 mod infra;
 mod jobs;
 mod labels;
+mod review;
 mod scoreboard;
 mod splits;
 
@@ -30,6 +31,7 @@ pub use exports::*;
 pub use infra::*;
 pub use jobs::*;
 pub use labels::*;
+pub use review::*;
 pub use scoreboard::*;
 pub use splits::*;
 
@@ -77,6 +79,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
         .merge(infra::router())
         .merge(jobs::router())
         .merge(labels::router())
+        .merge(review::router())
         .merge(scoreboard::router())
         .merge(splits::router())
 }

@@ -1,0 +1,276 @@
+//! The review queue (issue 17): the verifier orders the labeling queue from scores a `score` job
+//! stored; per-step scores for the episode view's timeline; the artifact scoring each policy's
+//! queue (a campaign here is a policy).
+
+use super::*;
+
+/// The routes of this resource (behind the token check).
+pub(crate) fn router() -> Router<AppState> {
+    Router::new()
+        .route("/v1/episodes/{id}/scores", get(get_episode_scores))
+        .route(
+            "/v1/review/artifacts/{policy}",
+            get(get_review_artifact)
+                .put(put_review_artifact.layer(need!(Role::Trainer)))
+                .delete(delete_review_artifact.layer(need!(Role::Trainer))),
+        )
+        .route("/v1/review/score", post(create_score_job.layer(need!(Role::Trainer))))
+}
+
+/// An episode's place in a review order: the artifact that scores it and its stored score.
+#[derive(Serialize, ToSchema)]
+pub struct ReviewScoreRef {
+    pub episode_id: String,
+    /// The policy's review artifact (absent when neither a setting nor the checkpoint's
+    /// `classifier@latest` alias names one).
+    pub artifact_id: Option<String>,
+    /// The mean of the episode's step scores; absent until a score job stored it.
+    pub score: Option<f64>,
+}
+
+/// `GET /v1/episodes?order=…` other than `id` (see [`EpisodeQuery`]).
+pub(crate) async fn list_review_queue(s: &AppState, order: &str, q: EpisodeQuery) -> ApiResult<EpisodePage> {
+    let order: store::ReviewOrder = order.parse()?;
+    if q.version.is_some() {
+        return Err(ApiError::bad_request("order other than id lists the current episodes: drop version"));
+    }
+    if q.sort.as_deref().is_some_and(|s| s != "id") {
+        return Err(ApiError::bad_request("give order or sort, not both"));
+    }
+    let limit = q.limit.unwrap_or(100);
+    if !(1..=1000).contains(&limit) {
+        return Err(ApiError::bad_request(format!("limit {limit} must be in 1..=1000")));
+    }
+    if let Some(a) = &q.after {
+        if a.len() > 400 || a.chars().any(|c| c.is_control()) {
+            return Err(ApiError::bad_request("cursor: not one of this order's cursors"));
+        }
+    }
+    let filter = EpisodeFilter {
+        policy: q.policy,
+        checkpoint: q.checkpoint,
+        task: q.task,
+        label: q.label.as_deref().map(parse_label).transpose()?,
+        label_source: q.label_source,
+        tag: q.tag,
+        ..Default::default()
+    };
+    let mut entries = s.store().review_queue(&filter, order, q.after.as_deref(), limit + 1).await?;
+    let next_cursor = if entries.len() as i64 > limit {
+        entries.truncate(limit as usize);
+        entries.last().map(|e| e.cursor.clone())
+    } else {
+        None
+    };
+    let review = entries
+        .iter()
+        .map(|e| ReviewScoreRef { episode_id: e.episode.id.clone(), artifact_id: e.artifact_id.clone(), score: e.score })
+        .collect();
+    Ok(EpisodePage { episodes: entries.into_iter().map(|e| e.episode).collect(), next_cursor, review: Some(review) })
+}
+
+#[derive(Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct ScoresQuery {
+    /// The artifact whose scores to read; default: the episode's review artifact.
+    artifact: Option<String>,
+}
+
+/// An episode's stored verifier scores: one per step, and their mean.
+#[derive(Serialize, ToSchema)]
+pub struct EpisodeScores {
+    pub episode_id: String,
+    pub artifact_id: String,
+    /// The mean of `step_scores` (what orders the queue).
+    pub score: f64,
+    /// One score per step, in step order (a classifier's success probability).
+    pub step_scores: Vec<f32>,
+    /// The score job that stored them.
+    pub job_id: Option<String>,
+    pub created_at: String,
+}
+
+/// The per-step verifier scores of an episode (for the timeline), as a score job stored them.
+#[utoipa::path(get, path = "/v1/episodes/{id}/scores", tag = "review", params(("id" = String, Path), ScoresQuery),
+    responses((status = 200, body = EpisodeScores),
+              (status = 400, body = Problem, content_type = "application/problem+json"),
+              (status = 401, body = Problem, content_type = "application/problem+json"),
+              (status = 404, description = "no such episode, no review artifact, or not scored yet", body = Problem,
+               content_type = "application/problem+json")))]
+pub async fn get_episode_scores(
+    State(s): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+    ApiQuery(q): ApiQuery<ScoresQuery>,
+) -> ApiResult<Json<EpisodeScores>> {
+    check_id("episode id", &id)?;
+    if let Some(a) = &q.artifact {
+        check_id("artifact id", a)?;
+    }
+    let e = s.store().episode_score(&id, q.artifact.as_deref()).await?;
+    Ok(Json(EpisodeScores {
+        episode_id: e.episode_id,
+        artifact_id: e.artifact_id,
+        score: e.score,
+        step_scores: e.step_scores,
+        job_id: e.job_id,
+        created_at: e.created_at,
+    }))
+}
+
+/// The artifact that scores a policy's review queue.
+#[derive(Serialize, ToSchema)]
+pub struct ReviewArtifactSetting {
+    pub policy: String,
+    pub artifact_id: String,
+    /// `setting` (set with PUT) or `default` (the checkpoint's `classifier@latest`; only with `checkpoint`).
+    pub source: String,
+    pub updated_by: Option<String>,
+    pub updated_at: Option<String>,
+}
+
+#[derive(Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct ReviewArtifactQuery {
+    /// Without a setting, report this checkpoint's default (`classifier@latest`).
+    checkpoint: Option<String>,
+}
+
+/// The artifact scoring a policy's queue: its setting, else (with `checkpoint`) the default alias.
+#[utoipa::path(get, path = "/v1/review/artifacts/{policy}", tag = "review",
+    params(("policy" = String, Path), ReviewArtifactQuery),
+    responses((status = 200, body = ReviewArtifactSetting),
+              (status = 400, body = Problem, content_type = "application/problem+json"),
+              (status = 401, body = Problem, content_type = "application/problem+json"),
+              (status = 404, description = "no setting and no default", body = Problem, content_type = "application/problem+json")))]
+pub async fn get_review_artifact(
+    State(s): State<AppState>,
+    ApiPath(policy): ApiPath<String>,
+    ApiQuery(q): ApiQuery<ReviewArtifactQuery>,
+) -> ApiResult<Json<ReviewArtifactSetting>> {
+    check_name("policy", &policy)?;
+    if let Some(a) = s.store().review_artifact(&policy).await? {
+        return Ok(Json(ReviewArtifactSetting {
+            policy,
+            artifact_id: a.artifact_id,
+            source: "setting".into(),
+            updated_by: Some(a.updated_by),
+            updated_at: Some(a.updated_at),
+        }));
+    }
+    let Some(c) = q.checkpoint else {
+        return Err(ApiError::not_found(format!("policy {policy:?} has no review artifact setting")));
+    };
+    check_name("checkpoint", &c)?;
+    let a = s.store().resolve_alias(&policy, &c, store::DEFAULT_REVIEW_KIND, store::DEFAULT_REVIEW_ALIAS).await?;
+    Ok(Json(ReviewArtifactSetting { policy, artifact_id: a.id, source: "default".into(), updated_by: None, updated_at: None }))
+}
+
+#[derive(Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ReviewArtifactUpdate {
+    /// An artifact id or `POLICY/CHECKPOINT/KIND@ALIAS` (resolved now).
+    artifact: String,
+}
+
+/// Sets the artifact that scores a policy's review queue (instead of each checkpoint's
+/// `classifier@latest`). Run a score job with it (`POST /v1/review/score`) to fill the queue.
+#[utoipa::path(put, path = "/v1/review/artifacts/{policy}", tag = "review", params(("policy" = String, Path)),
+    request_body = ReviewArtifactUpdate,
+    responses((status = 200, body = ReviewArtifactSetting),
+              (status = 400, body = Problem, content_type = "application/problem+json"),
+              (status = 401, body = Problem, content_type = "application/problem+json"),
+              (status = 403, body = Problem, content_type = "application/problem+json"),
+              (status = 404, description = "no such artifact", body = Problem, content_type = "application/problem+json")))]
+pub async fn put_review_artifact(
+    State(s): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    ApiPath(policy): ApiPath<String>,
+    ApiJson(b): ApiJson<ReviewArtifactUpdate>,
+) -> ApiResult<Json<ReviewArtifactSetting>> {
+    caller.require(Role::Trainer)?;
+    check_name("policy", &policy)?;
+    if b.artifact.is_empty() || b.artifact.len() > 600 {
+        return Err(ApiError::bad_request("artifact: an id or POLICY/CHECKPOINT/KIND@ALIAS"));
+    }
+    let a = s.store().set_review_artifact(&policy, &b.artifact, &caller.name).await?;
+    Ok(Json(ReviewArtifactSetting {
+        policy,
+        artifact_id: a.artifact_id,
+        source: "setting".into(),
+        updated_by: Some(a.updated_by),
+        updated_at: Some(a.updated_at),
+    }))
+}
+
+/// Removes a policy's setting: its checkpoints' `classifier@latest` score the queue again.
+#[utoipa::path(delete, path = "/v1/review/artifacts/{policy}", tag = "review", params(("policy" = String, Path)),
+    responses((status = 204, description = "removed"),
+              (status = 401, body = Problem, content_type = "application/problem+json"),
+              (status = 403, body = Problem, content_type = "application/problem+json"),
+              (status = 404, description = "no setting", body = Problem, content_type = "application/problem+json")))]
+pub async fn delete_review_artifact(
+    State(s): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    ApiPath(policy): ApiPath<String>,
+) -> ApiResult<StatusCode> {
+    caller.require(Role::Trainer)?;
+    check_name("policy", &policy)?;
+    if s.store().clear_review_artifact(&policy).await? {
+        Ok(StatusCode::NO_CONTENT)
+    } else {
+        Err(ApiError::not_found(format!("policy {policy:?} has no review artifact setting")))
+    }
+}
+
+#[derive(Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ScoreJobCreate {
+    policy: String,
+    /// Only this checkpoint's episodes (default: all the policy's).
+    checkpoint: Option<String>,
+    /// An artifact id or `POLICY/CHECKPOINT/KIND@ALIAS`; default: the policy's review artifact
+    /// (its setting, else `checkpoint`'s `classifier@latest`, which then needs `checkpoint`).
+    artifact: Option<String>,
+}
+
+/// Queues a `score` job: a worker scores the episodes with the artifact and stores each one's
+/// mean and per-step scores, which `GET /v1/episodes?order=…` and `/v1/episodes/{id}/scores` read.
+#[utoipa::path(post, path = "/v1/review/score", tag = "review", request_body = ScoreJobCreate,
+    responses((status = 201, description = "JobRecord (kind `score`, spec {artifact_id, policy, checkpoint})", body = Object),
+              (status = 400, body = Problem, content_type = "application/problem+json"),
+              (status = 401, body = Problem, content_type = "application/problem+json"),
+              (status = 403, body = Problem, content_type = "application/problem+json"),
+              (status = 404, description = "no such artifact", body = Problem, content_type = "application/problem+json")))]
+pub async fn create_score_job(
+    State(s): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    ApiJson(b): ApiJson<ScoreJobCreate>,
+) -> ApiResult<(StatusCode, Json<store::JobRecord>)> {
+    caller.require(Role::Trainer)?;
+    check_name("policy", &b.policy)?;
+    if let Some(c) = &b.checkpoint {
+        check_name("checkpoint", c)?;
+    }
+    let artifact_id = match (&b.artifact, &b.checkpoint) {
+        (Some(r), _) => {
+            if r.is_empty() || r.len() > 600 {
+                return Err(ApiError::bad_request("artifact: an id or POLICY/CHECKPOINT/KIND@ALIAS"));
+            }
+            s.store().resolve_artifact(r).await?.id
+        }
+        (None, Some(c)) => s.store().review_artifact_for(&b.policy, c).await?.ok_or_else(|| {
+            ApiError::not_found(format!("no review artifact for {}/{c}: set one or alias classifier@latest", b.policy))
+        })?,
+        (None, None) => match s.store().review_artifact(&b.policy).await? {
+            Some(a) => a.artifact_id,
+            None => {
+                return Err(ApiError::bad_request(
+                    "give artifact or checkpoint (the policy has no review artifact setting)",
+                ))
+            }
+        },
+    };
+    let spec = json!({"artifact_id": artifact_id, "policy": b.policy, "checkpoint": b.checkpoint});
+    let job = s.store().create_job("score", &spec, &caller.name).await?;
+    Ok((StatusCode::CREATED, Json(job)))
+}

@@ -1,0 +1,313 @@
+//! The review queue (issue 17): verifier scores of episodes, stored by the `score` job (one row
+//! per artifact and episode: the mean step score and the per-step series), the artifact that
+//! scores each policy's queue, and the queue itself ordered by those stored scores.
+
+use crate::catalog::{bind_val, insert_rows, RowExt, Val};
+use crate::query::{episode_from_row, EpisodeFilter, EpisodeRecord};
+use crate::{now_rfc3339, Store, StoreError};
+use serde::Serialize;
+
+/// The artifact kind and alias that score a checkpoint's episodes when its policy names none.
+pub const DEFAULT_REVIEW_KIND: &str = "classifier";
+pub const DEFAULT_REVIEW_ALIAS: &str = "latest";
+
+/// How the review queue is ordered. Every order ends with the episode id (a total order, so
+/// keyset pages neither repeat nor skip), and episodes without a stored score come last.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ReviewOrder {
+    /// Score nearest 0.5 first (|score − 0.5| ascending): where the verifier is least sure.
+    Uncertain,
+    /// The verifier's score furthest from the current label first (|score − y|, y = 1 for
+    /// success, 0 for failure, descending); unlabeled episodes after the labeled ones.
+    Disagreement,
+    /// By the label's source (e.g. `key`, `sim`, `import`), then id.
+    Source,
+}
+
+impl std::str::FromStr for ReviewOrder {
+    type Err = StoreError;
+    fn from_str(s: &str) -> Result<Self, StoreError> {
+        match s {
+            "uncertain" => Ok(ReviewOrder::Uncertain),
+            "disagreement" => Ok(ReviewOrder::Disagreement),
+            "source" => Ok(ReviewOrder::Source),
+            other => Err(StoreError::invalid(format!(
+                "unknown order {other:?}: uncertain, disagreement, source or id"
+            ))),
+        }
+    }
+}
+
+impl ReviewOrder {
+    /// The SQL sort key (lower first). Numeric keys stay below 8 for scored episodes; 8 marks a
+    /// scored but unlabeled episode (disagreement) and 9 an unscored one.
+    fn key_sql(self) -> &'static str {
+        match self {
+            ReviewOrder::Uncertain => "COALESCE(ABS(s.score - 0.5), 9.0)",
+            ReviewOrder::Disagreement => {
+                "CASE WHEN s.score IS NULL THEN 9.0 WHEN e.label = 'success' THEN s.score - 1.0 \
+                 WHEN e.label = 'failure' THEN 0.0 - s.score ELSE 8.0 END"
+            }
+            ReviewOrder::Source => "e.label_source",
+        }
+    }
+
+    fn numeric(self) -> bool {
+        self != ReviewOrder::Source
+    }
+}
+
+/// One episode of the review queue with the stored score that placed it.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct ReviewEntry {
+    pub episode: EpisodeRecord,
+    /// The artifact scoring this episode's policy (override or its checkpoint's default alias).
+    pub artifact_id: Option<String>,
+    /// The episode's stored mean step score by that artifact; `None` until a score job ran.
+    pub score: Option<f64>,
+    /// The position of this entry in the order: pass the last one as the next page's cursor.
+    pub cursor: String,
+}
+
+/// An episode's stored score by one artifact, with the per-step series.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct EpisodeScore {
+    pub episode_id: String,
+    pub artifact_id: String,
+    pub score: f64,
+    pub step_scores: Vec<f32>,
+    pub job_id: Option<String>,
+    pub created_at: String,
+}
+
+/// The artifact a policy's queue is scored with, when set explicitly.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct ReviewArtifact {
+    pub policy: String,
+    pub artifact_id: String,
+    pub updated_by: String,
+    pub updated_at: String,
+}
+
+/// The artifact each episode row `e` is scored by: its policy's override, else its checkpoint's
+/// default alias.
+const REVIEW_JOINS: &str = "LEFT JOIN review_artifacts ra ON ra.policy = e.policy \
+     LEFT JOIN artifact_aliases aa ON aa.policy = e.policy AND aa.checkpoint = e.checkpoint \
+     AND aa.kind = 'classifier' AND aa.alias = 'latest' \
+     LEFT JOIN episode_scores s ON s.episode_id = e.id AND s.artifact_id = COALESCE(ra.artifact_id, aa.artifact_id)";
+
+impl Store {
+    /// Stores episode scores of `artifact_id` (replacing earlier ones): `(episode, mean step
+    /// score, per-step scores)`.
+    pub async fn put_episode_scores(
+        &self,
+        artifact_id: &str,
+        job_id: Option<&str>,
+        rows: Vec<(String, f64, Vec<f32>)>,
+    ) -> Result<(), StoreError> {
+        if rows.is_empty() {
+            return Ok(());
+        }
+        let now = now_rfc3339();
+        let mut vals = Vec::with_capacity(rows.len());
+        for (episode, score, steps) in rows {
+            if !score.is_finite() || steps.iter().any(|x| !x.is_finite()) {
+                return Err(StoreError::invalid(format!("episode {episode}: a score is not finite")));
+            }
+            vals.push(vec![
+                Val::S(artifact_id.into()),
+                Val::S(episode),
+                Val::F(score),
+                Val::S(serde_json::to_string(&steps)?),
+                Val::OS(job_id.map(String::from)),
+                Val::S(now.clone()),
+            ]);
+        }
+        let mut tx = self.db().begin_write().await?;
+        insert_rows(
+            &mut tx,
+            "episode_scores",
+            &["artifact_id", "episode_id", "score", "step_scores", "job_id", "created_at"],
+            vals,
+            "ON CONFLICT (artifact_id, episode_id) DO UPDATE SET score = excluded.score, \
+             step_scores = excluded.step_scores, job_id = excluded.job_id, created_at = excluded.created_at",
+        )
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// The artifact that scores `policy`'s queue when set explicitly.
+    pub async fn review_artifact(&self, policy: &str) -> Result<Option<ReviewArtifact>, StoreError> {
+        let row = sqlx::query("SELECT policy, artifact_id, updated_by, updated_at FROM review_artifacts WHERE policy = $1")
+            .bind(policy)
+            .fetch_optional(&self.db().pool)
+            .await?;
+        row.map(|r| {
+            Ok(ReviewArtifact {
+                policy: r.s("policy")?,
+                artifact_id: r.s("artifact_id")?,
+                updated_by: r.s("updated_by")?,
+                updated_at: r.s("updated_at")?,
+            })
+        })
+        .transpose()
+    }
+
+    /// Scores `policy`'s queue with `reference` (an artifact id or `P/C/KIND@ALIAS`, resolved
+    /// now so the setting names one artifact).
+    pub async fn set_review_artifact(&self, policy: &str, reference: &str, actor: &str) -> Result<ReviewArtifact, StoreError> {
+        let a = self.resolve_artifact(reference).await?;
+        let now = now_rfc3339();
+        sqlx::query(
+            "INSERT INTO review_artifacts (policy, artifact_id, updated_by, updated_at) VALUES ($1, $2, $3, $4) \
+             ON CONFLICT (policy) DO UPDATE SET artifact_id = excluded.artifact_id, updated_by = excluded.updated_by, \
+             updated_at = excluded.updated_at",
+        )
+        .bind(policy)
+        .bind(&a.id)
+        .bind(actor)
+        .bind(&now)
+        .execute(&self.db().pool)
+        .await?;
+        Ok(ReviewArtifact { policy: policy.into(), artifact_id: a.id, updated_by: actor.into(), updated_at: now })
+    }
+
+    /// Back to the default (each checkpoint's `classifier@latest`); false when none was set.
+    pub async fn clear_review_artifact(&self, policy: &str) -> Result<bool, StoreError> {
+        let r = sqlx::query("DELETE FROM review_artifacts WHERE policy = $1").bind(policy).execute(&self.db().pool).await?;
+        Ok(r.rows_affected() > 0)
+    }
+
+    /// The artifact that scores a checkpoint's episodes in the review queue, if any.
+    pub async fn review_artifact_for(&self, policy: &str, checkpoint: &str) -> Result<Option<String>, StoreError> {
+        if let Some(a) = self.review_artifact(policy).await? {
+            return Ok(Some(a.artifact_id));
+        }
+        match self.resolve_alias(policy, checkpoint, DEFAULT_REVIEW_KIND, DEFAULT_REVIEW_ALIAS).await {
+            Ok(a) => Ok(Some(a.id)),
+            Err(StoreError::NotFound { .. }) => Ok(None),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// An episode's stored score by `artifact_id` (default: the artifact of its review queue).
+    pub async fn episode_score(&self, episode_id: &str, artifact_id: Option<&str>) -> Result<EpisodeScore, StoreError> {
+        let artifact = match artifact_id {
+            Some(a) => a.to_string(),
+            None => {
+                let e = self.episode(episode_id, None).await?;
+                self.review_artifact_for(&e.policy, &e.checkpoint).await?.ok_or_else(|| {
+                    StoreError::not_found(
+                        "review artifact",
+                        format!("{}/{}/{DEFAULT_REVIEW_KIND}@{DEFAULT_REVIEW_ALIAS} (or a policy setting)", e.policy, e.checkpoint),
+                    )
+                })?
+            }
+        };
+        let row = sqlx::query(
+            "SELECT episode_id, artifact_id, score, step_scores, job_id, created_at FROM episode_scores \
+             WHERE artifact_id = $1 AND episode_id = $2",
+        )
+        .bind(&artifact)
+        .bind(episode_id)
+        .fetch_optional(&self.db().pool)
+        .await?
+        .ok_or_else(|| StoreError::not_found("episode score", format!("{episode_id} by {artifact}")))?;
+        Ok(EpisodeScore {
+            episode_id: row.s("episode_id")?,
+            artifact_id: row.s("artifact_id")?,
+            score: row.f("score")?,
+            step_scores: serde_json::from_str(&row.s("step_scores")?)?,
+            job_id: row.os("job_id")?,
+            created_at: row.s("created_at")?,
+        })
+    }
+
+    /// The current episodes matching `filter` (its `version`, `id` and `after` must be unset) in
+    /// review `order`, a keyset page after `cursor` (an entry's `cursor`). Sorting needs every
+    /// matching episode's key, so a page costs a scan of the filtered episodes (fine for a
+    /// campaign's thousands; the filters narrow it).
+    pub async fn review_queue(
+        &self,
+        filter: &EpisodeFilter,
+        order: ReviewOrder,
+        cursor: Option<&str>,
+        limit: i64,
+    ) -> Result<Vec<ReviewEntry>, StoreError> {
+        if filter.version.is_some() || filter.id.is_some() || filter.after.is_some() {
+            return Err(StoreError::invalid("the review orders list the current episodes only (no version)"));
+        }
+        let mut args: Vec<Val> = Vec::new();
+        let next = |v: Val, args: &mut Vec<Val>| {
+            args.push(v);
+            format!("${}", args.len())
+        };
+        let key = order.key_sql();
+        let mut sql = format!(
+            "SELECT e.id, e.policy, e.checkpoint, e.task, e.source_sha256, e.source_name, e.source_index, \
+             e.length, e.tags, e.metadata, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
+             COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, e.run_id, \
+             e.label AS label, e.label_source AS label_source, e.label_revision AS label_revision, \
+             e.label_actor AS label_actor, e.label_updated_at AS label_updated_at, \
+             s.score AS review_score, COALESCE(ra.artifact_id, aa.artifact_id) AS review_artifact, {key} AS review_key \
+             FROM episodes e {REVIEW_JOINS} WHERE e.version_removed IS NULL"
+        );
+        let mut cond = |c: String| {
+            sql.push_str(" AND ");
+            sql.push_str(&c);
+        };
+        if let Some(l) = filter.label {
+            cond(format!("e.label = {}", next(Val::S(l.as_str().into()), &mut args)));
+        }
+        if let Some(s) = &filter.label_source {
+            cond(format!("e.label_source = {}", next(Val::S(s.clone()), &mut args)));
+        }
+        if let Some(p) = &filter.policy {
+            cond(format!("e.policy = {}", next(Val::S(p.clone()), &mut args)));
+        }
+        if let Some(c) = &filter.checkpoint {
+            cond(format!("e.checkpoint = {}", next(Val::S(c.clone()), &mut args)));
+        }
+        if let Some(t) = &filter.task {
+            cond(format!("e.task = {}", next(Val::S(t.clone()), &mut args)));
+        }
+        if let Some(t) = &filter.tag {
+            let pat = format!("%{}%", serde_json::to_string(t)?);
+            cond(format!("e.tags LIKE {}", next(Val::S(pat), &mut args)));
+        }
+        if let Some(c) = cursor {
+            let (k, id) = c
+                .rsplit_once('|')
+                .ok_or_else(|| StoreError::invalid(format!("cursor {c:?} is not one of this order's cursors")))?;
+            let kv = if order.numeric() {
+                Val::F(k.parse::<f64>().ok().filter(|x| x.is_finite()).ok_or_else(|| {
+                    StoreError::invalid(format!("cursor {c:?} is not one of this order's cursors"))
+                })?)
+            } else {
+                Val::S(k.to_string())
+            };
+            let (pk, pk2, pid) = (next(kv.clone(), &mut args), next(kv, &mut args), next(Val::S(id.into()), &mut args));
+            cond(format!("({key} > {pk} OR ({key} = {pk2} AND e.id > {pid}))"));
+        }
+        sql.push_str(&format!(" ORDER BY review_key, e.id LIMIT {}", next(Val::I(limit.max(0)), &mut args)));
+        let mut q = sqlx::query(&sql);
+        for a in args {
+            q = bind_val(q, a);
+        }
+        let rows = q.fetch_all(&self.db().pool).await?;
+        rows.iter()
+            .map(|r| {
+                use sqlx::Row;
+                let episode = episode_from_row(r)?;
+                let key = if order.numeric() { r.f("review_key")?.to_string() } else { r.s("review_key")? };
+                Ok(ReviewEntry {
+                    cursor: format!("{key}|{}", episode.id),
+                    artifact_id: r.os("review_artifact")?,
+                    score: r.try_get::<Option<f64>, _>("review_score")?,
+                    episode,
+                })
+            })
+            .collect()
+    }
+}
