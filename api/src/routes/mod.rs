@@ -36,7 +36,7 @@ pub use scoreboard::*;
 pub use splits::*;
 
 use crate::auth::Caller;
-use crate::error::{ApiError, ApiResult};
+use crate::error::{ApiError, ApiResult, Problem};
 use crate::openapi::FileBytes;
 use crate::extract::{check_id, check_name, ApiJson, ApiPath, ApiQuery};
 use crate::AppState;
