@@ -71,6 +71,13 @@ pub const NAME_PATTERN: &str =
 
 /// A token or run name (`store::writer::check_name`): printable, no whitespace at either end.
 pub const TOKEN_NAME_PATTERN: &str = r"^[^\s\x00-\x1f\x7f-\x9f]([^\x00-\x1f\x7f-\x9f]{0,198}[^\s\x00-\x1f\x7f-\x9f])?$";
+/// An artifact reference a handler resolves: an artifact id, or `POLICY/CHECKPOINT/KIND@ALIAS`.
+pub const ARTIFACT_REF_PATTERN: &str = concat!(
+    r"^(?:[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}|",
+    r"[^/\s\x00-\x1f\x7f-\x9f](?:[^/\x00-\x1f\x7f-\x9f]{0,198}[^/\s\x00-\x1f\x7f-\x9f])?/",
+    r"[^/\s\x00-\x1f\x7f-\x9f](?:[^/\x00-\x1f\x7f-\x9f]{0,198}[^/\s\x00-\x1f\x7f-\x9f])?/",
+    r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}@[A-Za-z0-9_-][A-Za-z0-9._-]{0,127})$"
+);
 /// A run's steering (`store::Steering`'s text form): `base`, `bon:N`, `cg:LAMBDA`, `flow:LAMBDA`.
 pub const STEERING_PATTERN: &str = r"^(base|bon:[1-9][0-9]{0,8}|(cg|flow):[0-9]{1,6}(\.[0-9]{1,6})?)$";
 /// `If-Match` of a label write: a label revision, quoted or not, weak or not.
@@ -90,6 +97,10 @@ const CHECKED_QUERY: &[(&str, &str, &str)] = &[
     ("/v1/ingest", "run", TOKEN_NAME_PATTERN),
     ("/v1/ingest", "run_artifact", TOKEN_NAME_PATTERN),
     ("/v1/ingest", "steering", STEERING_PATTERN),
+    ("/v1/adjudication", "policy", NAME_PATTERN),
+    ("/v1/agreement", "policy", NAME_PATTERN),
+    ("/v1/episodes/{id}/scores", "artifact", ID_PATTERN),
+    ("/v1/review/artifacts/{policy}", "checkpoint", NAME_PATTERN),
 ];
 
 /// Request-body fields the handlers check, per component schema.
@@ -104,12 +115,24 @@ const CHECKED_FIELDS: &[(&str, &str, &str)] = &[
     ("JobCreate", "split_id", ID_PATTERN),
     ("BulkLabelItem", "episode_id", ID_PATTERN),
     ("TokenCreate", "name", TOKEN_NAME_PATTERN),
+    ("ScoreJobCreate", "policy", NAME_PATTERN),
+    ("ScoreJobCreate", "checkpoint", NAME_PATTERN),
+    ("ScoreJobCreate", "artifact", ARTIFACT_REF_PATTERN),
+    ("ReviewArtifactUpdate", "artifact", ARTIFACT_REF_PATTERN),
+    // Array fields: the pattern goes on their items.
+    ("FailureCauses", "causes", TOKEN_NAME_PATTERN),
 ];
 
-/// Sets `pattern` on a string schema, or on the string branch of a nullable one.
+/// Sets `pattern` on a string schema, on the string branch of a nullable one, or on the items
+/// of an array of strings.
 fn set_pattern(schema: &mut RefOr<Schema>, pattern: &str) {
     match schema {
         RefOr::T(Schema::Object(o)) => o.pattern = Some(pattern.to_string()),
+        RefOr::T(Schema::Array(a)) => {
+            if let utoipa::openapi::schema::ArrayItems::RefOrSchema(items) = &mut a.items {
+                set_pattern(items, pattern);
+            }
+        }
         RefOr::T(Schema::OneOf(one)) => {
             for item in one.items.iter_mut() {
                 if let RefOr::T(Schema::Object(o)) = item {
@@ -162,6 +185,7 @@ impl Contract {
                 has_path = true;
                 let pattern = match p.name.as_str() {
                     "policy" | "checkpoint" => Some(NAME_PATTERN.to_string()),
+                    "task" => Some(TOKEN_NAME_PATTERN.to_string()),
                     "kind_at_alias" => Some(format!("{}@{}", ID_PATTERN.trim_end_matches('$'), ID_PATTERN.trim_start_matches('^'))),
                     "id" | "key" | "alias" | "name" => Some(ID_PATTERN.to_string()),
                     _ => None,

@@ -43,8 +43,17 @@ pub struct Campaign {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct Span {
+    #[cfg_attr(feature = "openapi", schema(minimum = 0))]
     pub start_step: i64,
+    #[cfg_attr(feature = "openapi", schema(minimum = 0))]
     pub end_step: i64,
+}
+
+impl Span {
+    /// The same stretch with its ends in order (a labeler may mark the end first).
+    pub fn ordered(self) -> Span {
+        Span { start_step: self.start_step.min(self.end_step), end_step: self.start_step.max(self.end_step) }
+    }
 }
 
 /// What a verdict carries besides the label.
@@ -455,15 +464,20 @@ impl Store {
             }
             let causes = self.failure_causes(head.task.as_deref().unwrap_or("*")).await?;
             if !causes.contains(c) {
-                return Err(StoreError::invalid(format!("{c:?} is not a failure cause of this task (causes: {causes:?})")));
+                // The taxonomy is the campaign's state, not the request's shape: 409.
+                return Err(StoreError::Conflict(format!("{c:?} is not a failure cause of this task (causes: {causes:?})")));
             }
         }
         if d.spans.len() > MAX_SPANS {
             return Err(StoreError::invalid(format!("at most {MAX_SPANS} spans per verdict")));
         }
         for s in &d.spans {
-            if s.start_step < 0 || s.end_step < s.start_step || s.end_step >= head.length {
-                return Err(StoreError::invalid(format!(
+            if s.start_step < 0 || s.end_step < s.start_step {
+                return Err(StoreError::invalid(format!("span {}..{}: steps from 0, start before end", s.start_step, s.end_step)));
+            }
+            if s.end_step >= head.length {
+                // The episode's length is its state: a span past its end is a conflict (409).
+                return Err(StoreError::Conflict(format!(
                     "span {}..{} is not inside the episode's steps 0..{}",
                     s.start_step,
                     s.end_step,

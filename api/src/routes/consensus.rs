@@ -30,6 +30,7 @@ pub async fn get_campaign(State(s): State<AppState>, ApiPath(policy): ApiPath<St
 #[serde(deny_unknown_fields)]
 pub struct CampaignRequest {
     /// Independent verdicts an episode needs (1-10; 1 = one verdict sets the label).
+    #[schema(minimum = 1, maximum = 10)]
     labels_needed: i64,
     /// Labelers do not see the others' verdicts until they have given theirs.
     #[serde(default)]
@@ -56,7 +57,8 @@ pub async fn put_campaign(
 #[derive(Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct FailureCauses {
-    /// In number-key order: the first is key 1 (at most 9).
+    /// In number-key order: the first is key 1 (at most 9; a cause listed twice counts once).
+    #[schema(max_items = 9)]
     causes: Vec<String>,
 }
 
@@ -83,13 +85,20 @@ pub async fn put_failure_causes(
 ) -> ApiResult<Json<FailureCauses>> {
     check_name("task", &task)?;
     let _gate = s.write_gate().await;
-    Ok(Json(FailureCauses { causes: s.store().set_failure_causes(&task, &b.causes, &caller.name).await? }))
+    if b.causes.len() > 9 {
+        return Err(ApiError::bad_request("at most 9 failure causes (one number key each)"));
+    }
+    // A cause listed twice is the same key: keep its first place.
+    let mut seen = std::collections::HashSet::new();
+    let causes: Vec<String> = b.causes.into_iter().filter(|c| seen.insert(c.clone())).collect();
+    Ok(Json(FailureCauses { causes: s.store().set_failure_causes(&task, &causes, &caller.name).await? }))
 }
 
 #[derive(Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct VoteRequest {
     /// `success`, `failure` or `unknown`.
+    #[schema(value_type = store::Label)]
     label: String,
     /// One of the task's failure causes (failure verdicts only).
     failure_cause: Option<String>,
@@ -120,7 +129,7 @@ pub async fn post_vote(
     let vote = NewVote {
         episode_id: id,
         label: parse_label(&b.label)?,
-        data: VerdictData { failure_cause: b.failure_cause, spans: b.spans },
+        data: VerdictData { failure_cause: cause_of(&b.label, b.failure_cause), spans: b.spans.into_iter().map(Span::ordered).collect() },
         note: b.note,
         expect_revision: b.expect_revision,
     };
@@ -178,6 +187,7 @@ pub struct AdjudicationQuery {
     /// Only this policy's disputes.
     policy: Option<String>,
     /// At most this many (default 100, at most 1000).
+    #[param(minimum = 1, maximum = 1000)]
     limit: Option<usize>,
 }
 
@@ -201,6 +211,7 @@ pub async fn adjudication_queue(State(s): State<AppState>, ApiQuery(q): ApiQuery
 #[serde(deny_unknown_fields)]
 pub struct AdjudicationRequest {
     /// The settled verdict: `success`, `failure` or `unknown`.
+    #[schema(value_type = store::Label)]
     label: String,
     failure_cause: Option<String>,
     #[serde(default)]
@@ -214,7 +225,8 @@ pub struct AdjudicationRequest {
     responses((status = 200, description = "the label change", body = store::LabelChange),
               (status = 400, body = Problem, content_type = "application/problem+json"),
               (status = 403, body = Problem, content_type = "application/problem+json"),
-              (status = 404, body = Problem, content_type = "application/problem+json")))]
+              (status = 404, body = Problem, content_type = "application/problem+json"),
+              (status = 409, description = "a span past the episode's end, or a cause not in the task's taxonomy", body = Problem, content_type = "application/problem+json")))]
 pub async fn adjudicate(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
@@ -223,7 +235,7 @@ pub async fn adjudicate(
 ) -> ApiResult<Json<store::LabelChange>> {
     check_id("episode id", &id)?;
     let label = parse_label(&b.label)?;
-    let data = VerdictData { failure_cause: b.failure_cause, spans: b.spans };
+    let data = VerdictData { failure_cause: cause_of(&b.label, b.failure_cause), spans: b.spans.into_iter().map(Span::ordered).collect() };
     let change = {
         let _gate = s.write_gate().await;
         s.store().adjudicate(&id, label, data, b.note, &caller.name).await
@@ -246,4 +258,10 @@ pub struct AgreementQuery {
 pub async fn get_agreement(State(s): State<AppState>, ApiQuery(q): ApiQuery<AgreementQuery>) -> ApiResult<Json<Agreement>> {
     check_name("policy", &q.policy)?;
     Ok(Json(s.store().agreement(&q.policy).await?))
+}
+
+/// A failure cause goes with a failure verdict only: on another verdict it is ignored (the page
+/// may keep a cause selected while the labeler changes their mind).
+fn cause_of(label: &str, cause: Option<String>) -> Option<String> {
+    cause.filter(|_| label == "failure")
 }

@@ -27,7 +27,7 @@ pub struct EpisodeQuery {
     pub(crate) version: Option<i64>,
     /// Cursor: the `next_cursor` of the previous page.
     /// Any printable text works as a position in id order; a review order's cursors are its own.
-    #[param(pattern = r"^[^\x00-\x1f\x7f]{1,400}$")]
+    #[param(pattern = r"^[^\x00-\x1f\x7f-\x9f]{1,400}$")]
     pub(crate) after: Option<String>,
     /// Page size, 1-1000 (default 100).
     #[param(minimum = 1, maximum = 1000)]
@@ -94,7 +94,7 @@ pub async fn list_episodes(State(s): State<AppState>, ApiQuery(q): ApiQuery<Epis
     }
     if let Some(a) = &q.after {
         // A keyset bound, compared with ids: any printable text is a position.
-        if a.is_empty() || a.len() > 400 || a.chars().any(|c| c.is_control()) {
+        if a.is_empty() || a.chars().count() > 400 || a.chars().any(char::is_control) {
             return Err(ApiError::bad_request("cursor: 1-400 printable characters"));
         }
     }

@@ -42,7 +42,7 @@ pub(crate) async fn list_review_queue(s: &AppState, order: &str, q: EpisodeQuery
         return Err(ApiError::bad_request(format!("limit {limit} must be in 1..=1000")));
     }
     if let Some(a) = &q.after {
-        if a.len() > 400 || a.chars().any(|c| c.is_control()) {
+        if a.chars().count() > 400 || a.chars().any(char::is_control) {
             return Err(ApiError::bad_request("cursor: not one of this order's cursors"));
         }
     }
@@ -236,11 +236,12 @@ pub struct ScoreJobCreate {
 /// Queues a `score` job: a worker scores the episodes with the artifact and stores each one's
 /// mean and per-step scores, which `GET /v1/episodes?order=…` and `/v1/episodes/{id}/scores` read.
 #[utoipa::path(post, path = "/v1/review/score", tag = "review", request_body = ScoreJobCreate,
-    responses((status = 201, description = "JobRecord (kind `score`, spec {artifact_id, policy, checkpoint})", body = Object),
+    responses((status = 201, description = "the queued job (kind `score`, spec {artifact_id, policy, checkpoint})", body = store::JobRecord),
               (status = 400, body = Problem, content_type = "application/problem+json"),
               (status = 401, body = Problem, content_type = "application/problem+json"),
               (status = 403, body = Problem, content_type = "application/problem+json"),
-              (status = 404, description = "no such artifact", body = Problem, content_type = "application/problem+json")))]
+              (status = 404, description = "no such artifact", body = Problem, content_type = "application/problem+json"),
+              (status = 409, description = "neither artifact nor checkpoint, and the policy has no review artifact setting", body = Problem, content_type = "application/problem+json")))]
 pub async fn create_score_job(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
@@ -264,7 +265,10 @@ pub async fn create_score_job(
         (None, None) => match s.store().review_artifact(&b.policy).await? {
             Some(a) => a.artifact_id,
             None => {
-                return Err(ApiError::bad_request(
+                // The policy's setting is state: without one, this request conflicts with it.
+                return Err(ApiError::new(
+                    StatusCode::CONFLICT,
+                    "no-review-artifact",
                     "give artifact or checkpoint (the policy has no review artifact setting)",
                 ))
             }
