@@ -81,10 +81,14 @@ fn split_from_row(r: &sqlx::any::AnyRow) -> Result<SplitRecord, StoreError> {
     })
 }
 
+/// The largest validation fraction of a split.
+pub const MAX_VAL_FRACTION: f64 = 0.99;
+
 impl Store {
     pub async fn create_split(&self, req: &SplitRequest) -> Result<SplitRecord, StoreError> {
-        if !(0.0..1.0).contains(&req.val_fraction) {
-            return Err(StoreError::invalid(format!("val fraction {} must be in [0, 1)", req.val_fraction)));
+        // At most 0.99: a closed range a JSON client states exactly (near 1 nothing would train).
+        if !(0.0..=MAX_VAL_FRACTION).contains(&req.val_fraction) {
+            return Err(StoreError::invalid(format!("val fraction {} must be in [0, {MAX_VAL_FRACTION}]", req.val_fraction)));
         }
         let version = match req.version {
             Some(v) => {
@@ -132,7 +136,8 @@ impl Store {
             members.truncate(usize::try_from(cap).unwrap_or(usize::MAX));
         }
         if members.is_empty() {
-            return Err(StoreError::invalid(format!(
+            // The store's state (nothing labeled yet), not the request, is what is missing: 409.
+            return Err(StoreError::Conflict(format!(
                 "no labeled episodes of {} in version {version}",
                 sources.iter().map(|(p, c)| format!("{p}/{c}")).collect::<Vec<_>>().join(", ")
             )));

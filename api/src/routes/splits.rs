@@ -19,6 +19,7 @@ pub struct SplitCreate {
     #[serde(default)]
     off_policy_from: Vec<CheckpointRefIn>,
     /// Default 0.2.
+    #[schema(minimum = 0.0, maximum = 0.99)]
     val_fraction: Option<f64>,
     /// Default 0.
     seed: Option<u64>,
@@ -36,7 +37,8 @@ pub struct CheckpointRefIn {
 /// Creates a split (on-policy for a checkpoint, or off-policy from other checkpoints).
 #[utoipa::path(post, path = "/v1/splits", tag = "splits", request_body = SplitCreate,
     responses((status = 201, body = store::SplitRecord), (status = 403, description = "the token's role is below trainer"),
-              (status = 404, description = "no such version")))]
+              (status = 404, description = "no such version"),
+              (status = 409, description = "no labeled episodes to split")))]
 pub async fn create_split(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
