@@ -103,7 +103,7 @@ fn uncertain_first_orders_by_stored_scores(t: &Target) {
         assert_eq!(r.header("content-type"), Some("application/problem+json"), "{path}");
     }
     let r = http(url, "POST", "/v1/review/score", &[("Authorization", &trainer)], Some(&serde_json::json!({"policy": "bc"})));
-    assert_eq!(r.status, 400, "no artifact, no checkpoint, no setting");
+    assert_eq!(r.status, 409, "no artifact, no checkpoint, no setting: the policy's state");
 
     // The score job with the default artifact (bc/e600's classifier@latest).
     let r = http(url, "POST", "/v1/review/score", &[("Authorization", &trainer)], Some(&body));

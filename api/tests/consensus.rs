@@ -47,12 +47,12 @@ async fn labelers_agree_or_get_adjudicated(db: Db) {
         json!({"label": "failure", "expect_revision": 1})).await;
     assert_eq!((st, out["current_revision"].as_i64()), (409, Some(2)), "a stale revision: {out}");
 
-    // Failure causes: admin only, at most 9, no duplicates; a cause must be in the taxonomy.
+    // Failure causes: admin only, at most 9, a duplicate counts once; a cause must be in the taxonomy.
     let causes = json!({"causes": ["missed grasp", "collision", "timeout"]});
     let (st, _) = send(&srv, Method::PUT, "/v1/tasks/reach/failure-causes", "labeler", causes.clone()).await;
     assert_eq!(st, 403);
-    let (st, _) = send(&srv, Method::PUT, "/v1/tasks/reach/failure-causes", "admin", json!({"causes": ["a", "a"]})).await;
-    assert_eq!(st, 400);
+    let (st, out) = send(&srv, Method::PUT, "/v1/tasks/reach/failure-causes", "admin", json!({"causes": ["a", "b", "a"]})).await;
+    assert_eq!((st, &out), (200, &json!({"causes": ["a", "b"]})));
     let ten: Vec<String> = (0..10).map(|i| format!("c{i}")).collect();
     let (st, _) = send(&srv, Method::PUT, "/v1/tasks/reach/failure-causes", "admin", json!({"causes": ten})).await;
     assert_eq!(st, 400);
@@ -81,9 +81,8 @@ async fn labelers_agree_or_get_adjudicated(db: Db) {
     let ep2 = format!("/v1/episodes/{}/votes", ids[2]);
     for body in [
         json!({"label": "maybe"}),
-        json!({"label": "success", "failure_cause": "collision"}),
         json!({"label": "failure", "failure_cause": "gremlins"}),
-        json!({"label": "failure", "spans": [{"start_step": 3, "end_step": 1}]}),
+        json!({"label": "failure", "spans": [{"start_step": -1, "end_step": 1}]}),
         json!({"label": "failure", "spans": [{"start_step": 0, "end_step": 1000}]}),
         json!({"label": "failure", "extra": 1}),
     ] {
@@ -103,7 +102,11 @@ async fn labelers_agree_or_get_adjudicated(db: Db) {
         let mut body = json!({"label": a[k]});
         if a[k] == "failure" {
             body["failure_cause"] = json!("collision");
-            body["spans"] = json!([{"start_step": 1, "end_step": 3}]);
+            // Marked end first: the same stretch, stored in order.
+            body["spans"] = json!([{"start_step": 3, "end_step": 1}]);
+        } else {
+            // A cause on a success verdict is ignored.
+            body["failure_cause"] = json!("collision");
         }
         let (st, out) = send(&srv, Method::POST, &format!("/v1/episodes/{id}/votes"), "labeler", body).await;
         assert_eq!((st, out["state"].as_str(), out["voters"].as_i64()), (200, Some("pending"), Some(1)), "{out}");
