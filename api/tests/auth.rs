@@ -48,6 +48,11 @@ async fn authorization_matrix() {
         (Method::POST, format!("/v1/episodes/{ep}/adjudication"), body(json!({"label": "failure"})), Need::Admin),
         (Method::GET, "/v1/adjudication".into(), None, Need::Admin),
         (Method::GET, "/v1/agreement?policy=pol".into(), None, Need::Viewer),
+        (Method::GET, format!("/v1/episodes/{ep}/scores"), None, Need::Viewer),
+        (Method::GET, "/v1/review/artifacts/pol".into(), None, Need::Viewer),
+        (Method::PUT, "/v1/review/artifacts/pol".into(), body(json!({"artifact": "0123456789abcdef"})), Need::Trainer),
+        (Method::DELETE, "/v1/review/artifacts/pol".into(), None, Need::Trainer),
+        (Method::POST, "/v1/review/score".into(), body(json!({"policy": "pol", "checkpoint": "c1"})), Need::Trainer),
         (Method::GET, "/v1/splits".into(), None, Need::Viewer),
         (Method::POST, "/v1/splits".into(), body(json!({"policy": "pol", "checkpoint": "c1"})), Need::Trainer),
         (Method::GET, "/v1/splits/split-nope".into(), None, Need::Viewer),
@@ -154,6 +159,8 @@ fn templatize(p: &str) -> String {
     for (i, s) in segs.iter().enumerate() {
         let prev = if i > 0 { segs[i - 1] } else { "" };
         let t = match prev {
+            // /v1/review/artifacts/{policy}: a policy after "artifacts", not an artifact id.
+            "artifacts" if i >= 2 && segs[i - 2] == "review" => "{policy}",
             "episodes" if *s != "counts" => "{id}",
             "versions" => "{version}",
             "diff" => "{to}",
