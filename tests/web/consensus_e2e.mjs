@@ -67,7 +67,8 @@ async function verdict(page, keys) {
   const id = await page.evaluate(() => document.body.dataset.ready);
   for (const k of keys.slice(0, -1)) await page.keyboard.press(k);
   await page.keyboard.press(keys[keys.length - 1]);
-  await page.waitForFunction((prev) => document.body.dataset.ready !== prev, id, { timeout: 15000 });
+  // '' while the next episode loads: wait for it to be shown.
+  await page.waitForFunction((prev) => { const r = document.body.dataset.ready; return r && r !== prev; }, id, { timeout: 15000 });
   return id;
 }
 async function settled(page) {
