@@ -3,36 +3,12 @@
 //! allocator records the largest request). The same corpus through the `ufops` binary, with the
 //! child's peak RSS and the store checked, is `tests/hostile_corpus.rs` at the workspace root.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::sync::atomic::{AtomicUsize, Ordering};
+mod largest_alloc;
+use largest_alloc::LARGEST;
+use std::sync::atomic::Ordering;
 
 use ingest::sink::CountSink;
 use ingest::{Format, ReadOptions};
-
-struct Largest;
-
-static LARGEST: AtomicUsize = AtomicUsize::new(0);
-
-unsafe impl GlobalAlloc for Largest {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        LARGEST.fetch_max(layout.size(), Ordering::Relaxed);
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
-        LARGEST.fetch_max(layout.size(), Ordering::Relaxed);
-        unsafe { System.alloc_zeroed(layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        LARGEST.fetch_max(new_size, Ordering::Relaxed);
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
-#[global_allocator]
-static ALLOC: Largest = Largest;
 
 /// Largest single allocation allowed while a hostile source is read (the 24 MB JSON event is
 /// decompressed before its size is refused; everything else is refused before any big buffer).

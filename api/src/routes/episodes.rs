@@ -44,6 +44,31 @@ pub struct EpisodeQuery {
     pub(crate) order: Option<String>,
 }
 
+impl EpisodeQuery {
+    /// The page size: 1-1000, default 100.
+    pub(crate) fn page_limit(&self) -> ApiResult<i64> {
+        let limit = self.limit.unwrap_or(100);
+        if !(1..=1000).contains(&limit) {
+            return Err(ApiError::bad_request(format!("limit {limit} must be in 1..=1000")));
+        }
+        Ok(limit)
+    }
+
+    /// The query's filters (policy, checkpoint, task, label, label source, tag), without the
+    /// version, cursor or page size.
+    pub(crate) fn filters(&self) -> ApiResult<EpisodeFilter> {
+        Ok(EpisodeFilter {
+            policy: self.policy.clone(),
+            checkpoint: self.checkpoint.clone(),
+            task: self.task.clone(),
+            label: self.label.as_deref().map(parse_label).transpose()?,
+            label_source: self.label_source.clone(),
+            tag: self.tag.clone(),
+            ..Default::default()
+        })
+    }
+}
+
 /// The sort orders of `GET /v1/episodes` (the doc's enum; the handler matches the same words).
 #[derive(ToSchema)]
 #[schema(rename_all = "lowercase")]
@@ -88,28 +113,14 @@ pub async fn list_episodes(State(s): State<AppState>, ApiQuery(q): ApiQuery<Epis
             return Err(ApiError::bad_request(format!("unsupported sort {other:?}: only \"id\" (the cursor order)")))
         }
     }
-    let limit = q.limit.unwrap_or(100);
-    if !(1..=1000).contains(&limit) {
-        return Err(ApiError::bad_request(format!("limit {limit} must be in 1..=1000")));
-    }
+    let limit = q.page_limit()?;
     if let Some(a) = &q.after {
         // A keyset bound, compared with ids: any printable text is a position.
         if a.is_empty() || a.chars().count() > 400 || a.chars().any(char::is_control) {
             return Err(ApiError::bad_request("cursor: 1-400 printable characters"));
         }
     }
-    let filter = EpisodeFilter {
-        version: q.version,
-        id: None,
-        policy: q.policy,
-        checkpoint: q.checkpoint,
-        task: q.task,
-        label: q.label.as_deref().map(parse_label).transpose()?,
-        label_source: q.label_source,
-        tag: q.tag,
-        after: q.after,
-        limit: Some(limit + 1),
-    };
+    let filter = EpisodeFilter { version: q.version, after: q.after.clone(), limit: Some(limit + 1), ..q.filters()? };
     let mut episodes = s.store().episodes(&filter).await?;
     let next_cursor = if episodes.len() as i64 > limit {
         episodes.truncate(limit as usize);

@@ -37,24 +37,13 @@ pub(crate) async fn list_review_queue(s: &AppState, order: &str, q: EpisodeQuery
     if q.sort.as_deref().is_some_and(|s| s != "id") {
         return Err(ApiError::bad_request("give order or sort, not both"));
     }
-    let limit = q.limit.unwrap_or(100);
-    if !(1..=1000).contains(&limit) {
-        return Err(ApiError::bad_request(format!("limit {limit} must be in 1..=1000")));
-    }
+    let limit = q.page_limit()?;
     if let Some(a) = &q.after {
         if a.chars().count() > 400 || a.chars().any(char::is_control) {
             return Err(ApiError::bad_request("cursor: not one of this order's cursors"));
         }
     }
-    let filter = EpisodeFilter {
-        policy: q.policy,
-        checkpoint: q.checkpoint,
-        task: q.task,
-        label: q.label.as_deref().map(parse_label).transpose()?,
-        label_source: q.label_source,
-        tag: q.tag,
-        ..Default::default()
-    };
+    let filter = q.filters()?;
     let mut entries = s.store().review_queue(&filter, order, q.after.as_deref(), limit + 1).await?;
     let next_cursor = if entries.len() as i64 > limit {
         entries.truncate(limit as usize);
@@ -128,6 +117,19 @@ pub struct ReviewArtifactSetting {
     pub updated_at: Option<String>,
 }
 
+impl ReviewArtifactSetting {
+    /// A policy's stored setting.
+    fn from_setting(a: store::ReviewArtifact) -> Self {
+        ReviewArtifactSetting {
+            policy: a.policy,
+            artifact_id: a.artifact_id,
+            source: "setting".into(),
+            updated_by: Some(a.updated_by),
+            updated_at: Some(a.updated_at),
+        }
+    }
+}
+
 #[derive(Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct ReviewArtifactQuery {
@@ -149,13 +151,7 @@ pub async fn get_review_artifact(
 ) -> ApiResult<Json<ReviewArtifactSetting>> {
     check_name("policy", &policy)?;
     if let Some(a) = s.store().review_artifact(&policy).await? {
-        return Ok(Json(ReviewArtifactSetting {
-            policy,
-            artifact_id: a.artifact_id,
-            source: "setting".into(),
-            updated_by: Some(a.updated_by),
-            updated_at: Some(a.updated_at),
-        }));
+        return Ok(Json(ReviewArtifactSetting::from_setting(a)));
     }
     let Some(c) = q.checkpoint else {
         return Err(ApiError::not_found(format!("policy {policy:?} has no review artifact setting")));
@@ -193,13 +189,7 @@ pub async fn put_review_artifact(
         return Err(ApiError::bad_request("artifact: an id or POLICY/CHECKPOINT/KIND@ALIAS"));
     }
     let a = s.store().set_review_artifact(&policy, &b.artifact, &caller.name).await?;
-    Ok(Json(ReviewArtifactSetting {
-        policy,
-        artifact_id: a.artifact_id,
-        source: "setting".into(),
-        updated_by: Some(a.updated_by),
-        updated_at: Some(a.updated_at),
-    }))
+    Ok(Json(ReviewArtifactSetting::from_setting(a)))
 }
 
 /// Removes a policy's setting: its checkpoints' `classifier@latest` score the queue again.
