@@ -49,9 +49,9 @@ fn exports_end_to_end(t: &Target) {
     // Refused before anything is queued.
     for (body, status, want_text) in [
         (serde_json::json!({"format": "csv"}), 400, "expected lerobot or robomimic"),
-        (serde_json::json!({"format": "lerobot", "min_score": 0.5}), 400, "score_artifact"),
-        (serde_json::json!({"format": "lerobot", "score_artifact": "bc/e600/classifier@nope"}), 404, "nope"),
-        (serde_json::json!({"format": "lerobot", "score_artifact": artifact, "min_score": 0.9, "max_score": 0.1}), 400, "min_score <= max_score"),
+        (serde_json::json!({"format": "lerobot", "score": {"min": 0.5}}), 422, "artifact"),
+        (serde_json::json!({"format": "lerobot", "score": {"artifact": "bc/e600/classifier@nope"}}), 404, "nope"),
+        (serde_json::json!({"format": "lerobot", "score": {"artifact": artifact, "min": 0.9, "max": 0.1}}), 400, "min must not exceed max"),
         (serde_json::json!({"format": "lerobot", "split": "no-such-split"}), 404, "no-such-split"),
         (serde_json::json!({"format": "lerobot", "colour": "red"}), 422, "colour"),
     ] {
@@ -66,7 +66,7 @@ fn exports_end_to_end(t: &Target) {
     assert_eq!(r.json().as_array().unwrap().len(), 0, "nothing was queued");
 
     // The curated LeRobot export.
-    let body = serde_json::json!({"format": "lerobot", "policy": "bc", "score_artifact": artifact, "min_score": 0.5});
+    let body = serde_json::json!({"format": "lerobot", "policy": "bc", "score": {"artifact": artifact, "min": 0.5}});
     let r = http(url, "POST", "/v1/exports", &[("Authorization", &trainer)], Some(&body));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
     let id = r.json()["id"].as_str().unwrap().to_string();

@@ -25,10 +25,15 @@ fn wait_job(url: &str, auth: &str, id: &str) -> serde_json::Value {
 
 /// Every page of `GET /v1/episodes?order=…&limit=…`: (episode id, label, score) in queue order.
 fn queue(url: &str, auth: &str, order: &str, limit: usize) -> Vec<(String, String, Option<f64>)> {
+    queue_with(url, auth, &format!("order={order}&limit={limit}"))
+}
+
+/// [`queue`] with any query (`order=…&limit=…&version=…`).
+fn queue_with(url: &str, auth: &str, query: &str) -> Vec<(String, String, Option<f64>)> {
     let mut out = Vec::new();
     let mut after: Option<String> = None;
     loop {
-        let mut path = format!("/v1/episodes?policy=bc&order={order}&limit={limit}");
+        let mut path = format!("/v1/episodes?policy=bc&{query}");
         if let Some(a) = &after {
             path.push_str(&format!("&after={}", urlencode(a)));
         }
@@ -88,14 +93,11 @@ fn uncertain_first_orders_by_stored_scores(t: &Target) {
     let r = http(url, "GET", &format!("/v1/episodes/{}/scores", before[0].0), &[("Authorization", &viewer)], None);
     assert_eq!(r.status, 404, "not scored yet");
 
-    // Refused: viewers cannot queue work; unknown orders, versions with an order, bad cursors.
+    // Refused: viewers cannot queue work; unknown orders, bad page sizes.
     let body = serde_json::json!({"policy": "bc", "checkpoint": "e600"});
     assert_eq!(http(url, "POST", "/v1/review/score", &[("Authorization", &viewer)], Some(&body)).status, 403);
     for (path, status) in [
         ("/v1/episodes?order=random", 400),
-        ("/v1/episodes?order=uncertain&version=1", 400),
-        ("/v1/episodes?order=uncertain&after=nonsense", 400),
-        ("/v1/episodes?order=uncertain&after=NaN%7Cx", 400),
         ("/v1/episodes?order=uncertain&limit=0", 400),
     ] {
         let r = http(url, "GET", path, &[("Authorization", &viewer)], None);
@@ -150,6 +152,19 @@ fn uncertain_first_orders_by_stored_scores(t: &Target) {
         .collect();
     assert!(gap.windows(2).all(|w| w[0] >= w[1]), "{d:?}");
     assert_eq!(queue(url, &viewer, "source", 3).len(), n);
+    // At a past version: its episodes with the labels it froze (here the head, the same as now),
+    // and the version must exist.
+    let head = http(url, "GET", "/v1/versions", &[("Authorization", &viewer)], None).json();
+    let head = head.as_array().unwrap().last().unwrap()["version"].as_i64().unwrap();
+    assert_eq!(queue_with(url, &viewer, &format!("order=disagreement&limit=7&version={head}")), d);
+    let r = http(url, "GET", &format!("/v1/episodes?order=uncertain&version={}", head + 1), &[("Authorization", &viewer)], None);
+    assert_eq!(r.status, 404);
+    // Text that is not one of the order's cursors lies past its end: an empty last page.
+    for after in ["nonsense", "NaN%7Cx", "inf%7Cx"] {
+        let r = http(url, "GET", &format!("/v1/episodes?order=uncertain&after={after}"), &[("Authorization", &viewer)], None);
+        assert_eq!(r.status, 200, "{after}");
+        assert_eq!((r.json()["episodes"].as_array().unwrap().len(), &r.json()["next_cursor"]), (0, &serde_json::Value::Null), "{after}");
+    }
 
     // The per-step series, one per step, whose mean is the queue's score.
     let (id, _, s) = &q[0];

@@ -38,7 +38,7 @@ use utoipa::{Modify, OpenApi, ToSchema};
         routes::delete_review_artifact, routes::create_score_job,
         upload::ingest, routes::gc, routes::create_token, routes::list_tokens, routes::revoke_token,
     ),
-    components(schemas(Problem, routes::EpisodeSort, routes::ScoreboardFormat)),
+    components(schemas(Problem, routes::EpisodeSort, routes::EpisodeOrder, routes::ScoreboardFormat)),
     modifiers(&Bearer, &Contract),
     security(("bearer" = [])),
 )]
@@ -49,6 +49,13 @@ struct ApiDoc;
 #[schema(value_type = String, format = Binary)]
 #[allow(dead_code)]
 pub(crate) struct FileBytes(Vec<u8>);
+
+/// An uploaded file's bytes: at least one (the modifier sets `minLength`, which utoipa's
+/// attribute cannot on a `value_type`).
+#[derive(ToSchema)]
+#[schema(value_type = String, format = Binary)]
+#[allow(dead_code)]
+pub(crate) struct UploadBytes(Vec<u8>);
 
 struct Bearer;
 
@@ -78,6 +85,12 @@ pub const ARTIFACT_REF_PATTERN: &str = concat!(
     r"[^/\s\x00-\x1f\x7f-\x9f](?:[^/\x00-\x1f\x7f-\x9f]{0,198}[^/\s\x00-\x1f\x7f-\x9f])?/",
     r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}@[A-Za-z0-9_-][A-Za-z0-9._-]{0,127})$"
 );
+/// An ingest's run tags (`run_tags`): comma-separated run names (`store::writer::check_name`,
+/// no ','), at most 64; empty items are ignored.
+pub const RUN_TAGS_PATTERN: &str = concat!(
+    r"^,*(?:[^,\s\x00-\x1f\x7f-\x9f](?:[^,\x00-\x1f\x7f-\x9f]{0,198}[^,\s\x00-\x1f\x7f-\x9f])?",
+    r"(?:,+[^,\s\x00-\x1f\x7f-\x9f](?:[^,\x00-\x1f\x7f-\x9f]{0,198}[^,\s\x00-\x1f\x7f-\x9f])?){0,63})?,*$"
+);
 /// A run's steering (`store::Steering`'s text form): `base`, `bon:N`, `cg:LAMBDA`, `flow:LAMBDA`.
 pub const STEERING_PATTERN: &str = r"^(base|bon:[1-9][0-9]{0,8}|(cg|flow):[0-9]{1,6}(\.[0-9]{1,6})?)$";
 /// `If-Match` of a label write: a label revision, quoted or not, weak or not.
@@ -97,6 +110,7 @@ const CHECKED_QUERY: &[(&str, &str, &str)] = &[
     ("/v1/ingest", "run", TOKEN_NAME_PATTERN),
     ("/v1/ingest", "run_artifact", TOKEN_NAME_PATTERN),
     ("/v1/ingest", "steering", STEERING_PATTERN),
+    ("/v1/ingest", "run_tags", RUN_TAGS_PATTERN),
     ("/v1/adjudication", "policy", NAME_PATTERN),
     ("/v1/agreement", "policy", NAME_PATTERN),
     ("/v1/episodes/{id}/scores", "artifact", ID_PATTERN),
@@ -112,6 +126,7 @@ const CHECKED_FIELDS: &[(&str, &str, &str)] = &[
     ("ExportCreate", "task", NAME_PATTERN),
     ("ExportCreate", "tag", NAME_PATTERN),
     ("ExportCreate", "split", ID_PATTERN),
+    ("ExportScore", "artifact", ARTIFACT_REF_PATTERN),
     ("JobCreate", "split_id", ID_PATTERN),
     ("BulkLabelItem", "episode_id", ID_PATTERN),
     ("TokenCreate", "name", TOKEN_NAME_PATTERN),
@@ -243,6 +258,9 @@ impl Modify for Contract {
             }
         }
         if let Some(components) = openapi.components.as_mut() {
+            if let Some(RefOr::T(Schema::Object(o))) = components.schemas.get_mut("UploadBytes") {
+                o.min_length = Some(1);
+            }
             for (schema, field, pattern) in CHECKED_FIELDS {
                 if let Some(RefOr::T(Schema::Object(o))) = components.schemas.get_mut(*schema) {
                     if let Some(prop) = o.properties.get_mut(*field) {

@@ -36,7 +36,9 @@ pub struct IngestQuery {
     filename: Option<String>,
     /// The format, if the extension does not tell (`robomimic`, `lerobot`, `mcap`, ...).
     format: Option<String>,
-    /// The evaluation run the rollouts belong to (see `GET /v1/scoreboard`).
+    /// The evaluation run the rollouts belong to (see `GET /v1/scoreboard`). Default, when
+    /// `steering`, `run_artifact` or `run_tags` is given: the steering as written (`base`,
+    /// `bon:10`, ...); with none of them, the rollouts belong to no run.
     run: Option<String>,
     /// How the run was steered: `base`, `bon:N`, `cg:LAMBDA` or `flow:LAMBDA` (default `base`).
     steering: Option<String>,
@@ -125,7 +127,7 @@ pub fn sanitize_filename(name: &str) -> String {
 
 /// Uploads a rollout file (raw request body) and queues an ingest job (admin).
 #[utoipa::path(post, path = "/v1/ingest", tag = "admin", params(IngestQuery),
-    request_body(content = crate::openapi::FileBytes, content_type = "application/octet-stream", description = "the file, raw"),
+    request_body(content = crate::openapi::UploadBytes, content_type = "application/octet-stream", description = "the file, raw (not empty)"),
     responses((status = 202, description = "the queued ingest job", body = store::JobRecord),
               (status = 413, description = "larger than the server's upload limit"),
               (status = 404, description = "no such run artifact"),
@@ -146,24 +148,9 @@ pub async fn ingest(
     }
     let run_tags: Vec<String> =
         q.run_tags.as_deref().map(|t| t.split(',').filter(|x| !x.is_empty()).map(String::from).collect()).unwrap_or_default();
-    match &q.run {
-        Some(name) => {
-            let steering: store::Steering = q.steering.as_deref().unwrap_or("base").parse()?;
-            let run = store::RunInput {
-                name: name.clone(),
-                steering,
-                artifact_id: q.run_artifact.clone(),
-                tags: run_tags.clone(),
-            };
-            run.validate()?;
-            if let Some(a) = &run.artifact_id {
-                s.store().artifact(a).await?;
-            }
-        }
-        None if q.steering.is_some() || q.run_artifact.is_some() || !run_tags.is_empty() => {
-            return Err(ApiError::bad_request("steering, run_artifact and run_tags describe a run: name it with run"));
-        }
-        None => {}
+    let run = store::RunInput::from_parts(q.run.as_deref(), q.steering.as_deref(), q.run_artifact.as_deref(), &run_tags)?;
+    if let Some(a) = run.as_ref().and_then(|r| r.artifact_id.as_ref()) {
+        s.store().artifact(a).await?;
     }
     let filename = sanitize_filename(q.filename.as_deref().unwrap_or("upload.bin"));
     // Refuse what would fill the disk (the declared length; the floor alone without one).
@@ -203,8 +190,8 @@ pub async fn ingest(
         "format": q.format,
         "sha256": sha,
         "size_bytes": size,
-        "run": q.run,
-        "steering": q.steering,
+        "run": run.as_ref().map(|r| &r.name),
+        "steering": run.as_ref().map(|r| r.steering.to_string()),
         "run_artifact": q.run_artifact,
         "run_tags": run_tags,
     });

@@ -61,7 +61,7 @@ async fn scoreboard_over_http(db: Db) {
         assert!(body.contains(says), "{path}: {body}");
     }
     // An ingest upload naming a bad steering or a missing artifact is refused before anything is stored.
-    for (q, says) in [("run=r&steering=bon:0", "bon:0"), ("steering=base", "run"), ("run=r&run_artifact=art-nope", "art-nope")] {
+    for (q, says) in [("run=r&steering=bon:0", "bon:0"), ("run_tags=ok,%20padded", "run tag"), ("run=r&run_artifact=art-nope", "art-nope")] {
         let r = srv
             .req(Method::POST, &format!("/v1/ingest?policy=pol&checkpoint=up&{q}"), "admin")
             .body("{}")
@@ -73,6 +73,17 @@ async fn scoreboard_over_http(db: Db) {
         assert!(st == 400 || st == 404, "{q}: {st} {body}");
         assert!(body.contains(says), "{q}: {body}");
     }
+    // A run given by its steering (and tags) alone is named after its steering.
+    let r = srv
+        .req(Method::POST, "/v1/ingest?policy=pol&checkpoint=up&steering=bon:10&run_tags=nightly,,gpu", "admin")
+        .body("{}")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 202);
+    let job: serde_json::Value = r.json().await.unwrap();
+    assert_eq!((&job["spec"]["run"], &job["spec"]["steering"]), (&serde_json::json!("bon:10"), &serde_json::json!("bon:10")), "{job}");
+    assert_eq!(job["spec"]["run_tags"], serde_json::json!(["nightly", "gpu"]));
     srv.stop().await;
 }
 

@@ -39,39 +39,29 @@ pub struct IngestArgs {
     /// The evaluation run these rollouts belong to (a name; see `ufops scoreboard`).
     #[arg(long)]
     pub run: Option<String>,
-    /// How the run was steered: base | bon:N | cg:LAMBDA | flow:LAMBDA (default base; needs --run).
+    /// How the run was steered: base | bon:N | cg:LAMBDA | flow:LAMBDA (default base; without
+    /// --run, the run is named after it).
     #[arg(long)]
     pub steering: Option<String>,
-    /// The verifier artifact that steered the run (needs --run).
+    /// The verifier artifact that steered the run.
     #[arg(long)]
     pub run_artifact: Option<String>,
-    /// Free-form tags of the run (repeatable; needs --run).
+    /// Free-form tags of the run (repeatable).
     #[arg(long = "run-tag")]
     pub run_tags: Vec<String>,
     #[arg(long)]
     pub json: bool,
 }
 
-/// The run named by `--run`, `--steering`, `--run-artifact` and `--run-tag`.
+/// The run named by `--run`, `--steering`, `--run-artifact` and `--run-tag` (one rule with the
+/// API's ingest: `store::RunInput::from_parts`).
 pub fn run_input(
     run: Option<&str>,
     steering: Option<&str>,
     artifact: Option<&str>,
     tags: &[String],
 ) -> Result<Option<store::RunInput>> {
-    let Some(name) = run else {
-        if steering.is_some() || artifact.is_some() || !tags.is_empty() {
-            anyhow::bail!("--steering, --run-artifact and --run-tag describe a run: name it with --run");
-        }
-        return Ok(None);
-    };
-    let steering = match steering {
-        Some(s) => s.parse()?,
-        None => store::Steering::Base,
-    };
-    let r = store::RunInput { name: name.to_string(), steering, artifact_id: artifact.map(str::to_string), tags: tags.to_vec() };
-    r.validate()?;
-    Ok(Some(r))
+    Ok(store::RunInput::from_parts(run, steering, artifact, tags)?)
 }
 
 pub fn ingest_options(a: &IngestArgs) -> Result<ingest::IngestOptions> {

@@ -39,16 +39,17 @@ impl std::str::FromStr for ReviewOrder {
 }
 
 impl ReviewOrder {
-    /// The SQL sort key (lower first). Numeric keys stay below 8 for scored episodes; 8 marks a
-    /// scored but unlabeled episode (disagreement) and 9 an unscored one.
-    fn key_sql(self) -> &'static str {
+    /// The SQL sort key (lower first) over the label columns of table alias `lab`. Numeric keys
+    /// stay below 8 for scored episodes; 8 marks a scored but unlabeled episode (disagreement)
+    /// and 9 an unscored one.
+    fn key_sql(self, lab: &str) -> String {
         match self {
-            ReviewOrder::Uncertain => "COALESCE(ABS(s.score - 0.5), 9.0)",
-            ReviewOrder::Disagreement => {
-                "CASE WHEN s.score IS NULL THEN 9.0 WHEN e.label = 'success' THEN s.score - 1.0 \
-                 WHEN e.label = 'failure' THEN 0.0 - s.score ELSE 8.0 END"
-            }
-            ReviewOrder::Source => "e.label_source",
+            ReviewOrder::Uncertain => "COALESCE(ABS(s.score - 0.5), 9.0)".into(),
+            ReviewOrder::Disagreement => format!(
+                "CASE WHEN s.score IS NULL THEN 9.0 WHEN {lab}.label = 'success' THEN s.score - 1.0 \
+                 WHEN {lab}.label = 'failure' THEN 0.0 - s.score ELSE 8.0 END"
+            ),
+            ReviewOrder::Source => format!("{lab}.label_source"),
         }
     }
 
@@ -224,10 +225,12 @@ impl Store {
         })
     }
 
-    /// The current episodes matching `filter` (its `version`, `id` and `after` must be unset) in
-    /// review `order`, a keyset page after `cursor` (an entry's `cursor`). Sorting needs every
-    /// matching episode's key, so a page costs a scan of the filtered episodes (fine for a
-    /// campaign's thousands; the filters narrow it).
+    /// The episodes matching `filter` (its `id` and `after` must be unset), now or as a past
+    /// `version` froze them (its episodes and labels), in review `order` by the current scores, a
+    /// keyset page after `cursor` (an entry's `cursor`). Any text is a position: one that is not
+    /// a position of this order lies past its end (an empty page). Sorting needs every matching
+    /// episode's key, so a page costs a scan of the filtered episodes (fine for a campaign's
+    /// thousands; the filters narrow it).
     pub async fn review_queue(
         &self,
         filter: &EpisodeFilter,
@@ -235,33 +238,55 @@ impl Store {
         cursor: Option<&str>,
         limit: i64,
     ) -> Result<Vec<ReviewEntry>, StoreError> {
-        if filter.version.is_some() || filter.id.is_some() || filter.after.is_some() {
-            return Err(StoreError::invalid("the review orders list the current episodes only (no version)"));
+        if filter.id.is_some() || filter.after.is_some() {
+            return Err(StoreError::invalid("a review order pages with its own cursor (no id or after filter)"));
         }
         let mut args: Vec<Val> = Vec::new();
         let next = |v: Val, args: &mut Vec<Val>| {
             args.push(v);
             format!("${}", args.len())
         };
-        let key = order.key_sql();
+        let (lab, labels_from) = match filter.version {
+            None => (
+                "e",
+                format!(
+                    "e.label AS label, e.label_source AS label_source, e.label_revision AS label_revision, \
+                     e.label_actor AS label_actor, e.label_updated_at AS label_updated_at, {{key}} \
+                     FROM episodes e {REVIEW_JOINS} WHERE e.version_removed IS NULL"
+                ),
+            ),
+            Some(v) => {
+                self.version(v).await?;
+                let p = next(Val::I(v), &mut args);
+                (
+                    "l",
+                    format!(
+                        "l.label AS label, l.label_source AS label_source, l.revision AS label_revision, \
+                         ev.actor AS label_actor, ev.created_at AS label_updated_at, {{key}} FROM episodes e \
+                         JOIN version_labels l ON l.episode_id = e.id AND l.version = {p} \
+                         JOIN label_events ev ON ev.episode_id = e.id AND ev.revision = l.revision \
+                         {REVIEW_JOINS} WHERE 1 = 1"
+                    ),
+                )
+            }
+        };
+        let key = order.key_sql(lab);
         let mut sql = format!(
             "SELECT e.id, e.policy, e.checkpoint, e.task, e.source_sha256, e.source_name, e.source_index, \
              e.length, e.tags, e.metadata, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
              COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, e.run_id, \
-             e.label AS label, e.label_source AS label_source, e.label_revision AS label_revision, \
-             e.label_actor AS label_actor, e.label_updated_at AS label_updated_at, \
-             s.score AS review_score, COALESCE(ra.artifact_id, aa.artifact_id) AS review_artifact, {key} AS review_key \
-             FROM episodes e {REVIEW_JOINS} WHERE e.version_removed IS NULL"
+             s.score AS review_score, COALESCE(ra.artifact_id, aa.artifact_id) AS review_artifact, {}",
+            labels_from.replace("{key}", &format!("{key} AS review_key"))
         );
         let mut cond = |c: String| {
             sql.push_str(" AND ");
             sql.push_str(&c);
         };
         if let Some(l) = filter.label {
-            cond(format!("e.label = {}", next(Val::S(l.as_str().into()), &mut args)));
+            cond(format!("{lab}.label = {}", next(Val::S(l.as_str().into()), &mut args)));
         }
         if let Some(s) = &filter.label_source {
-            cond(format!("e.label_source = {}", next(Val::S(s.clone()), &mut args)));
+            cond(format!("{lab}.label_source = {}", next(Val::S(s.clone()), &mut args)));
         }
         if let Some(p) = &filter.policy {
             cond(format!("e.policy = {}", next(Val::S(p.clone()), &mut args)));
@@ -277,13 +302,12 @@ impl Store {
             cond(format!("e.tags LIKE {}", next(Val::S(pat), &mut args)));
         }
         if let Some(c) = cursor {
-            let (k, id) = c
-                .rsplit_once('|')
-                .ok_or_else(|| StoreError::invalid(format!("cursor {c:?} is not one of this order's cursors")))?;
+            let (k, id) = c.rsplit_once('|').unwrap_or((c, ""));
             let kv = if order.numeric() {
-                Val::F(k.parse::<f64>().ok().filter(|x| x.is_finite()).ok_or_else(|| {
-                    StoreError::invalid(format!("cursor {c:?} is not one of this order's cursors"))
-                })?)
+                match k.parse::<f64>() {
+                    Ok(x) if x.is_finite() => Val::F(x),
+                    _ => return Ok(Vec::new()),
+                }
             } else {
                 Val::S(k.to_string())
             };

@@ -89,6 +89,31 @@ impl RunInput {
         RunInput { name: name.to_string(), steering, artifact_id: None, tags: vec![] }
     }
 
+    /// The run an ingest names by its optional parts (the CLI's `--run`, `--steering`,
+    /// `--run-artifact`, `--run-tag`; the API's query of the same names): none when no part is
+    /// given. Steering defaults to `base`, and the name to the steering as written (`base`,
+    /// `bon:10`, `cg:0.5`), so rollouts steered alike share a run and the base policy's are the
+    /// scoreboard's default baseline. Checked with [`RunInput::validate`].
+    pub fn from_parts(
+        name: Option<&str>,
+        steering: Option<&str>,
+        artifact_id: Option<&str>,
+        tags: &[String],
+    ) -> Result<Option<Self>, StoreError> {
+        if name.is_none() && steering.is_none() && artifact_id.is_none() && tags.is_empty() {
+            return Ok(None);
+        }
+        let steering: Steering = steering.map(str::parse).transpose()?.unwrap_or(Steering::Base);
+        let run = RunInput {
+            name: name.map_or_else(|| steering.to_string(), str::to_string),
+            steering,
+            artifact_id: artifact_id.map(str::to_string),
+            tags: tags.to_vec(),
+        };
+        run.validate()?;
+        Ok(Some(run))
+    }
+
     /// Checks names and tags (hostile input is an error naming the problem).
     pub fn validate(&self) -> Result<(), StoreError> {
         check_name("run", &self.name)?;
@@ -222,5 +247,18 @@ mod tests {
         b.steering = Steering::Bon { n: 30 };
         assert_ne!(a.id(), b.id());
         assert!(RunInput::new(" bad", Steering::Base).validate().is_err());
+    }
+
+    #[test]
+    fn a_run_given_by_its_parts_is_named_after_its_steering_by_default() {
+        assert_eq!(RunInput::from_parts(None, None, None, &[]).unwrap(), None);
+        let bon = RunInput::from_parts(None, Some("bon:10"), Some("art-1"), &[]).unwrap().unwrap();
+        assert_eq!((bon.name.as_str(), bon.steering, bon.artifact_id.as_deref()), ("bon:10", Steering::Bon { n: 10 }, Some("art-1")));
+        let tagged = RunInput::from_parts(None, None, None, &["eval-3".into()]).unwrap().unwrap();
+        assert_eq!((tagged.name.as_str(), tagged.steering, tagged.tags.len()), ("base", Steering::Base, 1));
+        let named = RunInput::from_parts(Some("night"), Some("cg:0.5"), None, &[]).unwrap().unwrap();
+        assert_eq!((named.name.as_str(), named.steering), ("night", Steering::Cg { lambda: 0.5 }));
+        assert!(RunInput::from_parts(None, Some("bon:0"), None, &[]).unwrap_err().to_string().contains("invalid steering"));
+        assert!(RunInput::from_parts(None, None, None, &[" x".into()]).is_err());
     }
 }

@@ -89,7 +89,7 @@ impl Drop for IngestWriter {
 }
 
 pub(crate) fn check_name(what: &str, s: &str) -> Result<(), StoreError> {
-    if s.is_empty() || s.len() > 200 || s.chars().any(|c| c.is_control()) || s.trim() != s {
+    if s.is_empty() || s.chars().count() > 200 || s.chars().any(|c| c.is_control()) || s.trim() != s {
         return Err(StoreError::invalid(format!(
             "invalid {what} name {s:?}: 1-200 printable characters without surrounding spaces"
         )));

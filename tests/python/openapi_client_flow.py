@@ -136,6 +136,8 @@ call("GET", "/v1/policies/bc/checkpoints/e600/verifiers/classifier@contract", wa
 call("GET", f"/v1/policies/bc/checkpoints/e600/verifiers/classifier@contract/files/{art['files'][0]['name']}", want=200)
 call("GET", "/v1/policies/bc/checkpoints/e600/verifiers/classifier@nope", want=404)
 export, _ = call("POST", "/v1/exports", {"format": "lerobot", "policy": "bc"}, want=201)
+curated = {"format": "robomimic", "policy": "bc", "score": {"artifact": "bc/e600/classifier@contract", "min": 0.5}}
+call("POST", "/v1/exports", curated, want=201)
 call("GET", "/v1/exports", want=200)
 call("GET", f"/v1/exports/{export['id']}", want=200)
 call("DELETE", f"/v1/exports/{export['id']}", want=409)

@@ -38,8 +38,9 @@ pub struct EpisodeQuery {
     /// Review queue order: `id` (default), `uncertain` (verifier score nearest 0.5 first),
     /// `disagreement` (score furthest from the current label first) or `source` (by label
     /// source). Orders other than `id` use the stored scores of each policy's review artifact
-    /// (`/v1/review/artifacts/{policy}`), list the current episodes (no `version`), put
-    /// episodes without a score last, and page with their own cursors (`next_cursor`).
+    /// (`/v1/review/artifacts/{policy}`), list the episodes of `version` (default: now) with its
+    /// labels, put episodes without a score last, and page with their own cursors
+    /// (`next_cursor`); text that is not one of the order's cursors lies past its end.
     #[param(value_type = Option<EpisodeOrder>)]
     pub(crate) order: Option<String>,
 }

@@ -45,11 +45,22 @@ pub struct ExportCreate {
     #[schema(value_type = Option<store::Label>)]
     label: Option<String>,
     tag: Option<String>,
-    /// Keep only episodes this artifact (id or POLICY/CHECKPOINT/KIND@ALIAS) scores in
-    /// [min_score, max_score]; the alias is resolved now, so the job names one artifact.
-    score_artifact: Option<String>,
-    min_score: Option<f64>,
-    max_score: Option<f64>,
+    /// Keep only the episodes a verifier scores within a range.
+    score: Option<ExportScore>,
+}
+
+/// An export's curation by a verifier: the episodes `artifact` scores in [min, max] (an
+/// episode's score is its mean success probability or value over its steps).
+#[derive(Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ExportScore {
+    /// The verifier: an artifact id or POLICY/CHECKPOINT/KIND@ALIAS (the alias is resolved when
+    /// the export is queued, so the job names one artifact).
+    artifact: String,
+    /// The lowest score kept (default: no lower bound).
+    min: Option<f64>,
+    /// The highest score kept (default: no upper bound); at least `min`.
+    max: Option<f64>,
 }
 
 /// An export job and, once it succeeded, its files.
@@ -91,18 +102,16 @@ pub async fn create_export(
         s.store().version(v).await?;
     }
     let label = b.label.as_deref().map(parse_label).transpose()?;
-    let score = match &b.score_artifact {
-        Some(r) => Some(::export::ScoreRange { artifact: s.store().resolve_artifact(r).await?.id, min: b.min_score, max: b.max_score }),
-        None if b.min_score.is_some() || b.max_score.is_some() => {
-            return Err(ApiError::bad_request("min_score and max_score need a score_artifact"))
+    let score = match &b.score {
+        Some(r) => {
+            let artifact = s.store().resolve_artifact(&r.artifact).await?.id;
+            if r.min.zip(r.max).is_some_and(|(lo, hi)| lo > hi) {
+                return Err(ApiError::bad_request("score: min must not exceed max"));
+            }
+            Some(::export::ScoreRange { artifact, min: r.min, max: r.max })
         }
         None => None,
     };
-    if let Some(r) = &score {
-        if [r.min, r.max].iter().flatten().any(|x| !x.is_finite()) || r.min.zip(r.max).is_some_and(|(a, z)| a > z) {
-            return Err(ApiError::bad_request("score range: finite bounds with min_score <= max_score"));
-        }
-    }
     let spec = ::export::job::ExportJobSpec {
         format: b.format,
         selection: ::export::Selection {

@@ -31,9 +31,6 @@ pub struct ReviewScoreRef {
 /// `GET /v1/episodes?order=…` other than `id` (see [`EpisodeQuery`]).
 pub(crate) async fn list_review_queue(s: &AppState, order: &str, q: EpisodeQuery) -> ApiResult<EpisodePage> {
     let order: store::ReviewOrder = order.parse()?;
-    if q.version.is_some() {
-        return Err(ApiError::bad_request("order other than id lists the current episodes: drop version"));
-    }
     if q.sort.as_deref().is_some_and(|s| s != "id") {
         return Err(ApiError::bad_request("give order or sort, not both"));
     }
@@ -43,7 +40,7 @@ pub(crate) async fn list_review_queue(s: &AppState, order: &str, q: EpisodeQuery
             return Err(ApiError::bad_request("cursor: not one of this order's cursors"));
         }
     }
-    let filter = q.filters()?;
+    let filter = EpisodeFilter { version: q.version, ..q.filters()? };
     let mut entries = s.store().review_queue(&filter, order, q.after.as_deref(), limit + 1).await?;
     let next_cursor = if entries.len() as i64 > limit {
         entries.truncate(limit as usize);
