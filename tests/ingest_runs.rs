@@ -1,5 +1,5 @@
 //! `ufops ingest --run … --steering …` end to end, on SQLite and Postgres: a robomimic fixture
-//! ingested as a steered run carries it on every episode and shows as a scoreboard row against
+//! ingested as a steered run (named after its steering by default) carries it on every episode and shows as a scoreboard row against
 //! the base run; hostile run options fail with a message naming the problem and leave the store
 //! unchanged.
 
@@ -17,7 +17,7 @@ fn runs_through_the_cli(t: &Target) {
     let before = versions();
     // Hostile run options: nothing is written.
     for (args, says) in [
-        (vec!["--steering", "bon:4"], "--run"),
+        (vec!["--steering", "bon:4", "--run-tag", " padded"], "run tag"),
         (vec!["--run", "c-bon", "--steering", "bon:0"], "bon:0"),
         (vec!["--run", "c-bon", "--steering", "ddim:3"], "ddim:3"),
         (vec!["--run", " padded"], "run"),
@@ -31,13 +31,14 @@ fn runs_through_the_cli(t: &Target) {
         assert!(err.contains(says), "{args:?}: {err}");
         assert_eq!(versions(), before, "{args:?} left the store unchanged");
     }
-    t.ok(&["ingest", image.to_str().unwrap(), "--policy", "lift", "--checkpoint", "c1", "--run", "c-bon4",
+    t.ok(&["ingest", image.to_str().unwrap(), "--policy", "lift", "--checkpoint", "c1",
         "--steering", "bon:4", "--run-tag", "on-policy", "--run-tag", "lab-a", "--success-file", &success("lift_rollouts_image")]);
     let eps = t.json(&["episodes", "--policy", "lift", "--json"]);
     let sb = t.json(&["scoreboard", "--policy", "lift", "--format", "json"]);
     let rows = sb["rows"].as_array().unwrap();
     assert_eq!(rows.len(), 2, "{sb}");
-    let bon = rows.iter().find(|r| r["run_name"] == "c-bon4").unwrap();
+    // Without --run, the run is named after its steering.
+    let bon = rows.iter().find(|r| r["run_name"] == "bon:4").unwrap();
     assert_eq!(bon["run"]["steering"], serde_json::json!({"method": "bon", "n": 4}));
     assert_eq!(bon["run"]["tags"], serde_json::json!(["lab-a", "on-policy"]));
     assert_eq!(bon["baseline"]["run_name"], "base");
