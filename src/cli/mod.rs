@@ -3,6 +3,7 @@
 mod catalog_cmds;
 mod dev;
 mod export_cmd;
+mod review_cmds;
 mod run_cmds;
 mod scoreboard_cmd;
 mod serve_cmds;
@@ -103,6 +104,12 @@ pub enum Command {
     /// Episodes ordered by a verifier's score, lowest first (which demonstrations or rollouts to
     /// review, relabel or leave out).
     Rank(export_cmd::RankArgs),
+    /// The verifier-ordered review queue: store a verifier's episode scores, list episodes in
+    /// a review order.
+    Review {
+        #[command(subcommand)]
+        command: review_cmds::ReviewCommand,
+    },
     /// Serve the HTTP API (and run queued jobs in-process unless --no-worker).
     Serve(serve_cmds::ServeArgs),
     /// Print the HTTP API's OpenAPI document (what `ufops serve` serves at /openapi.json), or
@@ -182,6 +189,7 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Ingest(a) => serve_cmds::ingest(&cli.store, a).await,
         Command::Export(a) => export_cmd::export(&cli.store, a).await,
         Command::Rank(a) => export_cmd::rank(&cli.store, a).await,
+        Command::Review { command } => review_cmds::review(&cli.store, command).await,
         Command::Serve(a) => serve_cmds::serve(&cli.store, a).await,
         Command::Openapi { write } => match write {
             Some(path) => std::fs::write(&path, api::openapi_json()).with_context(|| format!("write {}", path.display())),

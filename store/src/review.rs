@@ -192,6 +192,23 @@ impl Store {
         }
     }
 
+    /// The artifact a score job for `policy` (one `checkpoint`'s episodes, or all) uses:
+    /// `reference` (an id or `P/C/KIND@ALIAS`) resolved when given, else the checkpoint's review
+    /// artifact, else the policy's setting; `None` when there is none. The API's
+    /// `POST /v1/review/score` and `ufops review score` choose it alike.
+    pub async fn artifact_to_score(
+        &self,
+        policy: &str,
+        checkpoint: Option<&str>,
+        reference: Option<&str>,
+    ) -> Result<Option<String>, StoreError> {
+        match (reference, checkpoint) {
+            (Some(r), _) => Ok(Some(self.resolve_artifact(r).await?.id)),
+            (None, Some(c)) => self.review_artifact_for(policy, c).await,
+            (None, None) => Ok(self.review_artifact(policy).await?.map(|a| a.artifact_id)),
+        }
+    }
+
     /// An episode's stored score by `artifact_id` (default: the artifact of its review queue).
     pub async fn episode_score(&self, episode_id: &str, artifact_id: Option<&str>) -> Result<EpisodeScore, StoreError> {
         let artifact = match artifact_id {

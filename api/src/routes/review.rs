@@ -239,27 +239,23 @@ pub async fn create_score_job(
     if let Some(c) = &b.checkpoint {
         check_name("checkpoint", c)?;
     }
-    let artifact_id = match (&b.artifact, &b.checkpoint) {
-        (Some(r), _) => {
-            if r.is_empty() || r.len() > 600 {
-                return Err(ApiError::bad_request("artifact: an id or POLICY/CHECKPOINT/KIND@ALIAS"));
-            }
-            s.store().resolve_artifact(r).await?.id
+    if b.artifact.as_ref().is_some_and(|r| r.is_empty() || r.len() > 600) {
+        return Err(ApiError::bad_request("artifact: an id or POLICY/CHECKPOINT/KIND@ALIAS"));
+    }
+    let found = s.store().artifact_to_score(&b.policy, b.checkpoint.as_deref(), b.artifact.as_deref()).await?;
+    let artifact_id = match (found, &b.checkpoint) {
+        (Some(a), _) => a,
+        (None, Some(c)) => {
+            return Err(ApiError::not_found(format!("no review artifact for {}/{c}: set one or alias classifier@latest", b.policy)))
         }
-        (None, Some(c)) => s.store().review_artifact_for(&b.policy, c).await?.ok_or_else(|| {
-            ApiError::not_found(format!("no review artifact for {}/{c}: set one or alias classifier@latest", b.policy))
-        })?,
-        (None, None) => match s.store().review_artifact(&b.policy).await? {
-            Some(a) => a.artifact_id,
-            None => {
-                // The policy's setting is state: without one, this request conflicts with it.
-                return Err(ApiError::new(
-                    StatusCode::CONFLICT,
-                    "no-review-artifact",
-                    "give artifact or checkpoint (the policy has no review artifact setting)",
-                ))
-            }
-        },
+        // The policy's setting is state: without one, this request conflicts with it.
+        (None, None) => {
+            return Err(ApiError::new(
+                StatusCode::CONFLICT,
+                "no-review-artifact",
+                "give artifact or checkpoint (the policy has no review artifact setting)",
+            ))
+        }
     };
     let spec = json!({"artifact_id": artifact_id, "policy": b.policy, "checkpoint": b.checkpoint});
     let job = s.store().create_job("score", &spec, &caller.name).await?;
