@@ -12,24 +12,47 @@
 //!   instead of exhausting file descriptors.
 //!
 //! Request bodies get an idle timeout in the router (`RequestBodyTimeoutLayer`, see `lib.rs`).
-//! Each request carries the peer's address (`ConnectInfo<SocketAddr>`) for the per-address
-//! limits of `auth.rs`.
+//! Each request carries the client's address (`ConnectInfo<SocketAddr>`) for the per-address
+//! limits of `auth.rs`: the peer's, or behind a trusted reverse proxy the one its
+//! `X-Forwarded-For` names ([`client_addr`]).
 
 use axum::extract::ConnectInfo;
 use axum::Router;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::server::graceful::GracefulShutdown;
 use std::future::Future;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 use std::time::Duration;
 use tower::ServiceExt;
 
 /// What one connection may hold (see the module docs).
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub(crate) struct ConnLimits {
     pub header_read_timeout: Duration,
     pub write_stall_timeout: Duration,
     pub max_connections: usize,
+    pub trusted_proxies: Arc<[IpAddr]>,
+}
+
+/// The address the per-address limits count for a request from `peer`: the peer itself, or,
+/// when the peer is a trusted proxy, the rightmost `X-Forwarded-For` entry that is not a
+/// trusted proxy (entries left of it are the client's own claims, which anyone can forge). A
+/// header that is missing or unreadable there leaves the proxy's address.
+pub(crate) fn client_addr(peer: SocketAddr, headers: &axum::http::HeaderMap, trusted: &[IpAddr]) -> SocketAddr {
+    if !trusted.contains(&peer.ip()) {
+        return peer;
+    }
+    let lines: Vec<&str> = headers.get_all("x-forwarded-for").iter().filter_map(|v| v.to_str().ok()).collect();
+    for hop in lines.iter().rev().flat_map(|l| l.rsplit(',')).map(str::trim) {
+        let ip = hop.parse::<IpAddr>().ok().or_else(|| hop.parse::<SocketAddr>().ok().map(|s| s.ip()));
+        match ip {
+            Some(ip) if trusted.contains(&ip) => continue,
+            Some(ip) => return SocketAddr::new(ip, 0),
+            None => return peer,
+        }
+    }
+    peer
 }
 
 /// Accepts connections until `shutdown` resolves, then stops accepting and waits until every
@@ -68,8 +91,10 @@ pub(crate) async fn serve_connections(
         io.set_write_timeout(Some(limits.write_stall_timeout));
         let io = TokioIo::new(Box::pin(io));
         let app = app.clone();
+        let trusted = limits.trusted_proxies.clone();
         let service = hyper::service::service_fn(move |mut req: hyper::Request<hyper::body::Incoming>| {
-            req.extensions_mut().insert(ConnectInfo(peer));
+            let client = client_addr(peer, req.headers(), &trusted);
+            req.extensions_mut().insert(ConnectInfo(client));
             app.clone().oneshot(req)
         });
         let conn = graceful.watch(http.serve_connection(io, service));
@@ -82,4 +107,34 @@ pub(crate) async fn serve_connections(
     }
     drop(listener);
     graceful.shutdown().await;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn headers(lines: &[&str]) -> axum::http::HeaderMap {
+        let mut h = axum::http::HeaderMap::new();
+        for l in lines {
+            h.append("x-forwarded-for", l.parse().unwrap());
+        }
+        h
+    }
+
+    #[test]
+    fn only_a_trusted_proxy_names_the_client() {
+        let proxy: SocketAddr = "10.0.0.1:5000".parse().unwrap();
+        let trusted: Vec<IpAddr> = vec!["10.0.0.1".parse().unwrap(), "10.0.0.2".parse().unwrap()];
+        let ip = |s: &str| -> IpAddr { s.parse().unwrap() };
+        // Not trusted: the header is ignored.
+        assert_eq!(client_addr(proxy, &headers(&["203.0.113.7"]), &[]), proxy);
+        // Trusted: the rightmost entry that is not a proxy; forged entries to its left are ignored.
+        assert_eq!(client_addr(proxy, &headers(&["1.2.3.4, 203.0.113.7"]), &trusted).ip(), ip("203.0.113.7"));
+        assert_eq!(client_addr(proxy, &headers(&["1.2.3.4", "203.0.113.7, 10.0.0.2"]), &trusted).ip(), ip("203.0.113.7"));
+        assert_eq!(client_addr(proxy, &headers(&["[2001:db8::1]:443"]), &trusted).ip(), ip("2001:db8::1"));
+        // Missing, only proxies, or unreadable: the proxy's own address.
+        assert_eq!(client_addr(proxy, &headers(&[]), &trusted), proxy);
+        assert_eq!(client_addr(proxy, &headers(&["10.0.0.2"]), &trusted), proxy);
+        assert_eq!(client_addr(proxy, &headers(&["1.2.3.4, not-an-address"]), &trusted), proxy);
+    }
 }

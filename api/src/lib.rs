@@ -89,6 +89,9 @@ pub struct ServeConfig {
     pub write_stall_timeout: Duration,
     /// Open connections at once (default 4096); more wait in the kernel's backlog.
     pub max_connections: usize,
+    /// Reverse proxies whose `X-Forwarded-For` is believed (default none): a request from one
+    /// counts against the per-address limits of the client the header names (see `conn.rs`).
+    pub trusted_proxies: Vec<std::net::IpAddr>,
 }
 
 /// `scheme://host[:port]` of a public URL (a trailing `/` allowed; no path, query or user info).
@@ -128,6 +131,7 @@ impl ServeConfig {
             body_idle_timeout: Duration::from_secs(30),
             write_stall_timeout: Duration::from_secs(60),
             max_connections: 4096,
+            trusted_proxies: Vec::new(),
         }
     }
 }
@@ -323,6 +327,7 @@ pub async fn serve_on(
         header_read_timeout: cfg.header_read_timeout,
         write_stall_timeout: cfg.write_stall_timeout,
         max_connections: cfg.max_connections,
+        trusted_proxies: cfg.trusted_proxies.clone().into(),
     };
     let app = router(AppState::new(store, cfg));
     let server = conn::serve_connections(listener, app, limits, async move {

@@ -163,6 +163,9 @@ async fn guessing_tokens_is_bounded_per_address_but_known_tokens_go_on() {
     assert!(statuses.iter().all(|s| *s == 401 || *s == 429), "{statuses:?}");
     let limited = statuses.iter().filter(|s| **s == 429).count();
     assert!(limited >= 30, "{limited} of 60 guesses refused: {statuses:?}");
+    // Not behind a trusted proxy: a claimed client address changes nothing.
+    let r = srv.http.get(srv.url("/v1/policies")).bearer_auth("ufops_guess").header("X-Forwarded-For", "198.51.100.9").send().await.unwrap();
+    assert_eq!(r.status(), 429);
     // Sign-in attempts count against the same budget.
     let r = srv.http.post(srv.url("/ui/session")).header("Origin", &srv.base).header("x-ufops-ui", "1").json(&serde_json::json!({"token": "ufops_guess"})).send().await.unwrap();
     assert_eq!(r.status(), 429);
@@ -170,5 +173,31 @@ async fn guessing_tokens_is_bounded_per_address_but_known_tokens_go_on() {
     for _ in 0..5 {
         assert_eq!(srv.req(Method::GET, "/v1/policies", "viewer").send().await.unwrap().status(), 200);
     }
+    srv.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn behind_a_trusted_proxy_each_client_has_its_own_guess_budget() {
+    let srv = TestServer::start_with(Db::Sqlite, false, |c| {
+        c.unverified_checks_per_peer = 2;
+        c.trusted_proxies = vec!["127.0.0.1".parse().unwrap()];
+    })
+    .await;
+    let guess = |client: Option<&'static str>, n: usize| {
+        let mut r = srv.http.get(srv.url("/v1/policies")).bearer_auth(format!("ufops_{n:032x}"));
+        if let Some(c) = client {
+            // A forged entry on the left, the proxy's view of the client on the right.
+            r = r.header("X-Forwarded-For", format!("192.0.2.1, {c}"));
+        }
+        r.send()
+    };
+    let mut statuses = Vec::new();
+    for n in 0..40 {
+        statuses.push(guess(Some("198.51.100.1"), n).await.unwrap().status().as_u16());
+    }
+    assert!(statuses.iter().filter(|s| **s == 429).count() >= 20, "{statuses:?}");
+    // Another client behind the same proxy, and the proxy itself, still get answers.
+    assert_eq!(guess(Some("198.51.100.2"), 100).await.unwrap().status(), 401);
+    assert_eq!(guess(None, 101).await.unwrap().status(), 401);
     srv.stop().await;
 }

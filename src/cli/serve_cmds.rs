@@ -243,6 +243,10 @@ pub struct ServeArgs {
     /// Open connections at once; more wait in the kernel's backlog.
     #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
     pub max_connections: u64,
+    /// A reverse proxy (IP address; repeatable) whose X-Forwarded-For names the client that the
+    /// per-address limits count; without one, every request from the proxy shares its address.
+    #[arg(long = "trusted-proxy", value_name = "IP")]
+    pub trusted_proxies: Vec<std::net::IpAddr>,
 }
 
 /// Ctrl-C or SIGTERM (what `docker stop`, systemd and Kubernetes send): the server finishes the
@@ -280,6 +284,7 @@ pub async fn serve(args: &StoreArgs, a: ServeArgs) -> Result<()> {
     cfg.rate_limit_per_token = a.rate_limit_per_token;
     cfg.unverified_checks_per_peer = a.unverified_checks_per_peer;
     cfg.max_connections = a.max_connections as usize;
+    cfg.trusted_proxies = a.trusted_proxies;
     api::serve(store, cfg, Arc::new(Runner), shutdown_signal()).await
 }
 
