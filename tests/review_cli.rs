@@ -1,6 +1,7 @@
 //! `ufops review score` and `ufops review queue` on the Lift rollouts with a trained classifier:
 //! the stored scores are `ufops rank`'s, the uncertain-first queue pages without repeats or gaps
-//! in |score − 0.5| order, and a policy without a verifier fails with a message naming the fix.
+//! in |score − 0.5| order, and a policy without a verifier fails with a message naming the fix;
+//! `ufops review campaign` and `agreement` read and set what the labeling page's votes use.
 
 mod common;
 use common::*;
@@ -72,4 +73,33 @@ fn review_queue_from_the_cli() {
     assert_eq!(table.lines().count(), 5, "{table}");
     assert!(table.lines().nth(1).unwrap().starts_with(&q[0].0), "{table}");
     assert!(table.contains("next page: --after"), "{table}");
+
+    // The campaign: one verdict by default; two, blind, once set.
+    assert_eq!(t.json(&["review", "campaign", "--policy", "bc", "--json"])["labels_needed"], 1);
+    t.ok(&["review", "campaign", "--policy", "bc", "--labels-needed", "2", "--blind", "true"]);
+    let c = t.json(&["review", "campaign", "--policy", "bc", "--json"]);
+    assert_eq!((&c["labels_needed"], &c["blind"]), (&serde_json::json!(2), &serde_json::json!(true)), "{c}");
+    let none = t.ok(&["review", "agreement", "--policy", "bc"]);
+    assert!(none.contains("0 episodes voted") && none.contains("alpha -"), "{none}");
+
+    // Two labelers vote over HTTP: they agree on one episode and not on the other.
+    let mut auth = Vec::new();
+    for name in ["alice", "bob"] {
+        let tok = t.json(&["token", "create", "--name", name, "--role", "labeler", "--json"]);
+        auth.push(format!("Bearer {}", tok["token"].as_str().unwrap()));
+    }
+    let server = t.serve(&["--no-worker"]);
+    for (who, votes) in [(0, ["success", "success"]), (1, ["success", "failure"])] {
+        for (ep, label) in [&q[0].0, &q[1].0].into_iter().zip(votes) {
+            let r = http(&server.url, "POST", &format!("/v1/episodes/{ep}/votes"), &[("Authorization", &auth[who])],
+                Some(&serde_json::json!({"label": label})));
+            assert!(r.status < 300, "{}", String::from_utf8_lossy(&r.body));
+        }
+    }
+    let a = t.json(&["review", "agreement", "--policy", "bc", "--json"]);
+    assert_eq!((a["episodes_voted"].as_u64(), a["agreed"].as_u64(), a["disputed"].as_u64()), (Some(2), Some(1), Some(1)), "{a}");
+    let pair = &a["pairs"][0];
+    assert_eq!((pair["episodes"].as_u64(), pair["observed"].as_f64()), (Some(2), Some(0.5)), "{a}");
+    let text = t.ok(&["review", "agreement", "--policy", "bc"]);
+    assert!(text.contains("alice / bob: 2 common episodes, observed 0.500"), "{text}");
 }

@@ -1,6 +1,8 @@
-//! `ufops review`: the verifier-ordered review queue from a terminal. `score` stores a verifier's
-//! episode scores (what the score job of `POST /v1/review/score` runs); `queue` lists episodes
-//! in a review order, a page at a time (what `GET /v1/episodes?order=…` serves).
+//! `ufops review`: the review loop from a terminal. `score` stores a verifier's episode scores
+//! (what the score job of `POST /v1/review/score` runs); `queue` lists episodes in a review
+//! order, a page at a time (what `GET /v1/episodes?order=…` serves); `campaign` shows or sets
+//! how many labelers must agree (`/v1/campaigns/{policy}`); `agreement` reports how well they
+//! do (`/v1/agreement`).
 
 use super::{print_json, StoreArgs};
 use anyhow::{Context, Result};
@@ -48,6 +50,31 @@ pub enum ReviewCommand {
         #[arg(long)]
         json: bool,
     },
+    /// Show a policy's labeling campaign, or set it: verdicts an episode needs, and whether
+    /// labelers see each other's verdicts before giving theirs.
+    Campaign {
+        #[arg(long)]
+        policy: String,
+        #[arg(long, value_parser = clap::value_parser!(i64).range(1..=10))]
+        labels_needed: Option<i64>,
+        #[arg(long, requires = "labels_needed")]
+        blind: Option<bool>,
+        #[arg(long, env = "USER", default_value = "cli")]
+        actor: String,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Agreement between a policy's labelers: Cohen's κ per pair, Krippendorff's α overall.
+    Agreement {
+        #[arg(long)]
+        policy: String,
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn or_dash(x: Option<f64>) -> String {
+    x.map_or("-".to_string(), |v| format!("{v:.3}"))
 }
 
 pub async fn review(args: &StoreArgs, command: ReviewCommand) -> Result<()> {
@@ -97,6 +124,31 @@ pub async fn review(args: &StoreArgs, command: ReviewCommand) -> Result<()> {
             }
             if let Some(c) = next_cursor {
                 println!("next page: --after '{c}'");
+            }
+            Ok(())
+        }
+        ReviewCommand::Campaign { policy, labels_needed, blind, actor, json } => {
+            let c = match labels_needed {
+                Some(n) => store.set_campaign(&policy, n, blind.unwrap_or(false), &actor).await?,
+                None => store.campaign(&policy).await?,
+            };
+            if json {
+                return print_json(&c);
+            }
+            println!("{}: {} verdict(s) per episode, {}", c.policy, c.labels_needed, if c.blind { "blind" } else { "not blind" });
+            Ok(())
+        }
+        ReviewCommand::Agreement { policy, json } => {
+            let a = store.agreement(&policy).await?;
+            if json {
+                return print_json(&a);
+            }
+            println!(
+                "{}: {} episodes voted ({} agreed, {} disputed, {} settled, {} pending); Krippendorff's alpha {}",
+                a.policy, a.episodes_voted, a.agreed, a.disputed, a.settled, a.pending, or_dash(a.krippendorff_alpha)
+            );
+            for p in &a.pairs {
+                println!("  {} / {}: {} common episodes, observed {}, kappa {}", p.a, p.b, p.episodes, or_dash(p.observed), or_dash(p.kappa));
             }
             Ok(())
         }
