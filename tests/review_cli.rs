@@ -50,13 +50,7 @@ fn review_queue_from_the_cli() {
     // With --checkpoint, its classifier@latest scores the policy's queue.
     let r = t.json(&["review", "score", "--policy", "bc", "--checkpoint", "e600", "--json"]);
     assert_eq!(r["episodes_scored"].as_u64().unwrap() as usize, n, "{r}");
-    let ranked = t.json(&["rank", "--artifact", artifact, "--policy", "bc", "--json"]);
-    let want: std::collections::HashMap<String, f64> = ranked["episodes"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|r| (r["episode_id"].as_str().unwrap().to_string(), r["score"].as_f64().unwrap()))
-        .collect();
+    let want = rank_scores(&t, artifact);
     let q = queue(&t, &["--order", "uncertain"], 5);
     assert_eq!(q.len(), n, "pages neither repeat nor skip: {q:?}");
     assert_eq!(q.iter().map(|e| &e.0).collect::<std::collections::HashSet<_>>().len(), n);

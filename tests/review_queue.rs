@@ -77,7 +77,6 @@ fn uncertain_first_on_postgres() {
 fn uncertain_first_orders_by_stored_scores(t: &Target) {
     t.ok(&["init"]);
     let (artifact, n) = lift_with_classifier(t);
-    let ranked = t.json(&["rank", "--artifact", artifact, "--policy", "bc", "--json"]);
     let trainer = t.json(&["token", "create", "--name", "curator", "--role", "trainer", "--json"]);
     let trainer = format!("Bearer {}", trainer["token"].as_str().unwrap());
     let viewer = t.json(&["token", "create", "--name", "labeler", "--role", "viewer", "--json"]);
@@ -116,12 +115,7 @@ fn uncertain_first_orders_by_stored_scores(t: &Target) {
     assert_eq!(done["result"]["episodes_scored"].as_u64().unwrap() as usize, n, "{done}");
 
     // The stored scores are `ufops rank`'s (one scoring definition).
-    let want: std::collections::HashMap<String, f64> = ranked["episodes"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|r| (r["episode_id"].as_str().unwrap().to_string(), r["score"].as_f64().unwrap()))
-        .collect();
+    let want = rank_scores(t, artifact);
     let q = queue(url, &viewer, "uncertain", 5);
     assert_eq!(q.len(), n, "pages neither repeat nor skip");
     let ids: std::collections::HashSet<&str> = q.iter().map(|e| e.0.as_str()).collect();

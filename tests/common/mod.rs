@@ -220,6 +220,19 @@ fn dechunk(mut raw: &[u8]) -> Vec<u8> {
 /// success labels, and a classifier trained on them; returns the artifact's alias reference.
 /// Real rollouts give a classifier that separates successes from failures (random synthetic
 /// episodes do not), so score thresholds such as 0.5 split them.
+/// `ufops rank`'s score of each of the `bc` episodes by `artifact` (the scores the review
+/// queue must store: one scoring definition).
+#[allow(dead_code)]
+pub fn rank_scores(t: &Target, artifact: &str) -> std::collections::HashMap<String, f64> {
+    let ranked = t.json(&["rank", "--artifact", artifact, "--policy", "bc", "--json"]);
+    ranked["episodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| (r["episode_id"].as_str().unwrap().to_string(), r["score"].as_f64().unwrap()))
+        .collect()
+}
+
 pub fn lift_with_classifier(t: &Target) -> (&'static str, usize) {
     let f = fixtures().join("robomimic");
     t.ok(&[
