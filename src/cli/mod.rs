@@ -104,8 +104,8 @@ pub enum Command {
     /// Episodes ordered by a verifier's score, lowest first (which demonstrations or rollouts to
     /// review, relabel or leave out).
     Rank(export_cmd::RankArgs),
-    /// The verifier-ordered review queue: store a verifier's episode scores, list episodes in
-    /// a review order.
+    /// The review loop: store a verifier's episode scores, list episodes in a review order,
+    /// show or set a policy's labeling campaign and its labelers' agreement.
     Review {
         #[command(subcommand)]
         command: review_cmds::ReviewCommand,
