@@ -34,6 +34,7 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (7, "pending_objects", include_str!("../../migrations/sqlite/0007_pending_objects.sql")),
     (8, "review_scores", include_str!("../../migrations/sqlite/0008_review_scores.sql")),
     (9, "label_campaigns", include_str!("../../migrations/sqlite/0009_label_campaigns.sql")),
+    (10, "layers", include_str!("../../migrations/sqlite/0010_layers.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
@@ -45,6 +46,7 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (7, "pending_objects", include_str!("../../migrations/postgres/0007_pending_objects.sql")),
     (8, "review_scores", include_str!("../../migrations/postgres/0008_review_scores.sql")),
     (9, "label_campaigns", include_str!("../../migrations/postgres/0009_label_campaigns.sql")),
+    (10, "layers", include_str!("../../migrations/postgres/0010_layers.sql")),
 ];
 
 fn migrator(backend: Backend) -> Migrator {

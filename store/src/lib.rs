@@ -14,6 +14,7 @@ mod exports;
 mod gc;
 mod jobs;
 mod labels;
+mod layers;
 pub mod model;
 mod objects;
 mod query;
@@ -40,6 +41,10 @@ pub use error::StoreError;
 pub use exports::{check_export_path, ExportFile, EXPORTS_PREFIX};
 pub use gc::{GcReport, MAX_GRACE_SECONDS};
 pub use jobs::{JobRecord, JobState};
+pub use layers::{
+    check_layer_name, producer_hash, EpisodeLayer, LayerRecord, LayerValues, LayerWrite, LAYER_META_KEY, MAX_LAYER_DIM,
+    PRODUCER_META_KEY,
+};
 pub use labels::{LabelChange, LabelEvent, LabelUpdate, PreparedLabelSnapshot};
 pub use model::*;
 pub use media::EpisodeMedia;

@@ -110,6 +110,13 @@ pub struct StepsStream {
 }
 
 impl StepsStream {
+    pub(crate) fn from_parts(
+        rx: mpsc::Receiver<Result<EpisodeSteps, StepsReadError>>,
+        task: tokio::task::JoinHandle<()>,
+    ) -> Self {
+        StepsStream { rx, task }
+    }
+
     /// The next episode read (or failure); `None` once every job is done.
     pub async fn next(&mut self) -> Option<Result<EpisodeSteps, StepsReadError>> {
         self.rx.recv().await

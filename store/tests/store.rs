@@ -374,3 +374,128 @@ fn migration_histories_are_in_step() {
     assert_eq!(names("sqlite"), names("postgres"));
     assert_eq!(names("sqlite").len(), sqlite.len(), "every migration file is embedded");
 }
+
+/// One episode's values of a test layer: step t of episode `i` holds `[i, t, producer_seed, …]`.
+fn layer_values(id: &str, i: u32, steps: usize, dim: usize, seed: f32) -> LayerValues {
+    let values = (0..steps).flat_map(|t| (0..dim).map(move |d| i as f32 * 1000.0 + t as f32 + d as f32 * 0.01 + seed)).collect();
+    LayerValues { episode_id: id.to_string(), dim, values }
+}
+
+/// Layers: a new version per write that never rewrites the steps; joined by the read path as
+/// `obs.<layer>`; visible in time travel from their version on; re-writing the same producer's
+/// values is idempotent (and a partial write resumes); a new producer replaces the old values
+/// from its version on; gc keeps every layer file; bad input is refused and changes nothing.
+async fn layers_behaviour(store: Store, data_dir: &std::path::Path) {
+    let before = ingest(&store, "layers", "c1", 4).await.version;
+    let eps = store.episodes(&EpisodeFilter::default()).await.unwrap();
+    let steps_files: Vec<String> = object_files(data_dir).into_iter().filter(|p| p.starts_with("steps/")).collect();
+    let name = "features.cnn";
+    let producer = serde_json::json!({"encoder": "cnn", "policy": "pol", "checkpoint": "c1", "content_hash": "aa"});
+    let dim = 3;
+    let values = |idx: &[usize], seed: f32| -> Vec<LayerValues> {
+        idx.iter().map(|&k| layer_values(&eps[k].id, eps[k].source_index as u32, eps[k].length as usize, dim, seed)).collect()
+    };
+
+    // A partial computation: two episodes, then all four (the first two skipped).
+    let first = store.write_layer(name, &producer, values(&[0, 1], 0.0), "test").await.unwrap();
+    assert_eq!((first.episodes_written, first.episodes_skipped), (2, 0));
+    let v1 = first.version.expect("a version");
+    assert_eq!(v1, before + 1);
+    let rest = store.write_layer(name, &producer, values(&[0, 1, 2, 3], 0.0), "test").await.unwrap();
+    assert_eq!((rest.episodes_written, rest.episodes_skipped), (2, 2));
+    let v2 = rest.version.unwrap();
+    assert_eq!(rest.producer_hash, first.producer_hash);
+    // Again: nothing written, no version.
+    let again = store.write_layer(name, &producer, values(&[0, 1, 2, 3], 0.0), "test").await.unwrap();
+    assert_eq!((again.version, again.episodes_written, again.episodes_skipped), (None, 0, 4));
+    assert_eq!(store.head_version().await.unwrap(), v2);
+    let after_steps: Vec<String> = object_files(data_dir).into_iter().filter(|p| p.starts_with("steps/")).collect();
+    assert_eq!(after_steps, steps_files, "no steps file rewritten or added");
+    assert_eq!(store.versions().await.unwrap().last().unwrap().kind, "layer");
+
+    // Joined reads, now and in time travel.
+    let ids: Vec<String> = eps.iter().map(|e| e.id.clone()).collect();
+    let layers = vec![name.to_string()];
+    let b = store.read_steps_with_layers(&ids[3], None, &layers).await.unwrap();
+    let (d, got) = steps::vector_column(&b, &format!("obs.{name}")).unwrap();
+    assert_eq!(d, dim);
+    assert_eq!(got, values(&[3], 0.0)[0].values);
+    let field = b.schema().field_with_name(&format!("obs.{name}")).unwrap().clone();
+    assert_eq!(field.metadata().get(PRODUCER_META_KEY), Some(&first.producer_hash));
+    assert_eq!(steps::vector_column(&b, "obs.pos").unwrap().1, steps::vector_column(&store.read_steps(&ids[3], None).await.unwrap(), "obs.pos").unwrap().1);
+    let err = store.read_steps_with_layers(&ids[3], Some(v1), &layers).await.unwrap_err().to_string();
+    assert!(err.contains("has no layer") && err.contains(&format!("version {v1}")), "{err}");
+    assert!(store.read_steps_with_layers(&ids[0], Some(v1), &layers).await.is_ok());
+    assert!(store.read_steps_with_layers(&ids[0], Some(before), &layers).await.is_err(), "the version before has no layer");
+    assert_eq!(store.episode_layers(&ids[0], Some(before)).await.unwrap(), vec![]);
+    assert_eq!(store.episode_layers(&ids[3], None).await.unwrap().len(), 1);
+    // Many episodes at once, in any order, each with its own values.
+    let locs = store.locate_episodes(&ids, None).await.unwrap();
+    let layer_locs = store.locate_layers(&ids, &layers, None).await.unwrap();
+    let mut stream = store.read_episodes_with_layers(locs, layers.clone(), layer_locs);
+    let mut seen = 0;
+    while let Some(item) = stream.next().await {
+        let item = item.unwrap();
+        let (_, got) = steps::vector_column(&item.steps, &format!("obs.{name}")).unwrap();
+        assert_eq!(got, values(&[item.index], 0.0)[0].values);
+        seen += 1;
+    }
+    assert_eq!(seen, 4);
+
+    // Another producer (new weights) replaces the values from its version on.
+    let producer2 = serde_json::json!({"encoder": "cnn", "policy": "pol", "checkpoint": "c1", "content_hash": "bb"});
+    let w3 = store.write_layer(name, &producer2, values(&[0], 7.0), "test").await.unwrap();
+    let v3 = w3.version.unwrap();
+    let now = store.read_steps_with_layers(&ids[0], None, &layers).await.unwrap();
+    assert_eq!(steps::vector_column(&now, &format!("obs.{name}")).unwrap().1, values(&[0], 7.0)[0].values);
+    let then = store.read_steps_with_layers(&ids[0], Some(v2), &layers).await.unwrap();
+    assert_eq!(steps::vector_column(&then, &format!("obs.{name}")).unwrap().1, values(&[0], 0.0)[0].values);
+    let listed = store.layers().await.unwrap();
+    assert_eq!(listed.len(), 2);
+    let count = |h: &str| listed.iter().find(|l| l.producer_hash == h).unwrap().episodes;
+    assert_eq!((count(&first.producer_hash), count(&w3.producer_hash)), (3, 1));
+    assert_eq!(store.layer_episodes(name, &w3.producer_hash).await.unwrap(), vec![ids[0].clone()]);
+
+    // Bad input: refused with a message, and the store stays as it was.
+    let head = store.head_version().await.unwrap();
+    let mut short = values(&[1], 1.0);
+    short[0].values.truncate(dim * 2);
+    let bad_cases: Vec<(&str, serde_json::Value, Vec<LayerValues>, &str)> = vec![
+        (name, producer.clone(), vec![LayerValues { episode_id: "nope".into(), dim, values: vec![0.0; 3] }], "not found"),
+        (name, serde_json::json!({"content_hash": "cc"}), short, "steps"),
+        ("bad name", producer.clone(), values(&[1], 1.0), "invalid layer name"),
+        ("pos", serde_json::json!({"content_hash": "dd"}), values(&[1], 1.0), "observation key"),
+        (name, serde_json::json!("cnn"), values(&[1], 1.0), "JSON object"),
+        (name, serde_json::json!({"content_hash": "ee"}), vec![LayerValues { episode_id: ids[1].clone(), dim, values: vec![f32::NAN; eps[1].length as usize * dim] }], "non-finite"),
+        (name, producer.clone(), vec![LayerValues { episode_id: ids[1].clone(), dim: 2, values: vec![0.0; eps[1].length as usize * 2] }], "dim"),
+    ];
+    for (n, p, vals, want) in bad_cases {
+        let err = store.write_layer(n, &p, vals, "test").await.unwrap_err().to_string();
+        assert!(err.contains(want), "{n} {p}: {err} (wanted {want:?})");
+    }
+    assert_eq!(store.head_version().await.unwrap(), head);
+
+    // gc keeps every layer file (the replaced values are still in time travel).
+    let layer_files: Vec<String> = object_files(data_dir).into_iter().filter(|p| p.starts_with("layers/")).collect();
+    assert_eq!(layer_files.len(), 3);
+    let report = store.gc(0, false).await.unwrap();
+    assert!(report.deleted.iter().all(|p| !p.starts_with("layers/")), "{:?}", report.deleted);
+    let kept: Vec<String> = object_files(data_dir).into_iter().filter(|p| p.starts_with("layers/")).collect();
+    assert_eq!(kept, layer_files);
+    assert!(store.read_steps_with_layers(&ids[2], Some(v3), &layers).await.is_ok());
+}
+
+#[tokio::test]
+async fn sqlite_layers() {
+    let dir = tempfile::tempdir().unwrap();
+    layers_behaviour(open_sqlite(dir.path()).await, dir.path()).await;
+}
+
+#[tokio::test]
+async fn postgres_layers() {
+    if !store::test_support::require_postgres() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    layers_behaviour(open_postgres(dir.path()).await, dir.path()).await;
+}
