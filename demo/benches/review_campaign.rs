@@ -64,7 +64,7 @@ fn main() -> Result<()> {
         t0.elapsed().as_secs_f64()
     );
     let input = trainer::InputSpec {
-        obs_keys: vec![trainer::ObsKey { key: "pos".into(), dim: 2 }],
+        obs_keys: vec![trainer::ObsKey::new("pos", 2)],
         obs_history: 2,
         chunk_len: pc.horizon,
         action_dim: 2,

@@ -67,7 +67,7 @@ fn main() {
     s.discount = vec![1.0; n];
     s.episode = vec![0; n];
     let input = InputSpec {
-        obs_keys: vec![ObsKey { key: "state".into(), dim: od }],
+        obs_keys: vec![ObsKey::new("state", od)],
         obs_history: 1,
         chunk_len: 16,
         action_dim: 10,

@@ -66,6 +66,32 @@ fn episode_from_steps(
     Ok(Episode { id: id.to_string(), success, obs, actions, action_dim, action_chunk })
 }
 
+/// Notes the producer of each layer column among `keys` (field metadata of the joined read);
+/// every episode of a training set must hold the same producer's features of a layer.
+fn record_producers(
+    id: &str,
+    batch: &arrow::array::RecordBatch,
+    keys: &[String],
+    producers: &mut [Option<String>],
+) -> Result<()> {
+    let schema = batch.schema();
+    for (k, slot) in keys.iter().zip(producers.iter_mut()) {
+        let Ok(field) = schema.field_with_name(&format!("{}{k}", store::steps::OBS_PREFIX)) else { continue };
+        let Some(p) = field.metadata().get(store::PRODUCER_META_KEY) else { continue };
+        match slot {
+            None => *slot = Some(p.clone()),
+            Some(first) if first != p => bail!(
+                "layer {k}: episode {id} holds features of producer {}, others of producer {}; \
+                 compute the layer with one encoder for every episode of the split",
+                &p[..p.len().min(12)],
+                &first[..first.len().min(12)]
+            ),
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
 /// Reads a split's labeled episodes back from the store, at the split's pinned version.
 pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<SplitData> {
     let split = store.split(&spec.split_id).await?;
@@ -86,13 +112,34 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
         }
         (None, None) => None,
     };
+    // Keys the steps files lack but a layer of the store provides (an encoder's features): read
+    // joined, from the layer values current now (derived data computed after the split was
+    // frozen counts; the producer recorded below pins what they were).
+    let layer_keys = match (&keys, locations.first()) {
+        (Some(keys), Some(first)) => {
+            let schema = store.steps_schema(&first.data_file).await?;
+            let names: std::collections::HashSet<String> = store.layers().await?.into_iter().map(|l| l.name).collect();
+            keys.iter()
+                .filter(|k| schema.field_with_name(&format!("{}{k}", store::steps::OBS_PREFIX)).is_err() && names.contains(*k))
+                .cloned()
+                .collect::<Vec<String>>()
+        }
+        _ => vec![],
+    };
+    let mut producers: Vec<Option<String>> = vec![None; keys.as_ref().map_or(0, |k| k.len())];
     let mut episodes: Vec<Option<Episode>> = (0..labeled.len()).map(|_| None).collect();
     {
         let wanted = keys.clone().unwrap_or_default();
-        let mut stream = store.read_episodes(locations);
+        let mut stream = if layer_keys.is_empty() {
+            store.read_episodes(locations)
+        } else {
+            let at = store.locate_layers(&ids, &layer_keys, None).await?;
+            store.read_episodes_with_layers(locations, layer_keys.clone(), at)
+        };
         while let Some(item) = stream.next().await {
             let item = item?;
             let (m, success) = labeled[item.index];
+            record_producers(&m.episode_id, &item.steps, &wanted, &mut producers)?;
             episodes[item.index] = Some(episode_from_steps(&m.episode_id, success, &item.steps, &wanted)?);
         }
     }
@@ -111,6 +158,25 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
         if m.part == "val" { val.push(ep) } else { train.push(ep) }
     }
     let keys = keys.unwrap_or_default();
+    let chunk_len = match (chunk_len, spec.chunk_len) {
+        (Some(stored), Some(given)) if stored != given => bail!(
+            "the episodes store action chunks of length {stored}: chunk_len {given} would build chunks that straddle \
+             the policy's own; leave it out (it is inferred) or give {stored}"
+        ),
+        (Some(stored), _) => stored,
+        (None, Some(given)) => given,
+        (None, None) => {
+            tracing::warn!(
+                "the episodes of split {} store no action chunks and no chunk length was given: using the paper's 16; \
+                 give the policy's chunk length (--chunk-len, or chunk_len in the recipe)",
+                split.id
+            );
+            16
+        }
+    };
+    if let Some(stride) = spec.step_stride.filter(|s| *s > 1 && *s != chunk_len) {
+        tracing::warn!("step_stride {stride} differs from the chunk length {chunk_len}: a chunking policy re-plans every chunk");
+    }
     if train.is_empty() {
         bail!("split {} has no labeled training episodes", split.id);
     }
@@ -118,9 +184,14 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
         bail!("the episodes of split {} have no observation columns", split.id);
     }
     let input = InputSpec {
-        obs_keys: keys.iter().zip(&dims).map(|(k, d)| ObsKey { key: k.clone(), dim: *d }).collect(),
+        obs_keys: keys
+            .iter()
+            .zip(&dims)
+            .zip(producers)
+            .map(|((k, d), producer)| ObsKey { key: k.clone(), dim: *d, producer })
+            .collect(),
         obs_history: spec.obs_history.unwrap_or(2),
-        chunk_len: chunk_len.or(spec.chunk_len).unwrap_or(16),
+        chunk_len,
         action_dim,
         t_embed_dim: spec.config.as_ref().map(|c| c.architecture.t_embed_dim).unwrap_or(64),
         extra_inputs: vec![],
@@ -138,7 +209,11 @@ pub async fn run_train_job(
 ) -> Result<store::ArtifactRecord> {
     let split = store.split(&spec.split_id).await?;
     let data = load_split(store, spec).await?;
-    let mut cfg = spec.config.clone().unwrap_or_else(|| TrainConfig { kind: spec.kind, ..Default::default() });
+    // The paper's recipe for its input: the image column (features variant) when the
+    // observation includes an encoder's features, else the low-dimensional one.
+    let sees = !data.input.required_producers().is_empty();
+    let variant = if sees { crate::Variant::Features } else { crate::Variant::Lowdim };
+    let mut cfg = spec.config.clone().unwrap_or_else(|| TrainConfig::preset(spec.kind, variant));
     cfg.kind = spec.kind;
     cfg.validate()?;
     let lineage = serde_json::json!({
@@ -155,6 +230,9 @@ pub async fn run_train_job(
         "val_successes": data.val.iter().filter(|e| e.success).count(),
         "job_id": job_id,
         "step_stride": spec.step_stride.unwrap_or(1),
+        "layers": data.input.required_producers().iter()
+            .map(|(k, p)| serde_json::json!({"layer": k, "producer_hash": p}))
+            .collect::<Vec<_>>(),
         "code_version": concat!("ufops-trainer ", env!("CARGO_PKG_VERSION")),
     });
     let dir = tempfile::tempdir().context("creating a temporary artifact directory")?;
@@ -196,6 +274,17 @@ pub fn step_inputs(cfg: &verifier::ArtifactConfig, batch: &arrow::array::RecordB
         bail!("building stored steps for a verifier with extra inputs is not supported");
     }
     let keys: Vec<String> = input.obs_keys.iter().map(|k| k.key.clone()).collect();
+    // Layer keys: the batch must hold them (a read joined with the layers) from the producer
+    // the verifier was trained on.
+    let schema = batch.schema();
+    let mut provided = Vec::new();
+    for (key, want) in input.required_producers() {
+        let field = schema.field_with_name(&format!("{}{key}", store::steps::OBS_PREFIX)).map_err(|_| {
+            anyhow::anyhow!("this verifier reads layer {key} (features of producer {}): read the steps with that layer", &want[..want.len().min(12)])
+        })?;
+        provided.push((key, field.metadata().get(store::PRODUCER_META_KEY).cloned().unwrap_or_default()));
+    }
+    input.check_producers(provided.iter().map(|(k, p)| (*k, p.as_str())))?;
     let mut ep = episode_from_steps("scored", false, batch, &keys)?;
     if ep.action_chunk.as_ref().is_some_and(|(h, _)| *h != input.chunk_len) {
         ep.action_chunk = None;

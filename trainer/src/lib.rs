@@ -30,4 +30,4 @@ pub use job::{load_split, run_train_job, score_steps, step_inputs, SplitData, Tr
 pub use data::{build_samples, Episode, ExtraInputSpec, InputSpec, ObsKey, ObsSeries, Samples};
 pub use verifier::{ActionSpace, Verifier};
 pub use model::{Architecture, Kind, ModelSpec, Variant};
-pub use train::{train, train_samples, train_with, Backend, Cancelled, EpochReport, Metrics, TrainConfig, Trained};
+pub use train::{train, train_samples, train_with, Backend, Cancelled, EpochReport, Metrics, RecipeInput, TrainConfig, Trained};

@@ -76,6 +76,25 @@ pub struct TrainConfig {
     pub backend: Backend,
 }
 
+/// The verifier's input spec as a recipe file may give it (see
+/// [`TrainConfig::from_recipe_file`]); command-line flags override it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecipeInput {
+    /// Observation keys in order (observation columns or layers).
+    pub obs_keys: Option<Vec<String>>,
+    /// `T_o`.
+    pub obs_history: Option<usize>,
+    /// `H`: the policy's action chunk length.
+    pub chunk_len: Option<usize>,
+    /// Train on steps `t % step_stride == 0`.
+    pub step_stride: Option<usize>,
+}
+
+impl RecipeInput {
+    const KEYS: [&'static str; 4] = ["obs_keys", "obs_history", "chunk_len", "step_stride"];
+}
+
 /// Bounds of [`TrainConfig::validate`].
 pub const MAX_BATCH: usize = 65_536;
 pub const MAX_EPOCHS: usize = 100_000;
@@ -138,6 +157,32 @@ impl TrainConfig {
         };
         c.validate()?;
         Ok(c)
+    }
+
+    /// Load a recipe file that may also carry the verifier's input spec (`obs_keys`,
+    /// `obs_history`, `chunk_len`, `step_stride` at its top level), so one file reproduces a
+    /// verifier: the training config and the input spec it was trained with.
+    pub fn from_recipe_file(path: &Path) -> Result<(Self, RecipeInput)> {
+        let s = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let is_toml = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("toml"));
+        let mut v: serde_json::Value = if is_toml {
+            toml::from_str(&s).with_context(|| format!("parsing {}", path.display()))?
+        } else {
+            serde_json::from_str(&s).with_context(|| format!("parsing {}", path.display()))?
+        };
+        let mut input = serde_json::Map::new();
+        if let Some(obj) = v.as_object_mut() {
+            for key in RecipeInput::KEYS {
+                if let Some(x) = obj.remove(key) {
+                    input.insert(key.to_string(), x);
+                }
+            }
+        }
+        let input: RecipeInput = serde_json::from_value(serde_json::Value::Object(input))
+            .with_context(|| format!("parsing the input spec of {}", path.display()))?;
+        let c: TrainConfig = serde_json::from_value(v).with_context(|| format!("parsing {}", path.display()))?;
+        c.validate()?;
+        Ok((c, input))
     }
 
     /// The loss hyper-parameters.

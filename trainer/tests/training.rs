@@ -22,7 +22,7 @@ fn samples_history_chunks_and_targets() {
         action_chunk: None,
     };
     let spec = InputSpec {
-        obs_keys: vec![ObsKey { key: "a".into(), dim: 2 }, ObsKey { key: "b".into(), dim: 1 }],
+        obs_keys: vec![ObsKey::new("a", 2), ObsKey::new("b", 1)],
         obs_history: 2,
         chunk_len: 2,
         action_dim: 1,

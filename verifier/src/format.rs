@@ -269,6 +269,19 @@ pub struct TensorSpec {
 pub struct ObsKey {
     pub key: String,
     pub dim: usize,
+    /// For a key that is a store *layer* (derived features, e.g. a policy encoder's embedding of
+    /// the camera frames): the sha256 of the producer that made the values the verifier was
+    /// trained on. Features from any other producer (another encoder, other weights) mean
+    /// something else, so scoring with them is refused ([`InputLayout::check_producers`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub producer: Option<String>,
+}
+
+impl ObsKey {
+    /// A plain observation key (not a layer).
+    pub fn new(key: impl Into<String>, dim: usize) -> Self {
+        ObsKey { key: key.into(), dim, producer: None }
+    }
 }
 
 /// Where an extra input comes from (`input.extra_inputs`): the per-step observation series
@@ -301,6 +314,43 @@ pub struct InputLayout {
 }
 
 impl InputLayout {
+    /// The observation keys that are layers, with the producer each requires.
+    pub fn required_producers(&self) -> Vec<(&str, &str)> {
+        self.obs_keys.iter().filter_map(|k| k.producer.as_deref().map(|p| (k.key.as_str(), p))).collect()
+    }
+
+    /// Refuses features from the wrong producer: `provided` names, per observation key, the
+    /// producer (sha256) of the values about to be scored. Every layer key of this verifier must
+    /// be provided with its own producer; a key the verifier takes as a plain observation may
+    /// not claim one.
+    pub fn check_producers<'a>(&self, provided: impl IntoIterator<Item = (&'a str, &'a str)>) -> crate::Result<()> {
+        let provided: Vec<(&str, &str)> = provided.into_iter().collect();
+        for k in &self.obs_keys {
+            let given = provided.iter().find(|(key, _)| *key == k.key).map(|(_, p)| *p);
+            match (&k.producer, given) {
+                (Some(want), Some(got)) if want != got => {
+                    return Err(crate::VerifierError::Input(format!(
+                        "observation {:?} comes from producer {}, but this verifier was trained on features of producer {} \
+                         (another encoder or other weights: its scores would mean nothing)",
+                        k.key,
+                        short(got),
+                        short(want)
+                    )))
+                }
+                (Some(want), None) => {
+                    return Err(crate::VerifierError::Input(format!(
+                        "observation {:?} is a feature layer of producer {}: say which producer made the features \
+                         you score (this verifier refuses features of any other)",
+                        k.key,
+                        short(want)
+                    )))
+                }
+                _ => {}
+            }
+        }
+        Ok(())
+    }
+
     /// Width of one observation step (sum of key dims).
     pub fn step_obs_dim(&self) -> usize {
         self.obs_keys.iter().map(|k| k.dim).sum()
@@ -621,4 +671,45 @@ pub fn is_plain_name(s: &str) -> bool {
         && s != "."
         && s != ".."
         && s.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.@".contains(&b))
+}
+
+fn short(hash: &str) -> &str {
+    hash.get(..12).unwrap_or(hash)
+}
+
+#[cfg(test)]
+mod producer_tests {
+    use super::*;
+
+    fn layout() -> InputLayout {
+        InputLayout {
+            obs_keys: vec![
+                ObsKey { key: "features.cnn".into(), dim: 4, producer: Some("a".repeat(64)) },
+                ObsKey::new("state", 2),
+            ],
+            obs_history: 1,
+            chunk_len: 2,
+            action_dim: 2,
+            t_embed_dim: 8,
+            extra_inputs: vec![],
+        }
+    }
+
+    #[test]
+    fn features_of_another_producer_are_refused() {
+        let l = layout();
+        let right = "a".repeat(64);
+        let wrong = "b".repeat(64);
+        assert_eq!(l.required_producers(), vec![("features.cnn", right.as_str())]);
+        assert!(l.check_producers([("features.cnn", right.as_str())]).is_ok());
+        let err = l.check_producers([("features.cnn", wrong.as_str())]).unwrap_err().to_string();
+        assert!(err.contains("bbbbbbbbbbbb") && err.contains("aaaaaaaaaaaa") && err.contains("features.cnn"), "{err}");
+        let err = l.check_producers([]).unwrap_err().to_string();
+        assert!(err.contains("say which producer"), "{err}");
+        // A plain key may be given any producer (it is not a layer), and old artifacts' JSON
+        // (no producer field) reads as plain keys and is written back unchanged.
+        let plain: ObsKey = serde_json::from_str(r#"{"key":"state","dim":2}"#).unwrap();
+        assert_eq!(plain, ObsKey::new("state", 2));
+        assert_eq!(serde_json::to_string(&plain).unwrap(), r#"{"key":"state","dim":2}"#);
+    }
 }

@@ -230,6 +230,13 @@ impl Verifier {
     pub fn config(&self) -> &ArtifactConfig {
         &self.config
     }
+    /// Refuses to score features from another producer than the one this verifier was trained
+    /// on: `provided` names the producer (sha256) of each layer observation key about to be
+    /// scored (see [`crate::InputLayout::check_producers`]). Call it once when the robot's
+    /// encoder is set up, before the first score.
+    pub fn check_producers<'a>(&self, provided: impl IntoIterator<Item = (&'a str, &'a str)>) -> crate::Result<()> {
+        self.config.input.layout.check_producers(provided)
+    }
     pub fn kind(&self) -> Kind {
         self.kind
     }

@@ -90,7 +90,7 @@ impl RandomSpec {
             kind: self.kind,
             input: InputConfig {
                 layout: InputLayout {
-                    obs_keys: self.obs_keys.iter().map(|(k, d)| ObsKey { key: k.clone(), dim: *d }).collect(),
+                    obs_keys: self.obs_keys.iter().map(|(k, d)| ObsKey::new(k.clone(), *d)).collect(),
                     obs_history: self.obs_history,
                     chunk_len: self.chunk_len,
                     action_dim: self.action_dim,

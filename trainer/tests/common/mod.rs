@@ -42,7 +42,7 @@ pub fn action_task(n_eps: usize, steps: usize, seed: u64) -> Vec<Episode> {
 
 pub fn action_spec() -> InputSpec {
     InputSpec {
-        obs_keys: vec![ObsKey { key: "pos".into(), dim: 3 }, ObsKey { key: "vel".into(), dim: 1 }],
+        obs_keys: vec![ObsKey::new("pos", 3), ObsKey::new("vel", 1)],
         obs_history: 2,
         chunk_len: 4,
         action_dim: 2,
@@ -80,7 +80,7 @@ pub fn q_task(n_eps: usize, seed: u64) -> Vec<Episode> {
 
 pub fn q_spec() -> InputSpec {
     InputSpec {
-        obs_keys: vec![ObsKey { key: "s".into(), dim: 2 }],
+        obs_keys: vec![ObsKey::new("s", 2)],
         obs_history: 1,
         chunk_len: 2,
         action_dim: 1,
