@@ -28,6 +28,7 @@ use utoipa::{Modify, OpenApi, ToSchema};
         routes::put_label, routes::bulk_labels, routes::create_snapshot,
         routes::get_campaign, routes::put_campaign, routes::get_failure_causes, routes::put_failure_causes,
         routes::post_vote, routes::get_votes, routes::adjudication_queue, routes::adjudicate, routes::get_agreement,
+        routes::list_layers, routes::layer_episodes, routes::episode_layers, routes::write_layer,
         routes::create_split, routes::list_splits, routes::get_split,
         routes::create_job, routes::list_jobs, routes::get_job, routes::cancel_job,
         routes::list_artifacts, routes::get_artifact, routes::artifact_file, routes::set_alias,

@@ -224,3 +224,27 @@ pub async fn token(args: &StoreArgs, cmd: TokenCommand) -> Result<()> {
     }
     Ok(())
 }
+
+pub async fn layers(args: &StoreArgs, episode: Option<String>, version: Option<i64>, json: bool) -> Result<()> {
+    let store = args.open().await?;
+    if let Some(id) = episode {
+        let held = store.episode_layers(&id, version).await?;
+        if json {
+            return print_json(&held);
+        }
+        println!("{:<32} {:>6} {:>8}  producer", "layer", "dim", "version");
+        for l in held {
+            println!("{:<32} {:>6} {:>8}  {}", l.layer, l.dim, l.version_added, &l.producer_hash[..12]);
+        }
+        return Ok(());
+    }
+    let all = store.layers().await?;
+    if json {
+        return print_json(&all);
+    }
+    println!("{:<32} {:>6} {:>9} {:>8}  producer", "layer", "dim", "episodes", "version");
+    for l in all {
+        println!("{:<32} {:>6} {:>9} {:>8}  {} {}", l.name, l.dim, l.episodes, l.version, &l.producer_hash[..12], l.producer);
+    }
+    Ok(())
+}

@@ -92,6 +92,18 @@ pub enum Command {
     },
     /// List verifier artifacts, set aliases, show or download one.
     Artifacts(catalog_cmds::ArtifactsArgs),
+    /// List the store's layers (derived per-step data such as a policy encoder's features, one
+    /// row per layer and producer), or those one episode holds (now or at --version).
+    /// Layers are written from Python (`ufops.features.compute_layer`) and read joined to the
+    /// steps as `obs.<layer>`; `ufops train --obs-keys LAYER …` trains on them.
+    Layers {
+        #[arg(long)]
+        episode: Option<String>,
+        #[arg(long, requires = "episode")]
+        version: Option<i64>,
+        #[arg(long)]
+        json: bool,
+    },
     /// API tokens.
     Token {
         #[command(subcommand)]
@@ -185,6 +197,7 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Gc { grace_seconds, dry_run, json } => store_cmds::gc(&cli.store, grace_seconds, dry_run, json).await,
         Command::Split { command } => catalog_cmds::split(&cli.store, command).await,
         Command::Artifacts(a) => catalog_cmds::artifacts(&cli.store, a).await,
+        Command::Layers { episode, version, json } => catalog_cmds::layers(&cli.store, episode, version, json).await,
         Command::Token { command } => catalog_cmds::token(&cli.store, command).await,
         Command::Ingest(a) => serve_cmds::ingest(&cli.store, a).await,
         Command::Export(a) => export_cmd::export(&cli.store, a).await,

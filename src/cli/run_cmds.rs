@@ -12,17 +12,26 @@ pub struct TrainArgs {
     /// classifier | q
     #[arg(long)]
     pub kind: String,
-    /// Training recipe (.json or .toml; missing fields take the paper's defaults).
+    /// Training recipe (.json or .toml). Missing fields take the paper's defaults: its image
+    /// recipe (features variant) when an observation key is a layer (encoder features), else its
+    /// low-dimensional one. The file may also give the input spec (`obs_keys`, `obs_history`,
+    /// `chunk_len`, `step_stride`); the flags below override it.
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Observation keys in order (default: all).
-    #[arg(long, num_args = 1..)]
+    /// Observation keys in order: observation columns (`observation.state`) and layers
+    /// (`features.dp-resnet18`, see `ufops layers`), space- or comma-separated. Default: every
+    /// observation column of the split's first episode, in the source's order.
+    #[arg(long, num_args = 1.., value_delimiter = ',')]
     pub obs_keys: Option<Vec<String>>,
+    /// Observation history T_o (default 2, the paper's).
     #[arg(long)]
     pub obs_history: Option<usize>,
+    /// The policy's action chunk length H. Default: the length of the chunks the episodes store
+    /// (`action_chunk`; giving another length is an error), else 16 (the paper's) with a warning.
     #[arg(long)]
     pub chunk_len: Option<usize>,
-    /// Train only on steps t with t % STRIDE == 0 (where a chunking policy re-planned).
+    /// Train only on steps t with t % STRIDE == 0 (where a chunking policy re-planned; usually
+    /// its chunk length). Default 1: every step.
     #[arg(long)]
     pub step_stride: Option<usize>,
     /// The policy's action normaliser, raw = x * SCALE + OFFSET, one value per action dimension:
@@ -52,9 +61,12 @@ pub fn parse_kind(s: &str) -> Result<trainer::Kind> {
 pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
     let store = args.open().await?;
     let kind = parse_kind(&a.kind)?;
-    let mut config = match &a.config {
-        Some(p) => Some(trainer::TrainConfig::from_file(p)?),
-        None => None,
+    let (mut config, recipe_input) = match &a.config {
+        Some(p) => {
+            let (c, input) = trainer::TrainConfig::from_recipe_file(p)?;
+            (Some(c), input)
+        }
+        None => (None, trainer::RecipeInput::default()),
     };
     if a.action_scale.is_some() || a.standardize_actions {
         let c = config.get_or_insert_with(|| trainer::TrainConfig { kind, ..Default::default() });
@@ -74,10 +86,10 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
         split_id: a.split.clone(),
         kind,
         config,
-        obs_keys: a.obs_keys,
-        obs_history: a.obs_history,
-        chunk_len: a.chunk_len,
-        step_stride: a.step_stride,
+        obs_keys: a.obs_keys.or(recipe_input.obs_keys),
+        obs_history: a.obs_history.or(recipe_input.obs_history),
+        chunk_len: a.chunk_len.or(recipe_input.chunk_len),
+        step_stride: a.step_stride.or(recipe_input.step_stride),
     };
     let job = store.create_job("train", &serde_json::to_value(&spec)?, &a.actor).await?;
     let worker = api::worker_identity("cli");

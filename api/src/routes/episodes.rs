@@ -166,7 +166,17 @@ pub async fn episode_counts(State(s): State<AppState>, ApiQuery(q): ApiQuery<Cou
 #[into_params(parameter_in = Query)]
 pub struct VersionQuery {
     /// As of this version; default: now.
-    version: Option<i64>,
+    pub(crate) version: Option<i64>,
+}
+
+#[derive(Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct StepsQuery {
+    /// As of this version; default: now.
+    pub(crate) version: Option<i64>,
+    /// Layers to join as `obs.<layer>` columns (comma-separated layer names, see `GET /v1/layers`).
+    #[param(pattern = r"^[A-Za-z0-9._-]{1,120}(,[A-Za-z0-9._-]{1,120}){0,15}$")]
+    pub(crate) layers: Option<String>,
 }
 
 /// An episode and its label history, oldest first.
@@ -209,19 +219,34 @@ pub async fn get_episode(
 
 /// The step table: JSON (columnar) or, with `Accept: application/vnd.apache.arrow.stream`, Arrow IPC.
 #[utoipa::path(get, path = "/v1/episodes/{id}/steps", tag = "episodes",
-    params(("id" = String, Path), VersionQuery),
+    params(("id" = String, Path), StepsQuery),
     responses(
         (status = 200, description = "columnar JSON, or with `Accept: application/vnd.apache.arrow.stream` an Arrow IPC stream",
          content((StepColumns = "application/json"), (FileBytes = "application/vnd.apache.arrow.stream"))),
+        (status = 400, description = "a bad layer name, or the episode lacks a layer asked for"),
         (status = 404, description = "no such episode or version")))]
 pub async fn get_steps(
     State(s): State<AppState>,
     ApiPath(id): ApiPath<String>,
-    ApiQuery(q): ApiQuery<VersionQuery>,
+    ApiQuery(q): ApiQuery<StepsQuery>,
     headers: HeaderMap,
 ) -> ApiResult<Response> {
     check_id("episode id", &id)?;
-    let batch = s.store().read_steps(&id, q.version).await?;
+    let layers: Vec<String> = match q.layers.as_deref() {
+        None => vec![],
+        Some(list) => list.split(',').map(str::to_string).collect(),
+    };
+    if layers.len() > 16 {
+        return Err(ApiError::bad_request("at most 16 layers at once"));
+    }
+    for l in &layers {
+        store::check_layer_name(l)?;
+    }
+    let batch = if layers.is_empty() {
+        s.store().read_steps(&id, q.version).await?
+    } else {
+        s.store().read_steps_with_layers(&id, q.version, &layers).await?
+    };
     let wants_arrow = headers
         .get(header::ACCEPT)
         .and_then(|v| v.to_str().ok())

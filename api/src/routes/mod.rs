@@ -18,6 +18,7 @@ mod exports;
 mod infra;
 mod jobs;
 mod labels;
+mod layers;
 mod review;
 mod scoreboard;
 mod splits;
@@ -31,6 +32,7 @@ pub use exports::*;
 pub use infra::*;
 pub use jobs::*;
 pub use labels::*;
+pub use layers::*;
 pub use review::*;
 pub use scoreboard::*;
 pub use splits::*;
@@ -79,6 +81,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
         .merge(infra::router())
         .merge(jobs::router())
         .merge(labels::router())
+        .merge(layers::router())
         .merge(review::router())
         .merge(scoreboard::router())
         .merge(splits::router())
