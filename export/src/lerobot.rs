@@ -32,7 +32,7 @@ use serde_json::{json, Map, Value};
 use store::steps::{EXTRA_PREFIX, IMAGE_PREFIX, MEDIA_PREFIX, OBS_PREFIX};
 use store::{EpisodeRecord, Label, Store};
 
-use crate::{count_label, disk_size, for_each_episode, ExportError, ExportReport, Progress, Result, Selected, Staged};
+use crate::{count_label, disk_size, for_each_episode_with_layers, ExportError, ExportReport, Progress, Result, Selected, Staged};
 
 pub const CODEBASE_VERSION: &str = "v3.0";
 const CHUNKS_SIZE: usize = 1000;
@@ -522,7 +522,7 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
     let total = sel.episodes.len();
     let mut writer: Option<Writer> = None;
     let root = staged.tmp.clone();
-    for_each_episode(store, &sel.episodes, |i, e, steps| {
+    for_each_episode_with_layers(store, &sel.episodes, &sel.selection.layers, Some(sel.version), |i, e, steps| {
         if writer.is_none() {
             let layout = layout_of(&steps.schema())?;
             if layout.action == 0 {

@@ -63,6 +63,11 @@ pub struct Selection {
     /// Keep only episodes whose verifier score lies in a range (Demo-SCORE-style curation); the
     /// scoring itself is done by [`filter_by_score`] with a scorer the caller supplies.
     pub score: Option<ScoreRange>,
+    /// Layers (derived per-step data, e.g. an encoder's features) carried as observation
+    /// columns `obs.<layer>` (LeRobot `observation.<layer>`, robomimic `obs/<layer>`); every
+    /// selected episode must hold them (in the selection's version).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub layers: Vec<String>,
 }
 
 /// A range of episode scores of one verifier artifact: `min <= score <= max` (either bound open).
@@ -85,6 +90,11 @@ impl ScoreRange {
 /// verifier core (`trainer::score_steps`), so this crate does not depend on the trainer.
 pub trait StepScorer: Send + Sync {
     fn score_steps(&self, steps: &RecordBatch) -> std::result::Result<Vec<f32>, String>;
+    /// The layers the verifier reads (observation keys that are layers): joined to the steps
+    /// it is given.
+    fn layers(&self) -> Vec<String> {
+        Vec::new()
+    }
 }
 
 /// An episode's score: the mean of its steps' scores, as Demo-SCORE aggregates a rollout
@@ -101,7 +111,7 @@ pub async fn score_each_episode(
     scorer: &dyn StepScorer,
     mut f: impl FnMut(usize, &EpisodeRecord, Vec<f32>) -> Result<()>,
 ) -> Result<()> {
-    for_each_episode(store, episodes, |i, e, steps| {
+    for_each_episode_with_layers(store, episodes, &scorer.layers(), None, |i, e, steps| {
         let s = scorer.score_steps(&steps).map_err(|m| ExportError::invalid(format!("scoring episode {}: {m}", e.id)))?;
         if s.iter().any(|x| !x.is_finite()) {
             return Err(ExportError::invalid(format!("scoring episode {}: the verifier returned a non-finite score", e.id)));
@@ -264,6 +274,17 @@ const GROUP_EPISODES: usize = 256;
 pub async fn for_each_episode(
     store: &Store,
     episodes: &[EpisodeRecord],
+    f: impl FnMut(usize, &EpisodeRecord, RecordBatch) -> Result<()>,
+) -> Result<()> {
+    for_each_episode_with_layers(store, episodes, &[], None, f).await
+}
+
+/// [`for_each_episode`] with `layers` joined to the steps (as `obs.<layer>`), as of `version`.
+pub async fn for_each_episode_with_layers(
+    store: &Store,
+    episodes: &[EpisodeRecord],
+    layers: &[String],
+    version: Option<i64>,
     mut f: impl FnMut(usize, &EpisodeRecord, RecordBatch) -> Result<()>,
 ) -> Result<()> {
     let mut start = 0;
@@ -276,7 +297,13 @@ pub async fn for_each_episode(
         }
         let locations = episodes[start..end].iter().map(EpisodeLocation::try_from).collect::<Result<Vec<_>, _>>()?;
         let mut slots: Vec<Option<RecordBatch>> = vec![None; end - start];
-        let mut stream = store.read_episodes(locations);
+        let mut stream = if layers.is_empty() {
+            store.read_episodes(locations)
+        } else {
+            let ids: Vec<String> = episodes[start..end].iter().map(|e| e.id.clone()).collect();
+            let at = store.locate_layers(&ids, layers, version).await?;
+            store.read_episodes_with_layers(locations, layers.to_vec(), at)
+        };
         while let Some(item) = stream.next().await {
             let item = item.map_err(StoreError::from)?;
             slots[item.index] = Some(item.steps);

@@ -27,7 +27,7 @@ use serde_json::Value;
 use store::steps::{EXTRA_PREFIX, IMAGE_PREFIX, OBS_PREFIX};
 use store::{EpisodeRecord, Store};
 
-use crate::{count_label, disk_size, for_each_episode, ExportError, ExportReport, Progress, Result, Selected, Staged};
+use crate::{count_label, disk_size, for_each_episode_with_layers, ExportError, ExportReport, Progress, Result, Selected, Staged};
 
 fn bad(e: &EpisodeRecord, what: impl std::fmt::Display) -> ExportError {
     ExportError::invalid(format!("episode {}: {what}", e.id))
@@ -300,7 +300,7 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
     let mut data = fb.create_group("data");
     let total = sel.episodes.len();
     let mut videos_left_out = 0;
-    for_each_episode(store, &sel.episodes, |i, e, steps| {
+    for_each_episode_with_layers(store, &sel.episodes, &sel.selection.layers, Some(sel.version), |i, e, steps| {
         let name = format!("demo_{i}");
         let robomimic_source = sources.get(&e.source_sha256).is_some_and(|(f, _)| f == "robomimic");
         if steps.schema().fields().iter().any(|f| f.name().starts_with(store::steps::MEDIA_PREFIX)) {

@@ -28,6 +28,10 @@ pub struct SelectionArgs {
     pub label: Option<String>,
     #[arg(long)]
     pub tag: Option<String>,
+    /// Layers to carry as observation columns (an encoder's features; see `ufops layers`):
+    /// LeRobot `observation.<layer>`, robomimic `obs/<layer>`. Comma-separated.
+    #[arg(long, value_delimiter = ',')]
+    pub layers: Vec<String>,
 }
 
 impl SelectionArgs {
@@ -41,6 +45,7 @@ impl SelectionArgs {
             label: self.label.as_deref().map(str::parse).transpose()?,
             tag: self.tag.clone(),
             score,
+            layers: self.layers.clone(),
         })
     }
 }
@@ -87,6 +92,9 @@ impl StoreScorer {
 impl ::export::StepScorer for StoreScorer {
     fn score_steps(&self, steps: &arrow::array::RecordBatch) -> Result<Vec<f32>, String> {
         trainer::score_steps(&self.verifier, steps).map_err(|e| format!("{e:#}"))
+    }
+    fn layers(&self) -> Vec<String> {
+        self.verifier.config().input.layout.required_producers().iter().map(|(k, _)| k.to_string()).collect()
     }
 }
 

@@ -537,7 +537,7 @@ impl Store {
                 .map(|id| {
                     found.remove(id).ok_or_else(|| {
                         let at = version.map_or_else(|| "now".to_string(), |v| format!("in version {v}"));
-                        StoreError::invalid(format!("episode {id} has no layer {name} {at}"))
+                        StoreError::not_found("layer", format!("{name} of episode {id} {at} (see `ufops layers`)"))
                     })
                 })
                 .collect::<Result<Vec<_>, _>>()?;

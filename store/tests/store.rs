@@ -424,7 +424,7 @@ async fn layers_behaviour(store: Store, data_dir: &std::path::Path) {
     assert_eq!(field.metadata().get(PRODUCER_META_KEY), Some(&first.producer_hash));
     assert_eq!(steps::vector_column(&b, "obs.pos").unwrap().1, steps::vector_column(&store.read_steps(&ids[3], None).await.unwrap(), "obs.pos").unwrap().1);
     let err = store.read_steps_with_layers(&ids[3], Some(v1), &layers).await.unwrap_err().to_string();
-    assert!(err.contains("has no layer") && err.contains(&format!("version {v1}")), "{err}");
+    assert!(err.contains("layer not found") && err.contains(&format!("version {v1}")), "{err}");
     assert!(store.read_steps_with_layers(&ids[0], Some(v1), &layers).await.is_ok());
     assert!(store.read_steps_with_layers(&ids[0], Some(before), &layers).await.is_err(), "the version before has no layer");
     assert_eq!(store.episode_layers(&ids[0], Some(before)).await.unwrap(), vec![]);

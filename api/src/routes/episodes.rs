@@ -223,8 +223,8 @@ pub async fn get_episode(
     responses(
         (status = 200, description = "columnar JSON, or with `Accept: application/vnd.apache.arrow.stream` an Arrow IPC stream",
          content((StepColumns = "application/json"), (FileBytes = "application/vnd.apache.arrow.stream"))),
-        (status = 400, description = "a bad layer name, or the episode lacks a layer asked for"),
-        (status = 404, description = "no such episode or version")))]
+        (status = 400, description = "a bad layer name"),
+        (status = 404, description = "no such episode or version, or the episode lacks a layer asked for")))]
 pub async fn get_steps(
     State(s): State<AppState>,
     ApiPath(id): ApiPath<String>,

@@ -47,7 +47,17 @@ pub struct ExportCreate {
     tag: Option<String>,
     /// Keep only the episodes a verifier scores within a range.
     score: Option<ExportScore>,
+    /// Layers to carry as observation columns (see `GET /v1/layers`); every selected episode
+    /// must hold them.
+    #[serde(default)]
+    #[schema(max_items = 16)]
+    layers: Vec<LayerName>,
 }
+
+/// A layer name (`GET /v1/layers`).
+#[derive(Deserialize, ToSchema)]
+#[schema(value_type = String, pattern = r"^[A-Za-z0-9._-]{1,120}$")]
+pub struct LayerName(String);
 
 /// An export's curation by a verifier: the episodes `artifact` scores in [min, max] (an
 /// episode's score is its mean success probability or value over its steps).
@@ -101,6 +111,12 @@ pub async fn create_export(
     if let Some(v) = b.version {
         s.store().version(v).await?;
     }
+    if b.layers.len() > 16 {
+        return Err(ApiError::bad_request("at most 16 layers"));
+    }
+    for l in &b.layers {
+        store::check_layer_name(&l.0)?;
+    }
     let label = b.label.as_deref().map(parse_label).transpose()?;
     let score = match &b.score {
         Some(r) => {
@@ -123,6 +139,7 @@ pub async fn create_export(
             label,
             tag: b.tag,
             score,
+            layers: b.layers.into_iter().map(|l| l.0).collect(),
         },
     };
     spec.check().map_err(|e| ApiError::bad_request(e.to_string()))?;
