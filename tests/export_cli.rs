@@ -219,3 +219,88 @@ fn export_carries_failure_causes_and_spans() {
     let spans: serde_json::Value = serde_json::from_str(with[0]["label_spans"].as_str().unwrap()).unwrap();
     assert_eq!(spans, serde_json::json!([{"start_step": 2, "end_step": 5}]));
 }
+
+/// Layers in time travel and export: `ufops layers` lists a layer written after the ingest, an
+/// episode holds it from that version on, and a LeRobot v3.0 export with `--layers` carries it
+/// as `observation.<layer>`, which re-ingests bit-exactly (an export without it has no such
+/// column); the robomimic export carries it as `obs/<layer>`.
+#[test]
+fn export_carries_layers_and_they_re_ingest_bit_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("store");
+    let t = Target::sqlite(&data);
+    t.ok(&["ingest", fixtures().join("lerobot/v30_eval_video").to_str().unwrap(), "--policy", "act", "--checkpoint", "last"]);
+    let before = t.json(&["versions", "--json"]).as_array().unwrap().len() as i64;
+    let name = "features.cnn";
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    // Values with every bit pattern class a float32 feature has (sub-normals, negatives, large).
+    let written: Vec<(String, Vec<f32>)> = rt.block_on(async {
+        let store = store::Store::open(&store::StoreConfig::local(&data)).await.unwrap();
+        let eps = store.episodes(&store::EpisodeFilter::default()).await.unwrap();
+        let mut values = Vec::new();
+        for (k, e) in eps.iter().enumerate() {
+            let v: Vec<f32> = (0..e.length as usize * 5)
+                .map(|i| f32::from_bits(((i as u32).wrapping_mul(2654435761) ^ (k as u32 * 7919)) & 0xBF7F_FFFF))
+                .map(|x| if x.is_finite() { x } else { 1.5 })
+                .collect();
+            values.push(store::LayerValues { episode_id: e.id.clone(), dim: 5, values: v });
+        }
+        let producer = serde_json::json!({"encoder": "cnn", "policy": "act", "checkpoint": "last", "content_hash": "00"});
+        store.write_layer(name, &producer, values.clone(), "test").await.unwrap();
+        values.into_iter().map(|v| (v.episode_id, v.values)).collect()
+    });
+    let listed = t.json(&["layers", "--json"]);
+    assert_eq!(listed[0]["name"], name, "{listed}");
+    assert_eq!(listed[0]["episodes"].as_u64(), Some(written.len() as u64));
+    let first = &written[0].0;
+    assert_eq!(t.json(&["layers", "--episode", first, "--json"]).as_array().unwrap().len(), 1);
+    let then = before.to_string();
+    assert_eq!(t.json(&["layers", "--episode", first, "--version", &then, "--json"]), serde_json::json!([]));
+
+    // LeRobot v3.0 with the layer, re-ingested into another store.
+    let ds = dir.path().join("ds");
+    t.ok(&["export", ds.to_str().unwrap(), "--format", "lerobot", "--layers", name]);
+    let info: serde_json::Value = serde_json::from_slice(&std::fs::read(ds.join("meta/info.json")).unwrap()).unwrap();
+    assert_eq!(info["features"][format!("observation.{name}")]["shape"], serde_json::json!([5]), "{}", info["features"]);
+    let plain = dir.path().join("plain");
+    t.ok(&["export", plain.to_str().unwrap(), "--format", "lerobot"]);
+    let info: serde_json::Value = serde_json::from_slice(&std::fs::read(plain.join("meta/info.json")).unwrap()).unwrap();
+    assert!(info["features"].get(format!("observation.{name}")).is_none());
+    let other = dir.path().join("other");
+    let t2 = Target::sqlite(&other);
+    t2.ok(&["ingest", ds.to_str().unwrap(), "--policy", "act", "--checkpoint", "last"]);
+    let back = rt.block_on(async {
+        let store = store::Store::open(&store::StoreConfig::local(&other)).await.unwrap();
+        let mut eps = store.episodes(&store::EpisodeFilter::default()).await.unwrap();
+        eps.sort_by_key(|e| e.source_index);
+        let mut out = Vec::new();
+        for e in eps {
+            let b = store.read_steps(&e.id, None).await.unwrap();
+            out.push(store::steps::vector_column(&b, &format!("obs.{name}")).unwrap().1);
+        }
+        out
+    });
+    assert_eq!(back.len(), written.len());
+    for ((id, want), got) in written.iter().zip(&back) {
+        let same = want.len() == got.len() && want.iter().zip(got).all(|(a, b)| a.to_bits() == b.to_bits());
+        assert!(same, "episode {id}: the re-ingested layer differs");
+    }
+
+    // robomimic carries it as obs/<layer>; an episode without the layer is refused clearly.
+    let h5 = dir.path().join("out.hdf5");
+    t.ok(&["export", h5.to_str().unwrap(), "--format", "robomimic", "--layers", name]);
+    let t3 = Target::sqlite(&dir.path().join("third"));
+    t3.ok(&["ingest", h5.to_str().unwrap(), "--policy", "act", "--checkpoint", "last"]);
+    let third = rt.block_on(async {
+        let store = store::Store::open(&store::StoreConfig::local(dir.path().join("third"))).await.unwrap();
+        let mut eps = store.episodes(&store::EpisodeFilter::default()).await.unwrap();
+        eps.sort_by_key(|e| e.source_index);
+        let b = store.read_steps(&eps[0].id, None).await.unwrap();
+        store::steps::vector_column(&b, &format!("obs.{name}")).unwrap().1
+    });
+    assert!(third.iter().zip(&written[0].1).all(|(a, b)| a.to_bits() == b.to_bits()) && third.len() == written[0].1.len());
+    let out = t.run(&["export", dir.path().join("nope").to_str().unwrap(), "--format", "lerobot", "--layers", "features.none"]);
+    assert!(!out.status.success());
+    assert!(text(&out.stderr).contains("layer not found: features.none of episode"), "{}", text(&out.stderr));
+    assert!(!dir.path().join("nope").exists());
+}

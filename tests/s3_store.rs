@@ -221,3 +221,107 @@ fn walk(p: &std::path::Path) -> Vec<std::path::PathBuf> {
         vec![p.to_path_buf()]
     }
 }
+
+/// An Arrow IPC stream of layer values: `dim` floats per step, step t of episode k holding
+/// `k * 100 + t + d / 10`.
+fn layer_stream(eps: &[(String, usize)], dim: usize) -> Vec<u8> {
+    use arrow::array::{ArrayRef, FixedSizeListArray, Float32Array, RecordBatch, StringArray};
+    use arrow::datatypes::{DataType, Field, Schema};
+    use std::sync::Arc;
+    let item = Arc::new(Field::new("item", DataType::Float32, false));
+    let schema = Arc::new(Schema::new(vec![
+        Field::new("episode_id", DataType::Utf8, false),
+        Field::new("value", DataType::FixedSizeList(item.clone(), dim as i32), false),
+    ]));
+    let mut buf = Vec::new();
+    let mut w = arrow::ipc::writer::StreamWriter::try_new(&mut buf, &schema).unwrap();
+    for (k, (id, steps)) in eps.iter().enumerate() {
+        let ids: ArrayRef = Arc::new(StringArray::from(vec![id.as_str(); *steps]));
+        let v: Vec<f32> = (0..*steps).flat_map(|t| (0..dim).map(move |d| (k * 100 + t) as f32 + d as f32 / 10.0)).collect();
+        let vals: ArrayRef = Arc::new(FixedSizeListArray::try_new(item.clone(), dim as i32, Arc::new(Float32Array::from(v)), None).unwrap());
+        w.write(&RecordBatch::try_new(schema.clone(), vec![ids, vals]).unwrap()).unwrap();
+    }
+    w.finish().unwrap();
+    drop(w);
+    buf
+}
+
+/// Layers over the API on the scale-out store (Postgres + S3): a trainer writes a layer as an
+/// Arrow IPC stream (a version; the same again writes nothing), every client reads the steps
+/// with it joined, the version before has none, bad streams are 400s that change nothing, a
+/// viewer may not write, and a verifier trains on the layer from S3.
+#[test]
+fn layers_over_the_api_on_postgres_and_s3() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some(s3) = seaweedfs::SeaweedFs::start_if_available() else { return };
+    let Some(t) = s3_target(dir.path(), &s3, "layers") else { return };
+    t.ok(&["init"]);
+    t.ok(&["ingest", fixtures().join("lerobot/v30_eval_video").to_str().unwrap(), "--policy", "arm", "--checkpoint", "c1"]);
+    let before = t.json(&["versions", "--json"]).as_array().unwrap().len() as i64;
+    let eps: Vec<(String, usize)> = t
+        .json(&["episodes", "--json"])
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| (e["id"].as_str().unwrap().to_string(), e["length"].as_u64().unwrap() as usize))
+        .collect();
+    let trainer = t.json(&["token", "create", "--name", "enc", "--role", "trainer", "--json"])["token"].as_str().unwrap().to_string();
+    let viewer = t.json(&["token", "create", "--name", "v", "--role", "viewer", "--json"])["token"].as_str().unwrap().to_string();
+    let server = t.serve(&["--no-worker"]);
+    let (ta, va) = (format!("Bearer {trainer}"), format!("Bearer {viewer}"));
+    let producer = r#"{"encoder":"cnn","policy":"arm","checkpoint":"c1","content_hash":"abc"}"#;
+    let q: String = producer.bytes().map(|b| if b.is_ascii_alphanumeric() { (b as char).to_string() } else { format!("%{b:02X}") }).collect();
+    let path = format!("/v1/layers/features.cnn?producer={q}");
+    let ct = Some("application/vnd.apache.arrow.stream");
+
+    // Refused: a viewer, a stream that is not Arrow, a wrong row count; the store is unchanged.
+    let body = layer_stream(&eps[..3], 4);
+    assert_eq!(http_bytes(&server.url, "POST", &path, &[("Authorization", &va)], &body, ct).status, 403);
+    let r = http_bytes(&server.url, "POST", &path, &[("Authorization", &ta)], b"not arrow", ct);
+    assert_eq!(r.status, 400, "{}", String::from_utf8_lossy(&r.body));
+    let mut short = eps[..1].to_vec();
+    short[0].1 -= 1;
+    let r = http_bytes(&server.url, "POST", &path, &[("Authorization", &ta)], &layer_stream(&short, 4), ct);
+    assert_eq!(r.status, 400, "{}", String::from_utf8_lossy(&r.body));
+    assert!(String::from_utf8_lossy(&r.body).contains("steps"));
+    assert_eq!(t.json(&["versions", "--json"]).as_array().unwrap().len() as i64, before);
+
+    // Three episodes, then all (the first three skipped), then all again (nothing).
+    let r = http_bytes(&server.url, "POST", &path, &[("Authorization", &ta)], &body, ct);
+    assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json()["episodes_written"], 3);
+    let all = layer_stream(&eps, 4);
+    let r = http_bytes(&server.url, "POST", &path, &[("Authorization", &ta)], &all, ct);
+    assert_eq!((r.status, r.json()["episodes_written"].as_u64(), r.json()["episodes_skipped"].as_u64()), (201, Some(eps.len() as u64 - 3), Some(3)));
+    let r = http_bytes(&server.url, "POST", &path, &[("Authorization", &ta)], &all, ct);
+    assert_eq!((r.status, r.json()["version"].is_null()), (200, true));
+    let listed = http(&server.url, "GET", "/v1/layers", &[("Authorization", &va)], None).json();
+    assert_eq!(listed[0]["episodes"].as_u64(), Some(eps.len() as u64), "{listed}");
+    let hash = listed[0]["producer_hash"].as_str().unwrap();
+    let held = http(&server.url, "GET", &format!("/v1/layers/features.cnn/episodes?producer_hash={hash}"), &[("Authorization", &va)], None).json();
+    assert_eq!(held.as_array().unwrap().len(), eps.len());
+
+    // Read back joined, as JSON columns; not there in the version before.
+    let (id, steps) = &eps[5];
+    let r = http(&server.url, "GET", &format!("/v1/episodes/{id}/steps?layers=features.cnn"), &[("Authorization", &va)], None);
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let col = r.json()["columns"]["obs.features.cnn"].clone();
+    let rows = col.as_array().unwrap_or_else(|| panic!("no obs.features.cnn in {}", r.json()["columns"].as_object().unwrap().keys().cloned().collect::<Vec<_>>().join(",")));
+    assert_eq!(rows.len(), *steps);
+    assert_eq!(rows[2][1].as_f64().unwrap() as f32, 502.0 + 0.1);
+    let r = http(&server.url, "GET", &format!("/v1/episodes/{id}/steps?layers=features.cnn&version={before}"), &[("Authorization", &va)], None);
+    assert_eq!(r.status, 404, "{}", String::from_utf8_lossy(&r.body));
+    let held = http(&server.url, "GET", &format!("/v1/episodes/{id}/layers?version={before}"), &[("Authorization", &va)], None).json();
+    assert_eq!(held, serde_json::json!([]));
+    drop(server);
+
+    // A verifier trained on the layer, from S3, records the producer.
+    let split = t.json(&["split", "create", "--policy", "arm", "--checkpoint", "c1", "--json"]);
+    let cfg = dir.path().join("train.json");
+    std::fs::write(&cfg, r#"{"epochs": 2, "batch_size": 64, "chunk_len": 4}"#).unwrap();
+    let art = t.json(&["train", "--split", split["id"].as_str().unwrap(), "--kind", "classifier", "--config", cfg.to_str().unwrap(), "--obs-keys", "features.cnn", "--json"]);
+    let keys = &art["config"]["input"]["obs_keys"];
+    assert_eq!(keys[0]["key"], "features.cnn", "{keys}");
+    assert_eq!(keys[0]["producer"].as_str(), Some(hash));
+    assert_eq!(art["config"]["input"]["chunk_len"], 4, "the recipe file's chunk_len");
+}

@@ -73,23 +73,100 @@ fn every_client_gives_the_same_scores_and_gradients() {
     std::fs::write(&features, serde_json::to_string(&f).unwrap()).unwrap();
     t.ok(&["train", "--split", &split, "--kind", "q", "--config", features.to_str().unwrap()]);
 
-    // The steps of a stored episode: what the viewer scores.
+    // A verifier that sees through a layer: every episode gets a per-step "encoder feature"
+    // (a fixed nonlinear projection of its observation, standing in for a policy's image
+    // encoder) written as layer `features.proj` by producer `proj-v1`, and a classifier is
+    // trained on it plus nothing else, with the features recipe.
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
-    let batch = rt.block_on(async {
+    let producer = serde_json::json!({"encoder": "proj", "policy": "synth", "checkpoint": "ckpt-0", "content_hash": "v1"});
+    let layer = "features.proj";
+    rt.block_on(async {
+        let store = store::Store::open(&store::StoreConfig::local(dir.path())).await.unwrap();
+        let eps = store.episodes(&store::EpisodeFilter { policy: Some("synth".into()), ..Default::default() }).await.unwrap();
+        let mut values = Vec::new();
+        for e in &eps {
+            let b = store.read_steps(&e.id, None).await.unwrap();
+            let keys = store::steps::observation_keys(b.schema().as_ref());
+            let (dim, obs) = store::steps::vector_column(&b, &format!("obs.{}", keys[0].0)).unwrap();
+            let feats: Vec<f32> = obs
+                .chunks(dim)
+                .flat_map(|o| (0..6).map(move |j| (o.iter().enumerate().map(|(i, x)| x * ((i * 7 + j * 3) % 5) as f32 * 0.3).sum::<f32>() + j as f32 * 0.1).tanh()))
+                .collect();
+            values.push(store::LayerValues { episode_id: e.id.clone(), dim: 6, values: feats });
+        }
+        let w = store.write_layer(layer, &producer, values, "test").await.unwrap();
+        assert_eq!(w.episodes_written, eps.len());
+    });
+    let mut fc = trainer::TrainConfig::preset(trainer::Kind::Classifier, trainer::Variant::Features);
+    fc.architecture.encoder_width = 16;
+    fc.architecture.t_embed_dim = 16;
+    fc.architecture.trunk_dims = vec![32, 16];
+    fc.epochs = 3;
+    fc.batch_size = 256;
+    let features_c = dir.path().join("features-classifier.json");
+    std::fs::write(&features_c, serde_json::to_string(&fc).unwrap()).unwrap();
+    let layer_split = t.json(&["split", "create", "--policy", "synth", "--checkpoint", "ckpt-0", "--seed", "1", "--json"]);
+    let layer_split = layer_split["id"].as_str().unwrap().to_string();
+    let trained = t.json(&[
+        "train", "--split", &layer_split, "--kind", "classifier", "--config", features_c.to_str().unwrap(),
+        "--obs-keys", layer, "--json",
+    ]);
+    let layer_artifact = trained["id"].as_str().unwrap_or_else(|| panic!("no artifact id in {trained}")).to_string();
+    let producer_hash = store::producer_hash(&producer).unwrap();
+
+    // The steps of a stored episode: what the viewer scores (with the layer joined for the
+    // verifier that reads it).
+    let (plain_batch, layer_batch) = rt.block_on(async {
         let store = store::Store::open(&store::StoreConfig::local(dir.path())).await.unwrap();
         let filter = store::EpisodeFilter { policy: Some("synth".into()), limit: Some(1), ..Default::default() };
         let ep = store.episodes(&filter).await.unwrap().remove(0);
-        store.read_steps(&ep.id, None).await.unwrap()
+        (store.read_steps(&ep.id, None).await.unwrap(), store.read_steps_with_layers(&ep.id, None, &[layer.to_string()]).await.unwrap())
     });
     let numpy = numpy_available();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/python/reference/ufops_reference.py");
 
-    for (reference, name) in [("synth/ckpt-0/classifier@latest", "classifier"), ("synth/ckpt-0/q@latest", "q")] {
+    let cases = [
+        (layer_artifact.as_str(), "layer", &layer_batch),
+        ("synth/ckpt-0/q@latest", "q", &plain_batch),
+    ];
+    // The lowdim classifier was published first; the layer classifier is now classifier@latest.
+    let lowdim_id = t.json(&["artifacts", "--policy", "synth", "--checkpoint", "ckpt-0", "--json"]);
+    let lowdim_id = lowdim_id
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|a| a["kind"] == "classifier" && a["id"] != layer_artifact.as_str())
+        .map(|a| a["id"].as_str().unwrap().to_string())
+        .expect("the lowdim classifier");
+    for (reference, name, batch) in [(lowdim_id.as_str(), "classifier", &plain_batch)].into_iter().chain(cases) {
         let local = dir.path().join(name);
         t.ok(&["artifacts", "download", reference, local.to_str().unwrap()]);
         let robot = steer::Verifier::load_dir(&local).unwrap();
         let cfg = robot.config();
         match name {
+            "layer" => {
+                assert_eq!(cfg.architecture.variant, verifier::Variant::Features);
+                assert_eq!(cfg.input.layout.required_producers(), vec![(layer, producer_hash.as_str())]);
+                // The robot refuses features of another encoder, and so does scoring stored
+                // steps whose layer came from another producer.
+                assert!(robot.check_producers([(layer, producer_hash.as_str())]).is_ok());
+                let err = robot.check_producers([(layer, "0".repeat(64).as_str())]).unwrap_err().to_string();
+                assert!(err.contains("trained on features of producer"), "{err}");
+                let schema = batch.schema();
+                let mut fields: Vec<arrow::datatypes::Field> = schema.fields().iter().map(|f| f.as_ref().clone()).collect();
+                for f in fields.iter_mut().filter(|f| f.name() == &format!("obs.{layer}")) {
+                    let mut m = f.metadata().clone();
+                    m.insert(store::PRODUCER_META_KEY.into(), "f".repeat(64));
+                    *f = f.clone().with_metadata(m);
+                }
+                let forged =
+                    arrow::array::RecordBatch::try_new(std::sync::Arc::new(arrow::datatypes::Schema::new(fields)), batch.columns().to_vec())
+                        .unwrap();
+                let err = trainer::step_inputs(cfg, &forged).unwrap_err().to_string();
+                assert!(err.contains("ffffffffffff"), "{err}");
+                let err = trainer::step_inputs(cfg, &plain_batch).unwrap_err().to_string();
+                assert!(err.contains("read the steps with that layer"), "{err}");
+            }
             "classifier" => {
                 assert_eq!(cfg.architecture.variant, verifier::Variant::Lowdim);
                 assert_eq!(cfg.input.action_space, verifier::ActionSpace::policy(vec![0.5, 2.0], vec![0.1, 0.0]));
@@ -100,7 +177,7 @@ fn every_client_gives_the_same_scores_and_gradients() {
                 assert_eq!(a.activation, verifier::Activation::Gelu);
             }
         }
-        let s = trainer::step_inputs(cfg, &batch).unwrap();
+        let s = trainer::step_inputs(cfg, batch).unwrap();
         let (n, ad) = (s.len(), s.act_dim);
         assert!(n >= 10, "{name}: {n} steps");
 
@@ -110,7 +187,7 @@ fn every_client_gives_the_same_scores_and_gradients() {
         assert!(grads.iter().any(|g| g.abs() > 1e-4), "{name}: the gradient is trivially zero");
 
         // The viewer's scorer, on the stored steps themselves.
-        let viewer_scores = viewer::VerifierScorer(verifier::Verifier::load_dir(&local).unwrap()).score_episode(&batch).unwrap();
+        let viewer_scores = viewer::VerifierScorer(verifier::Verifier::load_dir(&local).unwrap()).score_episode(batch).unwrap();
         same(&format!("{name}: viewer scores"), &viewer_scores, &scores, 1e-5);
 
         // `ufops score` from the store, with policy-space rows and with raw rows.
