@@ -108,13 +108,26 @@ impl PyStore {
 
     /// The steps of the episodes `ids` (in that order) as Arrow IPC streams: one stream per run
     /// of episodes sharing a schema (usually one in all).
-    #[pyo3(signature = (ids, version=None))]
-    fn steps_ipc<'py>(&self, py: Python<'py>, ids: Vec<String>, version: Option<i64>) -> PyResult<Vec<Bound<'py, PyBytes>>> {
+    /// `layers` joins those layers' values as `obs.<layer>` columns.
+    #[pyo3(signature = (ids, version=None, layers=None))]
+    fn steps_ipc<'py>(
+        &self,
+        py: Python<'py>,
+        ids: Vec<String>,
+        version: Option<i64>,
+        layers: Option<Vec<String>>,
+    ) -> PyResult<Vec<Bound<'py, PyBytes>>> {
         let streams = py.detach(|| -> PyResult<Vec<Vec<u8>>> {
             let batches = runtime()?.block_on(async {
                 let locations = self.store.locate_episodes(&ids, version).await?;
                 let mut batches: Vec<Option<arrow::array::RecordBatch>> = vec![None; locations.len()];
-                let mut stream = self.store.read_episodes(locations);
+                let layers = layers.unwrap_or_default();
+                let mut stream = if layers.is_empty() {
+                    self.store.read_episodes(locations)
+                } else {
+                    let at = self.store.locate_layers(&ids, &layers, version).await?;
+                    self.store.read_episodes_with_layers(locations, layers, at)
+                };
                 while let Some(item) = stream.next().await {
                     let ep = item?;
                     batches[ep.index] = Some(ep.steps);
@@ -141,6 +154,82 @@ impl PyStore {
             Ok(streams)
         })?;
         Ok(streams.iter().map(|s| PyBytes::new(py, s)).collect())
+    }
+
+    /// The layers (name, producer, dim, episodes holding it now) as a JSON list.
+    fn layers_json(&self, py: Python<'_>) -> PyResult<String> {
+        let v = py.detach(|| runtime()?.block_on(self.store.layers()).map_err(from_store))?;
+        json(&v)
+    }
+
+    /// The layers an episode holds, now or at `version`, as a JSON list.
+    #[pyo3(signature = (episode_id, version=None))]
+    fn episode_layers_json(&self, py: Python<'_>, episode_id: &str, version: Option<i64>) -> PyResult<String> {
+        let v = py.detach(|| runtime()?.block_on(self.store.episode_layers(episode_id, version)).map_err(from_store))?;
+        json(&v)
+    }
+
+    /// The episodes (ids) that hold layer `name` from the producer `producer_hash` now.
+    fn layer_episodes(&self, py: Python<'_>, name: &str, producer_hash: &str) -> PyResult<Vec<String>> {
+        py.detach(|| runtime()?.block_on(self.store.layer_episodes(name, producer_hash)).map_err(from_store))
+    }
+
+    /// The sha256 of a producer (a JSON object) as the store computes it.
+    #[staticmethod]
+    fn producer_hash(producer_json: &str) -> PyResult<String> {
+        let p: serde_json::Value =
+            serde_json::from_str(producer_json).map_err(|e| PyValueError::new_err(format!("producer: {e}")))?;
+        store::producer_hash(&p).map_err(from_store)
+    }
+
+    /// Writes one group of episodes' values of layer `name` (one float32 array of shape
+    /// `(steps, dim)` per episode id) as a new version; episodes holding it from this producer
+    /// already are skipped. Returns what was done as JSON (`version` null when nothing was).
+    #[pyo3(signature = (name, producer_json, episode_ids, values, actor="python"))]
+    fn write_layer_arrays(
+        &self,
+        py: Python<'_>,
+        name: &str,
+        producer_json: &str,
+        episode_ids: Vec<String>,
+        values: Vec<numpy::PyReadonlyArray2<'_, f32>>,
+        actor: &str,
+    ) -> PyResult<String> {
+        use numpy::PyUntypedArrayMethods;
+        if episode_ids.len() != values.len() {
+            return Err(PyValueError::new_err(format!(
+                "{} episode ids but {} value arrays",
+                episode_ids.len(),
+                values.len()
+            )));
+        }
+        let producer: serde_json::Value =
+            serde_json::from_str(producer_json).map_err(|e| PyValueError::new_err(format!("producer: {e}")))?;
+        let mut eps = Vec::with_capacity(values.len());
+        for (id, a) in episode_ids.into_iter().zip(&values) {
+            let dim = a.shape()[1];
+            let flat: Vec<f32> = match a.as_slice() {
+                Ok(s) => s.to_vec(),
+                Err(_) => a.as_array().iter().copied().collect(),
+            };
+            eps.push(store::LayerValues { episode_id: id, dim, values: flat });
+        }
+        let done = py.detach(|| runtime()?.block_on(self.store.write_layer(name, &producer, eps, actor)).map_err(from_store))?;
+        json(&done)
+    }
+
+    /// The size of a store object (a video the steps name in `media.<camera>.path`).
+    fn object_size(&self, py: Python<'_>, path: &str) -> PyResult<u64> {
+        py.detach(|| runtime()?.block_on(self.store.object_size(path)).map_err(from_store))
+    }
+
+    /// Bytes `start..end` of a store object (one ranged read; on S3 a ranged GET).
+    fn read_object_range<'py>(&self, py: Python<'py>, path: &str, start: u64, end: u64) -> PyResult<Bound<'py, PyBytes>> {
+        if end < start || end - start > (256 << 20) {
+            return Err(PyValueError::new_err(format!("range {start}..{end}: at most 256 MiB, end >= start")));
+        }
+        let b = py.detach(|| runtime()?.block_on(self.store.get_object_range(path, start..end)).map_err(from_store))?;
+        Ok(PyBytes::new(py, &b))
     }
 
     /// The splits as a JSON list of records.

@@ -189,6 +189,19 @@ impl PyVerifier {
     fn extra_inputs(&self) -> Vec<(String, usize)> {
         self.v.extra_inputs().into_iter().map(|(n, d)| (n.to_string(), d)).collect()
     }
+    /// `{observation key: producer sha256}` of each key that is a store layer (an encoder's
+    /// features): scoring needs features from exactly that producer.
+    #[getter]
+    fn required_producers(&self) -> std::collections::BTreeMap<String, String> {
+        let l = &self.v.config().input.layout;
+        l.required_producers().into_iter().map(|(k, p)| (k.to_string(), p.to_string())).collect()
+    }
+    /// Raises ValueError unless `provided` (`{observation key: producer sha256}`) names, for
+    /// every layer key of this verifier, the producer it was trained on.
+    fn check_producers(&self, provided: std::collections::BTreeMap<String, String>) -> PyResult<()> {
+        let l = &self.v.config().input.layout;
+        l.check_producers(provided.iter().map(|(k, p)| (k.as_str(), p.as_str()))).map_err(from_verifier)
+    }
     /// `config.json` as a JSON string.
     fn config_json(&self) -> PyResult<String> {
         serde_json::to_string(self.v.config()).map_err(|e| PyValueError::new_err(e.to_string()))

@@ -47,6 +47,87 @@ class Client:
         except urllib.error.URLError as e:
             raise FetchError(f"{method} {self.url}{path}: {e.reason}") from None
 
+    def _request_bytes(
+        self, method: str, path: str, data: Optional[bytes] = None, headers: Optional[Dict[str, str]] = None
+    ) -> bytes:
+        req = urllib.request.Request(self.url + path, data=data, method=method)
+        req.add_header("Authorization", f"Bearer {self.token}")
+        for k, v in (headers or {}).items():
+            req.add_header(k, v)
+        try:
+            with urllib.request.urlopen(req, timeout=self.timeout) as resp:
+                return resp.read()  # type: ignore[no-any-return]
+        except urllib.error.HTTPError as e:
+            raise _error(method, path, e.code, e.read()) from None
+        except urllib.error.URLError as e:
+            raise FetchError(f"{method} {self.url}{path}: {e.reason}") from None
+
+    def steps(self, episode_id: str, version: Optional[int] = None, *, layers: Optional[List[str]] = None) -> Any:
+        """One episode's steps as a polars DataFrame (read as Arrow IPC), with ``layers`` joined as
+        ``obs.<layer>`` columns."""
+        import io
+
+        import polars as pl
+
+        query: Dict[str, str] = {}
+        if version is not None:
+            query["version"] = str(version)
+        if layers:
+            query["layers"] = ",".join(layers)
+        path = f"/v1/episodes/{urllib.parse.quote(episode_id, safe='')}/steps"
+        if query:
+            path += "?" + urllib.parse.urlencode(query)
+        raw = self._request_bytes("GET", path, headers={"Accept": "application/vnd.apache.arrow.stream"})
+        return pl.read_ipc_stream(io.BytesIO(raw))
+
+    def layers(self) -> List[JsonObject]:
+        """Every (layer, producer) pair with the episodes holding it now."""
+        body, _ = self._request("GET", "/v1/layers")
+        return body  # type: ignore[no-any-return]
+
+    def layer_episodes(self, name: str, producer_hash: str) -> List[str]:
+        """The episodes holding layer ``name`` from the producer ``producer_hash`` now."""
+        q = urllib.parse.urlencode({"producer_hash": producer_hash})
+        body, _ = self._request("GET", f"/v1/layers/{urllib.parse.quote(name, safe='')}/episodes?{q}")
+        return body  # type: ignore[no-any-return]
+
+    def write_layer(self, name: str, producer: Dict[str, Any], values: Dict[str, Any]) -> JsonObject:
+        """:meth:`ufops.Store.write_layer` over the API (role trainer): one group of episodes'
+        values (episode id → float32 ``(steps, dim)``) as one new version, sent as Arrow IPC."""
+        import io
+
+        import numpy as np
+        import polars as pl
+
+        ids: List[str] = []
+        rows: List[Any] = []
+        dim = None
+        for episode_id, v in values.items():
+            a = np.ascontiguousarray(np.asarray(v, dtype=np.float32))
+            if a.ndim != 2 or (dim is not None and a.shape[1] != dim):
+                raise ValueError(f"layer {name}: episode {episode_id} values have shape {a.shape}, expected (steps, dim)")
+            dim = a.shape[1]
+            ids.extend([episode_id] * a.shape[0])
+            rows.append(a)
+        if dim is None:
+            raise ValueError(f"layer {name}: no episodes given")
+        frame = pl.DataFrame(
+            {
+                "episode_id": pl.Series(ids, dtype=pl.Utf8),
+                "value": pl.Series(np.concatenate(rows), dtype=pl.Array(pl.Float32, dim)),
+            }
+        )
+        buf = io.BytesIO()
+        frame.write_ipc_stream(buf, compat_level=pl.CompatLevel.oldest())
+        q = urllib.parse.urlencode({"producer": json.dumps(producer, sort_keys=True)})
+        raw = self._request_bytes(
+            "POST",
+            f"/v1/layers/{urllib.parse.quote(name, safe='')}?{q}",
+            buf.getvalue(),
+            {"Content-Type": "application/vnd.apache.arrow.stream"},
+        )
+        return json.loads(raw)  # type: ignore[no-any-return]
+
     def episodes(self, **filters: Any) -> List[JsonObject]:
         """All episodes matching ``filters`` (policy, checkpoint, task, label, label_source, tag,
         version) as records, following the API's pages to the end."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import io
 import json
-from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence, Union
+from typing import TYPE_CHECKING, Any, Dict, List, Mapping, Optional, Sequence, Union
 
 from ufops import _ufops
 
@@ -83,17 +83,70 @@ class Store(_ufops.Store):
         records = json.loads(self.episodes_json(version, policy, checkpoint, task, label, tag, after, limit))
         return episodes_frame(records)
 
-    def steps(self, ids: Union[Sequence[str], str], version: Optional[int] = None) -> "pl.DataFrame":
+    def steps(
+        self,
+        ids: Union[Sequence[str], str],
+        version: Optional[int] = None,
+        *,
+        layers: Optional[Sequence[str]] = None,
+    ) -> "pl.DataFrame":
         """The steps of one or many episodes (in the order of ``ids``), one row per step, with the
-        columns of the Parquet files (``episode_id``, ``t``, ``obs.*``, ``action``, ...)."""
+        columns of the Parquet files (``episode_id``, ``t``, ``obs.*``, ``action``, ...).
+
+        ``layers`` joins those layers' values (e.g. an encoder's features) as ``obs.<layer>``
+        columns; an episode without one of them (now, or in ``version``) is an error."""
         _polars()
         import polars as pl
 
         wanted = [ids] if isinstance(ids, str) else list(ids)
-        frames = [pl.read_ipc_stream(io.BytesIO(s)) for s in self.steps_ipc(wanted, version)]
+        streams = self.steps_ipc(wanted, version, list(layers) if layers else None)
+        frames = [pl.read_ipc_stream(io.BytesIO(s)) for s in streams]
         if not frames:
             return pl.DataFrame()
         return frames[0] if len(frames) == 1 else pl.concat(frames, how="diagonal_relaxed")
+
+    def layers(self) -> "pl.DataFrame":
+        """The layers: one row per (name, producer) with its dim and the episodes holding it now."""
+        _polars()
+        import polars as pl
+
+        schema = {
+            "name": pl.Utf8,
+            "producer_hash": pl.Utf8,
+            "producer": pl.Utf8,
+            "dim": pl.Int64,
+            "episodes": pl.Int64,
+            "version": pl.Int64,
+        }
+        rows = [{**r, "producer": json.dumps(r["producer"], sort_keys=True)} for r in json.loads(self.layers_json())]
+        return pl.DataFrame(rows, schema=schema, orient="row") if rows else pl.DataFrame(schema=schema)
+
+    def episode_layers(self, episode_id: str, version: Optional[int] = None) -> List[JsonObject]:
+        """The layers an episode holds (layer, producer_hash, dim, version_added), now or at ``version``."""
+        return json.loads(self.episode_layers_json(episode_id, version))  # type: ignore[no-any-return]
+
+    def producer_hash(self, producer: Mapping[str, Any]) -> str:  # type: ignore[override]
+        """The sha256 the store gives a producer (its canonical JSON: key order does not matter)."""
+        return _ufops.Store.producer_hash(json.dumps(dict(producer)))
+
+    def write_layer(
+        self, name: str, producer: Mapping[str, Any], values: Mapping[str, Any], *, actor: str = "python"
+    ) -> JsonObject:
+        """Writes one group of episodes' values of layer ``name`` as one new store version.
+
+        ``values`` maps an episode id to a float32 array of shape ``(steps, dim)``, one row per
+        stored step. Episodes that hold this layer from this ``producer`` already are skipped, so
+        writing in groups resumes after an interruption. Returns ``{"version", "producer_hash",
+        "episodes_written", "episodes_skipped"}`` (``version`` is None when nothing was written)."""
+        import numpy as np
+
+        ids = list(values)
+        arrays = [np.ascontiguousarray(np.asarray(values[i], dtype=np.float32)) for i in ids]
+        for i, a in zip(ids, arrays):
+            if a.ndim != 2:
+                raise ValueError(f"layer {name}: episode {i} values have shape {a.shape}, expected (steps, dim)")
+        out = self.write_layer_arrays(name, json.dumps(dict(producer)), ids, arrays, actor)
+        return json.loads(out)  # type: ignore[no-any-return]
 
     def versions(self) -> "pl.DataFrame":
         """The store's versions."""

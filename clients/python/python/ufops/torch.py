@@ -136,3 +136,70 @@ def as_tensor(a: np.ndarray[Any, Any], like: Optional[Tensor] = None) -> Tensor:
 
     out = torch.from_numpy(np.ascontiguousarray(a))
     return out if like is None else out.to(like.device)
+
+
+class CameraObservation:
+    """The verifier's observation row for a policy that sees through cameras (the paper's
+    "frozen embedding of the base policy's vision encoder").
+
+    Built once per rollout from the verifier and, per layer key of the verifier, the encoder
+    that makes those features and its producer hash (what :func:`ufops.features.producer_of`
+    computes and the store recorded when the layer was written)::
+
+        cam = CameraObservation(verifier, {"features.front": (encode_front, producer_hash)})
+        cam.reset()
+        for step in range(T):
+            row = cam.observe({"features.front": frame}, {"state": qpos})   # encoder runs once
+            best, scores = best_of_n(verifier, sample_fn, row, n=30, t=step)  # N chunks, one call
+
+    A verifier trained on another encoder's features is refused here, before the first score
+    (``ValueError``). ``encode`` maps a batch of frames ``(B, H, W, C)`` uint8 to features
+    ``(B, dim)``; plain observation keys (joint state) are passed as they are. The row stacks
+    the last ``obs_history`` steps, oldest first, the first step repeated at the start of a
+    rollout — as the trainer built its samples.
+    """
+
+    def __init__(self, verifier: Verifier, encoders: Any) -> None:
+        import json
+
+        self.verifier = verifier
+        layout = json.loads(verifier.config_json())["input"]
+        self.keys: list[tuple[str, int]] = [(k["key"], int(k["dim"])) for k in layout["obs_keys"]]
+        self.history = int(layout["obs_history"])
+        self.encoders = dict(encoders)
+        verifier.check_producers({k: p for k, (_, p) in self.encoders.items()})
+        self._steps: list[np.ndarray[Any, Any]] = []
+
+    def reset(self) -> None:
+        """Starts a new rollout (forgets the history)."""
+        self._steps = []
+
+    def step_features(self, frames: Any, state: Any = None) -> np.ndarray[Any, Any]:
+        """One step's observation (the verifier's keys concatenated), running each encoder once."""
+        parts = []
+        state = state or {}
+        for key, dim in self.keys:
+            if key in self.encoders:
+                encode = self.encoders[key][0]
+                frame = np.asarray(frames[key])
+                batch = frame[None] if frame.ndim == 3 else frame
+                value = encode(batch)
+                value = value.detach().cpu().numpy() if hasattr(value, "detach") else np.asarray(value)
+                value = value.reshape(-1)
+            elif key in state:
+                value = np.asarray(state[key], dtype=np.float32).reshape(-1)
+            else:
+                raise ValueError(f"observation key {key!r}: give its frame (an encoder key) or its state value")
+            if value.shape[0] != dim:
+                raise ValueError(f"observation key {key!r}: {value.shape[0]} values, the verifier takes {dim}")
+            parts.append(value.astype(np.float32))
+        return np.concatenate(parts)
+
+    def observe(self, frames: Any, state: Any = None) -> np.ndarray[Any, Any]:
+        """Adds this step and returns the verifier's observation row ``(obs_dim,)``."""
+        step = self.step_features(frames, state)
+        if not self._steps:
+            self._steps = [step] * self.history
+        else:
+            self._steps = (self._steps + [step])[-self.history :]
+        return np.ascontiguousarray(np.concatenate(self._steps))
