@@ -50,17 +50,28 @@ class Client:
     def _request_bytes(
         self, method: str, path: str, data: Optional[bytes] = None, headers: Optional[Dict[str, str]] = None
     ) -> bytes:
+        return self._request_raw(method, path, data, headers)[0]
+
+    def _request_raw(
+        self, method: str, path: str, data: Optional[bytes] = None, headers: Optional[Dict[str, str]] = None
+    ) -> tuple[bytes, Dict[str, str]]:
         req = urllib.request.Request(self.url + path, data=data, method=method)
         req.add_header("Authorization", f"Bearer {self.token}")
         for k, v in (headers or {}).items():
             req.add_header(k, v)
         try:
             with urllib.request.urlopen(req, timeout=self.timeout) as resp:
-                return resp.read()  # type: ignore[no-any-return]
+                return resp.read(), {k.lower(): v for k, v in resp.headers.items()}
         except urllib.error.HTTPError as e:
             raise _error(method, path, e.code, e.read()) from None
         except urllib.error.URLError as e:
             raise FetchError(f"{method} {self.url}{path}: {e.reason}") from None
+
+    def layer_store(self) -> "ApiLayerStore":
+        """This server as the store :func:`ufops.features.compute_layer` takes: frames read by
+        range requests on the episodes' media, the layer written through ``POST /v1/layers``
+        (role trainer)."""
+        return ApiLayerStore(self)
 
     def steps(self, episode_id: str, version: Optional[int] = None, *, layers: Optional[List[str]] = None) -> Any:
         """One episode's steps as a polars DataFrame (read as Arrow IPC), with ``layers`` joined as
@@ -172,6 +183,66 @@ class Client:
             {"If-Match": f'"{revision}"'},
         )
         return change  # type: ignore[no-any-return]
+
+
+class ApiLayerStore:
+    """:class:`Client` as a :class:`ufops.features.LayerStore`: what ``compute_layer`` reads and
+    writes, over the API. A video is read by range requests on ``/v1/episodes/{id}/media/{key}``
+    of an episode whose steps named it (the route serves the whole video object the episode's
+    frames are in), so ``steps`` must have been read before a video is opened."""
+
+    def __init__(self, client: Client) -> None:
+        self.client = client
+        self._media: Dict[str, tuple[str, str]] = {}
+
+    def episodes(self) -> Any:
+        return self.client.episodes_frame()
+
+    def steps(self, ids: Any, /) -> Any:
+        import polars as pl
+
+        frames = []
+        for episode_id in [ids] if isinstance(ids, str) else list(ids):
+            f = self.client.steps(episode_id)
+            for col in f.columns:
+                if col.startswith("media.") and col.endswith(".path") and f.height:
+                    for path in f[col].unique().to_list():
+                        self._media.setdefault(path, (episode_id, col[len("media.") : -len(".path")]))
+            frames.append(f)
+        if not frames:
+            return pl.DataFrame()
+        return frames[0] if len(frames) == 1 else pl.concat(frames, how="diagonal_relaxed")
+
+    def _media_path(self, path: str) -> str:
+        if path not in self._media:
+            raise NotFoundError(f"video {path}: no episode read so far shows it (read its steps first)")
+        episode_id, key = self._media[path]
+        q = urllib.parse.quote
+        return f"/v1/episodes/{q(episode_id, safe='')}/media/{q(key, safe='')}"
+
+    def object_size(self, path: str, /) -> int:
+        _, headers = self.client._request_raw("GET", self._media_path(path), headers={"Range": "bytes=0-0"})
+        total = headers.get("content-range", "").rsplit("/", 1)[-1]
+        if not total.isdigit():
+            raise FetchError(f"video {path}: the server sent no size (Content-Range {headers.get('content-range')!r})")
+        return int(total)
+
+    def read_object_range(self, path: str, start: int, end: int, /) -> bytes:
+        if end <= start:
+            return b""
+        body, _ = self.client._request_raw("GET", self._media_path(path), headers={"Range": f"bytes={start}-{end - 1}"})
+        return body
+
+    def producer_hash(self, producer: Dict[str, Any], /) -> str:
+        from ufops import _ufops
+
+        return _ufops.Store.producer_hash(json.dumps(dict(producer)))
+
+    def layer_episodes(self, name: str, producer_hash: str, /) -> List[str]:
+        return self.client.layer_episodes(name, producer_hash)
+
+    def write_layer(self, name: str, producer: Dict[str, Any], values: Dict[str, Any], /) -> JsonObject:
+        return self.client.write_layer(name, producer, values)
 
 
 def _error(method: str, path: str, status: int, raw: bytes) -> UfopsError:
