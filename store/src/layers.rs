@@ -605,7 +605,9 @@ impl Store {
     }
 }
 
-fn visible(added: i64, removed: Option<i64>, version: Option<i64>) -> bool {
+/// Whether a row added in version `added` (and removed in `removed`, if ever) is visible now
+/// (`version` None) or in `version`: the one rule for episodes and their layers.
+pub(crate) fn visible(added: i64, removed: Option<i64>, version: Option<i64>) -> bool {
     match version {
         None => removed.is_none(),
         Some(v) => added <= v && removed.is_none_or(|x| x > v),

@@ -268,11 +268,7 @@ impl Store {
             }
             for r in q.fetch_all(&self.db().pool).await? {
                 let removed = r.oi("version_removed")?;
-                let visible = match version {
-                    None => removed.is_none(),
-                    Some(v) => r.i("version_added")? <= v && removed.is_none_or(|x| x > v),
-                };
-                if visible {
+                if crate::layers::visible(r.i("version_added")?, removed, version) {
                     let id = r.s("id")?;
                     let loc = EpisodeLocation::try_from_parts(
                         &id,
