@@ -7,6 +7,7 @@ else `target/debug/ufops`; scripts/test.sh builds it first. A missing binary fai
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import os
@@ -107,10 +108,18 @@ class Server:
 
 @pytest.fixture(scope="session")
 def server(trained: Ufops) -> Iterator[Server]:
-    """`ufops serve` on the trained store (loopback, a free port) and a viewer token."""
-    token = trained.json("token", "create", "--name", "pytest", "--role", "labeler", "--json")["token"]
+    """`ufops serve` on the trained store (loopback, a free port) and a labeler token."""
+    with serving(trained, "labeler") as s:
+        yield s
+
+
+@contextlib.contextmanager
+def serving(store: Ufops, role: str, name: str = "pytest") -> Iterator[Server]:
+    """`ufops serve --no-worker` on `store` (loopback, a free port) with a token of `role`,
+    stopped on exit."""
+    token = store.json("token", "create", "--name", name, "--role", role, "--json")["token"]
     proc = subprocess.Popen(
-        [str(trained.bin), "--data-dir", str(trained.data_dir), "serve", "--addr", "127.0.0.1:0", "--no-worker"],
+        [str(store.bin), "--data-dir", str(store.data_dir), "serve", "--addr", "127.0.0.1:0", "--no-worker"],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,

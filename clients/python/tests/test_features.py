@@ -15,7 +15,7 @@ from typing import Any, Dict, List
 import numpy as np
 import pytest
 
-from conftest import REPO, Ufops, require
+from conftest import REPO, Ufops, require, serving
 
 torch = require("torch")
 av = require("av")
@@ -312,36 +312,14 @@ def test_layer_over_the_api_equals_the_layer_from_the_store(
     """compute_layer against `ufops serve` (Client.layer_store): frames by range requests on the
     episodes' media, the layer written with POST /v1/layers as a trainer; the values equal the
     encoder on independently decoded frames, and a re-run over the API writes nothing."""
-    import subprocess
-    import time
-    import urllib.request
-
     u = ingest(tmp_path_factory, "v30_eval_video")
-    token = u.json("token", "create", "--name", "encoder", "--role", "trainer", "--json")["token"]
-    proc = subprocess.Popen(
-        [str(u.bin), "--data-dir", str(u.data_dir), "serve", "--addr", "127.0.0.1:0", "--no-worker"],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-    )
-    try:
-        assert proc.stdout is not None
-        url = proc.stdout.readline().split()[-1]
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                urllib.request.urlopen(url + "/healthz", timeout=2).read()
-                break
-            except OSError:
-                assert time.monotonic() < deadline
-                time.sleep(0.1)
-        api = ufops.Client(url, token).layer_store()
+    with serving(u, "trainer") as server:
+        api = ufops.Client(server.url, server.token).layer_store()
         r = features.compute_layer(api, ENCODER, name=LAYER, camera=CAMERA, producer=PRODUCER, batch_size=16,
                                    commit_every=4, progress=False)
         assert (r.episodes_written, r.frames, len(r.versions)) == (8, 519, 2)
         again = features.compute_layer(api, ENCODER, name=LAYER, camera=CAMERA, producer=PRODUCER, progress=False)
         assert (again.episodes_written, again.episodes_skipped, again.versions) == (0, 8, [])
-    finally:
-        proc.terminate()
-        proc.wait(timeout=10)
     s = ufops.Store(u.data_dir)
     index = episode_index(s)
     got = layer_values(s, list(index))
