@@ -13,7 +13,7 @@
 //!
 //! The writer takes the API's SQLite write gate for each batch, so it queues behind bulk label
 //! writes and snapshots instead of spinning in SQLite's busy handler. On Postgres, PUTs keep one
-//! transaction each (row locks let them run in parallel over the pool); see NOTES-for-lead.md for
+//! transaction each (row locks let them run in parallel over the pool); see api/README.md for
 //! the measurement.
 
 use crate::{AppState, Inner};
