@@ -11,7 +11,7 @@
 //! that commits in groups resumes where it stopped and a re-run writes nothing.
 
 use crate::catalog::{insert_rows, RowExt, Val};
-use crate::read::{EpisodeLocation, EpisodeSteps, StepsReadError, StepsStream};
+use crate::read::{visible, EpisodeLocation, EpisodeSteps, StepsReadError, StepsStream};
 use crate::steps::{OBS_PREFIX, PAGE_MAX_BYTES, ROW_GROUP_MAX_BYTES};
 use crate::writer::{check_name, finish_version, next_version, VersionHead};
 use crate::{Store, StoreError};
@@ -244,7 +244,7 @@ impl Store {
         // Where the episodes are (visible now) and what they hold already.
         let ids: Vec<String> = episodes.iter().map(|e| e.episode_id.clone()).collect();
         let locations = self.locate_episodes(&ids, None).await?;
-        let done = self.episodes_with_layer(name, Some(&hash), &ids).await?;
+        let done = self.episodes_with_layer(name, &hash, &ids).await?;
         let mut files_checked = HashSet::new();
         let mut todo: Vec<&LayerValues> = Vec::new();
         for (e, loc) in episodes.iter().zip(&locations) {
@@ -405,22 +405,17 @@ impl Store {
         r.map(|r| r.i("dim")).transpose()
     }
 
-    /// Which of `ids` hold layer `name` now (from `producer_hash` when given).
-    async fn episodes_with_layer(
-        &self,
-        name: &str,
-        producer_hash: Option<&str>,
-        ids: &[String],
-    ) -> Result<HashSet<String>, StoreError> {
+    /// Which of `ids` hold layer `name` from `producer_hash` now.
+    async fn episodes_with_layer(&self, name: &str, producer_hash: &str, ids: &[String]) -> Result<HashSet<String>, StoreError> {
         let mut out = HashSet::new();
         for chunk in ids.chunks(IDS_PER_QUERY) {
             let marks: Vec<String> = (3..chunk.len() + 3).map(|i| format!("${i}")).collect();
             let sql = format!(
-                "SELECT episode_id FROM episode_layers WHERE layer = $1 AND ($2 = '' OR producer_hash = $2) \
+                "SELECT episode_id FROM episode_layers WHERE layer = $1 AND producer_hash = $2 \
                  AND version_removed IS NULL AND episode_id IN ({})",
                 marks.join(", ")
             );
-            let mut q = sqlx::query(&sql).bind(name).bind(producer_hash.unwrap_or(""));
+            let mut q = sqlx::query(&sql).bind(name).bind(producer_hash);
             for id in chunk {
                 q = q.bind(id.as_str());
             }
@@ -518,18 +513,10 @@ impl Store {
                     q = q.bind(id.as_str());
                 }
                 for r in q.fetch_all(&self.db().pool).await? {
-                    if !visible(r.i("version_added")?, r.oi("version_removed")?, version) {
-                        continue;
+                    if visible(r.i("version_added")?, r.oi("version_removed")?, version) {
+                        let (id, loc) = EpisodeLocation::from_row(&r, "episode_id")?;
+                        found.insert(id, (loc, r.s("producer_hash")?));
                     }
-                    let id = r.s("episode_id")?;
-                    let loc = EpisodeLocation::try_from_parts(
-                        &id,
-                        r.s("data_file")?,
-                        r.i("row_group")?,
-                        r.i("row_offset")?,
-                        r.i("row_count")?,
-                    )?;
-                    found.insert(id, (loc, r.s("producer_hash")?));
                 }
             }
             let per_id = ids
@@ -605,14 +592,6 @@ impl Store {
     }
 }
 
-/// Whether a row added in version `added` (and removed in `removed`, if ever) is visible now
-/// (`version` None) or in `version`: the one rule for episodes and their layers.
-pub(crate) fn visible(added: i64, removed: Option<i64>, version: Option<i64>) -> bool {
-    match version {
-        None => removed.is_none(),
-        Some(v) => added <= v && removed.is_none_or(|x| x > v),
-    }
-}
 
 /// Reads one group's layer values, then its steps, and sends each episode joined. False when
 /// the receiver is gone.

@@ -69,6 +69,25 @@ impl EpisodeLocation {
     }
 }
 
+impl EpisodeLocation {
+    /// The id (column `id_column`) and location of a catalog row holding `data_file`,
+    /// `row_group`, `row_offset` and `row_count` (an episode, or its values of a layer).
+    pub(crate) fn from_row(r: &sqlx::any::AnyRow, id_column: &str) -> Result<(String, Self), StoreError> {
+        let id = r.s(id_column)?;
+        let loc = EpisodeLocation::try_from_parts(&id, r.s("data_file")?, r.i("row_group")?, r.i("row_offset")?, r.i("row_count")?)?;
+        Ok((id, loc))
+    }
+}
+
+/// Whether a catalog row added in version `added` (and removed in `removed`, if ever) is visible
+/// now (`version` None) or in `version`: the one rule for episodes and their layers.
+pub(crate) fn visible(added: i64, removed: Option<i64>, version: Option<i64>) -> bool {
+    match version {
+        None => removed.is_none(),
+        Some(v) => added <= v && removed.is_none_or(|x| x > v),
+    }
+}
+
 impl TryFrom<&EpisodeRecord> for EpisodeLocation {
     type Error = StoreError;
     fn try_from(e: &EpisodeRecord) -> Result<Self, StoreError> {
@@ -267,16 +286,8 @@ impl Store {
                 q = q.bind(id.as_str());
             }
             for r in q.fetch_all(&self.db().pool).await? {
-                let removed = r.oi("version_removed")?;
-                if crate::layers::visible(r.i("version_added")?, removed, version) {
-                    let id = r.s("id")?;
-                    let loc = EpisodeLocation::try_from_parts(
-                        &id,
-                        r.s("data_file")?,
-                        r.i("row_group")?,
-                        r.i("row_offset")?,
-                        r.i("row_count")?,
-                    )?;
+                if visible(r.i("version_added")?, r.oi("version_removed")?, version) {
+                    let (id, loc) = EpisodeLocation::from_row(&r, "id")?;
                     found.insert(id, loc);
                 }
             }

@@ -83,8 +83,8 @@ fn record_producers(
             Some(first) if first != p => bail!(
                 "layer {k}: episode {id} holds features of producer {}, others of producer {}; \
                  compute the layer with one encoder for every episode of the split",
-                &p[..p.len().min(12)],
-                &first[..first.len().min(12)]
+                verifier::short_hash(p),
+                verifier::short_hash(first)
             ),
             _ => {}
         }
@@ -280,7 +280,7 @@ pub fn step_inputs(cfg: &verifier::ArtifactConfig, batch: &arrow::array::RecordB
     let mut provided = Vec::new();
     for (key, want) in input.required_producers() {
         let field = schema.field_with_name(&format!("{}{key}", store::steps::OBS_PREFIX)).map_err(|_| {
-            anyhow::anyhow!("this verifier reads layer {key} (features of producer {}): read the steps with that layer", &want[..want.len().min(12)])
+            anyhow::anyhow!("this verifier reads layer {key} (features of producer {}): read the steps with that layer", verifier::short_hash(want))
         })?;
         provided.push((key, field.metadata().get(store::PRODUCER_META_KEY).cloned().unwrap_or_default()));
     }

@@ -333,8 +333,8 @@ impl InputLayout {
                         "observation {:?} comes from producer {}, but this verifier was trained on features of producer {} \
                          (another encoder or other weights: its scores would mean nothing)",
                         k.key,
-                        short(got),
-                        short(want)
+                        short_hash(got),
+                        short_hash(want)
                     )))
                 }
                 (Some(want), None) => {
@@ -342,7 +342,7 @@ impl InputLayout {
                         "observation {:?} is a feature layer of producer {}: say which producer made the features \
                          you score (this verifier refuses features of any other)",
                         k.key,
-                        short(want)
+                        short_hash(want)
                     )))
                 }
                 _ => {}
@@ -673,7 +673,9 @@ pub fn is_plain_name(s: &str) -> bool {
         && s.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.@".contains(&b))
 }
 
-fn short(hash: &str) -> &str {
+/// The first 12 characters of a hash for messages (the whole string when shorter or when byte 12
+/// is not a character boundary: a producer string from an artifact file is untrusted).
+pub fn short_hash(hash: &str) -> &str {
     hash.get(..12).unwrap_or(hash)
 }
 

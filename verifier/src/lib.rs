@@ -35,7 +35,7 @@ pub use error::{Result, VerifierError};
 pub use format::{
     is_plain_name, ActionSpace, Activation, Architecture, ArtifactConfig, ExtraInput, ExtraInputSpec, InputConfig,
     InputLayout, Kind, LinearSpec, Manifest, ObsKey, TensorRole, TensorSpec, Variant, CONFIG_FILE, MANIFEST_FILE,
-    MODEL_FILE, SCHEMA_VERSION,
+    MODEL_FILE, SCHEMA_VERSION, short_hash,
 };
 pub use math::{sigmoid, time_embedding_into};
 pub use net::Verifier;
