@@ -14,7 +14,8 @@ fn listing_into_a_closed_pipe_ends_quietly() {
     t.ok(&["ingest", fixture.to_str().unwrap(), "--policy", "arm", "--checkpoint", "c1"]);
     assert!(!t.ok(&["episodes"]).trim().is_empty(), "the listing prints rows");
     // Close the reading end before the process writes: its first write meets a broken pipe.
-    let mut child = t.command().arg("episodes").stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    let mut child =
+        t.command().arg("episodes").stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
     drop(child.stdout.take());
     let out = child.wait_with_output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);

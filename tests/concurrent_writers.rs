@@ -12,7 +12,18 @@ fn two_writers(target: Target) {
             for k in 0..per_writer {
                 let seed = (1000 * (w + 1) + k).to_string();
                 let ckpt = format!("w{w}");
-                target.ok(&["dev", "synth", "--seed", &seed, "--episodes", "4", "--steps", "50", "--checkpoint", &ckpt]);
+                target.ok(&[
+                    "dev",
+                    "synth",
+                    "--seed",
+                    &seed,
+                    "--episodes",
+                    "4",
+                    "--steps",
+                    "50",
+                    "--checkpoint",
+                    &ckpt,
+                ]);
             }
         })
     };
@@ -20,7 +31,8 @@ fn two_writers(target: Target) {
     a.join().unwrap();
     b.join().unwrap();
     let versions = target.json(&["versions", "--json"]);
-    let nums: Vec<i64> = versions.as_array().unwrap().iter().map(|v| v["version"].as_i64().unwrap()).collect();
+    let nums: Vec<i64> =
+        versions.as_array().unwrap().iter().map(|v| v["version"].as_i64().unwrap()).collect();
     assert_eq!(nums, (1..=2 * per_writer as i64).collect::<Vec<_>>(), "dense, no duplicates");
     let sources: std::collections::HashSet<&str> =
         versions.as_array().unwrap().iter().map(|v| v["source_sha256"].as_str().unwrap()).collect();

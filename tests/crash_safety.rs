@@ -14,7 +14,18 @@ fn crash_trials(mut target: Target, trials: u32) {
     target.ok(&["dev", "synth", "--seed", "0", "--episodes", "3", "--steps", "20"]);
     // Calibrate: how long does an uninterrupted write take?
     let t0 = Instant::now();
-    target.ok(&["dev", "synth", "--seed", "1", "--episodes", "40", "--steps", "3000", "--max-file-bytes", "300000"]);
+    target.ok(&[
+        "dev",
+        "synth",
+        "--seed",
+        "1",
+        "--episodes",
+        "40",
+        "--steps",
+        "3000",
+        "--max-file-bytes",
+        "300000",
+    ]);
     let full = t0.elapsed();
     let mut rng = rand::rngs::StdRng::seed_from_u64(42);
     let (mut committed, mut killed_before) = (0, 0);
@@ -23,7 +34,18 @@ fn crash_trials(mut target: Target, trials: u32) {
         let seed = (100 + trial).to_string();
         let mut child = target
             .command()
-            .args(["dev", "synth", "--seed", &seed, "--episodes", "40", "--steps", "3000", "--max-file-bytes", "300000"])
+            .args([
+                "dev",
+                "synth",
+                "--seed",
+                &seed,
+                "--episodes",
+                "40",
+                "--steps",
+                "3000",
+                "--max-file-bytes",
+                "300000",
+            ])
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null())
             .spawn()

@@ -39,11 +39,16 @@ fn quick_demo_rows_go_the_way_the_method_says() {
     let (_, hi) = interval("C x BoN (N=10)", "off-policy (alt rollouts)");
     assert!(hi < 0.0, "best-of-N with the off-policy classifier should hurt: Δ interval ends at {hi}\n{out}");
     // Rows without a large effect in the full demo exist, with the diagnostics of every guided row.
-    for (m, v) in [("Q x CG (lambda=3)", "on-policy"), ("flow twin, unsteered", "-"), ("C x CG (lambda=3)", "off-policy (alt rollouts)")] {
+    for (m, v) in [
+        ("Q x CG (lambda=3)", "on-policy"),
+        ("flow twin, unsteered", "-"),
+        ("C x CG (lambda=3)", "off-policy (alt rollouts)"),
+    ] {
         row(m, v);
     }
     let diag = report["diagnostics"].as_array().unwrap();
-    let guided = diag.iter().find(|d| d["method"] == "Q x CG (lambda=3)").expect("diagnostics of the Q x CG row");
+    let guided =
+        diag.iter().find(|d| d["method"] == "Q x CG (lambda=3)").expect("diagnostics of the Q x CG row");
     assert_eq!(guided["per_step"].as_array().unwrap().len(), 20, "one entry per denoising step");
     assert!(guided["total_push"].as_f64().unwrap() > 0.0);
     assert!(dir.path().join("demo/trajectories.png").exists());
@@ -58,10 +63,18 @@ fn quick_demo_rows_go_the_way_the_method_says() {
 
     // The scoreboard gives the demo's table back from the store alone: every row's counts, rate,
     // Wilson interval, and its Newcombe interval against the base policy (the DDPM base run).
-    let sb = t.json(&["scoreboard", "--policy", "nav-dp", "--baseline-checkpoint", "base", "--format", "json"]);
-    assert_eq!(report["meta"]["scoreboard_version"], sb["version"], "the demo checked its table against this scoreboard");
+    let sb =
+        t.json(&["scoreboard", "--policy", "nav-dp", "--baseline-checkpoint", "base", "--format", "json"]);
+    assert_eq!(
+        report["meta"]["scoreboard_version"], sb["version"],
+        "the demo checked its table against this scoreboard"
+    );
     let sb_rows = sb["rows"].as_array().unwrap();
-    assert_eq!(sb_rows.len(), rows.len() + 1, "one scoreboard row per report row, and the alt checkpoint's base run");
+    assert_eq!(
+        sb_rows.len(),
+        rows.len() + 1,
+        "one scoreboard row per report row, and the alt checkpoint's base run"
+    );
     for r in rows {
         let s = sb_rows
             .iter()
@@ -69,7 +82,10 @@ fn quick_demo_rows_go_the_way_the_method_says() {
             .unwrap_or_else(|| panic!("no scoreboard row for {r}"));
         assert_eq!(s["task"], "two-gap-navigation");
         assert_eq!(s["successes"], r["successes"], "{r} vs {s}");
-        assert_eq!(s["successes"].as_u64().unwrap() + s["failures"].as_u64().unwrap(), r["episodes"].as_u64().unwrap());
+        assert_eq!(
+            s["successes"].as_u64().unwrap() + s["failures"].as_u64().unwrap(),
+            r["episodes"].as_u64().unwrap()
+        );
         assert_eq!(s["unlabeled"], 0);
         assert_eq!(s["rate"], r["rate"], "{r} vs {s}");
         assert_eq!(s["wilson_95"], r["wilson_95"], "{r} vs {s}");
@@ -106,20 +122,30 @@ fn quick_demo_rows_go_the_way_the_method_says() {
     let split = t.json(&["split", "create", "--policy", "nav-dp", "--checkpoint", "base", "--json"]);
     assert_eq!(split["train_episodes"].as_i64().unwrap() + split["val_episodes"].as_i64().unwrap(), 200);
     let arts = t.json(&["artifacts", "--policy", "nav-dp", "--json"]);
-    assert_eq!(arts.as_array().unwrap().len(), 4, "classifier, q, the off-policy classifier, the 50-rollout classifier");
+    assert_eq!(
+        arts.as_array().unwrap().len(),
+        4,
+        "classifier, q, the off-policy classifier, the 50-rollout classifier"
+    );
     // `latest` of the base checkpoint's classifier is the on-policy one trained on every rollout
     // (neither the off-policy one nor a learning-curve one published after it).
     let latest: Vec<&serde_json::Value> = arts
         .as_array()
         .unwrap()
         .iter()
-        .filter(|a| a["kind"] == "classifier" && a["aliases"].as_array().unwrap().iter().any(|x| x == "latest"))
+        .filter(|a| {
+            a["kind"] == "classifier" && a["aliases"].as_array().unwrap().iter().any(|x| x == "latest")
+        })
         .collect();
     assert_eq!(latest.len(), 1, "{arts}");
     assert_eq!(latest[0]["id"], report["meta"]["artifacts"]["classifier"]);
     // The learning-curve split holds 50 of the on-policy rollouts.
     let splits = t.json(&["split", "list", "--json"]);
-    let sizes: Vec<i64> =
-        splits.as_array().unwrap().iter().map(|s| s["train_episodes"].as_i64().unwrap() + s["val_episodes"].as_i64().unwrap()).collect();
+    let sizes: Vec<i64> = splits
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["train_episodes"].as_i64().unwrap() + s["val_episodes"].as_i64().unwrap())
+        .collect();
     assert!(sizes.contains(&50), "{sizes:?}");
 }

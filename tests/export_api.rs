@@ -50,8 +50,16 @@ fn exports_end_to_end(t: &Target) {
     for (body, status, want_text) in [
         (serde_json::json!({"format": "csv"}), 400, "expected lerobot or robomimic"),
         (serde_json::json!({"format": "lerobot", "score": {"min": 0.5}}), 422, "artifact"),
-        (serde_json::json!({"format": "lerobot", "score": {"artifact": "bc/e600/classifier@nope"}}), 404, "nope"),
-        (serde_json::json!({"format": "lerobot", "score": {"artifact": artifact, "min": 0.9, "max": 0.1}}), 400, "min must not exceed max"),
+        (
+            serde_json::json!({"format": "lerobot", "score": {"artifact": "bc/e600/classifier@nope"}}),
+            404,
+            "nope",
+        ),
+        (
+            serde_json::json!({"format": "lerobot", "score": {"artifact": artifact, "min": 0.9, "max": 0.1}}),
+            400,
+            "min must not exceed max",
+        ),
         (serde_json::json!({"format": "lerobot", "split": "no-such-split"}), 404, "no-such-split"),
         (serde_json::json!({"format": "lerobot", "colour": "red"}), 422, "colour"),
     ] {
@@ -60,13 +68,20 @@ fn exports_end_to_end(t: &Target) {
         assert_eq!(r.status, status, "{body}: {text}");
         assert!(text.contains(want_text), "{body}: {text}");
     }
-    let r = http(url, "POST", "/v1/exports", &[("Authorization", &viewer)], Some(&serde_json::json!({"format": "lerobot"})));
+    let r = http(
+        url,
+        "POST",
+        "/v1/exports",
+        &[("Authorization", &viewer)],
+        Some(&serde_json::json!({"format": "lerobot"})),
+    );
     assert_eq!(r.status, 403);
     let r = http(url, "GET", "/v1/exports", &[("Authorization", &viewer)], None);
     assert_eq!(r.json().as_array().unwrap().len(), 0, "nothing was queued");
 
     // The curated LeRobot export.
-    let body = serde_json::json!({"format": "lerobot", "policy": "bc", "score": {"artifact": artifact, "min": 0.5}});
+    let body =
+        serde_json::json!({"format": "lerobot", "policy": "bc", "score": {"artifact": artifact, "min": 0.5}});
     let r = http(url, "POST", "/v1/exports", &[("Authorization", &trainer)], Some(&body));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
     let id = r.json()["id"].as_str().unwrap().to_string();
@@ -80,29 +95,49 @@ fn exports_end_to_end(t: &Target) {
         .iter()
         .map(|f| (f["path"].as_str().unwrap().to_string(), f["bytes"].as_u64().unwrap()))
         .collect();
-    for p in ["meta/info.json", "meta/stats.json", "meta/episodes/chunk-000/file-000.parquet", "data/chunk-000/file-000.parquet"] {
+    for p in [
+        "meta/info.json",
+        "meta/stats.json",
+        "meta/episodes/chunk-000/file-000.parquet",
+        "data/chunk-000/file-000.parquet",
+    ] {
         assert!(files.iter().any(|(f, _)| f == p), "{p} not in {files:?}");
     }
     // Files come back whole and by range, and are the dataset the job wrote.
-    let info = http(url, "GET", &format!("/v1/exports/{id}/files/meta/info.json"), &[("Authorization", &viewer)], None);
+    let info = http(
+        url,
+        "GET",
+        &format!("/v1/exports/{id}/files/meta/info.json"),
+        &[("Authorization", &viewer)],
+        None,
+    );
     assert_eq!(info.status, 200);
     assert_eq!(info.header("content-type"), Some("application/json"));
     let info = info.json();
     assert_eq!(info["total_episodes"].as_u64().unwrap() as usize, want.len(), "{info}");
     assert_eq!(info["ufops"]["selection"]["score"]["min"], 0.5, "{info}");
     let (data, size) = files.iter().find(|(f, _)| f == "meta/episodes/chunk-000/file-000.parquet").unwrap();
-    let whole = http(url, "GET", &format!("/v1/exports/{id}/files/{data}"), &[("Authorization", &viewer)], None);
+    let whole =
+        http(url, "GET", &format!("/v1/exports/{id}/files/{data}"), &[("Authorization", &viewer)], None);
     assert_eq!((whole.status, whole.body.len() as u64), (200, *size));
-    let part = http(url, "GET", &format!("/v1/exports/{id}/files/{data}"), &[("Authorization", &viewer), ("Range", "bytes=0-3")], None);
+    let part = http(
+        url,
+        "GET",
+        &format!("/v1/exports/{id}/files/{data}"),
+        &[("Authorization", &viewer), ("Range", "bytes=0-3")],
+        None,
+    );
     assert_eq!(part.status, 206);
     assert_eq!(part.body, b"PAR1");
     // The episode table names exactly the episodes the scorer put at or above 0.5.
     let local = t.data_dir.join("episodes.parquet");
     std::fs::write(&local, &whole.body).unwrap();
-    let reader = parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(std::fs::File::open(&local).unwrap())
-        .unwrap()
-        .build()
-        .unwrap();
+    let reader = parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(
+        std::fs::File::open(&local).unwrap(),
+    )
+    .unwrap()
+    .build()
+    .unwrap();
     let mut got: Vec<String> = Vec::new();
     for b in reader {
         let b = b.unwrap();
@@ -113,7 +148,8 @@ fn exports_end_to_end(t: &Target) {
     got.sort();
     assert_eq!(got, want);
     for bad in ["../../catalog.db", "meta/..%2F..%2Fx", "nope.json"] {
-        let r = http(url, "GET", &format!("/v1/exports/{id}/files/{bad}"), &[("Authorization", &viewer)], None);
+        let r =
+            http(url, "GET", &format!("/v1/exports/{id}/files/{bad}"), &[("Authorization", &viewer)], None);
         assert!(r.status == 400 || r.status == 404, "{bad}: {}", r.status);
     }
 
@@ -124,10 +160,19 @@ fn exports_end_to_end(t: &Target) {
     let id2 = r.json()["id"].as_str().unwrap().to_string();
     let done2 = wait_for(url, &viewer, &id2);
     assert_eq!(done2["files"][0]["path"], "rollouts.hdf5", "{done2}");
-    let h5 = http(url, "GET", &format!("/v1/exports/{id2}/files/rollouts.hdf5"), &[("Authorization", &viewer), ("Range", "bytes=0-7")], None);
+    let h5 = http(
+        url,
+        "GET",
+        &format!("/v1/exports/{id2}/files/rollouts.hdf5"),
+        &[("Authorization", &viewer), ("Range", "bytes=0-7")],
+        None,
+    );
     assert_eq!(h5.body, b"\x89HDF\r\n\x1a\n");
     let gc = t.json(&["gc", "--grace-seconds", "0", "--json"]);
-    assert!(gc["deleted"].as_array().unwrap().iter().all(|p| !p.as_str().unwrap().starts_with("exports/")), "{gc}");
+    assert!(
+        gc["deleted"].as_array().unwrap().iter().all(|p| !p.as_str().unwrap().starts_with("exports/")),
+        "{gc}"
+    );
     assert_eq!(wait_for(url, &viewer, &id)["files"].as_array().unwrap().len(), files.len());
 
     // Deleted on request (trainers only); the job record stays.
@@ -138,12 +183,24 @@ fn exports_end_to_end(t: &Target) {
     assert_eq!(r.json()["files_deleted"].as_u64().unwrap() as usize, files.len());
     let after = wait_for(url, &viewer, &id);
     assert!(after["files"].as_array().unwrap().is_empty(), "{after}");
-    let r = http(url, "GET", &format!("/v1/exports/{id}/files/meta/info.json"), &[("Authorization", &viewer)], None);
+    let r = http(
+        url,
+        "GET",
+        &format!("/v1/exports/{id}/files/meta/info.json"),
+        &[("Authorization", &viewer)],
+        None,
+    );
     assert_eq!(r.status, 404);
     // A job of another kind is not an export.
     let jobs = http(url, "GET", "/v1/jobs", &[("Authorization", &viewer)], None).json();
     let train = jobs.as_array().unwrap().iter().find(|j| j["kind"] == "train").expect("the training job");
-    let r = http(url, "GET", &format!("/v1/exports/{}", train["id"].as_str().unwrap()), &[("Authorization", &viewer)], None);
+    let r = http(
+        url,
+        "GET",
+        &format!("/v1/exports/{}", train["id"].as_str().unwrap()),
+        &[("Authorization", &viewer)],
+        None,
+    );
     assert_eq!(r.status, 404);
 }
 

@@ -15,18 +15,39 @@ fn ingest_prints_labels_and_warnings_in_words() {
     let t = Target::sqlite(&dir.path().join("store"));
     let f = fixtures();
     // Every labeled episode of a recording where two have no action messages.
-    let out = t.run(&["ingest", f.join("mcap/ros2_no_actions_eval.mcap").to_str().unwrap(), "--policy", "p", "--checkpoint", "c"]);
+    let out = t.run(&[
+        "ingest",
+        f.join("mcap/ros2_no_actions_eval.mcap").to_str().unwrap(),
+        "--policy",
+        "p",
+        "--checkpoint",
+        "c",
+    ]);
     assert!(out.status.success(), "{}", text(&out.stderr));
     let stdout = text(&out.stdout);
-    assert!(stdout.contains("5 episodes") && stdout.contains("labels: 3 success, 2 failure, 0 unknown"), "{stdout}");
+    assert!(
+        stdout.contains("5 episodes") && stdout.contains("labels: 3 success, 2 failure, 0 unknown"),
+        "{stdout}"
+    );
     assert!(!stdout.contains("LabelCounts") && !stdout.contains('{'), "{stdout}");
     assert!(!text(&out.stderr).contains("warning"), "{}", text(&out.stderr));
     // A truncated recording ingested with --recover: what was left out, one warning per line.
-    let out = t.run(&["ingest", f.join("mcap/truncated.mcap").to_str().unwrap(), "--policy", "p", "--checkpoint", "c2", "--recover"]);
+    let out = t.run(&[
+        "ingest",
+        f.join("mcap/truncated.mcap").to_str().unwrap(),
+        "--policy",
+        "p",
+        "--checkpoint",
+        "c2",
+        "--recover",
+    ]);
     assert!(out.status.success(), "{}", text(&out.stderr));
     let stderr = text(&out.stderr);
     let warnings: Vec<&str> = stderr.lines().filter(|l| l.starts_with("warning: ")).collect();
-    assert!(warnings.iter().any(|w| w.contains("truncated MCAP") && w.contains("complete episodes: 0, 1, 2")), "{stderr}");
+    assert!(
+        warnings.iter().any(|w| w.contains("truncated MCAP") && w.contains("complete episodes: 0, 1, 2")),
+        "{stderr}"
+    );
     assert!(!stderr.contains("note:"), "{stderr}");
 }
 
@@ -35,11 +56,22 @@ fn export_writes_lerobot_and_robomimic_and_refuses_clearly() {
     let dir = tempfile::tempdir().unwrap();
     let t = Target::sqlite(&dir.path().join("store"));
     let f = fixtures();
-    t.ok(&["ingest", f.join("lerobot/v30_eval_video").to_str().unwrap(), "--policy", "act", "--checkpoint", "last"]);
+    t.ok(&[
+        "ingest",
+        f.join("lerobot/v30_eval_video").to_str().unwrap(),
+        "--policy",
+        "act",
+        "--checkpoint",
+        "last",
+    ]);
     let ds = dir.path().join("ds");
     let stdout = t.ok(&["export", ds.to_str().unwrap(), "--format", "lerobot", "--label", "success"]);
-    assert!(stdout.contains("exported 4 episodes") && stdout.contains("labels: 4 success, 0 failure, 0 unknown"), "{stdout}");
-    let info: serde_json::Value = serde_json::from_slice(&std::fs::read(ds.join("meta/info.json")).unwrap()).unwrap();
+    assert!(
+        stdout.contains("exported 4 episodes") && stdout.contains("labels: 4 success, 0 failure, 0 unknown"),
+        "{stdout}"
+    );
+    let info: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(ds.join("meta/info.json")).unwrap()).unwrap();
     assert_eq!(info["total_episodes"], 4);
     assert!(ds.join("videos/observation.images.front/chunk-000/file-000.mp4").is_file());
     // The JSON report, a robomimic file of the same version.
@@ -52,21 +84,52 @@ fn export_writes_lerobot_and_robomimic_and_refuses_clearly() {
     // Refusals: one line on stderr, non-zero exit, nothing written.
     for (args, want) in [
         (vec!["export", ds.to_str().unwrap(), "--format", "lerobot"], "already exists"),
-        (vec!["export", dir.path().join("x").to_str().unwrap(), "--format", "csv"], "expected lerobot or robomimic"),
-        (vec!["export", dir.path().join("y").to_str().unwrap(), "--format", "lerobot", "--policy", "nobody"], "no episodes"),
-        (vec!["export", dir.path().join("z").to_str().unwrap(), "--format", "lerobot", "--version", "99"], "version"),
+        (
+            vec!["export", dir.path().join("x").to_str().unwrap(), "--format", "csv"],
+            "expected lerobot or robomimic",
+        ),
+        (
+            vec![
+                "export",
+                dir.path().join("y").to_str().unwrap(),
+                "--format",
+                "lerobot",
+                "--policy",
+                "nobody",
+            ],
+            "no episodes",
+        ),
+        (
+            vec!["export", dir.path().join("z").to_str().unwrap(), "--format", "lerobot", "--version", "99"],
+            "version",
+        ),
     ] {
         let out = t.run(&args);
         let err = text(&out.stderr);
         assert!(!out.status.success(), "{args:?}");
-        assert!(err.starts_with("error: ") && err.contains(want) && err.lines().count() == 1, "{args:?}: {err}");
+        assert!(
+            err.starts_with("error: ") && err.contains(want) && err.lines().count() == 1,
+            "{args:?}: {err}"
+        );
     }
     // Episodes without actions cannot be a LeRobot dataset: refused, no folder left behind.
-    t.ok(&["ingest", f.join("mcap/ros2_no_actions_eval.mcap").to_str().unwrap(), "--policy", "p", "--checkpoint", "c"]);
-    let out = t.run(&["export", dir.path().join("mcap").to_str().unwrap(), "--format", "lerobot", "--policy", "p"]);
+    t.ok(&[
+        "ingest",
+        f.join("mcap/ros2_no_actions_eval.mcap").to_str().unwrap(),
+        "--policy",
+        "p",
+        "--checkpoint",
+        "c",
+    ]);
+    let out =
+        t.run(&["export", dir.path().join("mcap").to_str().unwrap(), "--format", "lerobot", "--policy", "p"]);
     assert!(!out.status.success());
     assert!(text(&out.stderr).contains("no actions"), "{}", text(&out.stderr));
-    let left: Vec<String> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    let left: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
     assert!(!left.iter().any(|n| n == "mcap" || n.contains(".tmp-")), "{left:?}");
 }
 
@@ -97,19 +160,41 @@ fn export_curated_by_verifier_score_keeps_what_the_scorer_keeps() {
 
     let ds = dir.path().join("curated");
     let rep = t.json(&[
-        "export", ds.to_str().unwrap(), "--format", "lerobot", "--policy", "bc",
-        "--score-artifact", artifact, "--min-score", "0.5", "--json",
+        "export",
+        ds.to_str().unwrap(),
+        "--format",
+        "lerobot",
+        "--policy",
+        "bc",
+        "--score-artifact",
+        artifact,
+        "--min-score",
+        "0.5",
+        "--json",
     ]);
     assert_eq!(rep["episodes"].as_u64().unwrap() as usize, want.len(), "{rep}");
     assert_eq!(rep["episodes_scored"].as_u64().unwrap() as usize, n, "{rep}");
     // The dataset's episode table names the kept episodes and their scores.
     let f = std::fs::File::open(ds.join("meta/episodes/chunk-000/file-000.parquet")).unwrap();
-    let reader = parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(f).unwrap().build().unwrap();
+    let reader =
+        parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(f).unwrap().build().unwrap();
     let mut got: Vec<(String, f64)> = Vec::new();
     for batch in reader {
         let batch = batch.unwrap();
-        let ids = batch.column_by_name("ufops/episode_id").unwrap().as_any().downcast_ref::<StringArray>().unwrap().clone();
-        let sc = batch.column_by_name("ufops/verifier_score").unwrap().as_any().downcast_ref::<Float64Array>().unwrap().clone();
+        let ids = batch
+            .column_by_name("ufops/episode_id")
+            .unwrap()
+            .as_any()
+            .downcast_ref::<StringArray>()
+            .unwrap()
+            .clone();
+        let sc = batch
+            .column_by_name("ufops/verifier_score")
+            .unwrap()
+            .as_any()
+            .downcast_ref::<Float64Array>()
+            .unwrap()
+            .clone();
         assert_eq!(sc.null_count(), 0);
         got.extend((0..ids.len()).map(|i| (ids.value(i).to_string(), sc.value(i))));
     }
@@ -120,26 +205,59 @@ fn export_curated_by_verifier_score_keeps_what_the_scorer_keeps() {
         assert_eq!(gi, wi);
         assert!((gs - ws).abs() < 1e-9, "{gi}: {gs} vs {ws}");
     }
-    let info: serde_json::Value = serde_json::from_slice(&std::fs::read(ds.join("meta/info.json")).unwrap()).unwrap();
+    let info: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(ds.join("meta/info.json")).unwrap()).unwrap();
     let prov = &info["ufops"];
     assert_eq!(prov["selection"]["score"]["min"], 0.5, "{info}");
-    assert!(prov["selection"]["score"]["artifact"].as_str().unwrap().len() >= 16, "the artifact id, not the alias: {info}");
+    assert!(
+        prov["selection"]["score"]["artifact"].as_str().unwrap().len() >= 16,
+        "the artifact id, not the alias: {info}"
+    );
 
     // The complement, as robomimic: every demo carries its score, all below 0.5.
     let h5 = dir.path().join("rest.hdf5");
     let rep = t.json(&[
-        "export", h5.to_str().unwrap(), "--format", "robomimic", "--policy", "bc",
-        "--score-artifact", artifact, "--max-score", "0.4999999", "--json",
+        "export",
+        h5.to_str().unwrap(),
+        "--format",
+        "robomimic",
+        "--policy",
+        "bc",
+        "--score-artifact",
+        artifact,
+        "--max-score",
+        "0.4999999",
+        "--json",
     ]);
     assert_eq!(rep["episodes"].as_u64().unwrap() as usize, n - want.len(), "{rep}");
     // Nothing in range: refused, nothing written.
-    let out = t.run(&["export", dir.path().join("none").to_str().unwrap(), "--format", "lerobot", "--policy", "bc",
-        "--score-artifact", artifact, "--min-score", "1.5"]);
+    let out = t.run(&[
+        "export",
+        dir.path().join("none").to_str().unwrap(),
+        "--format",
+        "lerobot",
+        "--policy",
+        "bc",
+        "--score-artifact",
+        artifact,
+        "--min-score",
+        "1.5",
+    ]);
     assert!(!out.status.success());
     assert!(text(&out.stderr).contains("no episodes"), "{}", text(&out.stderr));
     assert!(!dir.path().join("none").exists());
-    let out = t.run(&["export", dir.path().join("bad").to_str().unwrap(), "--format", "lerobot",
-        "--score-artifact", artifact, "--min-score", "0.9", "--max-score", "0.1"]);
+    let out = t.run(&[
+        "export",
+        dir.path().join("bad").to_str().unwrap(),
+        "--format",
+        "lerobot",
+        "--score-artifact",
+        artifact,
+        "--min-score",
+        "0.9",
+        "--max-score",
+        "0.1",
+    ]);
     assert!(!out.status.success());
     assert!(text(&out.stderr).contains("min <= max"), "{}", text(&out.stderr));
 }
@@ -155,13 +273,32 @@ fn export_carries_failure_causes_and_spans() {
     let data = dir.path().join("store");
     let t = Target::sqlite(&data);
     t.ok(&["init"]);
-    t.ok(&["dev", "synth", "--policy", "p", "--checkpoint", "c", "--seed", "3", "--episodes", "4", "--steps", "12", "--success-rate", "0.5"]);
+    t.ok(&[
+        "dev",
+        "synth",
+        "--policy",
+        "p",
+        "--checkpoint",
+        "c",
+        "--seed",
+        "3",
+        "--episodes",
+        "4",
+        "--steps",
+        "12",
+        "--success-rate",
+        "0.5",
+    ]);
     let eps = t.json(&["episodes", "--policy", "p", "--json"]);
-    let ids: Vec<String> = eps.as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap().to_string()).collect();
+    let ids: Vec<String> =
+        eps.as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap().to_string()).collect();
     let rt = tokio::runtime::Runtime::new().unwrap();
     rt.block_on(async {
         let store = store::Store::open(&store::StoreConfig::local(&data)).await.unwrap();
-        store.set_failure_causes("*", &["missed grasp".to_string(), "collision".to_string()], "admin").await.unwrap();
+        store
+            .set_failure_causes("*", &["missed grasp".to_string(), "collision".to_string()], "admin")
+            .await
+            .unwrap();
         let vote = store::NewVote {
             episode_id: ids[1].clone(),
             label: store::Label::Failure,
@@ -179,12 +316,16 @@ fn export_carries_failure_causes_and_spans() {
     let ds = dir.path().join("ds");
     t.ok(&["export", ds.to_str().unwrap(), "--format", "lerobot", "--policy", "p"]);
     let f = std::fs::File::open(ds.join("meta/episodes/chunk-000/file-000.parquet")).unwrap();
-    let reader = parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(f).unwrap().build().unwrap();
+    let reader =
+        parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(f).unwrap().build().unwrap();
     let mut seen = Vec::new();
     for batch in reader {
         let batch = batch.unwrap();
-        let col = |n: &str| batch.column_by_name(n).unwrap().as_any().downcast_ref::<StringArray>().unwrap().clone();
-        let (id, cause, spans) = (col("ufops/episode_id"), col("ufops/failure_cause"), col("ufops/label_spans"));
+        let col = |n: &str| {
+            batch.column_by_name(n).unwrap().as_any().downcast_ref::<StringArray>().unwrap().clone()
+        };
+        let (id, cause, spans) =
+            (col("ufops/episode_id"), col("ufops/failure_cause"), col("ufops/label_spans"));
         for i in 0..id.len() {
             let c = (!cause.is_null(i)).then(|| cause.value(i).to_string());
             let s = (!spans.is_null(i)).then(|| spans.value(i).to_string());
@@ -210,10 +351,12 @@ fn export_carries_failure_causes_and_spans() {
     let code = "import h5py, json, sys\n\
         d = h5py.File(sys.argv[1], 'r')['data']\n\
         print(json.dumps({k: {a: str(v) for a, v in d[k].attrs.items() if a in ('failure_cause', 'label_spans')} for k in d}))";
-    let out = std::process::Command::new("python3").args(["-c", code, h5.to_str().unwrap()]).output().unwrap();
+    let out =
+        std::process::Command::new("python3").args(["-c", code, h5.to_str().unwrap()]).output().unwrap();
     assert!(out.status.success(), "{}", text(&out.stderr));
     let attrs: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    let with: Vec<&serde_json::Value> = attrs.as_object().unwrap().values().filter(|a| !a.as_object().unwrap().is_empty()).collect();
+    let with: Vec<&serde_json::Value> =
+        attrs.as_object().unwrap().values().filter(|a| !a.as_object().unwrap().is_empty()).collect();
     assert_eq!(with.len(), 1, "one demo carries a cause and spans: {attrs}");
     assert_eq!(with[0]["failure_cause"], "collision");
     let spans: serde_json::Value = serde_json::from_str(with[0]["label_spans"].as_str().unwrap()).unwrap();
@@ -229,7 +372,14 @@ fn export_carries_layers_and_they_re_ingest_bit_exactly() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("store");
     let t = Target::sqlite(&data);
-    t.ok(&["ingest", fixtures().join("lerobot/v30_eval_video").to_str().unwrap(), "--policy", "act", "--checkpoint", "last"]);
+    t.ok(&[
+        "ingest",
+        fixtures().join("lerobot/v30_eval_video").to_str().unwrap(),
+        "--policy",
+        "act",
+        "--checkpoint",
+        "last",
+    ]);
     let before = t.json(&["versions", "--json"]).as_array().unwrap().len() as i64;
     let name = "features.cnn";
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
@@ -260,11 +410,18 @@ fn export_carries_layers_and_they_re_ingest_bit_exactly() {
     // LeRobot v3.0 with the layer, re-ingested into another store.
     let ds = dir.path().join("ds");
     t.ok(&["export", ds.to_str().unwrap(), "--format", "lerobot", "--layers", name]);
-    let info: serde_json::Value = serde_json::from_slice(&std::fs::read(ds.join("meta/info.json")).unwrap()).unwrap();
-    assert_eq!(info["features"][format!("observation.{name}")]["shape"], serde_json::json!([5]), "{}", info["features"]);
+    let info: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(ds.join("meta/info.json")).unwrap()).unwrap();
+    assert_eq!(
+        info["features"][format!("observation.{name}")]["shape"],
+        serde_json::json!([5]),
+        "{}",
+        info["features"]
+    );
     let plain = dir.path().join("plain");
     t.ok(&["export", plain.to_str().unwrap(), "--format", "lerobot"]);
-    let info: serde_json::Value = serde_json::from_slice(&std::fs::read(plain.join("meta/info.json")).unwrap()).unwrap();
+    let info: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(plain.join("meta/info.json")).unwrap()).unwrap();
     assert!(info["features"].get(format!("observation.{name}")).is_none());
     let other = dir.path().join("other");
     let t2 = Target::sqlite(&other);
@@ -298,8 +455,18 @@ fn export_carries_layers_and_they_re_ingest_bit_exactly() {
         let b = store.read_steps(&eps[0].id, None).await.unwrap();
         store::steps::vector_column(&b, &format!("obs.{name}")).unwrap().1
     });
-    assert!(third.iter().zip(&written[0].1).all(|(a, b)| a.to_bits() == b.to_bits()) && third.len() == written[0].1.len());
-    let out = t.run(&["export", dir.path().join("nope").to_str().unwrap(), "--format", "lerobot", "--layers", "features.none"]);
+    assert!(
+        third.iter().zip(&written[0].1).all(|(a, b)| a.to_bits() == b.to_bits())
+            && third.len() == written[0].1.len()
+    );
+    let out = t.run(&[
+        "export",
+        dir.path().join("nope").to_str().unwrap(),
+        "--format",
+        "lerobot",
+        "--layers",
+        "features.none",
+    ]);
     assert!(!out.status.success());
     assert!(text(&out.stderr).contains("layer not found: features.none of episode"), "{}", text(&out.stderr));
     assert!(!dir.path().join("nope").exists());

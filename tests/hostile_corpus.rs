@@ -39,7 +39,10 @@ struct Run {
 /// `VmRSS` of this process, in bytes.
 fn own_rss() -> u64 {
     let s = std::fs::read_to_string("/proc/self/status").unwrap();
-    let kb = s.lines().find_map(|l| l.strip_prefix("VmRSS:")).and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok());
+    let kb = s
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok());
     kb.expect("VmRSS in /proc/self/status") * 1024
 }
 
@@ -66,7 +69,12 @@ fn ingest(t: &Target, source: &Path) -> Run {
     drop(child);
     let stderr = std::fs::read_to_string(&stderr_path).unwrap_or_default();
     let _ = std::fs::remove_file(&stderr_path);
-    Run { status: std::process::ExitStatus::from_raw(status), stderr, max_rss: ru.ru_maxrss as u64 * 1024, parent_rss }
+    Run {
+        status: std::process::ExitStatus::from_raw(status),
+        stderr,
+        max_rss: ru.ru_maxrss as u64 * 1024,
+        parent_rss,
+    }
 }
 
 /// `ufops` against the store; `UFOPS_HOSTILE_BIN` runs another build instead (e.g. one of an
@@ -92,14 +100,23 @@ fn store_state(t: &Target) -> (String, Vec<String>) {
 
 fn run_corpus(attack: Attack) {
     let dir = tempfile::tempdir().unwrap();
-    let cases: Vec<Case> = write_corpus(&dir.path().join("corpus")).unwrap().into_iter().filter(|c| c.attack == attack).collect();
+    let cases: Vec<Case> = write_corpus(&dir.path().join("corpus"))
+        .unwrap()
+        .into_iter()
+        .filter(|c| c.attack == attack)
+        .collect();
     assert!(cases.len() >= 5, "{attack:?}: {} cases", cases.len());
     // A store holding one version already, so "unchanged" means something.
     let t = Target::sqlite(&dir.path().join("store"));
     let good = fixtures().join("robomimic/lift_rollouts_lowdim.hdf5");
     let ok = ingest(&t, &good);
     assert!(ok.status.success(), "the fixture ingests: {}", ok.stderr);
-    eprintln!("{:<32} peak RSS {:>6.1} MB (test process at spawn {:.1} MB)", "(fixture lowdim, accepted)", ok.max_rss as f64 / 1e6, ok.parent_rss as f64 / 1e6);
+    eprintln!(
+        "{:<32} peak RSS {:>6.1} MB (test process at spawn {:.1} MB)",
+        "(fixture lowdim, accepted)",
+        ok.max_rss as f64 / 1e6,
+        ok.parent_rss as f64 / 1e6
+    );
     let before = store_state(&t);
     assert!(!before.1.is_empty());
     let mut failures = Vec::new();
@@ -137,7 +154,13 @@ fn run_corpus(attack: Attack) {
             failures.push(format!("{}: {} (stderr: {err})", c.name, why.join("; ")));
         }
     }
-    assert!(failures.is_empty(), "{} of {} hostile sources:\n{}", failures.len(), cases.len(), failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "{} of {} hostile sources:\n{}",
+        failures.len(),
+        cases.len(),
+        failures.join("\n")
+    );
 }
 
 #[test]

@@ -11,8 +11,18 @@ fn runs_through_the_cli(t: &Target) {
     let lowdim = f.join("lift_rollouts_lowdim.hdf5");
     let image = f.join("lift_rollouts_image.hdf5");
     let success = |name: &str| f.join(format!("{name}.success.json")).to_str().unwrap().to_string();
-    t.ok(&["ingest", lowdim.to_str().unwrap(), "--policy", "lift", "--checkpoint", "c1", "--run", "base",
-        "--success-file", &success("lift_rollouts_lowdim")]);
+    t.ok(&[
+        "ingest",
+        lowdim.to_str().unwrap(),
+        "--policy",
+        "lift",
+        "--checkpoint",
+        "c1",
+        "--run",
+        "base",
+        "--success-file",
+        &success("lift_rollouts_lowdim"),
+    ]);
     let versions = || t.json(&["versions", "--json"]).as_array().unwrap().len();
     let before = versions();
     // Hostile run options: nothing is written.
@@ -31,8 +41,22 @@ fn runs_through_the_cli(t: &Target) {
         assert!(err.contains(says), "{args:?}: {err}");
         assert_eq!(versions(), before, "{args:?} left the store unchanged");
     }
-    t.ok(&["ingest", image.to_str().unwrap(), "--policy", "lift", "--checkpoint", "c1",
-        "--steering", "bon:4", "--run-tag", "on-policy", "--run-tag", "lab-a", "--success-file", &success("lift_rollouts_image")]);
+    t.ok(&[
+        "ingest",
+        image.to_str().unwrap(),
+        "--policy",
+        "lift",
+        "--checkpoint",
+        "c1",
+        "--steering",
+        "bon:4",
+        "--run-tag",
+        "on-policy",
+        "--run-tag",
+        "lab-a",
+        "--success-file",
+        &success("lift_rollouts_image"),
+    ]);
     let eps = t.json(&["episodes", "--policy", "lift", "--json"]);
     let sb = t.json(&["scoreboard", "--policy", "lift", "--format", "json"]);
     let rows = sb["rows"].as_array().unwrap();

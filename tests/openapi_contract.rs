@@ -11,8 +11,10 @@ const REGENERATE: &str = "cargo run --bin ufops -- openapi --write api/openapi.j
 
 fn committed() -> serde_json::Value {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("api/openapi.json");
-    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}; regenerate it with `{REGENERATE}`", path.display()));
-    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}; regenerate it with `{REGENERATE}`", path.display()))
+    let text = std::fs::read_to_string(&path)
+        .unwrap_or_else(|e| panic!("{}: {e}; regenerate it with `{REGENERATE}`", path.display()));
+    serde_json::from_str(&text)
+        .unwrap_or_else(|e| panic!("{}: {e}; regenerate it with `{REGENERATE}`", path.display()))
 }
 
 /// A store with real data and an admin token: the Lift rollouts, a split and a classifier.
@@ -36,7 +38,10 @@ fn committed_document_is_the_served_one() {
     assert_eq!(r.status, 200);
     let printed: serde_json::Value = serde_json::from_str(&t.ok(&["openapi"])).unwrap();
     assert_eq!(printed, r.json(), "`ufops openapi` prints what the server serves");
-    assert!(r.json() == committed(), "api/openapi.json differs from the served /openapi.json: regenerate it with `{REGENERATE}`");
+    assert!(
+        r.json() == committed(),
+        "api/openapi.json differs from the served /openapi.json: regenerate it with `{REGENERATE}`"
+    );
 }
 
 #[test]
@@ -53,7 +58,8 @@ fn schemathesis_finds_no_failures() {
     // document links to (else they would only ever see 404s).
     let settings = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/openapi/schemathesis.toml");
     let auth = format!("Bearer {admin}");
-    let page = http(&server.url, "GET", "/v1/episodes?policy=bc&limit=1", &[("Authorization", &auth)], None).json();
+    let page =
+        http(&server.url, "GET", "/v1/episodes?policy=bc&limit=1", &[("Authorization", &auth)], None).json();
     let episode = page["episodes"][0]["id"].as_str().unwrap().to_string();
     let mut text = std::fs::read_to_string(&settings).unwrap();
     for (path, params) in [
@@ -62,7 +68,8 @@ fn schemathesis_finds_no_failures() {
         ("/v1/review/artifacts/{policy}", r#""path.policy" = "bc""#.to_string()),
         (
             "/v1/policies/{policy}/checkpoints/{checkpoint}/verifiers/{kind_at_alias}",
-            r#""path.policy" = "bc", "path.checkpoint" = "e600", "path.kind_at_alias" = "classifier@latest""#.to_string(),
+            r#""path.policy" = "bc", "path.checkpoint" = "e600", "path.kind_at_alias" = "classifier@latest""#
+                .to_string(),
         ),
     ] {
         text.push_str(&format!("\n[[operations]]\ninclude-path = \"{path}\"\nparameters = {{ {params} }}\n"));

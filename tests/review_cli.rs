@@ -38,7 +38,11 @@ fn review_queue_from_the_cli() {
     // No artifact given and no setting for the policy: the error says what to give.
     let out = t.run(&["review", "score", "--policy", "bc"]);
     assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("--artifact"), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("--artifact"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let out = t.run(&["review", "queue", "--order", "random"]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("random"));
@@ -54,11 +58,14 @@ fn review_queue_from_the_cli() {
     let q = queue(&t, &["--order", "uncertain"], 5);
     assert_eq!(q.len(), n, "pages neither repeat nor skip: {q:?}");
     assert_eq!(q.iter().map(|e| &e.0).collect::<std::collections::HashSet<_>>().len(), n);
-    let dist: Vec<f64> = q.iter().map(|(id, s)| {
-        let s = s.expect("scored");
-        assert!((s - want[id]).abs() < 1e-5, "{id}: stored {s}, rank {}", want[id]);
-        (s - 0.5).abs()
-    }).collect();
+    let dist: Vec<f64> = q
+        .iter()
+        .map(|(id, s)| {
+            let s = s.expect("scored");
+            assert!((s - want[id]).abs() < 1e-5, "{id}: stored {s}, rank {}", want[id]);
+            (s - 0.5).abs()
+        })
+        .collect();
     assert!(dist.windows(2).all(|w| w[0] <= w[1]), "{q:?}");
     assert!(dist.last().unwrap() - dist[0] > 0.05, "the trained classifier's scores differ: {q:?}");
 
@@ -85,13 +92,22 @@ fn review_queue_from_the_cli() {
     let server = t.serve(&["--no-worker"]);
     for (who, votes) in [(0, ["success", "success"]), (1, ["success", "failure"])] {
         for (ep, label) in [&q[0].0, &q[1].0].into_iter().zip(votes) {
-            let r = http(&server.url, "POST", &format!("/v1/episodes/{ep}/votes"), &[("Authorization", &auth[who])],
-                Some(&serde_json::json!({"label": label})));
+            let r = http(
+                &server.url,
+                "POST",
+                &format!("/v1/episodes/{ep}/votes"),
+                &[("Authorization", &auth[who])],
+                Some(&serde_json::json!({"label": label})),
+            );
             assert!(r.status < 300, "{}", String::from_utf8_lossy(&r.body));
         }
     }
     let a = t.json(&["review", "agreement", "--policy", "bc", "--json"]);
-    assert_eq!((a["episodes_voted"].as_u64(), a["agreed"].as_u64(), a["disputed"].as_u64()), (Some(2), Some(1), Some(1)), "{a}");
+    assert_eq!(
+        (a["episodes_voted"].as_u64(), a["agreed"].as_u64(), a["disputed"].as_u64()),
+        (Some(2), Some(1), Some(1)),
+        "{a}"
+    );
     let pair = &a["pairs"][0];
     assert_eq!((pair["episodes"].as_u64(), pair["observed"].as_f64()), (Some(2), Some(0.5)), "{a}");
     let text = t.ok(&["review", "agreement", "--policy", "bc"]);

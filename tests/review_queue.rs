@@ -45,7 +45,11 @@ fn queue_with(url: &str, auth: &str, query: &str) -> Vec<(String, String, Option
         assert_eq!(eps.len(), review.len(), "{v}");
         for (e, s) in eps.iter().zip(review) {
             assert_eq!(e["id"], s["episode_id"]);
-            out.push((e["id"].as_str().unwrap().to_string(), e["label"].as_str().unwrap().to_string(), s["score"].as_f64()));
+            out.push((
+                e["id"].as_str().unwrap().to_string(),
+                e["label"].as_str().unwrap().to_string(),
+                s["score"].as_f64(),
+            ));
         }
         match v["next_cursor"].as_str() {
             Some(c) => after = Some(c.to_string()),
@@ -56,7 +60,13 @@ fn queue_with(url: &str, auth: &str, query: &str) -> Vec<(String, String, Option
 
 fn urlencode(s: &str) -> String {
     s.bytes()
-        .map(|b| if b.is_ascii_alphanumeric() || b"-_.~".contains(&b) { (b as char).to_string() } else { format!("%{b:02X}") })
+        .map(|b| {
+            if b.is_ascii_alphanumeric() || b"-_.~".contains(&b) {
+                (b as char).to_string()
+            } else {
+                format!("%{b:02X}")
+            }
+        })
         .collect()
 }
 
@@ -89,21 +99,31 @@ fn uncertain_first_orders_by_stored_scores(t: &Target) {
     assert_eq!(before.len(), n);
     assert!(before.iter().all(|(_, _, s)| s.is_none()), "{before:?}");
     assert!(before.windows(2).all(|w| w[0].0 < w[1].0));
-    let r = http(url, "GET", &format!("/v1/episodes/{}/scores", before[0].0), &[("Authorization", &viewer)], None);
+    let r = http(
+        url,
+        "GET",
+        &format!("/v1/episodes/{}/scores", before[0].0),
+        &[("Authorization", &viewer)],
+        None,
+    );
     assert_eq!(r.status, 404, "not scored yet");
 
     // Refused: viewers cannot queue work; unknown orders, bad page sizes.
     let body = serde_json::json!({"policy": "bc", "checkpoint": "e600"});
     assert_eq!(http(url, "POST", "/v1/review/score", &[("Authorization", &viewer)], Some(&body)).status, 403);
-    for (path, status) in [
-        ("/v1/episodes?order=random", 400),
-        ("/v1/episodes?order=uncertain&limit=0", 400),
-    ] {
+    for (path, status) in [("/v1/episodes?order=random", 400), ("/v1/episodes?order=uncertain&limit=0", 400)]
+    {
         let r = http(url, "GET", path, &[("Authorization", &viewer)], None);
         assert_eq!(r.status, status, "{path}: {}", String::from_utf8_lossy(&r.body));
         assert_eq!(r.header("content-type"), Some("application/problem+json"), "{path}");
     }
-    let r = http(url, "POST", "/v1/review/score", &[("Authorization", &trainer)], Some(&serde_json::json!({"policy": "bc"})));
+    let r = http(
+        url,
+        "POST",
+        "/v1/review/score",
+        &[("Authorization", &trainer)],
+        Some(&serde_json::json!({"policy": "bc"})),
+    );
     assert_eq!(r.status, 409, "no artifact, no checkpoint, no setting: the policy's state");
 
     // The score job with the default artifact (bc/e600's classifier@latest).
@@ -131,7 +151,10 @@ fn uncertain_first_orders_by_stored_scores(t: &Target) {
     assert_eq!(dist[0], closest);
     let spread = dist.last().unwrap() - dist[0];
     assert!(spread > 0.05, "the trained classifier's scores differ: {q:?}");
-    eprintln!("uncertain-first queue: {:?}", q.iter().map(|(id, l, s)| format!("{id} {l} {:.3}", s.unwrap())).collect::<Vec<_>>());
+    eprintln!(
+        "uncertain-first queue: {:?}",
+        q.iter().map(|(id, l, s)| format!("{id} {l} {:.3}", s.unwrap())).collect::<Vec<_>>()
+    );
 
     // Disagreement first: |score − label| never increases.
     let d = queue(url, &viewer, "disagreement", 4);
@@ -151,13 +174,29 @@ fn uncertain_first_orders_by_stored_scores(t: &Target) {
     let head = http(url, "GET", "/v1/versions", &[("Authorization", &viewer)], None).json();
     let head = head.as_array().unwrap().last().unwrap()["version"].as_i64().unwrap();
     assert_eq!(queue_with(url, &viewer, &format!("order=disagreement&limit=7&version={head}")), d);
-    let r = http(url, "GET", &format!("/v1/episodes?order=uncertain&version={}", head + 1), &[("Authorization", &viewer)], None);
+    let r = http(
+        url,
+        "GET",
+        &format!("/v1/episodes?order=uncertain&version={}", head + 1),
+        &[("Authorization", &viewer)],
+        None,
+    );
     assert_eq!(r.status, 404);
     // Text that is not one of the order's cursors lies past its end: an empty last page.
     for after in ["nonsense", "NaN%7Cx", "inf%7Cx"] {
-        let r = http(url, "GET", &format!("/v1/episodes?order=uncertain&after={after}"), &[("Authorization", &viewer)], None);
+        let r = http(
+            url,
+            "GET",
+            &format!("/v1/episodes?order=uncertain&after={after}"),
+            &[("Authorization", &viewer)],
+            None,
+        );
         assert_eq!(r.status, 200, "{after}");
-        assert_eq!((r.json()["episodes"].as_array().unwrap().len(), &r.json()["next_cursor"]), (0, &serde_json::Value::Null), "{after}");
+        assert_eq!(
+            (r.json()["episodes"].as_array().unwrap().len(), &r.json()["next_cursor"]),
+            (0, &serde_json::Value::Null),
+            "{after}"
+        );
     }
 
     // The per-step series, one per step, whose mean is the queue's score.
@@ -173,7 +212,15 @@ fn uncertain_first_orders_by_stored_scores(t: &Target) {
     assert!(steps.iter().all(|x| (0.0..=1.0).contains(x)));
 
     // The per-policy setting: an unknown artifact is 404; setting the same one keeps the order.
-    let put = |a: &str| http(url, "PUT", "/v1/review/artifacts/bc", &[("Authorization", &trainer)], Some(&serde_json::json!({"artifact": a})));
+    let put = |a: &str| {
+        http(
+            url,
+            "PUT",
+            "/v1/review/artifacts/bc",
+            &[("Authorization", &trainer)],
+            Some(&serde_json::json!({"artifact": a})),
+        )
+    };
     assert_eq!(put("bc/e600/classifier@nope").status, 404);
     let r = put(artifact);
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));

@@ -20,9 +20,10 @@ fn postgres_and_s3_store_end_to_end() {
     t.ok(&["init"]);
 
     let fixture = fixtures().join("lerobot/v30_eval_video");
-    let expected: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(fixtures().join("lerobot/v30_eval_video.expected.json")).unwrap())
-            .unwrap();
+    let expected: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(fixtures().join("lerobot/v30_eval_video.expected.json")).unwrap(),
+    )
+    .unwrap();
     let fixture_s = fixture.to_str().unwrap();
     t.ok(&["ingest", fixture_s, "--policy", "arm", "--checkpoint", "c1"]);
 
@@ -89,7 +90,8 @@ fn postgres_and_s3_store_end_to_end() {
     assert!(object_files(dir.path()).is_empty());
 
     // A second store prefix in the same bucket is a separate store: it sees none of these objects.
-    let other = s3_target(tempfile::tempdir().unwrap().path(), &s3, "other").expect("Postgres answered above");
+    let other =
+        s3_target(tempfile::tempdir().unwrap().path(), &s3, "other").expect("Postgres answered above");
     other.ok(&["init"]);
     let gc = other.json(&["gc", "--grace-seconds", "0", "--dry-run", "--json"]);
     assert_eq!(gc["objects_scanned"].as_u64(), Some(0), "{gc}");
@@ -145,7 +147,8 @@ fn object_reads(url: &str, token: &str) -> (u64, u64, u64) {
     assert!(status.contains(" 200"), "{status}");
     let text = String::from_utf8(body).unwrap();
     let value = |name: &str| -> u64 {
-        let line = text.lines().find(|l| l.starts_with(name)).unwrap_or_else(|| panic!("no {name} in /metrics"));
+        let line =
+            text.lines().find(|l| l.starts_with(name)).unwrap_or_else(|| panic!("no {name} in /metrics"));
         line.rsplit(' ').next().unwrap().parse().unwrap()
     };
     (
@@ -188,20 +191,29 @@ fn video_range_request_fetches_only_its_range() {
         }
     }
     let _server = Kill(child);
-    let url = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("unexpected: {line:?}")).to_string();
+    let url = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("unexpected: {line:?}"))
+        .to_string();
     let auth = format!("Bearer {token}");
     // LeRobot keys lose their `observation.` prefix in the store.
     let media = format!("/v1/episodes/{id}/media/images.front");
 
     let before = object_reads(&url, &token);
-    let (status, headers, body) = http_get(&url, &media, &[("Authorization", &auth), ("Range", "bytes=100-1099")]);
+    let (status, headers, body) =
+        http_get(&url, &media, &[("Authorization", &auth), ("Range", "bytes=100-1099")]);
     let after = object_reads(&url, &token);
     assert!(status.contains(" 206"), "{status}: {}", String::from_utf8_lossy(&body));
     let range = headers.iter().find(|(k, _)| k == "content-range").map(|(_, v)| v.clone()).unwrap();
     assert!(range.starts_with("bytes 100-1099/"), "{range}");
     assert_eq!(body.len(), 1000);
     let (gets, heads, bytes) = (after.0 - before.0, after.1 - before.1, after.2 - before.2);
-    assert_eq!((gets, heads, bytes), (1, 0, 1000), "GETs, HEADs and bytes fetched from S3 for a 1000-byte range");
+    assert_eq!(
+        (gets, heads, bytes),
+        (1, 0, 1000),
+        "GETs, HEADs and bytes fetched from S3 for a 1000-byte range"
+    );
 
     // The same bytes as the video file itself.
     let size: u64 = range.rsplit('/').next().unwrap().parse().unwrap();
@@ -237,8 +249,12 @@ fn layer_stream(eps: &[(String, usize)], dim: usize) -> Vec<u8> {
     let mut w = arrow::ipc::writer::StreamWriter::try_new(&mut buf, &schema).unwrap();
     for (k, (id, steps)) in eps.iter().enumerate() {
         let ids: ArrayRef = Arc::new(StringArray::from(vec![id.as_str(); *steps]));
-        let v: Vec<f32> = (0..*steps).flat_map(|t| (0..dim).map(move |d| (k * 100 + t) as f32 + d as f32 / 10.0)).collect();
-        let vals: ArrayRef = Arc::new(FixedSizeListArray::try_new(item.clone(), dim as i32, Arc::new(Float32Array::from(v)), None).unwrap());
+        let v: Vec<f32> =
+            (0..*steps).flat_map(|t| (0..dim).map(move |d| (k * 100 + t) as f32 + d as f32 / 10.0)).collect();
+        let vals: ArrayRef = Arc::new(
+            FixedSizeListArray::try_new(item.clone(), dim as i32, Arc::new(Float32Array::from(v)), None)
+                .unwrap(),
+        );
         w.write(&RecordBatch::try_new(schema.clone(), vec![ids, vals]).unwrap()).unwrap();
     }
     w.finish().unwrap();
@@ -256,7 +272,14 @@ fn layers_over_the_api_on_postgres_and_s3() {
     let Some(s3) = seaweedfs::SeaweedFs::start_if_available() else { return };
     let Some(t) = s3_target(dir.path(), &s3, "layers") else { return };
     t.ok(&["init"]);
-    t.ok(&["ingest", fixtures().join("lerobot/v30_eval_video").to_str().unwrap(), "--policy", "arm", "--checkpoint", "c1"]);
+    t.ok(&[
+        "ingest",
+        fixtures().join("lerobot/v30_eval_video").to_str().unwrap(),
+        "--policy",
+        "arm",
+        "--checkpoint",
+        "c1",
+    ]);
     let before = t.json(&["versions", "--json"]).as_array().unwrap().len() as i64;
     let eps: Vec<(String, usize)> = t
         .json(&["episodes", "--json"])
@@ -265,12 +288,21 @@ fn layers_over_the_api_on_postgres_and_s3() {
         .iter()
         .map(|e| (e["id"].as_str().unwrap().to_string(), e["length"].as_u64().unwrap() as usize))
         .collect();
-    let trainer = t.json(&["token", "create", "--name", "enc", "--role", "trainer", "--json"])["token"].as_str().unwrap().to_string();
-    let viewer = t.json(&["token", "create", "--name", "v", "--role", "viewer", "--json"])["token"].as_str().unwrap().to_string();
+    let trainer = t.json(&["token", "create", "--name", "enc", "--role", "trainer", "--json"])["token"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let viewer = t.json(&["token", "create", "--name", "v", "--role", "viewer", "--json"])["token"]
+        .as_str()
+        .unwrap()
+        .to_string();
     let server = t.serve(&["--no-worker"]);
     let (ta, va) = (format!("Bearer {trainer}"), format!("Bearer {viewer}"));
     let producer = r#"{"encoder":"cnn","policy":"arm","checkpoint":"c1","content_hash":"abc"}"#;
-    let q: String = producer.bytes().map(|b| if b.is_ascii_alphanumeric() { (b as char).to_string() } else { format!("%{b:02X}") }).collect();
+    let q: String = producer
+        .bytes()
+        .map(|b| if b.is_ascii_alphanumeric() { (b as char).to_string() } else { format!("%{b:02X}") })
+        .collect();
     let path = format!("/v1/layers/features.cnn?producer={q}");
     let ct = Some("application/vnd.apache.arrow.stream");
 
@@ -292,26 +324,60 @@ fn layers_over_the_api_on_postgres_and_s3() {
     assert_eq!(r.json()["episodes_written"], 3);
     let all = layer_stream(&eps, 4);
     let r = http_bytes(&server.url, "POST", &path, &[("Authorization", &ta)], &all, ct);
-    assert_eq!((r.status, r.json()["episodes_written"].as_u64(), r.json()["episodes_skipped"].as_u64()), (201, Some(eps.len() as u64 - 3), Some(3)));
+    assert_eq!(
+        (r.status, r.json()["episodes_written"].as_u64(), r.json()["episodes_skipped"].as_u64()),
+        (201, Some(eps.len() as u64 - 3), Some(3))
+    );
     let r = http_bytes(&server.url, "POST", &path, &[("Authorization", &ta)], &all, ct);
     assert_eq!((r.status, r.json()["version"].is_null()), (200, true));
     let listed = http(&server.url, "GET", "/v1/layers", &[("Authorization", &va)], None).json();
     assert_eq!(listed[0]["episodes"].as_u64(), Some(eps.len() as u64), "{listed}");
     let hash = listed[0]["producer_hash"].as_str().unwrap();
-    let held = http(&server.url, "GET", &format!("/v1/layers/features.cnn/episodes?producer_hash={hash}"), &[("Authorization", &va)], None).json();
+    let held = http(
+        &server.url,
+        "GET",
+        &format!("/v1/layers/features.cnn/episodes?producer_hash={hash}"),
+        &[("Authorization", &va)],
+        None,
+    )
+    .json();
     assert_eq!(held.as_array().unwrap().len(), eps.len());
 
     // Read back joined, as JSON columns; not there in the version before.
     let (id, steps) = &eps[5];
-    let r = http(&server.url, "GET", &format!("/v1/episodes/{id}/steps?layers=features.cnn"), &[("Authorization", &va)], None);
+    let r = http(
+        &server.url,
+        "GET",
+        &format!("/v1/episodes/{id}/steps?layers=features.cnn"),
+        &[("Authorization", &va)],
+        None,
+    );
     assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
     let col = r.json()["columns"]["obs.features.cnn"].clone();
-    let rows = col.as_array().unwrap_or_else(|| panic!("no obs.features.cnn in {}", r.json()["columns"].as_object().unwrap().keys().cloned().collect::<Vec<_>>().join(",")));
+    let rows = col.as_array().unwrap_or_else(|| {
+        panic!(
+            "no obs.features.cnn in {}",
+            r.json()["columns"].as_object().unwrap().keys().cloned().collect::<Vec<_>>().join(",")
+        )
+    });
     assert_eq!(rows.len(), *steps);
     assert_eq!(rows[2][1].as_f64().unwrap() as f32, 502.0 + 0.1);
-    let r = http(&server.url, "GET", &format!("/v1/episodes/{id}/steps?layers=features.cnn&version={before}"), &[("Authorization", &va)], None);
+    let r = http(
+        &server.url,
+        "GET",
+        &format!("/v1/episodes/{id}/steps?layers=features.cnn&version={before}"),
+        &[("Authorization", &va)],
+        None,
+    );
     assert_eq!(r.status, 404, "{}", String::from_utf8_lossy(&r.body));
-    let held = http(&server.url, "GET", &format!("/v1/episodes/{id}/layers?version={before}"), &[("Authorization", &va)], None).json();
+    let held = http(
+        &server.url,
+        "GET",
+        &format!("/v1/episodes/{id}/layers?version={before}"),
+        &[("Authorization", &va)],
+        None,
+    )
+    .json();
     assert_eq!(held, serde_json::json!([]));
     drop(server);
 
@@ -319,7 +385,18 @@ fn layers_over_the_api_on_postgres_and_s3() {
     let split = t.json(&["split", "create", "--policy", "arm", "--checkpoint", "c1", "--json"]);
     let cfg = dir.path().join("train.json");
     std::fs::write(&cfg, r#"{"epochs": 2, "batch_size": 64, "chunk_len": 4}"#).unwrap();
-    let art = t.json(&["train", "--split", split["id"].as_str().unwrap(), "--kind", "classifier", "--config", cfg.to_str().unwrap(), "--obs-keys", "features.cnn", "--json"]);
+    let art = t.json(&[
+        "train",
+        "--split",
+        split["id"].as_str().unwrap(),
+        "--kind",
+        "classifier",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--obs-keys",
+        "features.cnn",
+        "--json",
+    ]);
     let keys = &art["config"]["input"]["obs_keys"];
     assert_eq!(keys[0]["key"], "features.cnn", "{keys}");
     assert_eq!(keys[0]["producer"].as_str(), Some(hash));

@@ -19,7 +19,14 @@ fn put_label(url: &str, auth: &str, id: &str, label: &str) -> u16 {
     let ep = http(url, "GET", &format!("/v1/episodes/{id}"), &[("Authorization", auth)], None);
     let etag = ep.header("etag").expect("ETag").to_string();
     let body = serde_json::json!({ "label": label });
-    http(url, "PUT", &format!("/v1/episodes/{id}/label"), &[("Authorization", auth), ("If-Match", &etag)], Some(&body)).status
+    http(
+        url,
+        "PUT",
+        &format!("/v1/episodes/{id}/label"),
+        &[("Authorization", auth), ("If-Match", &etag)],
+        Some(&body),
+    )
+    .status
 }
 
 #[test]
@@ -39,13 +46,17 @@ fn labeling_goes_on_while_a_snapshot_uploads_to_a_stalled_object_store() {
     let listed = http(&url, "GET", "/v1/episodes?limit=2", &[("Authorization", &auth)], None);
     assert_eq!(listed.status, 200, "{}", String::from_utf8_lossy(&listed.body));
     let page = listed.json();
-    let ids: Vec<String> = page["episodes"].as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap().to_string()).collect();
+    let ids: Vec<String> =
+        page["episodes"].as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap().to_string()).collect();
     assert_eq!(ids.len(), 2, "{page}");
     let label_of = |e: &serde_json::Value| e["label"].as_str().unwrap().to_string();
     let flip = |l: &str| if l == "success" { "failure" } else { "success" };
-    let first = http(&url, "GET", &format!("/v1/episodes/{}", ids[0]), &[("Authorization", &auth)], None).json();
-    let second = http(&url, "GET", &format!("/v1/episodes/{}", ids[1]), &[("Authorization", &auth)], None).json();
-    let (want0, want1) = (flip(&label_of(&first["episode"])).to_string(), flip(&label_of(&second["episode"])).to_string());
+    let first =
+        http(&url, "GET", &format!("/v1/episodes/{}", ids[0]), &[("Authorization", &auth)], None).json();
+    let second =
+        http(&url, "GET", &format!("/v1/episodes/{}", ids[1]), &[("Authorization", &auth)], None).json();
+    let (want0, want1) =
+        (flip(&label_of(&first["episode"])).to_string(), flip(&label_of(&second["episode"])).to_string());
     assert_eq!(put_label(&url, &auth, &ids[0], &want0), 200);
 
     // Freeze the object store, then ask for a snapshot: its upload hangs.
@@ -55,7 +66,13 @@ fn labeling_goes_on_while_a_snapshot_uploads_to_a_stalled_object_store() {
         let (url, auth) = (url.clone(), auth.clone());
         std::thread::spawn(move || {
             let body = serde_json::json!({ "message": "while the store stalls" });
-            let _ = snap_tx.send(http(&url, "POST", "/v1/label-snapshots", &[("Authorization", &auth)], Some(&body)));
+            let _ = snap_tx.send(http(
+                &url,
+                "POST",
+                "/v1/label-snapshots",
+                &[("Authorization", &auth)],
+                Some(&body),
+            ));
         });
     }
     std::thread::sleep(Duration::from_secs(2));
@@ -76,13 +93,31 @@ fn labeling_goes_on_while_a_snapshot_uploads_to_a_stalled_object_store() {
     let snap = snap_rx.recv_timeout(Duration::from_secs(120)).expect("the snapshot never finished");
     assert_eq!(snap.status, 201, "{}", String::from_utf8_lossy(&snap.body));
     let version = snap.json()["version"].as_i64().unwrap();
-    let frozen = http(&url, "GET", &format!("/v1/episodes?limit=500&version={version}"), &[("Authorization", &auth)], None).json();
+    let frozen = http(
+        &url,
+        "GET",
+        &format!("/v1/episodes?limit=500&version={version}"),
+        &[("Authorization", &auth)],
+        None,
+    )
+    .json();
     let label_at = |id: &str| {
-        frozen["episodes"].as_array().unwrap().iter().find(|e| e["id"] == id).map(label_of).unwrap_or_default()
+        frozen["episodes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|e| e["id"] == id)
+            .map(label_of)
+            .unwrap_or_default()
     };
-    assert_eq!((label_at(&ids[0]), label_at(&ids[1])), (want0.clone(), want1.clone()), "labels frozen in version {version}");
+    assert_eq!(
+        (label_at(&ids[0]), label_at(&ids[1])),
+        (want0.clone(), want1.clone()),
+        "labels frozen in version {version}"
+    );
     // And a second snapshot with nothing changed is the same version (no new file, no new version).
-    let again = http(&url, "POST", "/v1/label-snapshots", &[("Authorization", &auth)], Some(&serde_json::json!({})));
+    let again =
+        http(&url, "POST", "/v1/label-snapshots", &[("Authorization", &auth)], Some(&serde_json::json!({})));
     assert_eq!((again.status, again.json()["version"].as_i64()), (200, Some(version)));
     drop(server);
 }

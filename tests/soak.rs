@@ -15,7 +15,11 @@ use std::time::{Duration, Instant};
 fn rss_kb(pid: u32) -> u64 {
     std::fs::read_to_string(format!("/proc/{pid}/status"))
         .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with("VmRSS:")).and_then(|l| l.split_whitespace().nth(1)?.parse().ok()))
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmRSS:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
+        })
         .unwrap_or(0)
 }
 
@@ -26,8 +30,22 @@ fn serve_survives_a_mixed_and_hostile_load() {
     let t = Target::sqlite(dir.path());
     t.ok(&["init"]);
     let f = fixtures();
-    t.ok(&["ingest", f.join("lerobot/v30_eval_video").to_str().unwrap(), "--policy", "arm", "--checkpoint", "c1"]);
-    t.ok(&["ingest", f.join("robomimic/lift_rollouts_lowdim.hdf5").to_str().unwrap(), "--policy", "bc", "--checkpoint", "e600"]);
+    t.ok(&[
+        "ingest",
+        f.join("lerobot/v30_eval_video").to_str().unwrap(),
+        "--policy",
+        "arm",
+        "--checkpoint",
+        "c1",
+    ]);
+    t.ok(&[
+        "ingest",
+        f.join("robomimic/lift_rollouts_lowdim.hdf5").to_str().unwrap(),
+        "--policy",
+        "bc",
+        "--checkpoint",
+        "e600",
+    ]);
     let episodes: Vec<(String, bool)> = t
         .json(&["episodes", "--json"])
         .as_array()
@@ -36,7 +54,10 @@ fn serve_survives_a_mixed_and_hostile_load() {
         .map(|e| (e["id"].as_str().unwrap().to_string(), e["policy"] == "arm"))
         .collect();
     let token = |name: &str, role: &str| -> String {
-        format!("Bearer {}", t.json(&["token", "create", "--name", name, "--role", role, "--json"])["token"].as_str().unwrap())
+        format!(
+            "Bearer {}",
+            t.json(&["token", "create", "--name", name, "--role", role, "--json"])["token"].as_str().unwrap()
+        )
     };
     let labelers: Vec<String> = (0..4).map(|i| token(&format!("labeler-{i}"), "labeler")).collect();
     let viewer = token("reader", "viewer");
@@ -64,12 +85,24 @@ fn serve_survives_a_mixed_and_hostile_load() {
                     continue;
                 }
                 let rev = r.json()["episode"]["label_revision"].as_i64().unwrap();
-                let r = http(&url, "PUT", &format!("/v1/episodes/{id}/label"), &[("Authorization", &auth), ("If-Match", &format!("\"{rev}\""))],
-                    Some(&serde_json::json!({"label": label})));
+                let r = http(
+                    &url,
+                    "PUT",
+                    &format!("/v1/episodes/{id}/label"),
+                    &[("Authorization", &auth), ("If-Match", &format!("\"{rev}\""))],
+                    Some(&serde_json::json!({"label": label})),
+                );
                 match r.status {
-                    200 => acked.lock().unwrap().push((id.clone(), r.json()["revision"].as_i64().unwrap(), label.to_string())),
+                    200 => acked.lock().unwrap().push((
+                        id.clone(),
+                        r.json()["revision"].as_i64().unwrap(),
+                        label.to_string(),
+                    )),
                     409 => {}
-                    s => failures.lock().unwrap().push(format!("PUT label: {s} {}", String::from_utf8_lossy(&r.body))),
+                    s => failures
+                        .lock()
+                        .unwrap()
+                        .push(format!("PUT label: {s} {}", String::from_utf8_lossy(&r.body))),
                 }
                 *counts.lock().unwrap().entry("label writes").or_default() += 1;
             }
@@ -91,7 +124,8 @@ fn serve_survives_a_mixed_and_hostile_load() {
                     reqs.push((format!("/v1/episodes/{id}/media/images.front"), vec![206]));
                 }
                 for (path, ok) in reqs {
-                    let r = http(&url, "GET", &path, &[("Authorization", &auth), ("Range", "bytes=0-999")], None);
+                    let r =
+                        http(&url, "GET", &path, &[("Authorization", &auth), ("Range", "bytes=0-999")], None);
                     if !ok.contains(&r.status) {
                         failures.lock().unwrap().push(format!("GET {path}: {}", r.status));
                     }
@@ -101,7 +135,8 @@ fn serve_survives_a_mixed_and_hostile_load() {
         }));
     }
     {
-        let (url, stop, failures, counts, id) = (url.clone(), stop.clone(), failures.clone(), counts.clone(), episodes[0].0.clone());
+        let (url, stop, failures, counts, id) =
+            (url.clone(), stop.clone(), failures.clone(), counts.clone(), episodes[0].0.clone());
         threads.push(std::thread::spawn(move || {
             let big = serde_json::json!({"updates": [], "pad": "x".repeat(2 << 20)});
             let mut n = 0u64;
@@ -113,14 +148,49 @@ fn serve_survives_a_mixed_and_hostile_load() {
                     (http(&url, "GET", "/v1/episodes", &[], None), &[401]),
                     // refused before the body is read: 401/413, or the connection closed under the sender;
                     // 429 once this address has made too many checks of unknown tokens
-                    (http(&url, "POST", "/v1/labels/bulk", &[("Authorization", &bad)], Some(&big)), &[0, 401, 413, 429]),
-                    (http_bytes(&url, "PUT", &format!("/v1/episodes/{id}/label"), &[("Authorization", &bad)], b"{not json", Some("application/json")), &[401, 400, 422, 429]),
-                    (http(&url, &format!("BREW{}", n % 50), "/v1/episodes", &[("Authorization", &bad)], None), &[400, 401, 404, 405, 429]),
-                    (http(&url, "GET", "/v1/episodes/..%2F..%2Fetc%2Fpasswd", &[("Authorization", &bad)], None), &[400, 401, 404, 429]),
+                    (
+                        http(&url, "POST", "/v1/labels/bulk", &[("Authorization", &bad)], Some(&big)),
+                        &[0, 401, 413, 429],
+                    ),
+                    (
+                        http_bytes(
+                            &url,
+                            "PUT",
+                            &format!("/v1/episodes/{id}/label"),
+                            &[("Authorization", &bad)],
+                            b"{not json",
+                            Some("application/json"),
+                        ),
+                        &[401, 400, 422, 429],
+                    ),
+                    (
+                        http(
+                            &url,
+                            &format!("BREW{}", n % 50),
+                            "/v1/episodes",
+                            &[("Authorization", &bad)],
+                            None,
+                        ),
+                        &[400, 401, 404, 405, 429],
+                    ),
+                    (
+                        http(
+                            &url,
+                            "GET",
+                            "/v1/episodes/..%2F..%2Fetc%2Fpasswd",
+                            &[("Authorization", &bad)],
+                            None,
+                        ),
+                        &[400, 401, 404, 429],
+                    ),
                 ];
                 for (r, ok) in cases {
                     if !ok.contains(&r.status) {
-                        failures.lock().unwrap().push(format!("hostile request answered {}: {}", r.status, String::from_utf8_lossy(&r.body)));
+                        failures.lock().unwrap().push(format!(
+                            "hostile request answered {}: {}",
+                            r.status,
+                            String::from_utf8_lossy(&r.body)
+                        ));
                     }
                     *counts.lock().unwrap().entry("hostile").or_default() += 1;
                 }
@@ -139,14 +209,30 @@ fn serve_survives_a_mixed_and_hostile_load() {
         th.join().unwrap();
     }
     let third = seconds as f64 / 3.0;
-    let peak = |from: f64, to: f64| samples.iter().filter(|(t, _)| *t >= from && *t < to).map(|(_, r)| *r).max().unwrap_or(0);
+    let peak = |from: f64, to: f64| {
+        samples.iter().filter(|(t, _)| *t >= from && *t < to).map(|(_, r)| *r).max().unwrap_or(0)
+    };
     let (first, last) = (peak(0.0, third), peak(2.0 * third, f64::MAX));
     let counts = counts.lock().unwrap().clone();
-    eprintln!("soak {seconds} s: {counts:?}; server RSS peak first third {} MB, last third {} MB", first / 1024, last / 1024);
+    eprintln!(
+        "soak {seconds} s: {counts:?}; server RSS peak first third {} MB, last third {} MB",
+        first / 1024,
+        last / 1024
+    );
     let failures = failures.lock().unwrap();
-    assert!(failures.is_empty(), "{} unexpected answers, e.g. {:?}", failures.len(), &failures[..failures.len().min(5)]);
+    assert!(
+        failures.is_empty(),
+        "{} unexpected answers, e.g. {:?}",
+        failures.len(),
+        &failures[..failures.len().min(5)]
+    );
     assert!(counts["label writes"] > 50 && counts["reads"] > 50 && counts["hostile"] > 50, "{counts:?}");
-    assert!(last <= first * 3 / 2 + 32 * 1024, "server RSS grew: {} MB in the first third, {} MB in the last", first / 1024, last / 1024);
+    assert!(
+        last <= first * 3 / 2 + 32 * 1024,
+        "server RSS grew: {} MB in the first third, {} MB in the last",
+        first / 1024,
+        last / 1024
+    );
     drop(server);
 
     // Nothing lost: the audit log replays to every episode's label and holds every acked write.
@@ -172,7 +258,11 @@ fn serve_survives_a_mixed_and_hostile_load() {
             assert_eq!(last_rev.get(&e.id), Some(&(e.label_revision, e.label)), "{}", e.id);
         }
         for (id, rev, label) in acked.lock().unwrap().iter() {
-            assert_eq!(by_key.get(&(id.clone(), *rev)).map(|l| l.as_str()), Some(label.as_str()), "acked write {id}@{rev} not in the log");
+            assert_eq!(
+                by_key.get(&(id.clone(), *rev)).map(|l| l.as_str()),
+                Some(label.as_str()),
+                "acked write {id}@{rev} not in the log"
+            );
         }
     });
 }

@@ -29,7 +29,11 @@ fn start_server(t: &Target) -> (Server, String) {
     let server = Server(child);
     let mut line = String::new();
     BufReader::new(stdout).read_line(&mut line).unwrap();
-    let url = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("unexpected: {line:?}")).to_string();
+    let url = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("unexpected: {line:?}"))
+        .to_string();
     (server, url)
 }
 
@@ -42,7 +46,15 @@ fn verifier_loads_over_http_like_from_the_store() {
     let split = t.json(&["split", "create", "--policy", "synth", "--checkpoint", "ckpt-0", "--json"]);
     let cfg = dir.path().join("train.json");
     std::fs::write(&cfg, r#"{"epochs": 2}"#).unwrap();
-    t.ok(&["train", "--split", split["id"].as_str().unwrap(), "--kind", "classifier", "--config", cfg.to_str().unwrap()]);
+    t.ok(&[
+        "train",
+        "--split",
+        split["id"].as_str().unwrap(),
+        "--kind",
+        "classifier",
+        "--config",
+        cfg.to_str().unwrap(),
+    ]);
     let local = dir.path().join("local");
     t.ok(&["artifacts", "download", "synth/ckpt-0/classifier@latest", local.to_str().unwrap()]);
     let token = t.json(&["token", "create", "--name", "robot-7", "--role", "viewer", "--json"]);
@@ -82,13 +94,35 @@ fn verifier_loads_over_http_like_from_the_store() {
     let input_s = input.to_str().unwrap();
     // ...equal `ufops score` on the store and through the API...
     let a = t.json(&["score", "--artifact", "synth/ckpt-0/classifier@latest", "--input", input_s, "--grad"]);
-    let b = t.json(&["score", "--artifact", "synth/ckpt-0/classifier@latest", "--input", input_s, "--grad", "--api", &url, "--token", &token]);
+    let b = t.json(&[
+        "score",
+        "--artifact",
+        "synth/ckpt-0/classifier@latest",
+        "--input",
+        input_s,
+        "--grad",
+        "--api",
+        &url,
+        "--token",
+        &token,
+    ]);
     // ...and the trainer's candle graph with autograd (an independent implementation).
-    let (candle, candle_grad) = trainer::load_artifact(&local).unwrap().candle_scores_and_grads(&rows).unwrap();
-    let floats = |v: &serde_json::Value| -> Vec<f32> { v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect() };
+    let (candle, candle_grad) =
+        trainer::load_artifact(&local).unwrap().candle_scores_and_grads(&rows).unwrap();
+    let floats = |v: &serde_json::Value| -> Vec<f32> {
+        v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect()
+    };
     for (name, scores, grads) in [
-        ("ufops score", floats(&a["scores"]), a["grads"].as_array().unwrap().iter().flat_map(|g| floats(g)).collect::<Vec<_>>()),
-        ("ufops score --api", floats(&b["scores"]), b["grads"].as_array().unwrap().iter().flat_map(|g| floats(g)).collect()),
+        (
+            "ufops score",
+            floats(&a["scores"]),
+            a["grads"].as_array().unwrap().iter().flat_map(|g| floats(g)).collect::<Vec<_>>(),
+        ),
+        (
+            "ufops score --api",
+            floats(&b["scores"]),
+            b["grads"].as_array().unwrap().iter().flat_map(|g| floats(g)).collect(),
+        ),
         ("candle", candle.clone(), candle_grad.iter().flatten().copied().collect()),
     ] {
         assert_eq!(scores.len(), n, "{name}");
@@ -109,7 +143,17 @@ fn verifier_loads_over_http_like_from_the_store() {
     assert!(err.contains("401"), "{err}");
     let err = steer::http::load_verifier(&src, "synth/ckpt-0/classifier@nope").err().unwrap().to_string();
     assert!(err.contains("404") && err.contains("nope"), "{err}");
-    let out = t.run(&["score", "--artifact", "synth/ckpt-0/q@latest", "--input", input_s, "--api", &url, "--token", &token]);
+    let out = t.run(&[
+        "score",
+        "--artifact",
+        "synth/ckpt-0/q@latest",
+        "--input",
+        input_s,
+        "--api",
+        &url,
+        "--token",
+        &token,
+    ]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("404"), "{}", String::from_utf8_lossy(&out.stderr));
 }

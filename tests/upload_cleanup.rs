@@ -58,8 +58,14 @@ fn finished_uploads_are_deleted_and_stale_ones_swept() {
     let mut broken = good.clone();
     broken.truncate(4096);
     for (body, want) in [(&good, "succeeded"), (&broken, "failed")] {
-        let r = http_bytes(url, "POST", "/v1/ingest?policy=bc&checkpoint=e600&filename=lift.hdf5",
-            &[("Authorization", &auth)], body, Some("application/octet-stream"));
+        let r = http_bytes(
+            url,
+            "POST",
+            "/v1/ingest?policy=bc&checkpoint=e600&filename=lift.hdf5",
+            &[("Authorization", &auth)],
+            body,
+            Some("application/octet-stream"),
+        );
         assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
         let job = r.json();
         let done = wait_job(url, &auth, job["id"].as_str().unwrap());

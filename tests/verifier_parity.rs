@@ -18,15 +18,22 @@ use steer::Scorer;
 use viewer::EpisodeScorer;
 
 fn numpy_available() -> bool {
-    let importable = Command::new("python3").args(["-c", "import numpy, safetensors"]).status().is_ok_and(|s| s.success());
+    let importable =
+        Command::new("python3").args(["-c", "import numpy, safetensors"]).status().is_ok_and(|s| s.success());
     if !importable && std::env::var("UFOPS_REQUIRE_PYTHON").as_deref() == Ok("1") {
-        panic!("UFOPS_REQUIRE_PYTHON=1: python3 with numpy and safetensors is required for the numpy reference");
+        panic!(
+            "UFOPS_REQUIRE_PYTHON=1: python3 with numpy and safetensors is required for the numpy reference"
+        );
     }
     importable
 }
 
 fn floats(v: &serde_json::Value) -> Vec<f32> {
-    v.as_array().unwrap_or_else(|| panic!("not an array: {v}")).iter().map(|x| x.as_f64().unwrap() as f32).collect()
+    v.as_array()
+        .unwrap_or_else(|| panic!("not an array: {v}"))
+        .iter()
+        .map(|x| x.as_f64().unwrap() as f32)
+        .collect()
 }
 
 fn nested(v: &serde_json::Value) -> Vec<f32> {
@@ -60,8 +67,19 @@ fn every_client_gives_the_same_scores_and_gradients() {
     let lowdim = dir.path().join("lowdim.json");
     std::fs::write(&lowdim, r#"{"epochs": 3}"#).unwrap();
     t.ok(&[
-        "train", "--split", &split, "--kind", "classifier", "--config", lowdim.to_str().unwrap(),
-        "--action-scale", "0.5", "2.0", "--action-offset", "0.1", "0",
+        "train",
+        "--split",
+        &split,
+        "--kind",
+        "classifier",
+        "--config",
+        lowdim.to_str().unwrap(),
+        "--action-scale",
+        "0.5",
+        "2.0",
+        "--action-offset",
+        "0.1",
+        "0",
     ]);
     let mut f = trainer::TrainConfig::preset(trainer::Kind::Q, trainer::Variant::Features);
     f.architecture.encoder_width = 16;
@@ -82,7 +100,10 @@ fn every_client_gives_the_same_scores_and_gradients() {
     let layer = "features.proj";
     rt.block_on(async {
         let store = store::Store::open(&store::StoreConfig::local(dir.path())).await.unwrap();
-        let eps = store.episodes(&store::EpisodeFilter { policy: Some("synth".into()), ..Default::default() }).await.unwrap();
+        let eps = store
+            .episodes(&store::EpisodeFilter { policy: Some("synth".into()), ..Default::default() })
+            .await
+            .unwrap();
         let mut values = Vec::new();
         for e in &eps {
             let b = store.read_steps(&e.id, None).await.unwrap();
@@ -90,7 +111,16 @@ fn every_client_gives_the_same_scores_and_gradients() {
             let (dim, obs) = store::steps::vector_column(&b, &format!("obs.{}", keys[0].0)).unwrap();
             let feats: Vec<f32> = obs
                 .chunks(dim)
-                .flat_map(|o| (0..6).map(move |j| (o.iter().enumerate().map(|(i, x)| x * ((i * 7 + j * 3) % 5) as f32 * 0.3).sum::<f32>() + j as f32 * 0.1).tanh()))
+                .flat_map(|o| {
+                    (0..6).map(move |j| {
+                        (o.iter()
+                            .enumerate()
+                            .map(|(i, x)| x * ((i * 7 + j * 3) % 5) as f32 * 0.3)
+                            .sum::<f32>()
+                            + j as f32 * 0.1)
+                            .tanh()
+                    })
+                })
                 .collect();
             values.push(store::LayerValues { episode_id: e.id.clone(), dim: 6, values: feats });
         }
@@ -105,30 +135,42 @@ fn every_client_gives_the_same_scores_and_gradients() {
     fc.batch_size = 256;
     let features_c = dir.path().join("features-classifier.json");
     std::fs::write(&features_c, serde_json::to_string(&fc).unwrap()).unwrap();
-    let layer_split = t.json(&["split", "create", "--policy", "synth", "--checkpoint", "ckpt-0", "--seed", "1", "--json"]);
+    let layer_split =
+        t.json(&["split", "create", "--policy", "synth", "--checkpoint", "ckpt-0", "--seed", "1", "--json"]);
     let layer_split = layer_split["id"].as_str().unwrap().to_string();
     let trained = t.json(&[
-        "train", "--split", &layer_split, "--kind", "classifier", "--config", features_c.to_str().unwrap(),
-        "--obs-keys", layer, "--json",
+        "train",
+        "--split",
+        &layer_split,
+        "--kind",
+        "classifier",
+        "--config",
+        features_c.to_str().unwrap(),
+        "--obs-keys",
+        layer,
+        "--json",
     ]);
-    let layer_artifact = trained["id"].as_str().unwrap_or_else(|| panic!("no artifact id in {trained}")).to_string();
+    let layer_artifact =
+        trained["id"].as_str().unwrap_or_else(|| panic!("no artifact id in {trained}")).to_string();
     let producer_hash = store::producer_hash(&producer).unwrap();
 
     // The steps of a stored episode: what the viewer scores (with the layer joined for the
     // verifier that reads it).
     let (plain_batch, layer_batch) = rt.block_on(async {
         let store = store::Store::open(&store::StoreConfig::local(dir.path())).await.unwrap();
-        let filter = store::EpisodeFilter { policy: Some("synth".into()), limit: Some(1), ..Default::default() };
+        let filter =
+            store::EpisodeFilter { policy: Some("synth".into()), limit: Some(1), ..Default::default() };
         let ep = store.episodes(&filter).await.unwrap().remove(0);
-        (store.read_steps(&ep.id, None).await.unwrap(), store.read_steps_with_layers(&ep.id, None, &[layer.to_string()]).await.unwrap())
+        (
+            store.read_steps(&ep.id, None).await.unwrap(),
+            store.read_steps_with_layers(&ep.id, None, &[layer.to_string()]).await.unwrap(),
+        )
     });
     let numpy = numpy_available();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/python/reference/ufops_reference.py");
 
-    let cases = [
-        (layer_artifact.as_str(), "layer", &layer_batch),
-        ("synth/ckpt-0/q@latest", "q", &plain_batch),
-    ];
+    let cases =
+        [(layer_artifact.as_str(), "layer", &layer_batch), ("synth/ckpt-0/q@latest", "q", &plain_batch)];
     // The lowdim classifier was published first; the layer classifier is now classifier@latest.
     let lowdim_id = t.json(&["artifacts", "--policy", "synth", "--checkpoint", "ckpt-0", "--json"]);
     let lowdim_id = lowdim_id
@@ -138,7 +180,9 @@ fn every_client_gives_the_same_scores_and_gradients() {
         .find(|a| a["kind"] == "classifier" && a["id"] != layer_artifact.as_str())
         .map(|a| a["id"].as_str().unwrap().to_string())
         .expect("the lowdim classifier");
-    for (reference, name, batch) in [(lowdim_id.as_str(), "classifier", &plain_batch)].into_iter().chain(cases) {
+    for (reference, name, batch) in
+        [(lowdim_id.as_str(), "classifier", &plain_batch)].into_iter().chain(cases)
+    {
         let local = dir.path().join(name);
         t.ok(&["artifacts", "download", reference, local.to_str().unwrap()]);
         let robot = steer::Verifier::load_dir(&local).unwrap();
@@ -153,15 +197,18 @@ fn every_client_gives_the_same_scores_and_gradients() {
                 let err = robot.check_producers([(layer, "0".repeat(64).as_str())]).unwrap_err().to_string();
                 assert!(err.contains("trained on features of producer"), "{err}");
                 let schema = batch.schema();
-                let mut fields: Vec<arrow::datatypes::Field> = schema.fields().iter().map(|f| f.as_ref().clone()).collect();
+                let mut fields: Vec<arrow::datatypes::Field> =
+                    schema.fields().iter().map(|f| f.as_ref().clone()).collect();
                 for f in fields.iter_mut().filter(|f| f.name() == &format!("obs.{layer}")) {
                     let mut m = f.metadata().clone();
                     m.insert(store::PRODUCER_META_KEY.into(), "f".repeat(64));
                     *f = f.clone().with_metadata(m);
                 }
-                let forged =
-                    arrow::array::RecordBatch::try_new(std::sync::Arc::new(arrow::datatypes::Schema::new(fields)), batch.columns().to_vec())
-                        .unwrap();
+                let forged = arrow::array::RecordBatch::try_new(
+                    std::sync::Arc::new(arrow::datatypes::Schema::new(fields)),
+                    batch.columns().to_vec(),
+                )
+                .unwrap();
                 let err = trainer::step_inputs(cfg, &forged).unwrap_err().to_string();
                 assert!(err.contains("ffffffffffff"), "{err}");
                 let err = trainer::step_inputs(cfg, &plain_batch).unwrap_err().to_string();
@@ -169,11 +216,19 @@ fn every_client_gives_the_same_scores_and_gradients() {
             }
             "classifier" => {
                 assert_eq!(cfg.architecture.variant, verifier::Variant::Lowdim);
-                assert_eq!(cfg.input.action_space, verifier::ActionSpace::policy(vec![0.5, 2.0], vec![0.1, 0.0]));
+                assert_eq!(
+                    cfg.input.action_space,
+                    verifier::ActionSpace::policy(vec![0.5, 2.0], vec![0.1, 0.0])
+                );
             }
             _ => {
                 let a = &cfg.architecture;
-                assert!(a.variant == verifier::Variant::Features && a.spectral_norm && a.input_layernorm && a.encoder_layernorm);
+                assert!(
+                    a.variant == verifier::Variant::Features
+                        && a.spectral_norm
+                        && a.input_layernorm
+                        && a.encoder_layernorm
+                );
                 assert_eq!(a.activation, verifier::Activation::Gelu);
             }
         }
@@ -187,7 +242,9 @@ fn every_client_gives_the_same_scores_and_gradients() {
         assert!(grads.iter().any(|g| g.abs() > 1e-4), "{name}: the gradient is trivially zero");
 
         // The viewer's scorer, on the stored steps themselves.
-        let viewer_scores = viewer::VerifierScorer(verifier::Verifier::load_dir(&local).unwrap()).score_episode(batch).unwrap();
+        let viewer_scores = viewer::VerifierScorer(verifier::Verifier::load_dir(&local).unwrap())
+            .score_episode(batch)
+            .unwrap();
         same(&format!("{name}: viewer scores"), &viewer_scores, &scores, 1e-5);
 
         // `ufops score` from the store, with policy-space rows and with raw rows.
@@ -200,7 +257,14 @@ fn every_client_gives_the_same_scores_and_gradients() {
         cfg.input.action_space.input_to_raw(&mut raw, cfg.input.layout.action_dim);
         let raw_rows = dir.path().join(format!("{name}-raw-rows.json"));
         rows_json(&raw_rows, &s.obs, &raw, &s.t);
-        let cli_raw = t.json(&["score", "--artifact", reference, "--input", raw_rows.to_str().unwrap(), "--raw-actions"]);
+        let cli_raw = t.json(&[
+            "score",
+            "--artifact",
+            reference,
+            "--input",
+            raw_rows.to_str().unwrap(),
+            "--raw-actions",
+        ]);
         same(&format!("{name}: ufops score --raw-actions"), &floats(&cli_raw["scores"]), &scores, 1e-5);
 
         // The trainer's candle graph and its autograd.
@@ -213,8 +277,14 @@ fn every_client_gives_the_same_scores_and_gradients() {
         // Finite differences of the robot's own scores (log C for the classifier), a few rows.
         for r in [0, n / 2, n - 1] {
             let obj = |c: &[f32]| -> f64 {
-                let v = robot.score_batch(&s.obs[r * s.obs_dim..(r + 1) * s.obs_dim], &s.t[r..r + 1], c, 1).unwrap()[0] as f64;
-                if name == "q" { v } else { v.ln() }
+                let v = robot
+                    .score_batch(&s.obs[r * s.obs_dim..(r + 1) * s.obs_dim], &s.t[r..r + 1], c, 1)
+                    .unwrap()[0] as f64;
+                if name == "q" {
+                    v
+                } else {
+                    v.ln()
+                }
             };
             let chunk = &s.act[r * ad..(r + 1) * ad];
             for j in 0..ad {
@@ -241,7 +311,11 @@ fn every_client_gives_the_same_scores_and_gradients() {
         // The independent numpy reference (float64, hand-written backprop).
         if numpy {
             let out = Command::new("python3").arg(&script).arg(&local).arg(&rows).output().unwrap();
-            assert!(out.status.success(), "{name}: numpy reference failed: {}", String::from_utf8_lossy(&out.stderr));
+            assert!(
+                out.status.success(),
+                "{name}: numpy reference failed: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
             let py: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
             assert_eq!(py["artifact_id"].as_str(), robot.id());
             same(&format!("{name}: numpy scores"), &floats(&py["scores"]), &scores, 1e-5);

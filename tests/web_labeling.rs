@@ -37,7 +37,9 @@ fn chromium() -> Option<PathBuf> {
 fn missing_prerequisites() -> Vec<String> {
     let mut missing = Vec::new();
     if chromium().is_none() {
-        missing.push("chromium (apt-get install -y --no-install-recommends chromium, or set CHROMIUM)".to_string());
+        missing.push(
+            "chromium (apt-get install -y --no-install-recommends chromium, or set CHROMIUM)".to_string(),
+        );
     }
     if Command::new("node").arg("--version").output().map(|o| !o.status.success()).unwrap_or(true) {
         missing.push("node (Node.js >= 20)".to_string());
@@ -122,7 +124,9 @@ fn http(addr: &str, method: &str, path: &str, token: &str, body: Option<&str>) -
     let text = String::from_utf8_lossy(&raw).into_owned();
     let (head, rest) = text.split_once("\r\n\r\n").expect("an HTTP response");
     let status: u16 = head.split_whitespace().nth(1).and_then(|c| c.parse().ok()).expect("status");
-    let chunked = head.lines().any(|l| l.to_ascii_lowercase().starts_with("transfer-encoding:") && l.contains("chunked"));
+    let chunked = head
+        .lines()
+        .any(|l| l.to_ascii_lowercase().starts_with("transfer-encoding:") && l.contains("chunked"));
     let body = if chunked {
         let mut out = String::new();
         let mut r = rest;
@@ -159,14 +163,30 @@ fn labeling_page_in_headless_chromium() {
     t.ok(&["init"]);
     let video = fixtures.join("v30_eval_video");
     let lowdim = fixtures.join("v30_unlabeled");
-    t.json(&["ingest", video.to_str().unwrap(), "--policy", "toy-dp", "--checkpoint", "step-80000", "--json"]);
+    t.json(&[
+        "ingest",
+        video.to_str().unwrap(),
+        "--policy",
+        "toy-dp",
+        "--checkpoint",
+        "step-80000",
+        "--json",
+    ]);
     t.json(&["ingest", lowdim.to_str().unwrap(), "--policy", "lowdim", "--checkpoint", "c0", "--json"]);
     // The campaign: the video episodes' labels are reset to unknown for people to judge.
     let eps = t.json(&["episodes", "--policy", "toy-dp", "--json"]);
     let eps = eps.as_array().expect("episode list");
     assert_eq!(eps.len(), 8, "the v3.0 video fixture has 8 episodes");
     for e in eps {
-        t.ok(&["label", e["id"].as_str().unwrap(), "unknown", "--actor", "campaign", "--note", "to be judged by people"]);
+        t.ok(&[
+            "label",
+            e["id"].as_str().unwrap(),
+            "unknown",
+            "--actor",
+            "campaign",
+            "--note",
+            "to be judged by people",
+        ]);
     }
     let admin = token(&t, "admin", "admin");
     let alice = token(&t, "alice", "labeler");
@@ -210,7 +230,10 @@ fn labeling_page_in_headless_chromium() {
         assert_eq!(st, 200, "{v}");
         assert_eq!(v["episode"]["label"], l["label"], "episode {id}: {v}");
         assert_eq!(v["episode"]["label_source"], "human");
-        assert_eq!(v["episode"]["label_actor"], "alice", "episode {id}: the signed-in user's name is on the label");
+        assert_eq!(
+            v["episode"]["label_actor"], "alice",
+            "episode {id}: the signed-in user's name is on the label"
+        );
     }
     // The conflict: bob's failure, then alice's success applied knowingly over it.
     let c = &result["conflict"];
@@ -258,26 +281,54 @@ fn scoreboard_page_in_headless_chromium() {
     let dir = tempfile::tempdir().unwrap();
     let t = Target::sqlite(dir.path());
     t.ok(&["init"]);
-    let synth = |ckpt: &str, seed: &str, n: &str, rate: &str, run: Option<(&str, &str)>, artifact: Option<&str>| {
-        let mut args = vec!["dev", "synth", "--policy", "synth", "--checkpoint", ckpt, "--seed", seed, "--episodes", n, "--steps", "20", "--success-rate", rate];
-        if let Some((name, steering)) = run {
-            args.extend(["--run", name, "--steering", steering]);
-        }
-        if let Some(a) = artifact {
-            args.extend(["--run-artifact", a]);
-        }
-        t.ok(&args);
-    };
+    let synth =
+        |ckpt: &str, seed: &str, n: &str, rate: &str, run: Option<(&str, &str)>, artifact: Option<&str>| {
+            let mut args = vec![
+                "dev",
+                "synth",
+                "--policy",
+                "synth",
+                "--checkpoint",
+                ckpt,
+                "--seed",
+                seed,
+                "--episodes",
+                n,
+                "--steps",
+                "20",
+                "--success-rate",
+                rate,
+            ];
+            if let Some((name, steering)) = run {
+                args.extend(["--run", name, "--steering", steering]);
+            }
+            if let Some(a) = artifact {
+                args.extend(["--run-artifact", a]);
+            }
+            t.ok(&args);
+        };
     synth("c1", "1", "120", "0.5", Some(("base", "base")), None);
     // A classifier trained on the base run: its quality on the split's held-out episodes is what
     // the page's verifier column and calibration plot show.
     let split = t.json(&["split", "create", "--policy", "synth", "--checkpoint", "c1", "--json"]);
     let cfg = dir.path().join("train.json");
     std::fs::write(&cfg, r#"{"epochs": 3}"#).unwrap();
-    t.ok(&["train", "--split", split["id"].as_str().unwrap(), "--kind", "classifier", "--config", cfg.to_str().unwrap()]);
+    t.ok(&[
+        "train",
+        "--split",
+        split["id"].as_str().unwrap(),
+        "--kind",
+        "classifier",
+        "--config",
+        cfg.to_str().unwrap(),
+    ]);
     let arts = t.json(&["artifacts", "--policy", "synth", "--json"]);
     let art = arts[0]["id"].as_str().unwrap().to_string();
-    assert!(arts[0]["config"]["metrics"]["final"]["val_calibration"]["ece"].is_number(), "{}", arts[0]["config"]["metrics"]);
+    assert!(
+        arts[0]["config"]["metrics"]["final"]["val_calibration"]["ece"].is_number(),
+        "{}",
+        arts[0]["config"]["metrics"]
+    );
     synth("c1", "2", "120", "0.9", Some(("c-bon10", "bon:10")), Some(&art));
     synth("c1", "3", "60", "0.55", Some(("c-cg3", "cg:3")), Some(&art));
     synth("c2", "4", "60", "0.6", Some(("base", "base")), None);
@@ -311,7 +362,11 @@ fn scoreboard_page_in_headless_chromium() {
     assert!(out.status.success(), "the browser test failed (screenshots in {})", artifacts.display());
     let line = stdout.lines().find_map(|l| l.strip_prefix("E2E_RESULT ")).expect("E2E_RESULT line");
     let result: Value = serde_json::from_str(line).expect("E2E_RESULT json");
-    assert!(std::fs::metadata(&shot).map(|m| m.len() > 10_000).unwrap_or(false), "screenshot {}", shot.display());
+    assert!(
+        std::fs::metadata(&shot).map(|m| m.len() > 10_000).unwrap_or(false),
+        "screenshot {}",
+        shot.display()
+    );
 
     // The page's rows are the store's: same runs and checkpoints, same counts and intervals.
     let want = want["rows"].as_array().unwrap();
@@ -324,7 +379,10 @@ fn scoreboard_page_in_headless_chromium() {
         let cells: Vec<&str> = s["cells"].as_array().unwrap().iter().map(|c| c.as_str().unwrap()).collect();
         let labeled = w["successes"].as_u64().unwrap() + w["failures"].as_u64().unwrap();
         assert_eq!(cells[5], format!("{}/{labeled}", w["successes"]));
-        assert_eq!(cells[6], format!("{}% [{}, {}]", pct(&w["rate"]), pct(&w["wilson_95"][0]), pct(&w["wilson_95"][1])));
+        assert_eq!(
+            cells[6],
+            format!("{}% [{}, {}]", pct(&w["rate"]), pct(&w["wilson_95"][0]), pct(&w["wilson_95"][1]))
+        );
         assert_eq!(cells[7], w["unlabeled"].to_string());
         if let Some(b) = w["baseline"].as_object() {
             let pp = |x: &Value| {
@@ -364,7 +422,22 @@ fn consensus_page_in_headless_chromium() {
     let dir = tempfile::tempdir().unwrap();
     let t = Target::sqlite(dir.path());
     t.ok(&["init"]);
-    t.ok(&["dev", "synth", "--policy", "synth", "--checkpoint", "c1", "--seed", "7", "--episodes", "6", "--steps", "20", "--success-rate", "0.5"]);
+    t.ok(&[
+        "dev",
+        "synth",
+        "--policy",
+        "synth",
+        "--checkpoint",
+        "c1",
+        "--seed",
+        "7",
+        "--episodes",
+        "6",
+        "--steps",
+        "20",
+        "--success-rate",
+        "0.5",
+    ]);
     let eps = t.json(&["episodes", "--policy", "synth", "--json"]);
     for e in eps.as_array().unwrap() {
         t.ok(&["label", e["id"].as_str().unwrap(), "unknown", "--actor", "campaign"]);
@@ -373,9 +446,16 @@ fn consensus_page_in_headless_chromium() {
     let alice = token(&t, "alice", "labeler");
     let bob = token(&t, "bob", "labeler");
     let srv = serve(&t);
-    let (st, v) = http(&srv.addr, "PUT", "/v1/campaigns/synth", &admin, Some(r#"{"labels_needed": 2, "blind": true}"#));
+    let (st, v) =
+        http(&srv.addr, "PUT", "/v1/campaigns/synth", &admin, Some(r#"{"labels_needed": 2, "blind": true}"#));
     assert_eq!(st, 200, "{v}");
-    let (st, v) = http(&srv.addr, "PUT", "/v1/tasks/*/failure-causes", &admin, Some(r#"{"causes": ["missed grasp", "collision", "timeout"]}"#));
+    let (st, v) = http(
+        &srv.addr,
+        "PUT",
+        "/v1/tasks/*/failure-causes",
+        &admin,
+        Some(r#"{"causes": ["missed grasp", "collision", "timeout"]}"#),
+    );
     assert_eq!(st, 200, "{v}");
 
     let artifacts = artifacts_dir();
@@ -416,20 +496,31 @@ fn consensus_page_in_headless_chromium() {
     let span_ep = result["span_episode"].as_str().unwrap();
     let (_, v) = http(&srv.addr, "GET", &format!("/v1/episodes/{span_ep}"), &admin, None);
     let last = v["history"].as_array().unwrap().last().unwrap().clone();
-    assert_eq!(last["data"]["spans"][0]["end_step"], 3, "the span alice marked is in the label event: {last}");
+    assert_eq!(
+        last["data"]["spans"][0]["end_step"], 3,
+        "the span alice marked is in the label event: {last}"
+    );
     // The two episodes nobody labeled are still unknown.
     let (_, page) = http(&srv.addr, "GET", "/v1/episodes?policy=synth&label=unknown", &admin, None);
     assert_eq!(page["episodes"].as_array().unwrap().len(), 2, "{page}");
     // κ once more, from the reported verdicts, against the API.
     let n = alice_v.len() as f64;
     let po = alice_v.iter().filter(|(id, a)| &&bob_v[id.as_str()] == a).count() as f64 / n;
-    let share = |m: &serde_json::Map<String, Value>, c: &str| m.values().filter(|v| *v == c).count() as f64 / n;
+    let share =
+        |m: &serde_json::Map<String, Value>, c: &str| m.values().filter(|v| *v == c).count() as f64 / n;
     let pe: f64 = ["success", "failure"].iter().map(|c| share(alice_v, c) * share(bob_v, c)).sum();
     let kappa = (po - pe) / (1.0 - pe);
     let (_, ag) = http(&srv.addr, "GET", "/v1/agreement?policy=synth", &admin, None);
     assert!((ag["pairs"][0]["kappa"].as_f64().unwrap() - kappa).abs() < 1e-12, "{ag} vs {kappa}");
-    assert_eq!((ag["agreed"].as_u64(), ag["settled"].as_u64(), ag["disputed"].as_u64()), (Some(3), Some(1), Some(0)), "{ag}");
-    println!("consensus: kappa {kappa:.4} (API {}, page {}), alpha {}", result["kappa_api"], result["kappa_page"], ag["krippendorff_alpha"]);
+    assert_eq!(
+        (ag["agreed"].as_u64(), ag["settled"].as_u64(), ag["disputed"].as_u64()),
+        (Some(3), Some(1), Some(0)),
+        "{ag}"
+    );
+    println!(
+        "consensus: kappa {kappa:.4} (API {}, page {}), alpha {}",
+        result["kappa_api"], result["kappa_page"], ag["krippendorff_alpha"]
+    );
 }
 
 /// Issue 17, Must show 2 in the page: the Lift rollouts scored by a trained classifier (a score
@@ -450,7 +541,13 @@ fn review_queue_in_headless_chromium() {
     let trainer = token(&t, "curator", "trainer");
     let alice = token(&t, "alice", "labeler");
     let srv = serve_with(&t, &[]);
-    let (st, job) = http(&srv.addr, "POST", "/v1/review/score", &trainer, Some(r#"{"policy": "bc", "checkpoint": "e600"}"#));
+    let (st, job) = http(
+        &srv.addr,
+        "POST",
+        "/v1/review/score",
+        &trainer,
+        Some(r#"{"policy": "bc", "checkpoint": "e600"}"#),
+    );
     assert_eq!(st, 201, "{job}");
     let job_id = job["id"].as_str().unwrap().to_string();
     let t0 = std::time::Instant::now();
@@ -463,10 +560,13 @@ fn review_queue_in_headless_chromium() {
         }
         std::thread::sleep(Duration::from_millis(200));
     }
-    let (st, page) = http(&srv.addr, "GET", "/v1/episodes?policy=bc&order=uncertain&limit=1000", &alice, None);
+    let (st, page) =
+        http(&srv.addr, "GET", "/v1/episodes?policy=bc&order=uncertain&limit=1000", &alice, None);
     assert_eq!(st, 200, "{page}");
-    let expect: Vec<&str> = page["episodes"].as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap()).collect();
-    let scores: Vec<f64> = page["review"].as_array().unwrap().iter().map(|r| r["score"].as_f64().unwrap()).collect();
+    let expect: Vec<&str> =
+        page["episodes"].as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap()).collect();
+    let scores: Vec<f64> =
+        page["review"].as_array().unwrap().iter().map(|r| r["score"].as_f64().unwrap()).collect();
     assert!(scores.windows(2).all(|w| (w[0] - 0.5).abs() <= (w[1] - 0.5).abs()), "{scores:?}");
 
     let artifacts = artifacts_dir();

@@ -50,7 +50,9 @@ fn job_log(log: &Path) -> Vec<(String, String, Option<i64>)> {
             continue;
         };
         let field = |name: &str| {
-            line.split_whitespace().find_map(|w| w.strip_prefix(name)).map(|v| v.trim_matches('"').to_string())
+            line.split_whitespace()
+                .find_map(|w| w.strip_prefix(name))
+                .map(|v| v.trim_matches('"').to_string())
         };
         if let Some(job) = field("job=") {
             out.push((event.to_string(), job, field("attempt=").and_then(|a| a.parse().ok())));
@@ -78,8 +80,31 @@ fn two_worker_processes_on_postgres_run_each_job_once_and_retry_a_killed_workers
     let dir = tempfile::tempdir().unwrap();
     let Some(target) = postgres_target(&dir.path().join("data")) else { return };
     target.ok(&["init"]);
-    target.ok(&["dev", "synth", "--seed", "7", "--episodes", "24", "--steps", "60", "--policy", "pol", "--checkpoint", "c1"]);
-    let split = target.json(&["split", "create", "--policy", "pol", "--checkpoint", "c1", "--val-fraction", "0.25", "--json"]);
+    target.ok(&[
+        "dev",
+        "synth",
+        "--seed",
+        "7",
+        "--episodes",
+        "24",
+        "--steps",
+        "60",
+        "--policy",
+        "pol",
+        "--checkpoint",
+        "c1",
+    ]);
+    let split = target.json(&[
+        "split",
+        "create",
+        "--policy",
+        "pol",
+        "--checkpoint",
+        "c1",
+        "--val-fraction",
+        "0.25",
+        "--json",
+    ]);
     let split_id = split["id"].as_str().expect("split id").to_string();
 
     let rt = tokio::runtime::Runtime::new().unwrap();
@@ -112,8 +137,12 @@ fn two_worker_processes_on_postgres_run_each_job_once_and_retry_a_killed_workers
     let mut seen_running: HashMap<String, Instant> = HashMap::new();
     let (killed, lease_of_killed) = loop {
         let all = jobs(None);
-        let a_done = all.iter().filter(|j| j.state == JobState::Succeeded && j.worker.as_deref() == Some("worker-a")).count();
-        let held = all.iter().find(|j| j.state == JobState::Running && j.worker.as_deref() == Some("worker-a"));
+        let a_done = all
+            .iter()
+            .filter(|j| j.state == JobState::Succeeded && j.worker.as_deref() == Some("worker-a"))
+            .count();
+        let held =
+            all.iter().find(|j| j.state == JobState::Running && j.worker.as_deref() == Some("worker-a"));
         if let (Some(j), true) = (held, a_done >= 1) {
             let since = *seen_running.entry(j.id.clone()).or_insert_with(Instant::now);
             let early = epoch_of(j).map_or(true, |e| e < EPOCHS / 2);
@@ -143,12 +172,16 @@ fn two_worker_processes_on_postgres_run_each_job_once_and_retry_a_killed_workers
                 retried_at_ms = Some(now_ms());
             }
         }
-        if all.iter().all(|j| matches!(j.state, JobState::Succeeded | JobState::Failed | JobState::Cancelled)) {
+        if all.iter().all(|j| matches!(j.state, JobState::Succeeded | JobState::Failed | JobState::Cancelled))
+        {
             break;
         }
         if t0.elapsed() > Duration::from_secs(300) {
             let _ = b.kill();
-            panic!("jobs did not finish: {:?}", all.iter().map(|j| (&j.id, j.state, &j.worker)).collect::<Vec<_>>());
+            panic!(
+                "jobs did not finish: {:?}",
+                all.iter().map(|j| (&j.id, j.state, &j.worker)).collect::<Vec<_>>()
+            );
         }
         std::thread::sleep(Duration::from_millis(50));
     }
@@ -176,10 +209,18 @@ fn two_worker_processes_on_postgres_run_each_job_once_and_retry_a_killed_workers
 
     // One artifact per job, published by that job, and the job's result names it.
     let artifacts = rt.block_on(store.artifacts(Some("pol"), Some("c1"), None)).unwrap();
-    assert_eq!(artifacts.len(), JOBS, "{:?}", artifacts.iter().map(|a| (&a.id, &a.job_id)).collect::<Vec<_>>());
+    assert_eq!(
+        artifacts.len(),
+        JOBS,
+        "{:?}",
+        artifacts.iter().map(|a| (&a.id, &a.job_id)).collect::<Vec<_>>()
+    );
     let mut by_job: HashMap<&str, Vec<&str>> = HashMap::new();
     for art in &artifacts {
-        by_job.entry(art.job_id.as_deref().expect("a job's artifact names its job")).or_default().push(&art.id);
+        by_job
+            .entry(art.job_id.as_deref().expect("a job's artifact names its job"))
+            .or_default()
+            .push(&art.id);
     }
     for j in &all {
         let published = by_job.get(j.id.as_str()).cloned().unwrap_or_default();

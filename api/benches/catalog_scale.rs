@@ -136,7 +136,9 @@ async fn fill(store: &Store, url: &str, sources: usize) {
     }
     conn.execute("BEGIN").await.unwrap();
     for sql in fill_sql(store.backend(), sources) {
-        conn.execute(sql.as_str()).await.unwrap_or_else(|e| panic!("fill: {e}\n{}", &sql[..sql.len().min(300)]));
+        conn.execute(sql.as_str())
+            .await
+            .unwrap_or_else(|e| panic!("fill: {e}\n{}", &sql[..sql.len().min(300)]));
     }
     conn.execute("COMMIT").await.unwrap();
     if store.backend() == Backend::Postgres {
@@ -214,7 +216,8 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
     let tmp = tempfile::tempdir().unwrap();
     let (store, url, schema) = match db {
         Backend::Sqlite => {
-            let dir = target_dir().join(format!("catalog_scale/sqlite-{}-f{FILL_FORMAT}", sources * PER_SOURCE));
+            let dir =
+                target_dir().join(format!("catalog_scale/sqlite-{}-f{FILL_FORMAT}", sources * PER_SOURCE));
             let marker = dir.join("filled");
             let fresh = !marker.exists();
             if fresh {
@@ -231,9 +234,14 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
             (store, url, None)
         }
         Backend::Postgres => {
-            let url = store::create_test_schema("catalog_scale").await.expect("the Postgres bench needs a server");
+            let url =
+                store::create_test_schema("catalog_scale").await.expect("the Postgres bench needs a server");
             let schema = url.rsplit('=').next().unwrap().to_string();
-            let cfg = StoreConfig { data_dir: tmp.path().into(), database_url: Some(url.clone()), object_store_url: None };
+            let cfg = StoreConfig {
+                data_dir: tmp.path().into(),
+                database_url: Some(url.clone()),
+                object_store_url: None,
+            };
             let store = Store::open(&cfg).await.unwrap();
             fill(&store, &url, sources).await;
             (store, url, Some(schema))
@@ -244,12 +252,9 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
     cfg.addr = "127.0.0.1:0".parse().unwrap();
     cfg.run_worker_in_process = false;
     let server = api::spawn(store.clone(), cfg, Arc::new(Runner)).await.unwrap();
-    let (token, _) = store.create_token(&format!("bench-{}", uuid::Uuid::new_v4()), Role::Labeler).await.unwrap();
-    let c = Arc::new(Client {
-        http: reqwest::Client::new(),
-        base: format!("http://{}", server.addr),
-        token,
-    });
+    let (token, _) =
+        store.create_token(&format!("bench-{}", uuid::Uuid::new_v4()), Role::Labeler).await.unwrap();
+    let c = Arc::new(Client { http: reqwest::Client::new(), base: format!("http://{}", server.addr), token });
 
     // A labeler at work meanwhile: one label write every 20 ms on episodes of the unknown pages.
     let stop = Arc::new(AtomicBool::new(false));
@@ -282,15 +287,41 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
 
     let sparse = "policy=policy-3&checkpoint=ckpt-4"; // 95 % labeled: unknown is 1 in 400 rows
     let mut stats = vec![
-        c.repeat("first page  label=unknown&limit=100", "/v1/episodes?label=unknown&limit=100", requests).await,
-        c.walk("next page by cursor  label=unknown&limit=100", "/v1/episodes?label=unknown&limit=100", requests).await,
+        c.repeat("first page  label=unknown&limit=100", "/v1/episodes?label=unknown&limit=100", requests)
+            .await,
+        c.walk(
+            "next page by cursor  label=unknown&limit=100",
+            "/v1/episodes?label=unknown&limit=100",
+            requests,
+        )
+        .await,
         c.repeat("counts  (all)", "/v1/episodes/counts", requests).await,
         c.repeat("counts  policy&checkpoint", &format!("/v1/episodes/counts?{sparse}"), requests).await,
         c.repeat("counts  task", "/v1/episodes/counts?task=task-2", requests).await,
-        c.walk("page: policy&checkpoint&label=unknown (sparse), by cursor", &format!("/v1/episodes?{sparse}&label=unknown&limit=100"), requests).await,
-        c.walk("page: policy&checkpoint (no label), by cursor", &format!("/v1/episodes?{sparse}&limit=100"), requests).await,
-        c.walk("page: version=1&label=unknown, by cursor", "/v1/episodes?version=1&label=unknown&limit=100", requests / 4).await,
-        c.walk("page: version=1&policy&checkpoint&label=unknown, by cursor", &format!("/v1/episodes?version=1&{sparse}&label=unknown&limit=100"), requests / 4).await,
+        c.walk(
+            "page: policy&checkpoint&label=unknown (sparse), by cursor",
+            &format!("/v1/episodes?{sparse}&label=unknown&limit=100"),
+            requests,
+        )
+        .await,
+        c.walk(
+            "page: policy&checkpoint (no label), by cursor",
+            &format!("/v1/episodes?{sparse}&limit=100"),
+            requests,
+        )
+        .await,
+        c.walk(
+            "page: version=1&label=unknown, by cursor",
+            "/v1/episodes?version=1&label=unknown&limit=100",
+            requests / 4,
+        )
+        .await,
+        c.walk(
+            "page: version=1&policy&checkpoint&label=unknown, by cursor",
+            &format!("/v1/episodes?version=1&{sparse}&label=unknown&limit=100"),
+            requests / 4,
+        )
+        .await,
         c.repeat("counts  version=1", "/v1/episodes/counts?version=1", requests).await,
     ];
     stop.store(true, Ordering::Relaxed);
@@ -301,20 +332,31 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
     let mut recount = Vec::new();
     for f in [
         CountFilter::default(),
-        CountFilter { policy: Some("policy-3".into()), checkpoint: Some("ckpt-4".into()), ..Default::default() },
+        CountFilter {
+            policy: Some("policy-3".into()),
+            checkpoint: Some("ckpt-4".into()),
+            ..Default::default()
+        },
     ] {
         for _ in 0..5 {
             let t = Instant::now();
             let r = store.recount_episodes(&f).await.unwrap();
             recount.push(t.elapsed().as_secs_f64() * 1e3);
-            assert_eq!(store.episode_counts(&f).await.unwrap(), r, "maintained counts equal a recount ({f:?})");
+            assert_eq!(
+                store.episode_counts(&f).await.unwrap(),
+                r,
+                "maintained counts equal a recount ({f:?})"
+            );
         }
     }
     println!(
         "  {} label writes during the measurement; the counts endpoint equals a COUNT(*) recount afterwards",
         writes.load(Ordering::Relaxed)
     );
-    stats.push(Stat { what: "reference: COUNT(*) GROUP BY recount (all; policy&checkpoint), no HTTP".into(), ms: recount });
+    stats.push(Stat {
+        what: "reference: COUNT(*) GROUP BY recount (all; policy&checkpoint), no HTTP".into(),
+        ms: recount,
+    });
     server.shutdown().await.unwrap();
     if let Some(schema) = schema {
         use sqlx::{Connection, Executor};
@@ -327,7 +369,11 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let arg = |name: &str, default: usize| -> usize {
-        args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).and_then(|v| v.parse().ok()).unwrap_or(default)
+        args.iter()
+            .position(|a| a == name)
+            .and_then(|i| args.get(i + 1))
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(default)
     };
     let episodes = arg("--episodes", 1_000_000);
     let requests = arg("--requests", 200).max(4);
@@ -353,7 +399,14 @@ fn main() {
     let mut worst: f64 = 0.0;
     for (db, stats) in &all {
         for s in stats {
-            println!("| {db:?} | {} | {} | {:.2} | {:.2} | {:.2} |", s.what, s.ms.len(), s.pct(0.5), s.pct(0.99), s.pct(1.0));
+            println!(
+                "| {db:?} | {} | {} | {:.2} | {:.2} | {:.2} |",
+                s.what,
+                s.ms.len(),
+                s.pct(0.5),
+                s.pct(0.99),
+                s.pct(1.0)
+            );
             if !s.what.starts_with("reference") && !s.what.contains("version=1&policy") {
                 worst = worst.max(s.pct(0.99));
             }
@@ -361,8 +414,12 @@ fn main() {
     }
     for (db, stats) in &all {
         let counts = stats.iter().find(|s| s.what == "counts  (all)").map(|s| s.pct(0.5)).unwrap_or(f64::NAN);
-        let re = stats.iter().find(|s| s.what.starts_with("reference")).map(|s| s.pct(0.5)).unwrap_or(f64::NAN);
-        println!("{db:?}: counts endpoint p50 {counts:.2} ms (HTTP) vs recount p50 {re:.1} ms (no HTTP): {:.0}x", re / counts);
+        let re =
+            stats.iter().find(|s| s.what.starts_with("reference")).map(|s| s.pct(0.5)).unwrap_or(f64::NAN);
+        println!(
+            "{db:?}: counts endpoint p50 {counts:.2} ms (HTTP) vs recount p50 {re:.1} ms (no HTTP): {:.0}x",
+            re / counts
+        );
     }
     println!(
         "goal p99 <= 50 ms (first page, next page, counts, page queries at head): {} (worst p99 {worst:.2} ms)",

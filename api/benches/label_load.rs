@@ -39,7 +39,11 @@ fn median(mut v: Vec<f64>) -> f64 {
 /// port, prints `listening on URL` and runs until killed.
 fn serve_child(args: &[String]) {
     let dir = std::path::PathBuf::from(&args[0]);
-    let cfg = store::StoreConfig { data_dir: dir.clone(), database_url: args.get(1).cloned(), object_store_url: None };
+    let cfg = store::StoreConfig {
+        data_dir: dir.clone(),
+        database_url: args.get(1).cloned(),
+        object_store_url: None,
+    };
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
     rt.block_on(async move {
         let store = store::Store::open(&cfg).await.unwrap();
@@ -61,7 +65,11 @@ fn main() {
         ServerAt::Child(std::env::current_exe().expect("this benchmark's path"))
     };
     let arg = |name: &str, default: u64| -> u64 {
-        args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).and_then(|v| v.parse().ok()).unwrap_or(default)
+        args.iter()
+            .position(|a| a == name)
+            .and_then(|i| args.get(i + 1))
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(default)
     };
     let seconds = arg("--seconds", 20);
     let labelers = arg("--labelers", 64) as usize;

@@ -47,15 +47,26 @@ fn fill_sql(backend: Backend, sources: usize) -> Vec<String> {
     ));
     let runs: Vec<String> = (0..RUNS)
         .map(|r| {
-            let (name, steering) = if r == 0 { ("base".to_string(), "base".to_string()) } else { (format!("bon-{r}"), format!("bon:{r}")) };
+            let (name, steering) = if r == 0 {
+                ("base".to_string(), "base".to_string())
+            } else {
+                (format!("bon-{r}"), format!("bon:{r}"))
+            };
             format!("('run-{r:016}', '{name}', '{steering}', NULL, '[]', '{now}')")
         })
         .collect();
-    v.push(format!("INSERT INTO runs (id, name, steering, artifact_id, tags, created_at) VALUES {}", runs.join(", ")));
+    v.push(format!(
+        "INSERT INTO runs (id, name, steering, artifact_id, tags, created_at) VALUES {}",
+        runs.join(", ")
+    ));
     v.push("INSERT INTO data_files (path, kind, size_bytes, num_rows, version_added) VALUES ('steps/scoreboard.parquet', 'steps', 0, 0, 1)".into());
-    let rows: Vec<String> =
-        (0..sources).map(|k| format!("('{}', '/bench/{k}', 'bench', 1, '{{}}', 1, '{now}')", source_sha(k))).collect();
-    v.push(format!("INSERT INTO sources (sha256, path, format, size_bytes, metadata, version, created_at) VALUES {}", rows.join(", ")));
+    let rows: Vec<String> = (0..sources)
+        .map(|k| format!("('{}', '/bench/{k}', 'bench', 1, '{{}}', 1, '{now}')", source_sha(k)))
+        .collect();
+    v.push(format!(
+        "INSERT INTO sources (sha256, path, format, size_bytes, metadata, version, created_at) VALUES {}",
+        rows.join(", ")
+    ));
     let n = PER_SOURCE - 1;
     let (gen, pad, run) = match backend {
         Backend::Sqlite => (
@@ -123,7 +134,9 @@ async fn fill(store: &Store, url: &str, sources: usize) {
     let mut conn = sqlx::AnyConnection::connect(url).await.expect("connect for the fill");
     conn.execute("BEGIN").await.unwrap();
     for sql in fill_sql(store.backend(), sources) {
-        conn.execute(sql.as_str()).await.unwrap_or_else(|e| panic!("fill: {e}\n{}", &sql[..sql.len().min(300)]));
+        conn.execute(sql.as_str())
+            .await
+            .unwrap_or_else(|e| panic!("fill: {e}\n{}", &sql[..sql.len().min(300)]));
     }
     conn.execute("COMMIT").await.unwrap();
     conn.execute("ANALYZE").await.unwrap();
@@ -151,7 +164,9 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
     let (url, schema) = match db {
         Backend::Sqlite => (format!("sqlite://{}/catalog.sqlite", tmp.path().display()), None),
         Backend::Postgres => {
-            let url = store::create_test_schema("scoreboard_bench").await.expect("the Postgres bench needs a server");
+            let url = store::create_test_schema("scoreboard_bench")
+                .await
+                .expect("the Postgres bench needs a server");
             let schema = url.rsplit('=').next().unwrap().to_string();
             (url, Some(schema))
         }
@@ -167,7 +182,8 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
     scfg.addr = "127.0.0.1:0".parse().unwrap();
     scfg.run_worker_in_process = false;
     let server = api::spawn(store.clone(), scfg, Arc::new(Runner)).await.unwrap();
-    let (token, _) = store.create_token(&format!("bench-{}", uuid::Uuid::new_v4()), Role::Viewer).await.unwrap();
+    let (token, _) =
+        store.create_token(&format!("bench-{}", uuid::Uuid::new_v4()), Role::Viewer).await.unwrap();
     let http = reqwest::Client::new();
     let base = format!("http://{}", server.addr);
     let get = |path: &'static str| {
@@ -191,7 +207,10 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
     assert_eq!(total as usize, sources * PER_SOURCE);
     assert!(rows.iter().filter(|r| r["run_name"] != "base").all(|r| r["baseline"]["newcombe_95"].is_array()));
     let mut stats = Vec::new();
-    for (what, path) in [("GET /v1/scoreboard?policy=nav (JSON)", "/v1/scoreboard?policy=nav"), ("GET /v1/scoreboard?policy=nav&format=csv", "/v1/scoreboard?policy=nav&format=csv")] {
+    for (what, path) in [
+        ("GET /v1/scoreboard?policy=nav (JSON)", "/v1/scoreboard?policy=nav"),
+        ("GET /v1/scoreboard?policy=nav&format=csv", "/v1/scoreboard?policy=nav&format=csv"),
+    ] {
         let mut ms = Vec::new();
         for _ in 0..requests {
             ms.push(get(path).await.0);
@@ -214,7 +233,11 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
     for _ in 0..3 {
         let t = Instant::now();
         let eps = store
-            .episodes(&store::EpisodeFilter { version: Some(1), policy: Some("nav".into()), ..Default::default() })
+            .episodes(&store::EpisodeFilter {
+                version: Some(1),
+                policy: Some("nav".into()),
+                ..Default::default()
+            })
             .await
             .unwrap();
         ms.push(t.elapsed().as_secs_f64() * 1e3);
@@ -233,7 +256,11 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let arg = |name: &str, default: usize| -> usize {
-        args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).and_then(|v| v.parse().ok()).unwrap_or(default)
+        args.iter()
+            .position(|a| a == name)
+            .and_then(|i| args.get(i + 1))
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(default)
     };
     let episodes = arg("--episodes", 100_000);
     let requests = arg("--requests", 200).max(4);
@@ -258,7 +285,14 @@ fn main() {
     let mut worst: f64 = 0.0;
     for (db, stats) in &all {
         for s in stats {
-            println!("| {db:?} | {} | {} | {:.2} | {:.2} | {:.2} |", s.what, s.ms.len(), s.pct(0.5), s.pct(0.99), s.pct(1.0));
+            println!(
+                "| {db:?} | {} | {} | {:.2} | {:.2} | {:.2} |",
+                s.what,
+                s.ms.len(),
+                s.pct(0.5),
+                s.pct(0.99),
+                s.pct(1.0)
+            );
             if !s.what.starts_with("reference") {
                 worst = worst.max(s.pct(0.99));
             }

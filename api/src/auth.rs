@@ -67,7 +67,11 @@ impl TokenCache {
 
 /// Middleware: every route behind it needs `Authorization: Bearer <token>` (or the web page's
 /// session cookie, see `session.rs`); puts the [`Caller`] into the request's extensions.
-pub(crate) async fn require_token(State(state): State<AppState>, req: Request, next: Next) -> Result<Response, ApiError> {
+pub(crate) async fn require_token(
+    State(state): State<AppState>,
+    req: Request,
+    next: Next,
+) -> Result<Response, ApiError> {
     // No Authorization header: the web page's session cookie (with its CSRF rule), if any.
     let Some(value) = req.headers().get(header::AUTHORIZATION) else {
         let secret = crate::session::secret_from_cookie(&state, &req)?;
@@ -84,7 +88,12 @@ pub(crate) async fn require_token(State(state): State<AppState>, req: Request, n
     authenticate(&state, &secret, req, next).await
 }
 
-async fn authenticate(state: &AppState, secret: &str, mut req: Request, next: Next) -> Result<Response, ApiError> {
+async fn authenticate(
+    state: &AppState,
+    secret: &str,
+    mut req: Request,
+    next: Next,
+) -> Result<Response, ApiError> {
     let key = store::sha256_hex(secret.as_bytes());
     let caller = match state.inner.tokens.get(&key) {
         Some(c) => c,
@@ -119,11 +128,16 @@ async fn authenticate(state: &AppState, secret: &str, mut req: Request, next: Ne
     let permits = {
         let mut map = state.inner.in_flight.lock().unwrap_or_else(|e| e.into_inner());
         map.entry(caller.token_id.clone())
-            .or_insert_with(|| Arc::new(tokio::sync::Semaphore::new(state.inner.cfg.max_in_flight_per_token.max(1))))
+            .or_insert_with(|| {
+                Arc::new(tokio::sync::Semaphore::new(state.inner.cfg.max_in_flight_per_token.max(1)))
+            })
             .clone()
     };
     let _permit = permits.try_acquire_owned().map_err(|_| {
-        too_many(&format!("token {} has {} requests in flight, the limit", caller.name, state.inner.cfg.max_in_flight_per_token))
+        too_many(&format!(
+            "token {} has {} requests in flight, the limit",
+            caller.name, state.inner.cfg.max_in_flight_per_token
+        ))
     })?;
     req.extensions_mut().insert(caller);
     Ok(next.run(req).await)
@@ -134,7 +148,10 @@ async fn authenticate(state: &AppState, secret: &str, mut req: Request, next: Ne
 pub(crate) type KeyedLimiter<K> = governor::DefaultKeyedRateLimiter<K>;
 
 /// None when `per_second` is 0 (no limit).
-pub(crate) fn keyed_limiter<K: std::hash::Hash + Eq + Clone>(per_second: u32, burst_factor: u32) -> Option<KeyedLimiter<K>> {
+pub(crate) fn keyed_limiter<K: std::hash::Hash + Eq + Clone>(
+    per_second: u32,
+    burst_factor: u32,
+) -> Option<KeyedLimiter<K>> {
     let rate = std::num::NonZeroU32::new(per_second)?;
     let burst = std::num::NonZeroU32::new(per_second.saturating_mul(burst_factor.max(1))).unwrap_or(rate);
     Some(governor::RateLimiter::keyed(governor::Quota::per_second(rate).allow_burst(burst)))
@@ -142,7 +159,11 @@ pub(crate) fn keyed_limiter<K: std::hash::Hash + Eq + Clone>(per_second: u32, bu
 
 /// A secret never seen valid costs a catalog read: such checks are bounded per peer address
 /// (`cfg.unverified_checks_per_peer`), before the catalog is asked. `key` is the secret's hash.
-pub(crate) fn check_unverified(state: &AppState, key: &str, peer: Option<std::net::IpAddr>) -> Result<(), ApiError> {
+pub(crate) fn check_unverified(
+    state: &AppState,
+    key: &str,
+    peer: Option<std::net::IpAddr>,
+) -> Result<(), ApiError> {
     if let (Some(limiter), Some(peer)) = (&state.inner.unverified_checks, peer) {
         if !state.inner.tokens.seen_valid(key) && limiter.check_key(&peer).is_err() {
             return Err(too_many(&format!("too many checks of unknown tokens from {peer}")));
@@ -159,18 +180,23 @@ pub(crate) fn peer(req: &Request) -> Option<std::net::IpAddr> {
 
 /// 429 with `Retry-After: 1`.
 fn too_many(why: &str) -> ApiError {
-    let mut e = ApiError::new(axum::http::StatusCode::TOO_MANY_REQUESTS, "too-many-requests", format!("{why}; retry shortly"));
+    let mut e = ApiError::new(
+        axum::http::StatusCode::TOO_MANY_REQUESTS,
+        "too-many-requests",
+        format!("{why}; retry shortly"),
+    );
     e.headers.push((header::RETRY_AFTER, axum::http::HeaderValue::from_static("1")));
     e
 }
 
 /// Route-level middleware: 403 unless the caller (set by [`require_token`]) has at least this
 /// role. Runs before the body is read, so a low-privilege caller learns nothing from validation.
-pub(crate) async fn require_role(State(min): State<Role>, req: Request, next: Next) -> Result<Response, ApiError> {
-    let caller = req
-        .extensions()
-        .get::<Caller>()
-        .ok_or_else(|| ApiError::unauthorized("missing token"))?;
+pub(crate) async fn require_role(
+    State(min): State<Role>,
+    req: Request,
+    next: Next,
+) -> Result<Response, ApiError> {
+    let caller = req.extensions().get::<Caller>().ok_or_else(|| ApiError::unauthorized("missing token"))?;
     caller.require(min)?;
     Ok(next.run(req).await)
 }

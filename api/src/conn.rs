@@ -39,11 +39,16 @@ pub(crate) struct ConnLimits {
 /// when the peer is a trusted proxy, the rightmost `X-Forwarded-For` entry that is not a
 /// trusted proxy (entries left of it are the client's own claims, which anyone can forge). A
 /// header that is missing or unreadable there leaves the proxy's address.
-pub(crate) fn client_addr(peer: SocketAddr, headers: &axum::http::HeaderMap, trusted: &[IpAddr]) -> SocketAddr {
+pub(crate) fn client_addr(
+    peer: SocketAddr,
+    headers: &axum::http::HeaderMap,
+    trusted: &[IpAddr],
+) -> SocketAddr {
     if !trusted.contains(&peer.ip()) {
         return peer;
     }
-    let lines: Vec<&str> = headers.get_all("x-forwarded-for").iter().filter_map(|v| v.to_str().ok()).collect();
+    let lines: Vec<&str> =
+        headers.get_all("x-forwarded-for").iter().filter_map(|v| v.to_str().ok()).collect();
     for hop in lines.iter().rev().flat_map(|l| l.rsplit(',')).map(str::trim) {
         let ip = hop.parse::<IpAddr>().ok().or_else(|| hop.parse::<SocketAddr>().ok().map(|s| s.ip()));
         match ip {
@@ -130,7 +135,10 @@ mod tests {
         assert_eq!(client_addr(proxy, &headers(&["203.0.113.7"]), &[]), proxy);
         // Trusted: the rightmost entry that is not a proxy; forged entries to its left are ignored.
         assert_eq!(client_addr(proxy, &headers(&["1.2.3.4, 203.0.113.7"]), &trusted).ip(), ip("203.0.113.7"));
-        assert_eq!(client_addr(proxy, &headers(&["1.2.3.4", "203.0.113.7, 10.0.0.2"]), &trusted).ip(), ip("203.0.113.7"));
+        assert_eq!(
+            client_addr(proxy, &headers(&["1.2.3.4", "203.0.113.7, 10.0.0.2"]), &trusted).ip(),
+            ip("203.0.113.7")
+        );
         assert_eq!(client_addr(proxy, &headers(&["[2001:db8::1]:443"]), &trusted).ip(), ip("2001:db8::1"));
         // Missing, only proxies, or unreadable: the proxy's own address.
         assert_eq!(client_addr(proxy, &headers(&[]), &trusted), proxy);

@@ -17,12 +17,15 @@ impl<S: Send + Sync, T: DeserializeOwned> FromRequest<S> for ApiJson<T> {
             Ok(axum::Json(v)) => v,
             Err(rej) => return Err(ApiError::new(rej.status(), "bad-body", rej.body_text())),
         };
-        let unprocessable = |detail: String| ApiError::new(axum::http::StatusCode::UNPROCESSABLE_ENTITY, "bad-body", detail);
+        let unprocessable =
+            |detail: String| ApiError::new(axum::http::StatusCode::UNPROCESSABLE_ENTITY, "bad-body", detail);
         if !v.is_object() {
             return Err(unprocessable("the body must be a JSON object".into()));
         }
         integral_floats_to_integers(&mut v);
-        serde_json::from_value(v).map(ApiJson).map_err(|e| unprocessable(format!("Failed to deserialize the JSON body into the target type: {e}")))
+        serde_json::from_value(v).map(ApiJson).map_err(|e| {
+            unprocessable(format!("Failed to deserialize the JSON body into the target type: {e}"))
+        })
     }
 }
 
@@ -88,7 +91,10 @@ pub fn check_id(what: &str, s: &str) -> Result<(), ApiError> {
 
 /// A policy, checkpoint or task name given in a URL: 1-200 printable characters, no '/'.
 pub fn check_name(what: &str, s: &str) -> Result<(), ApiError> {
-    let ok = !s.is_empty() && s.chars().count() <= 200 && s.trim() == s && !s.chars().any(|c| c.is_control() || c == '/');
+    let ok = !s.is_empty()
+        && s.chars().count() <= 200
+        && s.trim() == s
+        && !s.chars().any(|c| c.is_control() || c == '/');
     if ok {
         Ok(())
     } else {

@@ -43,7 +43,11 @@ pub(crate) struct LabelWriter {
 
 /// Sets one label (source `human`) with the semantics of [`store::Store::set_label`], through
 /// the group-commit writer on SQLite.
-pub(crate) async fn set_label(state: &AppState, update: LabelUpdate, actor: &str) -> Result<LabelChange, StoreError> {
+pub(crate) async fn set_label(
+    state: &AppState,
+    update: LabelUpdate,
+    actor: &str,
+) -> Result<LabelChange, StoreError> {
     if state.store().backend() != Backend::Sqlite {
         return state.store().set_label(update, actor, "human").await;
     }
@@ -76,7 +80,8 @@ async fn run(state: Weak<Inner>, mut rx: mpsc::Receiver<Pending>) {
 }
 
 async fn commit(state: &AppState, batch: Vec<Pending>) {
-    let items: Vec<(LabelUpdate, String)> = batch.iter().map(|p| (p.update.clone(), p.actor.clone())).collect();
+    let items: Vec<(LabelUpdate, String)> =
+        batch.iter().map(|p| (p.update.clone(), p.actor.clone())).collect();
     let result = {
         let _gate = state.write_gate().await;
         state.store().set_labels_each(items, "human").await

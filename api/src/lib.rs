@@ -29,6 +29,7 @@ pub use upload::{sanitize_filename, sweep as sweep_uploads};
 pub use worker::{run_worker, run_worker_with, worker_identity, JobContext, JobRunner, WorkerOptions};
 
 use axum::extract::DefaultBodyLimit;
+use axum::handler::Handler;
 use axum::middleware::from_fn_with_state;
 use axum::routing::{get, post};
 use axum::Router;
@@ -37,7 +38,6 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
-use axum::handler::Handler;
 use store::{Backend, Role, Store};
 
 /// How `ufops serve` runs.
@@ -97,12 +97,14 @@ pub struct ServeConfig {
 /// `scheme://host[:port]` of a public URL (a trailing `/` allowed; no path, query or user info).
 pub fn public_origin(url: &str) -> Result<String, String> {
     let u = url.trim().trim_end_matches('/');
-    let (scheme, rest) = u.split_once("://").ok_or_else(|| format!("public URL {url:?}: expected https://HOST[:PORT]"))?;
+    let (scheme, rest) =
+        u.split_once("://").ok_or_else(|| format!("public URL {url:?}: expected https://HOST[:PORT]"))?;
     let scheme = scheme.to_ascii_lowercase();
     if scheme != "https" && scheme != "http" {
         return Err(format!("public URL {url:?}: the scheme must be https (or http)"));
     }
-    let ok = !rest.is_empty() && rest.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | ':' | '[' | ']'));
+    let ok = !rest.is_empty()
+        && rest.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | ':' | '[' | ']'));
     if !ok {
         return Err(format!("public URL {url:?}: expected https://HOST[:PORT], without a path"));
     }
@@ -259,7 +261,11 @@ impl RunningServer {
 }
 
 /// Binds `cfg.addr` (port 0 picks a free one) and serves in a background task.
-pub async fn spawn(store: Store, cfg: ServeConfig, runner: Arc<dyn JobRunner>) -> anyhow::Result<RunningServer> {
+pub async fn spawn(
+    store: Store,
+    cfg: ServeConfig,
+    runner: Arc<dyn JobRunner>,
+) -> anyhow::Result<RunningServer> {
     let listener = tokio::net::TcpListener::bind(cfg.addr)
         .await
         .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", cfg.addr))?;
@@ -318,9 +324,15 @@ pub async fn serve_on(
     let stop_tx2 = stop_tx.clone();
     let worker = cfg.run_worker_in_process.then(|| {
         let mut rx = stop_rx.clone();
-        tokio::spawn(run_worker(store.clone(), runner, cfg.worker_id.clone(), cfg.worker_lease_ms, async move {
-            let _ = rx.wait_for(|s| *s).await;
-        }))
+        tokio::spawn(run_worker(
+            store.clone(),
+            runner,
+            cfg.worker_id.clone(),
+            cfg.worker_lease_ms,
+            async move {
+                let _ = rx.wait_for(|s| *s).await;
+            },
+        ))
     });
     let deadline = cfg.shutdown_deadline;
     let limits = conn::ConnLimits {
@@ -360,7 +372,9 @@ mod tests {
     fn public_urls_reduce_to_an_origin() {
         assert_eq!(public_origin("https://Label.Example.com/").unwrap(), "https://label.example.com");
         assert_eq!(public_origin("http://10.0.0.5:8443").unwrap(), "http://10.0.0.5:8443");
-        for bad in ["label.example.com", "ftp://x", "https://x/ui", "https://user@x", "https://", "https://x?a=1"] {
+        for bad in
+            ["label.example.com", "ftp://x", "https://x/ui", "https://user@x", "https://", "https://x?a=1"]
+        {
             assert!(public_origin(bad).is_err(), "{bad}");
         }
     }

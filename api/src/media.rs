@@ -43,7 +43,11 @@ pub fn parse_range(value: &str, size: u64) -> Result<Option<(u64, u64)>, ()> {
         (size.saturating_sub(n), size.saturating_sub(1))
     } else {
         let start: u64 = a.parse().map_err(|_| ())?;
-        let end = if b.is_empty() { size.saturating_sub(1) } else { b.parse::<u64>().map_err(|_| ())?.min(size.saturating_sub(1)) };
+        let end = if b.is_empty() {
+            size.saturating_sub(1)
+        } else {
+            b.parse::<u64>().map_err(|_| ())?.min(size.saturating_sub(1))
+        };
         (start, end)
     };
     if size == 0 || start >= size || start > end {
@@ -69,16 +73,21 @@ pub async fn serve_object(
         Some(v) => match parse_range(v, size) {
             Ok(r) => r,
             Err(()) => {
-                let mut e = ApiError::new(StatusCode::RANGE_NOT_SATISFIABLE, "range-not-satisfiable",
-                    format!("range {v:?} is outside the object's {size} bytes"));
-                e.headers.push((header::CONTENT_RANGE, HeaderValue::from_str(&format!("bytes */{size}")).expect("ascii")));
+                let mut e = ApiError::new(
+                    StatusCode::RANGE_NOT_SATISFIABLE,
+                    "range-not-satisfiable",
+                    format!("range {v:?} is outside the object's {size} bytes"),
+                );
+                e.headers.push((
+                    header::CONTENT_RANGE,
+                    HeaderValue::from_str(&format!("bytes */{size}")).expect("ascii"),
+                ));
                 return Err(e);
             }
         },
     };
-    let mut builder = Response::builder()
-        .header(header::CONTENT_TYPE, ctype)
-        .header(header::ACCEPT_RANGES, "bytes");
+    let mut builder =
+        Response::builder().header(header::CONTENT_TYPE, ctype).header(header::ACCEPT_RANGES, "bytes");
     let (status, start, end) = match range {
         Some((s, e)) => {
             builder = builder.header(header::CONTENT_RANGE, format!("bytes {s}-{e}/{size}"));
@@ -88,7 +97,11 @@ pub async fn serve_object(
     };
     builder = builder.status(status).header(header::CONTENT_LENGTH, end - start);
     let body = if end - start <= CHUNK {
-        Body::from(if end > start { store.get_object_range(path, start..end).await? } else { bytes::Bytes::new() })
+        Body::from(if end > start {
+            store.get_object_range(path, start..end).await?
+        } else {
+            bytes::Bytes::new()
+        })
     } else {
         let store = store.clone();
         let path = path.to_string();

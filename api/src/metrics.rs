@@ -27,7 +27,8 @@ impl Metrics {
         out.push_str("# HELP ufops_object_store_requests_total Read requests made to the object store.\n");
         out.push_str("# TYPE ufops_object_store_requests_total counter\n");
         let _ = writeln!(out, "ufops_object_store_requests_total{{method=\"GET\"}} {}", objects.get_requests);
-        let _ = writeln!(out, "ufops_object_store_requests_total{{method=\"HEAD\"}} {}", objects.head_requests);
+        let _ =
+            writeln!(out, "ufops_object_store_requests_total{{method=\"HEAD\"}} {}", objects.head_requests);
         out.push_str("# HELP ufops_object_store_fetched_bytes_total Bytes returned by object store reads.\n");
         out.push_str("# TYPE ufops_object_store_fetched_bytes_total counter\n");
         let _ = writeln!(out, "ufops_object_store_fetched_bytes_total {}", objects.bytes_fetched);
@@ -35,12 +36,16 @@ impl Metrics {
         out.push_str("# TYPE ufops_http_requests_total counter\n");
         let reqs = self.requests.lock().expect("metrics lock").clone();
         for ((m, r, s), (n, _)) in &reqs {
-            let _ = writeln!(out, "ufops_http_requests_total{{method=\"{m}\",route=\"{r}\",status=\"{s}\"}} {n}");
+            let _ =
+                writeln!(out, "ufops_http_requests_total{{method=\"{m}\",route=\"{r}\",status=\"{s}\"}} {n}");
         }
         out.push_str("# HELP ufops_http_request_seconds_sum Total time spent serving requests.\n");
         out.push_str("# TYPE ufops_http_request_seconds_sum counter\n");
         for ((m, r, s), (_, t)) in &reqs {
-            let _ = writeln!(out, "ufops_http_request_seconds_sum{{method=\"{m}\",route=\"{r}\",status=\"{s}\"}} {t:.6}");
+            let _ = writeln!(
+                out,
+                "ufops_http_request_seconds_sum{{method=\"{m}\",route=\"{r}\",status=\"{s}\"}} {t:.6}"
+            );
         }
         out.push_str("# HELP ufops_label_writes_total Label changes committed through the API.\n");
         out.push_str("# TYPE ufops_label_writes_total counter\n");

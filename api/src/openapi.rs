@@ -78,7 +78,8 @@ pub const NAME_PATTERN: &str =
     r"^[^/\s\x00-\x1f\x7f-\x9f]([^/\x00-\x1f\x7f-\x9f]{0,198}[^/\s\x00-\x1f\x7f-\x9f])?$";
 
 /// A token or run name (`store::writer::check_name`): printable, no whitespace at either end.
-pub const TOKEN_NAME_PATTERN: &str = r"^[^\s\x00-\x1f\x7f-\x9f]([^\x00-\x1f\x7f-\x9f]{0,198}[^\s\x00-\x1f\x7f-\x9f])?$";
+pub const TOKEN_NAME_PATTERN: &str =
+    r"^[^\s\x00-\x1f\x7f-\x9f]([^\x00-\x1f\x7f-\x9f]{0,198}[^\s\x00-\x1f\x7f-\x9f])?$";
 /// An artifact reference a handler resolves: an artifact id, or `POLICY/CHECKPOINT/KIND@ALIAS`.
 pub const ARTIFACT_REF_PATTERN: &str = concat!(
     r"^(?:[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}|",
@@ -169,7 +170,10 @@ fn problem(description: &str) -> RefOr<utoipa::openapi::Response> {
     RefOr::T(
         ResponseBuilder::new()
             .description(description)
-            .content("application/problem+json", ContentBuilder::new().schema(Some(Ref::from_schema_name("Problem"))).build())
+            .content(
+                "application/problem+json",
+                ContentBuilder::new().schema(Some(Ref::from_schema_name("Problem"))).build(),
+            )
             .build(),
     )
 }
@@ -183,7 +187,9 @@ impl Contract {
         let params = op.parameters.get_or_insert_with(Vec::new);
         for p in params.iter_mut() {
             if p.parameter_in == ParameterIn::Query {
-                if let Some((_, _, pattern)) = CHECKED_QUERY.iter().find(|(at, name, _)| *at == path && *name == p.name) {
+                if let Some((_, _, pattern)) =
+                    CHECKED_QUERY.iter().find(|(at, name, _)| *at == path && *name == p.name)
+                {
                     if let Some(s) = p.schema.as_mut() {
                         set_pattern(s, pattern);
                     }
@@ -202,7 +208,11 @@ impl Contract {
                 let pattern = match p.name.as_str() {
                     "policy" | "checkpoint" => Some(NAME_PATTERN.to_string()),
                     "task" => Some(TOKEN_NAME_PATTERN.to_string()),
-                    "kind_at_alias" => Some(format!("{}@{}", ID_PATTERN.trim_end_matches('$'), ID_PATTERN.trim_start_matches('^'))),
+                    "kind_at_alias" => Some(format!(
+                        "{}@{}",
+                        ID_PATTERN.trim_end_matches('$'),
+                        ID_PATTERN.trim_start_matches('^')
+                    )),
                     "id" | "key" | "alias" | "name" => Some(ID_PATTERN.to_string()),
                     _ => None,
                 };
@@ -254,7 +264,10 @@ impl Modify for Contract {
     fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
         for (path, item) in openapi.paths.paths.iter_mut() {
             let public = path == "/healthz";
-            for op in [&mut item.get, &mut item.put, &mut item.post, &mut item.delete, &mut item.patch].into_iter().flatten() {
+            for op in [&mut item.get, &mut item.put, &mut item.post, &mut item.delete, &mut item.patch]
+                .into_iter()
+                .flatten()
+            {
                 Contract::operation(op, path, public);
             }
         }

@@ -69,10 +69,13 @@ impl Sessions {
             }
         }
         if map.len() >= MAX_SESSIONS {
-            map.retain(|_, s| now.duration_since(s.last_seen) < IDLE && now.duration_since(s.created) < MAX_AGE);
+            map.retain(|_, s| {
+                now.duration_since(s.last_seen) < IDLE && now.duration_since(s.created) < MAX_AGE
+            });
             if map.len() >= MAX_SESSIONS {
                 // Drop the least recently used tenth.
-                let mut by_age: Vec<(Instant, String)> = map.iter().map(|(k, s)| (s.last_seen, k.clone())).collect();
+                let mut by_age: Vec<(Instant, String)> =
+                    map.iter().map(|(k, s)| (s.last_seen, k.clone())).collect();
                 by_age.sort();
                 for (_, k) in by_age.into_iter().take(MAX_SESSIONS / 10) {
                     map.remove(&k);
@@ -164,8 +167,12 @@ pub(crate) fn secret_from_cookie(state: &AppState, req: &Request) -> ApiResult<S
 
 fn set_cookie(value: &str, max_age: u64, secure: bool) -> HeaderValue {
     let secure = if secure { "; Secure" } else { "" };
-    HeaderValue::from_str(&format!("{COOKIE}={value}; Path=/; HttpOnly; SameSite=Strict; Max-Age={max_age}{secure}"))
-        .unwrap_or_else(|_| HeaderValue::from_static("ufops_session=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0"))
+    HeaderValue::from_str(&format!(
+        "{COOKIE}={value}; Path=/; HttpOnly; SameSite=Strict; Max-Age={max_age}{secure}"
+    ))
+    .unwrap_or_else(|_| {
+        HeaderValue::from_static("ufops_session=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0")
+    })
 }
 
 fn who(c: &Caller) -> serde_json::Value {

@@ -39,7 +39,13 @@ fn values(a: &dyn Array) -> Option<Vec<Value>> {
         DataType::FixedSizeList(_, _) => {
             let l = a.as_fixed_size_list();
             (0..n)
-                .map(|i| if l.is_null(i) { Value::Null } else { values(l.value(i).as_ref()).map(Value::Array).unwrap_or(Value::Null) })
+                .map(|i| {
+                    if l.is_null(i) {
+                        Value::Null
+                    } else {
+                        values(l.value(i).as_ref()).map(Value::Array).unwrap_or(Value::Null)
+                    }
+                })
                 .collect()
         }
         _ => return None,

@@ -63,12 +63,16 @@ fn free_bytes(dir: &std::path::Path) -> Option<u64> {
 
 /// An upload folder is named by 32 hex digits (a v4 uuid) directly under the upload dir.
 fn is_upload_folder(dir: &std::path::Path) -> bool {
-    dir.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.len() == 32 && n.bytes().all(|b| b.is_ascii_hexdigit()))
+    dir.file_name()
+        .and_then(|n| n.to_str())
+        .is_some_and(|n| n.len() == 32 && n.bytes().all(|b| b.is_ascii_hexdigit()))
 }
 
 /// Deletes the upload folder an ingest job's spec names (after the job finished).
 pub(crate) async fn remove_upload(spec: &serde_json::Value) {
-    let Some(dir) = spec.get("upload_dir").and_then(|v| v.as_str()).map(std::path::PathBuf::from) else { return };
+    let Some(dir) = spec.get("upload_dir").and_then(|v| v.as_str()).map(std::path::PathBuf::from) else {
+        return;
+    };
     if is_upload_folder(&dir) {
         if let Err(e) = tokio::fs::remove_dir_all(&dir).await {
             if e.kind() != std::io::ErrorKind::NotFound {
@@ -81,7 +85,11 @@ pub(crate) async fn remove_upload(spec: &serde_json::Value) {
 /// Deletes upload folders nobody will ingest: those of ingest jobs that are no longer queued or
 /// running, and those older than `orphan_age` that no job names (a server stopped between the
 /// upload and queueing its job). Returns how many it deleted.
-pub async fn sweep(store: &store::Store, upload_dir: &std::path::Path, orphan_age: std::time::Duration) -> anyhow::Result<usize> {
+pub async fn sweep(
+    store: &store::Store,
+    upload_dir: &std::path::Path,
+    orphan_age: std::time::Duration,
+) -> anyhow::Result<usize> {
     use store::JobState::*;
     let Ok(mut rd) = tokio::fs::read_dir(upload_dir).await else { return Ok(0) };
     let mut live = std::collections::HashSet::new();
@@ -100,7 +108,13 @@ pub async fn sweep(store: &store::Store, upload_dir: &std::path::Path, orphan_ag
         if !is_upload_folder(&dir) || live.contains(&dir) {
             continue;
         }
-        let old = e.metadata().await.ok().and_then(|m| m.modified().ok()).and_then(|t| t.elapsed().ok()).is_some_and(|a| a >= orphan_age);
+        let old = e
+            .metadata()
+            .await
+            .ok()
+            .and_then(|m| m.modified().ok())
+            .and_then(|t| t.elapsed().ok())
+            .is_some_and(|a| a >= orphan_age);
         if named.contains(&dir) || old {
             tokio::fs::remove_dir_all(&dir).await?;
             deleted += 1;
@@ -146,23 +160,36 @@ pub async fn ingest(
     if let Some(f) = &q.format {
         crate::extract::check_id("format", f)?;
     }
-    let run_tags: Vec<String> =
-        q.run_tags.as_deref().map(|t| t.split(',').filter(|x| !x.is_empty()).map(String::from).collect()).unwrap_or_default();
-    let run = store::RunInput::from_parts(q.run.as_deref(), q.steering.as_deref(), q.run_artifact.as_deref(), &run_tags)?;
+    let run_tags: Vec<String> = q
+        .run_tags
+        .as_deref()
+        .map(|t| t.split(',').filter(|x| !x.is_empty()).map(String::from).collect())
+        .unwrap_or_default();
+    let run = store::RunInput::from_parts(
+        q.run.as_deref(),
+        q.steering.as_deref(),
+        q.run_artifact.as_deref(),
+        &run_tags,
+    )?;
     if let Some(a) = run.as_ref().and_then(|r| r.artifact_id.as_ref()) {
         s.store().artifact(a).await?;
     }
     let filename = sanitize_filename(q.filename.as_deref().unwrap_or("upload.bin"));
     // Refuse what would fill the disk (the declared length; the floor alone without one).
-    let declared = headers.get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok());
+    let declared =
+        headers.get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok());
     if let Some(free) = free_bytes(&s.inner.cfg.upload_dir) {
         let need = declared.unwrap_or(0).saturating_add(MIN_FREE_BYTES);
         if free < need {
             return Err(ApiError::new(
                 StatusCode::INSUFFICIENT_STORAGE,
                 "insufficient-storage",
-                format!("the server has {} MB free for uploads; this one needs {} MB (with {} MB to spare)",
-                    free >> 20, need >> 20, MIN_FREE_BYTES >> 20),
+                format!(
+                    "the server has {} MB free for uploads; this one needs {} MB (with {} MB to spare)",
+                    free >> 20,
+                    need >> 20,
+                    MIN_FREE_BYTES >> 20
+                ),
             ));
         }
     }
@@ -180,7 +207,9 @@ pub async fn ingest(
             return Err(e);
         }
     };
-    tokio::fs::rename(&part, &path).await.map_err(|e| ApiError::internal(format!("cannot place the upload: {e}")))?;
+    tokio::fs::rename(&part, &path)
+        .await
+        .map_err(|e| ApiError::internal(format!("cannot place the upload: {e}")))?;
     let spec = json!({
         "path": path.display().to_string(),
         "upload_dir": dir.display().to_string(),
@@ -218,7 +247,9 @@ async fn receive(s: &AppState, body: Body, part: &std::path::Path) -> ApiResult<
             ));
         }
         hasher.update(&chunk);
-        file.write_all(&chunk).await.map_err(|e| ApiError::internal(format!("cannot write the upload: {e}")))?;
+        file.write_all(&chunk)
+            .await
+            .map_err(|e| ApiError::internal(format!("cannot write the upload: {e}")))?;
         s.inner.metrics.uploads_bytes.fetch_add(chunk.len() as u64, Ordering::Relaxed);
     }
     if size == 0 {

@@ -19,7 +19,12 @@ pub fn worker_identity(role: &str) -> String {
     let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
         .ok()
         .or_else(|| std::env::var("HOSTNAME").ok())
-        .map(|h| h.trim().chars().filter(|c| c.is_ascii_alphanumeric() || *c == '-' || *c == '.').collect::<String>())
+        .map(|h| {
+            h.trim()
+                .chars()
+                .filter(|c| c.is_ascii_alphanumeric() || *c == '-' || *c == '.')
+                .collect::<String>()
+        })
         .filter(|h| !h.is_empty())
         .unwrap_or_else(|| "host".into());
     let random = &uuid::Uuid::new_v4().simple().to_string()[..8];
@@ -30,8 +35,12 @@ pub fn worker_identity(role: &str) -> String {
 /// crate); tests implement fakes. Long, blocking work should poll [`JobContext::is_cancelled`].
 pub trait JobRunner: Send + Sync + 'static {
     /// Runs `job` to completion: `Ok(result)` is stored as the job's result, `Err(message)` fails it.
-    fn run<'a>(&'a self, store: &'a Store, job: &'a JobRecord, ctx: JobContext)
-        -> BoxFuture<'a, Result<serde_json::Value, String>>;
+    fn run<'a>(
+        &'a self,
+        store: &'a Store,
+        job: &'a JobRecord,
+        ctx: JobContext,
+    ) -> BoxFuture<'a, Result<serde_json::Value, String>>;
 }
 
 /// What a running job sees: progress reporting (sent with the next heartbeat) and cancellation.
@@ -160,7 +169,9 @@ pub async fn run_worker_with(
         match store.release_job(&id, &opts.worker_id, attempt).await {
             Ok(true) => tracing::info!(worker = %opts.worker_id, job = %id, "job released at shutdown"),
             Ok(false) => {}
-            Err(e) => tracing::warn!(worker = %opts.worker_id, job = %id, "cannot release the job (its lease will expire): {e}"),
+            Err(e) => {
+                tracing::warn!(worker = %opts.worker_id, job = %id, "cannot release the job (its lease will expire): {e}")
+            }
         }
     }
 }
@@ -188,18 +199,27 @@ pub(crate) async fn run_one(store: &Store, runner: &dyn JobRunner, opts: &Worker
             let mut last_ok = Instant::now();
             loop {
                 tokio::time::sleep(beat_every).await;
-                match store.heartbeat_job(job_id, &opts.worker_id, attempt, opts.lease_ms, &ctx.current_progress()).await {
+                match store
+                    .heartbeat_job(job_id, &opts.worker_id, attempt, opts.lease_ms, &ctx.current_progress())
+                    .await
+                {
                     Ok(true) => last_ok = Instant::now(),
                     Ok(false) => {
                         // Either a cancel was requested (the job is still ours) or another
                         // worker holds it now (we must stop at once).
                         let ours = match store.job(job_id).await {
-                            Ok(j) => j.worker.as_deref() == Some(opts.worker_id.as_str())
-                                && j.attempts == attempt
-                                && j.state == store::JobState::Running,
+                            Ok(j) => {
+                                j.worker.as_deref() == Some(opts.worker_id.as_str())
+                                    && j.attempts == attempt
+                                    && j.state == store::JobState::Running
+                            }
                             Err(_) => false,
                         };
-                        return if ours { Stop::Cancelled } else { Stop::LeaseLost("the lease was lost to another worker") };
+                        return if ours {
+                            Stop::Cancelled
+                        } else {
+                            Stop::LeaseLost("the lease was lost to another worker")
+                        };
                     }
                     Err(e) => {
                         tracing::warn!(job = %job_id, "heartbeat failed: {e}");
@@ -241,7 +261,9 @@ pub(crate) async fn run_one(store: &Store, runner: &dyn JobRunner, opts: &Worker
                 crate::upload::remove_upload(&job.spec).await; // finished: nobody will ingest it again
             }
         }
-        Ok(false) => tracing::warn!(worker = %opts.worker_id, job = %job.id, "job no longer ours; outcome dropped"),
+        Ok(false) => {
+            tracing::warn!(worker = %opts.worker_id, job = %job.id, "job no longer ours; outcome dropped")
+        }
         Err(e) => tracing::error!(worker = %opts.worker_id, job = %job.id, "cannot record the outcome: {e}"),
     }
 }

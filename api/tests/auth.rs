@@ -42,26 +42,61 @@ async fn authorization_matrix() {
         (Method::GET, "/v1/campaigns/pol".into(), None, Need::Viewer),
         (Method::PUT, "/v1/campaigns/pol".into(), body(json!({"labels_needed": 1})), Need::Admin),
         (Method::GET, "/v1/tasks/reach/failure-causes".into(), None, Need::Viewer),
-        (Method::PUT, "/v1/tasks/reach/failure-causes".into(), body(json!({"causes": ["collision"]})), Need::Admin),
+        (
+            Method::PUT,
+            "/v1/tasks/reach/failure-causes".into(),
+            body(json!({"causes": ["collision"]})),
+            Need::Admin,
+        ),
         (Method::GET, format!("/v1/episodes/{ep}/votes"), None, Need::Viewer),
         (Method::POST, format!("/v1/episodes/{ep}/votes"), body(json!({"label": "failure"})), Need::Labeler),
-        (Method::POST, format!("/v1/episodes/{ep}/adjudication"), body(json!({"label": "failure"})), Need::Admin),
+        (
+            Method::POST,
+            format!("/v1/episodes/{ep}/adjudication"),
+            body(json!({"label": "failure"})),
+            Need::Admin,
+        ),
         (Method::GET, "/v1/adjudication".into(), None, Need::Admin),
         (Method::GET, "/v1/agreement?policy=pol".into(), None, Need::Viewer),
         (Method::GET, format!("/v1/episodes/{ep}/scores"), None, Need::Viewer),
         (Method::GET, "/v1/review/artifacts/pol".into(), None, Need::Viewer),
-        (Method::PUT, "/v1/review/artifacts/pol".into(), body(json!({"artifact": "0123456789abcdef"})), Need::Trainer),
+        (
+            Method::PUT,
+            "/v1/review/artifacts/pol".into(),
+            body(json!({"artifact": "0123456789abcdef"})),
+            Need::Trainer,
+        ),
         (Method::DELETE, "/v1/review/artifacts/pol".into(), None, Need::Trainer),
-        (Method::POST, "/v1/review/score".into(), body(json!({"policy": "pol", "checkpoint": "c1"})), Need::Trainer),
+        (
+            Method::POST,
+            "/v1/review/score".into(),
+            body(json!({"policy": "pol", "checkpoint": "c1"})),
+            Need::Trainer,
+        ),
         (Method::GET, "/v1/layers".into(), None, Need::Viewer),
-        (Method::GET, format!("/v1/layers/features.x/episodes?producer_hash={}", "a".repeat(64)), None, Need::Viewer),
+        (
+            Method::GET,
+            format!("/v1/layers/features.x/episodes?producer_hash={}", "a".repeat(64)),
+            None,
+            Need::Viewer,
+        ),
         (Method::GET, format!("/v1/episodes/{ep}/layers"), None, Need::Viewer),
         (Method::POST, "/v1/layers/features.x".into(), Some("not arrow".into()), Need::Trainer),
         (Method::GET, "/v1/splits".into(), None, Need::Viewer),
-        (Method::POST, "/v1/splits".into(), body(json!({"policy": "pol", "checkpoint": "c1"})), Need::Trainer),
+        (
+            Method::POST,
+            "/v1/splits".into(),
+            body(json!({"policy": "pol", "checkpoint": "c1"})),
+            Need::Trainer,
+        ),
         (Method::GET, "/v1/splits/split-nope".into(), None, Need::Viewer),
         (Method::GET, "/v1/jobs".into(), None, Need::Viewer),
-        (Method::POST, "/v1/jobs".into(), body(json!({"split_id": "split-nope", "kind": "classifier"})), Need::Trainer),
+        (
+            Method::POST,
+            "/v1/jobs".into(),
+            body(json!({"split_id": "split-nope", "kind": "classifier"})),
+            Need::Trainer,
+        ),
         (Method::GET, "/v1/jobs/job-nope".into(), None, Need::Viewer),
         (Method::POST, "/v1/jobs/job-nope/cancel".into(), None, Need::Trainer),
         (Method::GET, "/v1/scoreboard?policy=pol".into(), None, Need::Viewer),
@@ -70,17 +105,42 @@ async fn authorization_matrix() {
         (Method::GET, "/v1/artifacts/0123456789abcdef".into(), None, Need::Viewer),
         (Method::GET, "/v1/artifacts/0123456789abcdef/files/config.json".into(), None, Need::Viewer),
         (Method::PUT, "/v1/artifacts/0123456789abcdef/aliases/prod".into(), None, Need::Trainer),
-        (Method::GET, "/v1/policies/pol/checkpoints/c1/verifiers/classifier@latest".into(), None, Need::Viewer),
-        (Method::GET, "/v1/policies/pol/checkpoints/c1/verifiers/classifier@latest/files/config.json".into(), None, Need::Viewer),
-        (Method::POST, "/v1/ingest?policy=pol&checkpoint=up".into(), Some("{\"episodes\": []}".into()), Need::Admin),
+        (
+            Method::GET,
+            "/v1/policies/pol/checkpoints/c1/verifiers/classifier@latest".into(),
+            None,
+            Need::Viewer,
+        ),
+        (
+            Method::GET,
+            "/v1/policies/pol/checkpoints/c1/verifiers/classifier@latest/files/config.json".into(),
+            None,
+            Need::Viewer,
+        ),
+        (
+            Method::POST,
+            "/v1/ingest?policy=pol&checkpoint=up".into(),
+            Some("{\"episodes\": []}".into()),
+            Need::Admin,
+        ),
         (Method::POST, "/v1/gc".into(), body(json!({"dry_run": true})), Need::Admin),
         (Method::GET, "/v1/exports".into(), None, Need::Viewer),
-        (Method::POST, "/v1/exports".into(), body(json!({"format": "lerobot", "policy": "nobody"})), Need::Trainer),
+        (
+            Method::POST,
+            "/v1/exports".into(),
+            body(json!({"format": "lerobot", "policy": "nobody"})),
+            Need::Trainer,
+        ),
         (Method::GET, "/v1/exports/job-nope".into(), None, Need::Viewer),
         (Method::GET, "/v1/exports/job-nope/files/meta/info.json".into(), None, Need::Viewer),
         (Method::DELETE, "/v1/exports/job-nope".into(), None, Need::Trainer),
         (Method::GET, "/v1/tokens".into(), None, Need::Admin),
-        (Method::POST, "/v1/tokens".into(), body(json!({"name": "new-token", "role": "viewer"})), Need::Admin),
+        (
+            Method::POST,
+            "/v1/tokens".into(),
+            body(json!({"name": "new-token", "role": "viewer"})),
+            Need::Admin,
+        ),
         (Method::DELETE, "/v1/tokens/tok_nope".into(), None, Need::Admin),
     ];
     // Every route of the OpenAPI document is in the matrix (and vice versa).
@@ -106,7 +166,12 @@ async fn authorization_matrix() {
     tested.dedup();
     assert_eq!(tested, documented, "the matrix covers exactly the documented routes");
 
-    let roles = [("viewer", Need::Viewer), ("labeler", Need::Labeler), ("trainer", Need::Trainer), ("admin", Need::Admin)];
+    let roles = [
+        ("viewer", Need::Viewer),
+        ("labeler", Need::Labeler),
+        ("trainer", Need::Trainer),
+        ("admin", Need::Admin),
+    ];
     let mut failures = Vec::new();
     for (method, path, body, need) in &routes {
         let build = |token: Option<&str>| {
@@ -138,7 +203,8 @@ async fn authorization_matrix() {
             let s = r.status().as_u16();
             let ok = if level >= *need { s != 401 && s != 403 } else { s == 403 };
             if !ok {
-                failures.push(format!("{method} {path} as {role}: {s} {}", r.text().await.unwrap_or_default()));
+                failures
+                    .push(format!("{method} {path} as {role}: {s} {}", r.text().await.unwrap_or_default()));
             }
         }
     }

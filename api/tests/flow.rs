@@ -36,7 +36,12 @@ async fn full_flow(db: Db) {
     assert_eq!(done["state"], "succeeded", "{done}");
     assert_eq!(done["result"]["episodes"], 3);
     // The labeler cannot upload.
-    let r = srv.req(Method::POST, "/v1/ingest?policy=pol&checkpoint=c3", "labeler").body("x").send().await.unwrap();
+    let r = srv
+        .req(Method::POST, "/v1/ingest?policy=pol&checkpoint=c3", "labeler")
+        .body("x")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 403);
 
     // Catalog lists.
@@ -54,14 +59,25 @@ async fn full_flow(db: Db) {
     let p2 = srv.get_json(&format!("/v1/episodes?checkpoint=c1&limit=4&after={cursor}"), "viewer").await;
     assert_eq!(p2["episodes"].as_array().unwrap().len(), 3);
     assert!(p2["next_cursor"].is_null());
-    let mut seen: Vec<String> = p1["episodes"].as_array().unwrap().iter().chain(p2["episodes"].as_array().unwrap())
-        .map(|e| e["id"].as_str().unwrap().to_string()).collect();
+    let mut seen: Vec<String> = p1["episodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .chain(p2["episodes"].as_array().unwrap())
+        .map(|e| e["id"].as_str().unwrap().to_string())
+        .collect();
     seen.dedup();
     assert_eq!(seen.len(), 7);
     let succ = srv.get_json("/v1/episodes?label=success&checkpoint=c2", "viewer").await;
     assert_eq!(succ["episodes"].as_array().unwrap().len(), 1);
-    assert_eq!(srv.get_json("/v1/episodes?tag=eval&label_source=test&task=reach&policy=pol", "viewer").await["episodes"]
-        .as_array().unwrap().len(), 10);
+    assert_eq!(
+        srv.get_json("/v1/episodes?tag=eval&label_source=test&task=reach&policy=pol", "viewer").await
+            ["episodes"]
+            .as_array()
+            .unwrap()
+            .len(),
+        10
+    );
     let r = srv.req(Method::GET, "/v1/episodes?label=maybe", "viewer").send().await.unwrap();
     assert_eq!(r.status(), 400);
     assert_eq!(r.headers()["content-type"], "application/problem+json");
@@ -78,7 +94,9 @@ async fn full_flow(db: Db) {
 
     // Label with If-Match; a stale revision → 409 with who set the label; none → 428.
     let put = |role: &'static str, rev: Option<&'static str>, label: &'static str| {
-        let mut b = srv.req(Method::PUT, &format!("/v1/episodes/{id}/label"), role).json(&json!({"label": label, "note": "looked again"}));
+        let mut b = srv
+            .req(Method::PUT, &format!("/v1/episodes/{id}/label"), role)
+            .json(&json!({"label": label, "note": "looked again"}));
         if let Some(r) = rev {
             b = b.header("If-Match", r);
         }
@@ -88,7 +106,10 @@ async fn full_flow(db: Db) {
     assert_eq!(r.status(), 200);
     assert_eq!(r.headers()["etag"], "\"2\"");
     let ch: Value = r.json().await.unwrap();
-    assert_eq!((ch["old_label"].as_str(), ch["label"].as_str(), ch["revision"].as_i64()), (Some("failure"), Some("success"), Some(2)));
+    assert_eq!(
+        (ch["old_label"].as_str(), ch["label"].as_str(), ch["revision"].as_i64()),
+        (Some("failure"), Some("success"), Some(2))
+    );
     assert_eq!(ch["actor"], "labeler-user");
     let r = put("admin", Some("1"), "failure").await.unwrap();
     assert_eq!(r.status(), 409);
@@ -107,8 +128,13 @@ async fn full_flow(db: Db) {
     assert_eq!(r.status(), 403);
     let r = put("labeler", Some("2"), "sometimes").await.unwrap();
     assert_eq!(r.status(), 400);
-    let r = srv.req(Method::PUT, "/v1/episodes/bad%20id/label", "labeler").header("If-Match", "1")
-        .json(&json!({"label": "success"})).send().await.unwrap();
+    let r = srv
+        .req(Method::PUT, "/v1/episodes/bad%20id/label", "labeler")
+        .header("If-Match", "1")
+        .json(&json!({"label": "success"}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 400);
     let ep = srv.get_json(&format!("/v1/episodes/{id}"), "viewer").await;
     let hist = ep["history"].as_array().unwrap();
@@ -118,14 +144,27 @@ async fn full_flow(db: Db) {
     assert_eq!(hist[1]["old_label"], "failure");
 
     // Bulk labels: one transaction (a stale revision anywhere changes nothing).
-    let bad = srv.req(Method::POST, "/v1/labels/bulk", "labeler").json(&json!({"updates": [
+    let bad = srv
+        .req(Method::POST, "/v1/labels/bulk", "labeler")
+        .json(&json!({"updates": [
         {"episode_id": plain_ids[0], "label": "failure"},
-        {"episode_id": plain_ids[1], "label": "failure", "expect_revision": 1}]})).send().await.unwrap();
+        {"episode_id": plain_ids[1], "label": "failure", "expect_revision": 1}]}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(bad.status(), 409);
-    assert_eq!(srv.get_json(&format!("/v1/episodes/{}", plain_ids[0]), "viewer").await["episode"]["label"], "success");
-    let ok = srv.req(Method::POST, "/v1/labels/bulk", "labeler").json(&json!({"updates": [
+    assert_eq!(
+        srv.get_json(&format!("/v1/episodes/{}", plain_ids[0]), "viewer").await["episode"]["label"],
+        "success"
+    );
+    let ok = srv
+        .req(Method::POST, "/v1/labels/bulk", "labeler")
+        .json(&json!({"updates": [
         {"episode_id": plain_ids[2], "label": "failure"},
-        {"episode_id": plain_ids[3], "label": "success", "expect_revision": 1}]})).send().await.unwrap();
+        {"episode_id": plain_ids[3], "label": "success", "expect_revision": 1}]}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(ok.status(), 200);
     assert_eq!(ok.json::<Value>().await.unwrap().as_array().unwrap().len(), 2);
 
@@ -134,11 +173,16 @@ async fn full_flow(db: Db) {
     assert_eq!(steps["num_rows"], 6);
     assert_eq!(steps["columns"]["obs.pos"][1], json!([2.0, 3.0]));
     assert_eq!(steps["columns"]["media.front.path"].as_array().unwrap().len(), 6);
-    let r = srv.req(Method::GET, &format!("/v1/episodes/{}/steps", video_ids[0]), "viewer")
-        .header("Accept", "application/vnd.apache.arrow.stream").send().await.unwrap();
+    let r = srv
+        .req(Method::GET, &format!("/v1/episodes/{}/steps", video_ids[0]), "viewer")
+        .header("Accept", "application/vnd.apache.arrow.stream")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.headers()["content-type"], "application/vnd.apache.arrow.stream");
     let bytes = r.bytes().await.unwrap();
-    let reader = arrow::ipc::reader::StreamReader::try_new(std::io::Cursor::new(bytes.to_vec()), None).unwrap();
+    let reader =
+        arrow::ipc::reader::StreamReader::try_new(std::io::Cursor::new(bytes.to_vec()), None).unwrap();
     let batches: Vec<_> = reader.collect::<Result<_, _>>().unwrap();
     assert_eq!(batches.iter().map(|b| b.num_rows()).sum::<usize>(), 6);
     assert!(batches[0].schema().field_with_name("obs.pos").is_ok());
@@ -160,22 +204,39 @@ async fn full_flow(db: Db) {
     let r = srv.req(Method::GET, &media, "viewer").header("Range", "bytes=999999-").send().await.unwrap();
     assert_eq!(r.status(), 416);
     assert_eq!(r.headers()["content-range"], format!("bytes */{}", video.len()));
-    let r = srv.req(Method::GET, &format!("/v1/episodes/{}/media/back", video_ids[1]), "viewer").send().await.unwrap();
+    let r = srv
+        .req(Method::GET, &format!("/v1/episodes/{}/media/back", video_ids[1]), "viewer")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 404);
-    let r = srv.req(Method::GET, &format!("/v1/episodes/{}/media/..%2F..%2Fcatalog.sqlite", video_ids[1]), "viewer")
-        .send().await.unwrap();
+    let r = srv
+        .req(Method::GET, &format!("/v1/episodes/{}/media/..%2F..%2Fcatalog.sqlite", video_ids[1]), "viewer")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 400);
-    let r = srv.req(Method::GET, &format!("/v1/episodes/{}/media/front", plain_ids[0]), "viewer").send().await.unwrap();
+    let r = srv
+        .req(Method::GET, &format!("/v1/episodes/{}/media/front", plain_ids[0]), "viewer")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 404, "an episode without video");
 
     // Snapshot, versions, diff.
-    let r = srv.req(Method::POST, "/v1/label-snapshots", "labeler").json(&json!({"message": "relabel"})).send().await.unwrap();
+    let r = srv
+        .req(Method::POST, "/v1/label-snapshots", "labeler")
+        .json(&json!({"message": "relabel"}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 201);
     let snap: Value = r.json().await.unwrap();
     assert_eq!(snap["version"], 4);
     // Again with nothing changed: the head is the snapshot, no new version.
     for _ in 0..3 {
-        let r = srv.req(Method::POST, "/v1/label-snapshots", "labeler").json(&json!({})).send().await.unwrap();
+        let r =
+            srv.req(Method::POST, "/v1/label-snapshots", "labeler").json(&json!({})).send().await.unwrap();
         assert_eq!(r.status(), 200);
         assert_eq!(r.json::<Value>().await.unwrap()["version"], 4);
     }
@@ -189,8 +250,12 @@ async fn full_flow(db: Db) {
     assert_eq!(old["episode"]["label"], "failure", "time travel");
 
     // Split → training job → artifact → alias → download with a matching sha256.
-    let r = srv.req(Method::POST, "/v1/splits", "trainer")
-        .json(&json!({"policy": "pol", "checkpoint": "c1", "val_fraction": 0.3, "seed": 7})).send().await.unwrap();
+    let r = srv
+        .req(Method::POST, "/v1/splits", "trainer")
+        .json(&json!({"policy": "pol", "checkpoint": "c1", "val_fraction": 0.3, "seed": 7}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 201);
     let split: Value = r.json().await.unwrap();
     assert_eq!(split["train_episodes"].as_i64().unwrap() + split["val_episodes"].as_i64().unwrap(), 7);
@@ -198,8 +263,12 @@ async fn full_flow(db: Db) {
     let sp = srv.get_json(&format!("/v1/splits/{split_id}"), "viewer").await;
     assert_eq!(sp["episodes"].as_array().unwrap().len(), 7);
     assert_eq!(srv.get_json("/v1/splits", "viewer").await.as_array().unwrap().len(), 1);
-    let r = srv.req(Method::POST, "/v1/jobs", "trainer")
-        .json(&json!({"split_id": split_id, "kind": "classifier", "config": {"epochs": 2}})).send().await.unwrap();
+    let r = srv
+        .req(Method::POST, "/v1/jobs", "trainer")
+        .json(&json!({"split_id": split_id, "kind": "classifier", "config": {"epochs": 2}}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 201);
     let job: Value = r.json().await.unwrap();
     assert_eq!(job["state"], "queued");
@@ -210,30 +279,72 @@ async fn full_flow(db: Db) {
     let art_id = done["result"]["artifact_id"].as_str().unwrap().to_string();
     let jobs = srv.get_json("/v1/jobs?state=succeeded", "viewer").await;
     assert_eq!(jobs.as_array().unwrap().len(), 2);
-    let r = srv.req(Method::POST, "/v1/jobs", "trainer").json(&json!({"split_id": "split-nope", "kind": "classifier"})).send().await.unwrap();
+    let r = srv
+        .req(Method::POST, "/v1/jobs", "trainer")
+        .json(&json!({"split_id": "split-nope", "kind": "classifier"}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 404);
-    let r = srv.req(Method::POST, "/v1/jobs", "trainer").json(&json!({"split_id": split_id, "kind": "oracle"})).send().await.unwrap();
+    let r = srv
+        .req(Method::POST, "/v1/jobs", "trainer")
+        .json(&json!({"split_id": split_id, "kind": "oracle"}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 400);
 
     let latest = srv.get_json("/v1/policies/pol/checkpoints/c1/verifiers/classifier@latest", "viewer").await;
     assert_eq!(latest["id"], art_id);
     assert_eq!(latest["job_id"], job["id"]);
-    let r = srv.req(Method::PUT, &format!("/v1/artifacts/{art_id}/aliases/prod"), "labeler").send().await.unwrap();
+    let r = srv
+        .req(Method::PUT, &format!("/v1/artifacts/{art_id}/aliases/prod"), "labeler")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 403);
-    let r = srv.req(Method::PUT, &format!("/v1/artifacts/{art_id}/aliases/prod"), "trainer").send().await.unwrap();
+    let r = srv
+        .req(Method::PUT, &format!("/v1/artifacts/{art_id}/aliases/prod"), "trainer")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 200);
-    let r = srv.req(Method::PUT, &format!("/v1/artifacts/{art_id}/aliases/pr@d"), "trainer").send().await.unwrap();
+    let r = srv
+        .req(Method::PUT, &format!("/v1/artifacts/{art_id}/aliases/pr@d"), "trainer")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 400);
     let art = srv.get_json(&format!("/v1/artifacts/{art_id}"), "viewer").await;
     assert_eq!(art["aliases"], json!(["latest", "prod"]));
-    assert_eq!(srv.get_json("/v1/artifacts?policy=pol&kind=classifier", "viewer").await.as_array().unwrap().len(), 1);
+    assert_eq!(
+        srv.get_json("/v1/artifacts?policy=pol&kind=classifier", "viewer").await.as_array().unwrap().len(),
+        1
+    );
     let manifest: Value = serde_json::from_slice(
-        &srv.req(Method::GET, "/v1/policies/pol/checkpoints/c1/verifiers/classifier@prod/files/manifest.json", "viewer")
-            .send().await.unwrap().bytes().await.unwrap(),
-    ).unwrap();
+        &srv.req(
+            Method::GET,
+            "/v1/policies/pol/checkpoints/c1/verifiers/classifier@prod/files/manifest.json",
+            "viewer",
+        )
+        .send()
+        .await
+        .unwrap()
+        .bytes()
+        .await
+        .unwrap(),
+    )
+    .unwrap();
     for name in ["model.safetensors", "config.json"] {
-        let r = srv.req(Method::GET, &format!("/v1/policies/pol/checkpoints/c1/verifiers/classifier@prod/files/{name}"), "viewer")
-            .send().await.unwrap();
+        let r = srv
+            .req(
+                Method::GET,
+                &format!("/v1/policies/pol/checkpoints/c1/verifiers/classifier@prod/files/{name}"),
+                "viewer",
+            )
+            .send()
+            .await
+            .unwrap();
         assert_eq!(r.status(), 200);
         let sum = r.headers()["x-checksum-sha256"].to_str().unwrap().to_string();
         assert_eq!(r.headers()["etag"].to_str().unwrap(), format!("\"{sum}\""));
@@ -242,28 +353,59 @@ async fn full_flow(db: Db) {
         assert_eq!(sha256_hex(&body), sum);
         assert_eq!(manifest["files"][name], sum, "{name} matches the manifest");
     }
-    let r = srv.req(Method::GET, &format!("/v1/artifacts/{art_id}/files/model.safetensors"), "viewer").send().await.unwrap();
+    let r = srv
+        .req(Method::GET, &format!("/v1/artifacts/{art_id}/files/model.safetensors"), "viewer")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 200);
-    let r = srv.req(Method::GET, &format!("/v1/artifacts/{art_id}/files/secret.txt"), "viewer").send().await.unwrap();
+    let r = srv
+        .req(Method::GET, &format!("/v1/artifacts/{art_id}/files/secret.txt"), "viewer")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 404);
-    let r = srv.req(Method::GET, "/v1/policies/pol/checkpoints/c1/verifiers/classifier@nope", "viewer").send().await.unwrap();
+    let r = srv
+        .req(Method::GET, "/v1/policies/pol/checkpoints/c1/verifiers/classifier@nope", "viewer")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 404);
 
     // Cancel: a queued job is cancelled at once.
-    let r = srv.req(Method::POST, "/v1/jobs", "trainer").json(&json!({"split_id": split_id, "kind": "q"})).send().await.unwrap();
+    let r = srv
+        .req(Method::POST, "/v1/jobs", "trainer")
+        .json(&json!({"split_id": split_id, "kind": "q"}))
+        .send()
+        .await
+        .unwrap();
     let j: Value = r.json().await.unwrap();
-    let r = srv.req(Method::POST, &format!("/v1/jobs/{}/cancel", j["id"].as_str().unwrap()), "trainer").send().await.unwrap();
+    let r = srv
+        .req(Method::POST, &format!("/v1/jobs/{}/cancel", j["id"].as_str().unwrap()), "trainer")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 200);
     let st = srv.wait_job(j["id"].as_str().unwrap()).await;
     assert_eq!(st["state"], "cancelled", "{st}");
 
     // gc (admin), metrics, OpenAPI, health.
-    let r = srv.req(Method::POST, "/v1/gc", "admin").json(&json!({"grace_seconds": 0, "dry_run": true})).send().await.unwrap();
+    let r = srv
+        .req(Method::POST, "/v1/gc", "admin")
+        .json(&json!({"grace_seconds": 0, "dry_run": true}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 200);
     let m = srv.req(Method::GET, "/metrics", "viewer").send().await.unwrap().text().await.unwrap();
     assert!(m.contains("ufops_label_writes_total 3"), "{m}");
     assert!(m.contains("ufops_label_conflicts_total 2"), "{m}");
-    assert!(m.contains(r#"ufops_http_requests_total{method="PUT",route="/v1/episodes/{id}/label",status="409"} 1"#), "{m}");
+    assert!(
+        m.contains(
+            r#"ufops_http_requests_total{method="PUT",route="/v1/episodes/{id}/label",status="409"} 1"#
+        ),
+        "{m}"
+    );
     assert!(m.contains(r#"ufops_jobs{state="succeeded"} 2"#), "{m}");
     let doc = srv.get_json("/openapi.json", "viewer").await;
     assert!(doc["openapi"].as_str().unwrap().starts_with("3."));
@@ -291,9 +433,13 @@ async fn full_flow_postgres() {
 async fn oversized_json_body_is_refused() {
     let srv = TestServer::start(Db::Sqlite, false).await;
     let big = "x".repeat(2 << 20);
-    let r = srv.req(Method::POST, "/v1/labels/bulk", "labeler")
+    let r = srv
+        .req(Method::POST, "/v1/labels/bulk", "labeler")
         .header("content-type", "application/json")
-        .body(format!("{{\"updates\": [], \"pad\": \"{big}\"}}")).send().await.unwrap();
+        .body(format!("{{\"updates\": [], \"pad\": \"{big}\"}}"))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 413);
     srv.stop().await;
 }

@@ -25,11 +25,11 @@ async fn pages_and_counts(db: Db) {
     let mut ids = common::ingest(&srv.store, "lists-a", "c1", 23).await;
     ids.extend(common::ingest(&srv.store, "lists-b", "c2", 17).await);
     counts_equal_recount(&srv, "", CountFilter::default()).await;
-    counts_equal_recount(&srv, "?policy=pol&checkpoint=c2", CountFilter {
-        policy: Some("pol".into()),
-        checkpoint: Some("c2".into()),
-        ..Default::default()
-    })
+    counts_equal_recount(
+        &srv,
+        "?policy=pol&checkpoint=c2",
+        CountFilter { policy: Some("pol".into()), checkpoint: Some("c2".into()), ..Default::default() },
+    )
     .await;
 
     // Walk label=success 4 at a time while a labeler flips episodes between pages.
@@ -53,7 +53,12 @@ async fn pages_and_counts(db: Db) {
                 json!({"episode_id": id, "label": label})
             })
             .collect();
-        let r = srv.req(Method::POST, "/v1/labels/bulk", "labeler").json(&json!({"updates": updates})).send().await.unwrap();
+        let r = srv
+            .req(Method::POST, "/v1/labels/bulk", "labeler")
+            .json(&json!({"updates": updates}))
+            .send()
+            .await
+            .unwrap();
         assert_eq!(r.status(), 200);
         k += 1;
         match page["next_cursor"].as_str() {
@@ -63,14 +68,24 @@ async fn pages_and_counts(db: Db) {
     }
     assert!(k >= 3, "several pages ({k})");
     counts_equal_recount(&srv, "", CountFilter::default()).await;
-    counts_equal_recount(&srv, "?task=reach", CountFilter { task: Some("reach".into()), ..Default::default() }).await;
+    counts_equal_recount(
+        &srv,
+        "?task=reach",
+        CountFilter { task: Some("reach".into()), ..Default::default() },
+    )
+    .await;
 
     // A version's counts stay as frozen; an unknown version is a 404.
     let v = srv.store.head_version().await.unwrap();
     let bulk = json!({"updates": ids[..5].iter().map(|id| json!({"episode_id": id, "label": "failure"})).collect::<Vec<_>>()});
     let r = srv.req(Method::POST, "/v1/labels/bulk", "labeler").json(&bulk).send().await.unwrap();
     assert_eq!(r.status(), 200);
-    counts_equal_recount(&srv, &format!("?version={v}"), CountFilter { version: Some(v), ..Default::default() }).await;
+    counts_equal_recount(
+        &srv,
+        &format!("?version={v}"),
+        CountFilter { version: Some(v), ..Default::default() },
+    )
+    .await;
     counts_equal_recount(&srv, "", CountFilter::default()).await;
     let r = srv.req(Method::GET, "/v1/episodes/counts?version=999", "viewer").send().await.unwrap();
     assert_eq!(r.status(), 404);

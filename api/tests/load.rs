@@ -37,7 +37,10 @@ async fn racing_puts_one_winner(db: Db) {
     let before = srv.store.episode(id, None).await.unwrap().label_revision;
     let mut secrets = Vec::new();
     for i in 0..24 {
-        secrets.push((format!("racer-{i:02}"), srv.store.create_token(&format!("racer-{i:02}"), store::Role::Labeler).await.unwrap().0));
+        secrets.push((
+            format!("racer-{i:02}"),
+            srv.store.create_token(&format!("racer-{i:02}"), store::Role::Labeler).await.unwrap().0,
+        ));
     }
     let mut tasks = Vec::new();
     for (i, (name, secret)) in secrets.into_iter().enumerate() {
@@ -76,7 +79,10 @@ async fn racing_puts_one_winner(db: Db) {
     }
     let h = srv.store.label_history(id).await.unwrap();
     let last = h.last().unwrap();
-    assert_eq!((last.revision, last.actor.as_str(), last.note.as_deref()), (before + 1, wname.as_str(), Some(wname.as_str())));
+    assert_eq!(
+        (last.revision, last.actor.as_str(), last.note.as_deref()),
+        (before + 1, wname.as_str(), Some(wname.as_str()))
+    );
     srv.stop().await;
 }
 

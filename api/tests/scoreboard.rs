@@ -23,9 +23,14 @@ async fn scoreboard_over_http(db: Db) {
     let mut bon = RunInput::new("c-bon10", Steering::Bon { n: 10 });
     bon.tags = vec!["on-policy".into(), "a,b \"quoted\"".into()];
     ingest_run(&srv.store, "bon", "c1", bon, 40, 8).await;
-    ingest_run(&srv.store, "flow", "c1", RunInput::new("flow-g", Steering::Flow { lambda: 0.5 }), 20, 3).await;
+    ingest_run(&srv.store, "flow", "c1", RunInput::new("flow-g", Steering::Flow { lambda: 0.5 }), 20, 3)
+        .await;
 
-    let want = srv.store.scoreboard(&ScoreboardRequest { policy: "pol".into(), ..Default::default() }).await.unwrap();
+    let want = srv
+        .store
+        .scoreboard(&ScoreboardRequest { policy: "pol".into(), ..Default::default() })
+        .await
+        .unwrap();
     let got = srv.get_json("/v1/scoreboard?policy=pol", "viewer").await;
     assert_eq!(got, serde_json::to_value(&want).unwrap());
     assert_eq!(got["rows"].as_array().unwrap().len(), 3);
@@ -33,7 +38,11 @@ async fn scoreboard_over_http(db: Db) {
     assert_eq!(bon_row["baseline"]["separates"], true, "{bon_row}");
     assert_eq!(bon_row["run"]["steering"], serde_json::json!({"method": "bon", "n": 10}));
 
-    let r = srv.req(Method::GET, "/v1/scoreboard?policy=pol&format=csv&baseline=c-bon10", "viewer").send().await.unwrap();
+    let r = srv
+        .req(Method::GET, "/v1/scoreboard?policy=pol&format=csv&baseline=c-bon10", "viewer")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 200);
     assert!(r.headers()["content-type"].to_str().unwrap().starts_with("text/csv"));
     assert!(r.headers()["content-disposition"].to_str().unwrap().contains("scoreboard-v"));
@@ -61,7 +70,11 @@ async fn scoreboard_over_http(db: Db) {
         assert!(body.contains(says), "{path}: {body}");
     }
     // An ingest upload naming a bad steering or a missing artifact is refused before anything is stored.
-    for (q, says) in [("run=r&steering=bon:0", "bon:0"), ("run_tags=ok,%20padded", "run tag"), ("run=r&run_artifact=art-nope", "art-nope")] {
+    for (q, says) in [
+        ("run=r&steering=bon:0", "bon:0"),
+        ("run_tags=ok,%20padded", "run tag"),
+        ("run=r&run_artifact=art-nope", "art-nope"),
+    ] {
         let r = srv
             .req(Method::POST, &format!("/v1/ingest?policy=pol&checkpoint=up&{q}"), "admin")
             .body("{}")
@@ -75,14 +88,22 @@ async fn scoreboard_over_http(db: Db) {
     }
     // A run given by its steering (and tags) alone is named after its steering.
     let r = srv
-        .req(Method::POST, "/v1/ingest?policy=pol&checkpoint=up&steering=bon:10&run_tags=nightly,,gpu", "admin")
+        .req(
+            Method::POST,
+            "/v1/ingest?policy=pol&checkpoint=up&steering=bon:10&run_tags=nightly,,gpu",
+            "admin",
+        )
         .body("{}")
         .send()
         .await
         .unwrap();
     assert_eq!(r.status().as_u16(), 202);
     let job: serde_json::Value = r.json().await.unwrap();
-    assert_eq!((&job["spec"]["run"], &job["spec"]["steering"]), (&serde_json::json!("bon:10"), &serde_json::json!("bon:10")), "{job}");
+    assert_eq!(
+        (&job["spec"]["run"], &job["spec"]["steering"]),
+        (&serde_json::json!("bon:10"), &serde_json::json!("bon:10")),
+        "{job}"
+    );
     assert_eq!(job["spec"]["run_tags"], serde_json::json!(["nightly", "gpu"]));
     srv.stop().await;
 }

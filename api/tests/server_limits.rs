@@ -98,11 +98,16 @@ async fn a_stalled_client_cannot_take_more_than_its_tokens_share() {
         if r.status() == 429 {
             break r;
         }
-        assert!(t0.elapsed() < std::time::Duration::from_secs(10), "the stalled requests never held the token's slots");
+        assert!(
+            t0.elapsed() < std::time::Duration::from_secs(10),
+            "the stalled requests never held the token's slots"
+        );
         // A stall that arrived while a probe held a slot was itself refused: stall again.
         for s in stalled.iter_mut() {
             let mut buf = [0u8; 64];
-            if let Ok(Ok(_)) = tokio::time::timeout(std::time::Duration::from_millis(50), s.read(&mut buf)).await {
+            if let Ok(Ok(_)) =
+                tokio::time::timeout(std::time::Duration::from_millis(50), s.read(&mut buf)).await
+            {
                 *s = stall().await;
             }
         }
@@ -120,7 +125,11 @@ async fn a_stalled_client_cannot_take_more_than_its_tokens_share() {
         if r.status() == 200 {
             break;
         }
-        assert!(t0.elapsed() < std::time::Duration::from_secs(5), "the token's slots were not given back: {}", r.status());
+        assert!(
+            t0.elapsed() < std::time::Duration::from_secs(5),
+            "the token's slots were not given back: {}",
+            r.status()
+        );
         tokio::time::sleep(std::time::Duration::from_millis(20)).await;
     }
     srv.stop().await;

@@ -50,18 +50,26 @@ async fn trickled_headers_and_idle_connections_are_closed() {
     // One byte every 300 ms keeps the socket busy but the headers never finish in time.
     let mut s = TcpStream::connect(addr(&srv)).await.unwrap();
     let mut closed = false;
-    for b in b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Slow: aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa".iter() {
+    for b in
+        b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Slow: aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa"
+            .iter()
+    {
         if s.write_all(&[*b]).await.is_err() {
             closed = true;
             break;
         }
         tokio::time::sleep(Duration::from_millis(300)).await;
     }
-    assert!(closed || read_until_closed(&mut s, Duration::from_millis(100)).await.is_ok(), "trickled headers were accepted for 20 s");
+    assert!(
+        closed || read_until_closed(&mut s, Duration::from_millis(100)).await.is_ok(),
+        "trickled headers were accepted for 20 s"
+    );
     // A finished request, then an idle keep-alive connection: answered, then closed.
     let mut s = TcpStream::connect(addr(&srv)).await.unwrap();
     s.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n").await.unwrap();
-    let got = read_until_closed(&mut s, Duration::from_secs(15)).await.expect("an idle keep-alive connection stayed open 15 s");
+    let got = read_until_closed(&mut s, Duration::from_secs(15))
+        .await
+        .expect("an idle keep-alive connection stayed open 15 s");
     assert!(String::from_utf8_lossy(&got).starts_with("HTTP/1.1 200"), "{}", String::from_utf8_lossy(&got));
     srv.stop().await;
 }
@@ -76,7 +84,9 @@ async fn a_body_that_stops_arriving_fails() {
         ids[0], srv.tokens["labeler"]
     );
     s.write_all(head.as_bytes()).await.unwrap();
-    let got = read_until_closed(&mut s, Duration::from_secs(15)).await.expect("a stalled body held its request for 15 s");
+    let got = read_until_closed(&mut s, Duration::from_secs(15))
+        .await
+        .expect("a stalled body held its request for 15 s");
     let text = String::from_utf8_lossy(&got);
     assert!(text.is_empty() || text.starts_with("HTTP/1.1 4"), "{text}");
     // The label did not change, and the server goes on serving.
@@ -95,9 +105,14 @@ async fn a_download_nobody_reads_is_cut_off() {
     std::fs::write(&vpath, &video).unwrap();
     let sha = store::sha256_hex(&video);
     let mut w = srv.store.begin_ingest(common::source("big"), "pol", "c1").await.unwrap();
-    w.add_media(&MediaFile { sha256: sha.clone(), local_path: vpath, content_type: "video/mp4".into(), size_bytes: video.len() as u64 })
-        .await
-        .unwrap();
+    w.add_media(&MediaFile {
+        sha256: sha.clone(),
+        local_path: vpath,
+        content_type: "video/mp4".into(),
+        size_bytes: video.len() as u64,
+    })
+    .await
+    .unwrap();
     let mut ep = common::episode(0, 6, Label::Success);
     ep.media = vec![MediaColumn { name: "front".into(), sha256: sha, timestamps: ep.timestamps.clone() }];
     let id = w.add_episode(ep).await.unwrap();
@@ -111,8 +126,14 @@ async fn a_download_nobody_reads_is_cut_off() {
     s.write_all(req.as_bytes()).await.unwrap();
     // Read nothing for long enough that the server's writes stall past the limit, then drain.
     tokio::time::sleep(Duration::from_secs(5)).await;
-    let got = read_until_closed(&mut s, Duration::from_secs(30)).await.expect("the server never closed the stalled download");
-    assert!(got.len() < video.len(), "the whole body arrived ({} bytes): the stalled write was not cut off", got.len());
+    let got = read_until_closed(&mut s, Duration::from_secs(30))
+        .await
+        .expect("the server never closed the stalled download");
+    assert!(
+        got.len() < video.len(),
+        "the whole body arrived ({} bytes): the stalled write was not cut off",
+        got.len()
+    );
     // The server goes on serving that file to a client that reads.
     let r = srv.req(Method::GET, &format!("/v1/episodes/{id}/media/front"), "viewer").send().await.unwrap();
     assert_eq!(r.status(), 200);
@@ -157,17 +178,38 @@ async fn guessing_tokens_is_bounded_per_address_but_known_tokens_go_on() {
     assert_eq!(srv.req(Method::GET, "/v1/policies", "viewer").send().await.unwrap().status(), 200);
     let mut statuses = Vec::new();
     for n in 0..60 {
-        let r = srv.http.get(srv.url("/v1/policies")).bearer_auth(format!("ufops_{n:032x}")).send().await.unwrap();
+        let r = srv
+            .http
+            .get(srv.url("/v1/policies"))
+            .bearer_auth(format!("ufops_{n:032x}"))
+            .send()
+            .await
+            .unwrap();
         statuses.push(r.status().as_u16());
     }
     assert!(statuses.iter().all(|s| *s == 401 || *s == 429), "{statuses:?}");
     let limited = statuses.iter().filter(|s| **s == 429).count();
     assert!(limited >= 30, "{limited} of 60 guesses refused: {statuses:?}");
     // Not behind a trusted proxy: a claimed client address changes nothing.
-    let r = srv.http.get(srv.url("/v1/policies")).bearer_auth("ufops_guess").header("X-Forwarded-For", "198.51.100.9").send().await.unwrap();
+    let r = srv
+        .http
+        .get(srv.url("/v1/policies"))
+        .bearer_auth("ufops_guess")
+        .header("X-Forwarded-For", "198.51.100.9")
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 429);
     // Sign-in attempts count against the same budget.
-    let r = srv.http.post(srv.url("/ui/session")).header("Origin", &srv.base).header("x-ufops-ui", "1").json(&serde_json::json!({"token": "ufops_guess"})).send().await.unwrap();
+    let r = srv
+        .http
+        .post(srv.url("/ui/session"))
+        .header("Origin", &srv.base)
+        .header("x-ufops-ui", "1")
+        .json(&serde_json::json!({"token": "ufops_guess"}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 429);
     // The known token goes on working from the same address.
     for _ in 0..5 {

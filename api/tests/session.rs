@@ -13,9 +13,17 @@ const CSRF: &str = "x-ufops-ui";
 /// Signs in with `token` (as the page does: JSON body and the CSRF header); returns the cookie
 /// pair to send back (`ufops_session=<id>`), the Set-Cookie header, and the body.
 async fn sign_in(srv: &TestServer, token: &str) -> (String, String, Value) {
-    let r = srv.http.post(srv.url("/ui/session")).header(CSRF, "1").json(&json!({"token": token})).send().await.unwrap();
+    let r = srv
+        .http
+        .post(srv.url("/ui/session"))
+        .header(CSRF, "1")
+        .json(&json!({"token": token}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), StatusCode::OK);
-    let set_cookie = r.headers().get(reqwest::header::SET_COOKIE).expect("a Set-Cookie").to_str().unwrap().to_string();
+    let set_cookie =
+        r.headers().get(reqwest::header::SET_COOKIE).expect("a Set-Cookie").to_str().unwrap().to_string();
     let pair = set_cookie.split(';').next().unwrap().trim().to_string();
     (pair, set_cookie, r.json().await.unwrap())
 }
@@ -32,7 +40,14 @@ async fn label_of(srv: &TestServer, id: &str) -> (String, i64) {
 }
 
 /// A cookie-authenticated label write: `csrf` adds `X-Ufops-UI: 1`, `origin` an Origin header.
-async fn put_label(srv: &TestServer, cookie: &str, id: &str, label: &str, csrf: bool, origin: Option<&str>) -> (StatusCode, String) {
+async fn put_label(
+    srv: &TestServer,
+    cookie: &str,
+    id: &str,
+    label: &str,
+    csrf: bool,
+    origin: Option<&str>,
+) -> (StatusCode, String) {
     let (_, rev) = label_of(srv, id).await;
     let mut req = with_cookie(srv, Method::PUT, &format!("/v1/episodes/{id}/label"), cookie)
         .header(reqwest::header::IF_MATCH, rev.to_string())
@@ -55,18 +70,37 @@ async fn cookie_session_with_csrf_rule_sign_out_and_revocation() {
     let own_origin = srv.base.clone();
 
     // Sign-in itself needs the CSRF header, and a valid token.
-    let r = srv.http.post(srv.url("/ui/session")).json(&json!({"token": srv.tokens["labeler"]})).send().await.unwrap();
+    let r = srv
+        .http
+        .post(srv.url("/ui/session"))
+        .json(&json!({"token": srv.tokens["labeler"]}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), StatusCode::FORBIDDEN);
     assert!(r.headers().get(reqwest::header::SET_COOKIE).is_none(), "no cookie without the CSRF header");
-    let r = srv.http.post(srv.url("/ui/session")).header(CSRF, "1").json(&json!({"token": "ufops_not_a_token"})).send().await.unwrap();
+    let r = srv
+        .http
+        .post(srv.url("/ui/session"))
+        .header(CSRF, "1")
+        .json(&json!({"token": "ufops_not_a_token"}))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), StatusCode::UNAUTHORIZED);
     assert!(r.headers().get(reqwest::header::SET_COOKIE).is_none());
 
     // A token gives an HttpOnly, SameSite=Strict cookie for the whole site, and who signed in.
     let (cookie, set_cookie, who) = sign_in(&srv, &srv.tokens["labeler"]).await;
     let attrs: Vec<String> = set_cookie.split(';').map(|a| a.trim().to_ascii_lowercase()).collect();
-    assert!(cookie.starts_with("ufops_session=") && cookie.len() > "ufops_session=".len() + 32, "{set_cookie}");
-    assert!(!set_cookie.contains(&srv.tokens["labeler"]), "the token never goes into the cookie: {set_cookie}");
+    assert!(
+        cookie.starts_with("ufops_session=") && cookie.len() > "ufops_session=".len() + 32,
+        "{set_cookie}"
+    );
+    assert!(
+        !set_cookie.contains(&srv.tokens["labeler"]),
+        "the token never goes into the cookie: {set_cookie}"
+    );
     for want in ["httponly", "samesite=strict", "path=/"] {
         assert!(attrs.iter().any(|a| a == want), "{want} missing: {set_cookie}");
     }
@@ -109,7 +143,8 @@ async fn cookie_session_with_csrf_rule_sign_out_and_revocation() {
     assert_eq!(r.status(), StatusCode::FORBIDDEN);
     let r = with_cookie(&srv, Method::DELETE, "/ui/session", &cookie).header(CSRF, "1").send().await.unwrap();
     assert_eq!(r.status(), StatusCode::NO_CONTENT);
-    let cleared = r.headers().get(reqwest::header::SET_COOKIE).unwrap().to_str().unwrap().to_ascii_lowercase();
+    let cleared =
+        r.headers().get(reqwest::header::SET_COOKIE).unwrap().to_str().unwrap().to_ascii_lowercase();
     assert!(cleared.starts_with("ufops_session=;") && cleared.contains("max-age=0"), "{cleared}");
     let r = with_cookie(&srv, Method::GET, "/ui/session", &cookie).send().await.unwrap();
     assert_eq!(r.status(), StatusCode::UNAUTHORIZED, "the old cookie still works after sign-out");

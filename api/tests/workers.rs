@@ -35,14 +35,28 @@ async fn two_workers_on_postgres_run_each_job_once_and_retry_a_killed_workers_jo
     }
     // A second store handle = a second process's connection pool on the same schema.
     let url_store_b = store.clone();
-    let wa = tokio::spawn(api::run_worker_with(store.clone(), runner.clone(), opts("worker-a"), std::future::pending()));
-    let wb = tokio::spawn(api::run_worker_with(url_store_b, runner.clone(), opts("worker-b"), std::future::pending()));
+    let wa = tokio::spawn(api::run_worker_with(
+        store.clone(),
+        runner.clone(),
+        opts("worker-a"),
+        std::future::pending(),
+    ));
+    let wb = tokio::spawn(api::run_worker_with(
+        url_store_b,
+        runner.clone(),
+        opts("worker-b"),
+        std::future::pending(),
+    ));
 
     // Kill worker A in the middle of its third job.
     let t0 = Instant::now();
     let killed_job = loop {
-        let started_by_a: Vec<_> = runner.runs.lock().unwrap().iter().filter(|r| r.worker == "worker-a").cloned().collect();
-        if started_by_a.len() >= 3 && started_by_a[2].end.is_none() && started_by_a[2].start.elapsed() > Duration::from_millis(30) {
+        let started_by_a: Vec<_> =
+            runner.runs.lock().unwrap().iter().filter(|r| r.worker == "worker-a").cloned().collect();
+        if started_by_a.len() >= 3
+            && started_by_a[2].end.is_none()
+            && started_by_a[2].start.elapsed() > Duration::from_millis(30)
+        {
             wa.abort();
             break started_by_a[2].job_id.clone();
         }
@@ -59,7 +73,11 @@ async fn two_workers_on_postgres_run_each_job_once_and_retry_a_killed_workers_jo
         if jobs.iter().all(|j| j.state == JobState::Succeeded) {
             break;
         }
-        assert!(t0.elapsed() < Duration::from_secs(30), "jobs stuck: {:?}", jobs.iter().map(|j| (&j.id, j.state)).collect::<Vec<_>>());
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "jobs stuck: {:?}",
+            jobs.iter().map(|j| (&j.id, j.state)).collect::<Vec<_>>()
+        );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     wb.abort();
@@ -101,7 +119,12 @@ async fn cancel_stops_a_running_job_and_progress_is_recorded() {
     let job = store.create_job("sleep", &json!({}), "test").await.unwrap();
     let mut o = api::WorkerOptions::new("w", 300);
     o.poll_interval = Duration::from_millis(20);
-    let w = tokio::spawn(api::run_worker_with(store.clone(), runner.clone() as Arc<dyn api::JobRunner>, o, std::future::pending()));
+    let w = tokio::spawn(api::run_worker_with(
+        store.clone(),
+        runner.clone() as Arc<dyn api::JobRunner>,
+        o,
+        std::future::pending(),
+    ));
     // Progress arrives with the heartbeats.
     let t0 = Instant::now();
     loop {

@@ -22,7 +22,11 @@ fn trainer_episode(i: usize, e: &sim::Episode, horizon: usize) -> trainer::Episo
     trainer::Episode {
         id: format!("rollout_{i}"),
         success: e.success,
-        obs: vec![trainer::ObsSeries { key: "pos".into(), dim: 2, values: e.positions[..n].iter().flatten().copied().collect() }],
+        obs: vec![trainer::ObsSeries {
+            key: "pos".into(),
+            dim: 2,
+            values: e.positions[..n].iter().flatten().copied().collect(),
+        }],
         actions: e.actions.iter().flatten().copied().collect(),
         action_dim: 2,
         action_chunk: Some((horizon, e.action_chunks.iter().flatten().copied().collect())),
@@ -30,7 +34,11 @@ fn trainer_episode(i: usize, e: &sim::Episode, horizon: usize) -> trainer::Episo
 }
 
 /// Each episode's score: the mean of its steps' scores (what the `score` job stores).
-fn mean_scores(v: &trainer::Verifier, eps: &[trainer::Episode], input: &trainer::InputSpec) -> Result<Vec<f64>> {
+fn mean_scores(
+    v: &trainer::Verifier,
+    eps: &[trainer::Episode],
+    input: &trainer::InputSpec,
+) -> Result<Vec<f64>> {
     eps.iter()
         .map(|e| {
             let mut s = trainer::build_samples(std::slice::from_ref(e), input, 0.99)?;
@@ -54,8 +62,10 @@ fn main() -> Result<()> {
     let base = DiffusionPolicy::train(&pc, &tc, &demos)?;
     let pool_eps = rollout(&base, &env, pool_n, Steering::None, seed + 100)?;
     let held_eps = rollout(&base, &env, held_n, Steering::None, seed + 300)?;
-    let pool: Vec<trainer::Episode> = pool_eps.iter().enumerate().map(|(i, e)| trainer_episode(i, e, pc.horizon)).collect();
-    let held: Vec<trainer::Episode> = held_eps.iter().enumerate().map(|(i, e)| trainer_episode(i, e, pc.horizon)).collect();
+    let pool: Vec<trainer::Episode> =
+        pool_eps.iter().enumerate().map(|(i, e)| trainer_episode(i, e, pc.horizon)).collect();
+    let held: Vec<trainer::Episode> =
+        held_eps.iter().enumerate().map(|(i, e)| trainer_episode(i, e, pc.horizon)).collect();
     let held_labels: Vec<f32> = held.iter().map(|e| e.success as u8 as f32).collect();
     println!(
         "review_campaign: base policy success {:.2} (pool {pool_n}), {:.2} (held-out {held_n}); rollouts ready in {:.0} s",
@@ -94,7 +104,8 @@ fn main() -> Result<()> {
         let keep = |t: u32| t % stride == 0;
         let trs = trainer::build_samples(&tr, &input, cfg.gamma)?.filter_steps(keep);
         let vas = trainer::build_samples(&va, &input, cfg.gamma)?.filter_steps(keep);
-        let trained = trainer::train_samples(trs, vas, &input, &cfg, &mut |_: &trainer::EpochReport| {}, None)?;
+        let trained =
+            trainer::train_samples(trs, vas, &input, &cfg, &mut |_: &trainer::EpochReport| {}, None)?;
         let dir = tempfile::tempdir()?;
         trainer::write_artifact(dir.path(), &trained, serde_json::json!({"bench": "review_campaign"}))?;
         let v = trainer::Verifier::load_dir(dir.path())?;

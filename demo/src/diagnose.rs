@@ -79,7 +79,11 @@ impl Scorer for TracingScorer<'_> {
         let g = self.inner.grad_batch(obs, t, chunks)?;
         let ad = self.act_dim();
         if ad == 0 || g.len() != chunks.len() {
-            return Err(SteerError::Model(format!("{} gradient values for {} chunk values", g.len(), chunks.len())));
+            return Err(SteerError::Model(format!(
+                "{} gradient values for {} chunk values",
+                g.len(),
+                chunks.len()
+            )));
         }
         let mut st = self.state.lock().unwrap_or_else(|e| e.into_inner());
         let step = st.0 % self.steps;
@@ -90,7 +94,8 @@ impl Scorer for TracingScorer<'_> {
             acc.rows += 1;
             acc.grad_norm += n2.sqrt();
             acc.push_norm += f64::from(self.lambda.abs()) * n2.sqrt();
-            acc.out_of_range += x.iter().zip(gr).filter(|(x, g)| (**x + self.lambda * **g).abs() > 1.0).count() as u64;
+            acc.out_of_range +=
+                x.iter().zip(gr).filter(|(x, g)| (**x + self.lambda * **g).abs() > 1.0).count() as u64;
             acc.entries += ad as u64;
         }
         Ok(g)
@@ -161,7 +166,8 @@ pub fn run_diagnostics(
         per_step,
         total_push,
         saturated_actions: sat as f64 / acts.max(1) as f64,
-        verifier_score_executed: scores.iter().map(|s| f64::from(*s)).sum::<f64>() / scores.len().max(1) as f64,
+        verifier_score_executed: scores.iter().map(|s| f64::from(*s)).sum::<f64>()
+            / scores.len().max(1) as f64,
         collisions: count(&|e| e.outcome == Outcome::Collision),
         timeouts: count(&|e| e.outcome == Outcome::Timeout),
         wide_gap: count(&|e| e.gap == Some(sim::env::Gap::Wide)),
@@ -179,12 +185,20 @@ pub fn markdown(rows: &[RunDiagnostics]) -> String {
             "-".to_string()
         } else {
             let p = &r.per_step;
-            format!("{:.3} / {:.3} / {:.3}", p[0].push_norm, p[p.len() / 2].push_norm, p[p.len() - 1].push_norm)
+            format!(
+                "{:.3} / {:.3} / {:.3}",
+                p[0].push_norm,
+                p[p.len() / 2].push_norm,
+                p[p.len() - 1].push_norm
+            )
         };
         let oor = if r.per_step.is_empty() {
             "-".to_string()
         } else {
-            format!("{:.1}%", 100.0 * r.per_step.iter().map(|p| p.out_of_range).sum::<f64>() / r.per_step.len() as f64)
+            format!(
+                "{:.1}%",
+                100.0 * r.per_step.iter().map(|p| p.out_of_range).sum::<f64>() / r.per_step.len() as f64
+            )
         };
         let push = if r.per_step.is_empty() { "-".to_string() } else { format!("{:.2}", r.total_push) };
         s.push_str(&format!(

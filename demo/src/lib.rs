@@ -134,7 +134,11 @@ fn to_episodes(eps: &[sim::Episode], horizon: usize) -> Vec<EpisodeInput> {
                     dim: 2,
                     values: e.positions[..n].iter().flatten().copied().collect(),
                 }],
-                action: VectorColumn { name: "action".into(), dim: 2, values: e.actions.iter().flatten().copied().collect() },
+                action: VectorColumn {
+                    name: "action".into(),
+                    dim: 2,
+                    values: e.actions.iter().flatten().copied().collect(),
+                },
                 reward: (0..n).map(|t| if e.success && t + 1 == n { 1.0 } else { 0.0 }).collect(),
                 done: (0..n).map(|t| t + 1 == n).collect(),
                 action_chunk: Some(store::ChunkColumn {
@@ -310,10 +314,13 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     let stride = pc.n_exec;
     let norm = pc.action_normalizer();
     let space = trainer::ActionSpace::policy(norm.scale.clone(), norm.offset.clone());
-    let (c_rec, clf) = train_verifier(store, &on_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir).await?;
-    let (q_rec, q) = train_verifier(store, &on_split.id, trainer::Kind::Q, cfg, stride, &space, &art_dir).await?;
+    let (c_rec, clf) =
+        train_verifier(store, &on_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir).await?;
+    let (q_rec, q) =
+        train_verifier(store, &on_split.id, trainer::Kind::Q, cfg, stride, &space, &art_dir).await?;
     let (off_rec, off_clf) =
-        train_verifier(store, &off_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir).await?;
+        train_verifier(store, &off_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir)
+            .await?;
 
     // 4. Steer the unchanged base policy. Every row has its own seed (independent samples).
     let mut report = Report::new(&base_eps);
@@ -340,7 +347,12 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
             seed += 1;
             let label = format!("{name} x BoN (N={nn})");
             let eps = eval(&base, Steering::BestOfN { scorer: v, n: nn }, &label, seed)?;
-            let r = demo_run(&format!("{}-bon{nn}", name.to_lowercase()), RunSteering::Bon { n: nn as u32 }, Some(artifact_of(name)), &["on-policy"]);
+            let r = demo_run(
+                &format!("{}-bon{nn}", name.to_lowercase()),
+                RunSteering::Bon { n: nn as u32 },
+                Some(artifact_of(name)),
+                &["on-policy"],
+            );
             record(store, &mut report, &eps, BASE, r, &label, "on-policy", pc.horizon, seed).await?;
             report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, &norm, env.max_speed, None)?);
             if name == "C" && keep_for_plot.is_none() {
@@ -363,7 +375,14 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
                 &["on-policy"],
             );
             record(store, &mut report, &eps, BASE, r, &label, "on-policy", pc.horizon, seed).await?;
-            report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, &norm, env.max_speed, Some(&trace))?);
+            report.diagnostics.push(diagnose::run_diagnostics(
+                &label,
+                &eps,
+                v,
+                &norm,
+                env.max_speed,
+                Some(&trace),
+            )?);
         }
     }
     // Flow twin: same verifier, guidance from the second Euler step on.
@@ -374,13 +393,23 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     seed += 1;
     let nn = cfg.bon_n[0];
     let eps = eval(&flow, Steering::BestOfN { scorer: &clf, n: nn }, "flow twin, C x BoN", seed)?;
-    let r = demo_run(&format!("c-bon{nn}"), RunSteering::Bon { n: nn as u32 }, Some(&c_rec.id), &["on-policy", "ddpm-rollouts"]);
+    let r = demo_run(
+        &format!("c-bon{nn}"),
+        RunSteering::Bon { n: nn as u32 },
+        Some(&c_rec.id),
+        &["on-policy", "ddpm-rollouts"],
+    );
     let label = format!("flow twin, C x BoN (N={nn})");
     record(store, &mut report, &eps, FLOW, r, &label, "on-policy (DDPM rollouts)", pc.horizon, seed).await?;
     // 6. Off-policy ablation: the verifier trained on the alt checkpoint's rollouts.
     seed += 1;
     let eps = eval(&base, Steering::BestOfN { scorer: &off_clf, n: nn }, "off-policy C x BoN", seed)?;
-    let r = demo_run(&format!("off-c-bon{nn}"), RunSteering::Bon { n: nn as u32 }, Some(&off_rec.id), &["off-policy"]);
+    let r = demo_run(
+        &format!("off-c-bon{nn}"),
+        RunSteering::Bon { n: nn as u32 },
+        Some(&off_rec.id),
+        &["off-policy"],
+    );
     let label = format!("C x BoN (N={nn})");
     record(store, &mut report, &eps, BASE, r, &label, "off-policy (alt rollouts)", pc.horizon, seed).await?;
     seed += 1;
@@ -398,14 +427,39 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     // 7. The verifier's learning curve: classifiers on nested samples of the on-policy rollouts.
     let nn_ablation = cfg.bon_n.iter().copied().min().unwrap_or(10);
     for &size in cfg.ablation_sizes.iter().filter(|&&s| s < n) {
-        let split = store.create_split(&store::SplitRequest { max_episodes: Some(size as u64), ..split_req(vec![]) }).await?;
-        let (rec, v) = train_verifier(store, &split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir).await?;
+        let split = store
+            .create_split(&store::SplitRequest { max_episodes: Some(size as u64), ..split_req(vec![]) })
+            .await?;
+        let (rec, v) =
+            train_verifier(store, &split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir)
+                .await?;
         seed += 1;
         let label = format!("C x BoN (N={nn_ablation})");
-        let eps = eval(&base, Steering::BestOfN { scorer: &v, n: nn_ablation }, &format!("{label}, {size} rollouts"), seed)?;
+        let eps = eval(
+            &base,
+            Steering::BestOfN { scorer: &v, n: nn_ablation },
+            &format!("{label}, {size} rollouts"),
+            seed,
+        )?;
         let tag = format!("trained-on-{size}");
-        let r = demo_run(&format!("c-bon{nn_ablation}-n{size}"), RunSteering::Bon { n: nn_ablation as u32 }, Some(&rec.id), &["on-policy", tag.as_str()]);
-        record(store, &mut report, &eps, BASE, r, &label, &format!("on-policy, {size} rollouts"), pc.horizon, seed).await?;
+        let r = demo_run(
+            &format!("c-bon{nn_ablation}-n{size}"),
+            RunSteering::Bon { n: nn_ablation as u32 },
+            Some(&rec.id),
+            &["on-policy", tag.as_str()],
+        );
+        record(
+            store,
+            &mut report,
+            &eps,
+            BASE,
+            r,
+            &label,
+            &format!("on-policy, {size} rollouts"),
+            pc.horizon,
+            seed,
+        )
+        .await?;
     }
 
     // The learning-curve classifiers were published last: `latest` names the main one again.

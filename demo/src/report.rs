@@ -2,8 +2,8 @@
 //! base policy with Newcombe's (method 10) 95% interval, as Markdown and JSON.
 
 use anyhow::Result;
-use serde::Serialize;
 use evalstats::{newcombe_diff, wilson};
+use serde::Serialize;
 use std::path::Path;
 
 #[derive(Debug, Clone, Serialize)]
@@ -72,17 +72,20 @@ impl Report {
     /// run of the base checkpoint): same counts, rate, Wilson and Newcombe intervals.
     pub fn check_against(&self, sb: &store::Scoreboard) -> Result<()> {
         for r in &self.rows {
-            let s = sb
-                .rows
-                .iter()
-                .find(|s| s.checkpoint == r.checkpoint && s.run_name == r.run)
-                .ok_or_else(|| anyhow::anyhow!("the store has no scoreboard row for {}/{}", r.checkpoint, r.run))?;
+            let s = sb.rows.iter().find(|s| s.checkpoint == r.checkpoint && s.run_name == r.run).ok_or_else(
+                || anyhow::anyhow!("the store has no scoreboard row for {}/{}", r.checkpoint, r.run),
+            )?;
             let same = s.successes == r.successes
                 && s.successes + s.failures == r.episodes
                 && s.rate == Some(r.rate)
                 && s.wilson_95 == r.wilson_95
                 && s.baseline.as_ref().map(|b| b.newcombe_95) == r.newcombe_95;
-            anyhow::ensure!(same, "the store's scoreboard disagrees with the report on {} / {}: {s:?}", r.method, r.verifier);
+            anyhow::ensure!(
+                same,
+                "the store's scoreboard disagrees with the report on {} / {}: {s:?}",
+                r.method,
+                r.verifier
+            );
         }
         Ok(())
     }
@@ -107,7 +110,9 @@ impl Report {
                 pct(r.wilson_95.0),
                 pct(r.wilson_95.1),
                 r.diff_to_base.map(|d| format!("{:+.1} pp", 100.0 * d)).unwrap_or_else(|| "-".into()),
-                r.newcombe_95.map(|(lo, hi)| format!("[{:+.1}, {:+.1}]", 100.0 * lo, 100.0 * hi)).unwrap_or_else(|| "-".into()),
+                r.newcombe_95
+                    .map(|(lo, hi)| format!("[{:+.1}, {:+.1}]", 100.0 * lo, 100.0 * hi))
+                    .unwrap_or_else(|| "-".into()),
             ));
         }
         s

@@ -43,7 +43,11 @@ pub struct Campaign {
 
 /// Runs the campaign. `fit(labeled)` trains a verifier on the pool episodes `labeled` and returns
 /// its mean score of every pool episode (`pool` values) and its held-out AUROC.
-pub fn run(c: &Campaign, order: AskOrder, mut fit: impl FnMut(&[usize]) -> Result<(Vec<f64>, Option<f64>)>) -> Result<Vec<CurvePoint>> {
+pub fn run(
+    c: &Campaign,
+    order: AskOrder,
+    mut fit: impl FnMut(&[usize]) -> Result<(Vec<f64>, Option<f64>)>,
+) -> Result<Vec<CurvePoint>> {
     if c.start == 0 || c.batch == 0 || c.start > c.pool {
         bail!("a campaign needs 0 < start <= pool and batch > 0");
     }

@@ -113,7 +113,8 @@ mod tests {
             [0, 3, 3, 3, 2, 3, 4, 2, 2, 5, 1, 0],
             [1, 2, 3, 3, 2, 4, 4, 1, 2, 5, 1, 0],
         ]; // 0 = missing
-        let units: Vec<Vec<u8>> = (0..12).map(|u| obs.iter().map(|o| o[u]).filter(|&v| v != 0).collect()).collect();
+        let units: Vec<Vec<u8>> =
+            (0..12).map(|u| obs.iter().map(|o| o[u]).filter(|&v| v != 0).collect()).collect();
         assert_eq!(r3(krippendorff_alpha_nominal(&units).unwrap()), 0.743);
     }
 
@@ -122,7 +123,8 @@ mod tests {
     /// coincidence-matrix form, checked here on a random-ish table).
     #[test]
     fn alpha_for_two_raters_matches_the_pooled_closed_form() {
-        let pairs: Vec<(u8, u8)> = (0..40u32).map(|i| (((i * 7) % 3) as u8, ((i * 5 + i / 4) % 3) as u8)).collect();
+        let pairs: Vec<(u8, u8)> =
+            (0..40u32).map(|i| (((i * 7) % 3) as u8, ((i * 5 + i / 4) % 3) as u8)).collect();
         let units: Vec<Vec<u8>> = pairs.iter().map(|&(a, b)| vec![a, b]).collect();
         let nn = 2.0 * pairs.len() as f64;
         let po = pairs.iter().filter(|(a, b)| a == b).count() as f64 / pairs.len() as f64;

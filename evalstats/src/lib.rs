@@ -130,8 +130,16 @@ pub fn unlabeled_to_flip(row: &Arm, base: &Arm) -> Option<u64> {
     // says whether the interval after that has the other answer.
     let search = |up: bool, done: &dyn Fn((f64, f64)) -> bool| -> Option<u64> {
         let with = |a: u64, b: u64| {
-            let r = if up { Arm { successes: row.successes + a, ..*row } } else { Arm { failures: row.failures + a, ..*row } };
-            let s = if up { Arm { failures: base.failures + b, ..*base } } else { Arm { successes: base.successes + b, ..*base } };
+            let r = if up {
+                Arm { successes: row.successes + a, ..*row }
+            } else {
+                Arm { failures: row.failures + a, ..*row }
+            };
+            let s = if up {
+                Arm { failures: base.failures + b, ..*base }
+            } else {
+                Arm { successes: base.successes + b, ..*base }
+            };
             done(r.diff(&s))
         };
         if !with(row.unlabeled, base.unlabeled) {

@@ -114,7 +114,6 @@ fn rollouts_to_separate_matches_a_scan_and_the_normal_approximation() {
     assert_eq!(rollouts_to_separate(1.5, 0.5), None);
 }
 
-
 #[test]
 fn unlabeled_to_flip_is_the_smallest_count_that_changes_the_answer() {
     let arm = |s, f, u| Arm { successes: s, failures: f, unlabeled: u };
@@ -139,7 +138,13 @@ fn unlabeled_to_flip_is_the_smallest_count_that_changes_the_answer() {
                         let s = arm(base.successes + sb, base.failures + b - sb, 0);
                         let (lo, hi) = r.diff(&s);
                         let (l0, h0) = row.diff(&base);
-                        let changed = if l0 > 0.0 { lo <= 0.0 } else if h0 < 0.0 { hi >= 0.0 } else { separates((lo, hi)) };
+                        let changed = if l0 > 0.0 {
+                            lo <= 0.0
+                        } else if h0 < 0.0 {
+                            hi >= 0.0
+                        } else {
+                            separates((lo, hi))
+                        };
                         if changed {
                             best = Some(best.map_or(a + b, |x| x.min(a + b)));
                         }

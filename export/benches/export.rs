@@ -15,7 +15,6 @@ use store::*;
 
 use store::test_support::square_rollout as rollout;
 
-
 async fn make_store(dir: &Path, n: u32) -> Store {
     let store = Store::open(&StoreConfig::local(dir)).await.unwrap();
     if store.head_version().await.unwrap() == 0 {
@@ -99,8 +98,16 @@ async fn main() {
                 let _ = std::fs::remove_dir_all(p);
                 let _ = std::fs::remove_file(p);
             }
-            let u = run(Command::new(&exe).env("EXPORT_BENCH_CHILD", format).env("EXPORT_BENCH_OUT", &a).env("EXPORT_BENCH_N", n.to_string()));
-            let p = run(Command::new("python3").arg(&script).arg(store_dir.join("objects")).arg(&labels).arg(format).arg(&b));
+            let u = run(Command::new(&exe)
+                .env("EXPORT_BENCH_CHILD", format)
+                .env("EXPORT_BENCH_OUT", &a)
+                .env("EXPORT_BENCH_N", n.to_string()));
+            let p = run(Command::new("python3")
+                .arg(&script)
+                .arg(store_dir.join("objects"))
+                .arg(&labels)
+                .arg(format)
+                .arg(&b));
             assert_eq!(u["rows"], p["rows"], "both export every step");
             us.push(u);
             py.push(p);
@@ -111,6 +118,11 @@ async fn main() {
         }
         let m = |v: &[serde_json::Value], k: &str| median(v.iter().map(|x| x[k].as_f64().unwrap()).collect());
         let (ut, pt) = (m(&us, "seconds"), m(&py, "seconds"));
-        println!("| {format} | {ut:.2} | {pt:.2} | {:.2}x | {:.0} | {:.0} |", pt / ut, m(&us, "peak_rss_mb"), m(&py, "peak_rss_mb"));
+        println!(
+            "| {format} | {ut:.2} | {pt:.2} | {:.2}x | {:.0} | {:.0} |",
+            pt / ut,
+            m(&us, "peak_rss_mb"),
+            m(&py, "peak_rss_mb")
+        );
     }
 }

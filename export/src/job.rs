@@ -67,7 +67,9 @@ pub async fn run_export_job(
     spec.check()?;
     let mut sel = select(store, &spec.selection).await?;
     if let Some(s) = scorer {
-        let tick = |done: usize, total: usize| progress(serde_json::json!({"phase": "scoring", "done": done, "total": total}));
+        let tick = |done: usize, total: usize| {
+            progress(serde_json::json!({"phase": "scoring", "done": done, "total": total}))
+        };
         filter_by_score(store, &mut sel, s, Some(&tick)).await?;
     } else if spec.selection.score.is_some() {
         return Err(ExportError::invalid("the selection has a score range but no scorer was given"));
@@ -76,7 +78,9 @@ pub async fn run_export_job(
         return Err(ExportError::invalid("cancelled"));
     }
     let tmp = tempfile::tempdir().map_err(|e| ExportError::io(&std::env::temp_dir(), e))?;
-    let tick = |done: usize, total: usize| progress(serde_json::json!({"phase": "exporting", "done": done, "total": total}));
+    let tick = |done: usize, total: usize| {
+        progress(serde_json::json!({"phase": "exporting", "done": done, "total": total}))
+    };
     let (mut report, root) = if spec.format == "lerobot" {
         let out = tmp.path().join("dataset");
         (crate::lerobot::export(store, &sel, &out, Some(&tick)).await?, out)

@@ -21,8 +21,8 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use arrow::array::{
-    Array, ArrayRef, AsArray, BinaryArray, BooleanArray, Float32Array, Int64Array, ListBuilder,
-    RecordBatch, StringArray, StringBuilder, StructArray,
+    Array, ArrayRef, AsArray, BinaryArray, BooleanArray, Float32Array, Int64Array, ListBuilder, RecordBatch,
+    StringArray, StringBuilder, StructArray,
 };
 use arrow::datatypes::{DataType, Field, Fields, Float32Type, Float64Type, Schema, SchemaRef};
 use parquet::arrow::ArrowWriter;
@@ -32,7 +32,10 @@ use serde_json::{json, Map, Value};
 use store::steps::{EXTRA_PREFIX, IMAGE_PREFIX, MEDIA_PREFIX, OBS_PREFIX};
 use store::{EpisodeRecord, Label, Store};
 
-use crate::{count_label, disk_size, for_each_episode_with_layers, ExportError, ExportReport, Progress, Result, Selected, Staged};
+use crate::{
+    count_label, disk_size, for_each_episode_with_layers, ExportError, ExportReport, Progress, Result,
+    Selected, Staged,
+};
 
 pub const CODEBASE_VERSION: &str = "v3.0";
 const CHUNKS_SIZE: usize = 1000;
@@ -70,7 +73,11 @@ fn layout_of(schema: &Schema) -> Result<Layout> {
                 l.action = *d as usize;
             }
         } else if let Some(k) = n.strip_prefix(IMAGE_PREFIX) {
-            let shape = f.metadata().get("ufops.shape").and_then(|s| serde_json::from_str::<Vec<usize>>(s).ok()).unwrap_or_default();
+            let shape = f
+                .metadata()
+                .get("ufops.shape")
+                .and_then(|s| serde_json::from_str::<Vec<usize>>(s).ok())
+                .unwrap_or_default();
             l.images.push((k.to_string(), shape));
         } else if let Some(k) = n.strip_prefix(MEDIA_PREFIX).and_then(|k| k.strip_suffix(".path")) {
             l.videos.push(k.to_string());
@@ -120,7 +127,8 @@ impl Stats {
     fn json(&self) -> Value {
         let n = self.count.max(1) as f64;
         let mean: Vec<f64> = self.sum.iter().map(|s| s / n).collect();
-        let std: Vec<f64> = self.sumsq.iter().zip(&mean).map(|(q, m)| (q / n - m * m).max(0.0).sqrt()).collect();
+        let std: Vec<f64> =
+            self.sumsq.iter().zip(&mean).map(|(q, m)| (q / n - m * m).max(0.0).sqrt()).collect();
         json!({"min": self.min, "max": self.max, "mean": mean, "std": std, "count": [self.count]})
     }
 }
@@ -135,8 +143,12 @@ fn f32_values(col: &ArrayRef) -> Vec<f64> {
         }
         DataType::Float32 => col.as_primitive::<Float32Type>().values().iter().map(|&x| x as f64).collect(),
         DataType::Float64 => col.as_primitive::<Float64Type>().values().to_vec(),
-        DataType::Int64 => col.as_primitive::<arrow::datatypes::Int64Type>().values().iter().map(|&x| x as f64).collect(),
-        DataType::Boolean => col.as_boolean().iter().map(|b| if b == Some(true) { 1.0 } else { 0.0 }).collect(),
+        DataType::Int64 => {
+            col.as_primitive::<arrow::datatypes::Int64Type>().values().iter().map(|&x| x as f64).collect()
+        }
+        DataType::Boolean => {
+            col.as_boolean().iter().map(|b| if b == Some(true) { 1.0 } else { 0.0 }).collect()
+        }
         _ => Vec::new(),
     }
 }
@@ -199,10 +211,17 @@ fn image_type() -> DataType {
 fn data_schema(steps: &Schema, l: &Layout, labeled: bool) -> Result<SchemaRef> {
     let mut fields = Vec::new();
     let field_of = |name: &str| -> Result<Field> {
-        steps.field_with_name(name).map(|f| f.as_ref().clone()).map_err(|_| ExportError::invalid(format!("steps have no column {name}")))
+        steps
+            .field_with_name(name)
+            .map(|f| f.as_ref().clone())
+            .map_err(|_| ExportError::invalid(format!("steps have no column {name}")))
     };
     for (k, _) in &l.obs {
-        fields.push(Field::new(feature_key(k), field_of(&format!("{OBS_PREFIX}{k}"))?.data_type().clone(), false));
+        fields.push(Field::new(
+            feature_key(k),
+            field_of(&format!("{OBS_PREFIX}{k}"))?.data_type().clone(),
+            false,
+        ));
     }
     fields.push(Field::new("action", field_of("action")?.data_type().clone(), false));
     for (k, _) in &l.images {
@@ -222,7 +241,9 @@ fn data_schema(steps: &Schema, l: &Layout, labeled: bool) -> Result<SchemaRef> {
 
 impl Writer<'_> {
     fn column<'b>(&self, steps: &'b RecordBatch, name: &str, e: &EpisodeRecord) -> Result<&'b ArrayRef> {
-        steps.column_by_name(name).ok_or_else(|| ExportError::invalid(format!("episode {}: no column {name}", e.id)))
+        steps
+            .column_by_name(name)
+            .ok_or_else(|| ExportError::invalid(format!("episode {}: no column {name}", e.id)))
     }
 
     fn add(
@@ -248,18 +269,27 @@ impl Writer<'_> {
         let mut cols: Vec<ArrayRef> = Vec::new();
         for (k, _) in &self.layout.obs {
             let c = self.column(&steps, &format!("{OBS_PREFIX}{k}"), e)?.clone();
-            self.stats.entry(feature_key(k)).or_default().add(c.as_fixed_size_list().value_length() as usize, f32_values(&c).into_iter());
+            self.stats
+                .entry(feature_key(k))
+                .or_default()
+                .add(c.as_fixed_size_list().value_length() as usize, f32_values(&c).into_iter());
             cols.push(c);
         }
         let action = self.column(&steps, "action", e)?.clone();
-        self.stats.entry("action".into()).or_default().add(self.layout.action, f32_values(&action).into_iter());
+        self.stats
+            .entry("action".into())
+            .or_default()
+            .add(self.layout.action, f32_values(&action).into_iter());
         cols.push(action);
         for (k, _) in &self.layout.images {
             let bin = self.column(&steps, &format!("{IMAGE_PREFIX}{k}"), e)?.clone();
             let bin: ArrayRef = Arc::new(bin.as_binary::<i32>().clone() as BinaryArray);
             let paths: ArrayRef = Arc::new(StringArray::new_null(n));
             let DataType::Struct(fields) = image_type() else { unreachable!("struct type") };
-            cols.push(Arc::new(StructArray::try_new(fields, vec![bin, paths], None).map_err(|e| ExportError::invalid(e.to_string()))?));
+            cols.push(Arc::new(
+                StructArray::try_new(fields, vec![bin, paths], None)
+                    .map_err(|e| ExportError::invalid(e.to_string()))?,
+            ));
         }
         let reward = self.column(&steps, "reward", e)?.clone();
         let done = self.column(&steps, "done", e)?.clone();
@@ -295,8 +325,15 @@ impl Writer<'_> {
         // Video files: one per store object; the episode's frames from its first frame's time.
         let mut videos = Vec::new();
         for k in &self.layout.videos {
-            let path = self.column(&steps, &format!("{MEDIA_PREFIX}{k}.path"), e)?.as_string::<i32>().value(0).to_string();
-            let mts = self.column(&steps, &format!("{MEDIA_PREFIX}{k}.timestamp"), e)?.as_primitive::<Float64Type>().value(0);
+            let path = self
+                .column(&steps, &format!("{MEDIA_PREFIX}{k}.path"), e)?
+                .as_string::<i32>()
+                .value(0)
+                .to_string();
+            let mts = self
+                .column(&steps, &format!("{MEDIA_PREFIX}{k}.timestamp"), e)?
+                .as_primitive::<Float64Type>()
+                .value(0);
             let from = mts - ts.value(0);
             let objs = self.videos.entry(k.clone()).or_default();
             let file = match objs.iter().position(|p| *p == path) {
@@ -308,13 +345,16 @@ impl Writer<'_> {
             };
             videos.push((file, from, from + n as f64 / self.fps));
         }
-        let batch = RecordBatch::try_new(self.schema.clone(), cols).map_err(|err| ExportError::invalid(format!("episode {}: {err}", e.id)))?;
+        let batch = RecordBatch::try_new(self.schema.clone(), cols)
+            .map_err(|err| ExportError::invalid(format!("episode {}: {err}", e.id)))?;
         if self.file.is_none() {
             let rel = fill(DATA_PATH, None, self.file_index / CHUNKS_SIZE, self.file_index % CHUNKS_SIZE);
             let path = self.root.join(rel);
-            std::fs::create_dir_all(path.parent().expect("has a parent")).map_err(|err| ExportError::io(&path, err))?;
+            std::fs::create_dir_all(path.parent().expect("has a parent"))
+                .map_err(|err| ExportError::io(&path, err))?;
             let f = File::create(&path).map_err(|err| ExportError::io(&path, err))?;
-            let writer = ArrowWriter::try_new(f, self.schema.clone(), Some(data_props())).map_err(|err| ExportError::write(&path, err))?;
+            let writer = ArrowWriter::try_new(f, self.schema.clone(), Some(data_props()))
+                .map_err(|err| ExportError::write(&path, err))?;
             self.file = Some(DataFile { path, writer });
         }
         let df = self.file.as_mut().expect("opened above");
@@ -361,7 +401,8 @@ fn fill(template: &str, video_key: Option<&str>, chunk: usize, file: usize) -> S
 fn write_parquet(path: &Path, batch: &RecordBatch) -> Result<()> {
     std::fs::create_dir_all(path.parent().expect("has a parent")).map_err(|e| ExportError::io(path, e))?;
     let f = File::create(path).map_err(|e| ExportError::io(path, e))?;
-    let mut w = ArrowWriter::try_new(f, batch.schema(), Some(data_props())).map_err(|e| ExportError::write(path, e))?;
+    let mut w = ArrowWriter::try_new(f, batch.schema(), Some(data_props()))
+        .map_err(|e| ExportError::write(path, e))?;
     w.write(batch).map_err(|e| ExportError::write(path, e))?;
     w.close().map_err(|e| ExportError::write(path, e))?;
     Ok(())
@@ -386,8 +427,11 @@ fn tasks_batch(tasks: &BTreeMap<String, i64>) -> Result<RecordBatch> {
         ],
         "attributes": {}, "creator": {"library": "ufops", "version": env!("CARGO_PKG_VERSION")}, "pandas_version": "2.3.3"
     });
-    let schema = Schema::new(vec![Field::new("task_index", DataType::Int64, false), Field::new("task", DataType::Utf8, false)])
-        .with_metadata(HashMap::from([("pandas".to_string(), pandas.to_string())]));
+    let schema = Schema::new(vec![
+        Field::new("task_index", DataType::Int64, false),
+        Field::new("task", DataType::Utf8, false),
+    ])
+    .with_metadata(HashMap::from([("pandas".to_string(), pandas.to_string())]));
     RecordBatch::try_new(
         Arc::new(schema),
         vec![
@@ -408,7 +452,9 @@ fn episodes_batch(rows: &[EpisodeRow], video_keys: &[String]) -> Result<RecordBa
         Field::new("dataset_from_index", DataType::Int64, false),
         Field::new("dataset_to_index", DataType::Int64, false),
     ];
-    let ints = |f: &dyn Fn(&EpisodeRow) -> i64| -> ArrayRef { Arc::new(Int64Array::from_iter_values(rows.iter().map(f))) };
+    let ints = |f: &dyn Fn(&EpisodeRow) -> i64| -> ArrayRef {
+        Arc::new(Int64Array::from_iter_values(rows.iter().map(f)))
+    };
     let mut tasks = ListBuilder::new(StringBuilder::new());
     for r in rows {
         tasks.values().append_value(&r.task);
@@ -482,7 +528,12 @@ fn source_feature(sources: &[Value], key: &str) -> Option<Value> {
 }
 
 /// Writes the selected episodes as a LeRobot v3.0 dataset at `out` (a new folder).
-pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progress<'_>) -> Result<ExportReport> {
+pub async fn export(
+    store: &Store,
+    sel: &Selected,
+    out: &Path,
+    progress: Progress<'_>,
+) -> Result<ExportReport> {
     if sel.episodes.is_empty() {
         return Err(ExportError::invalid("the selection holds no episodes: nothing to export"));
     }
@@ -499,7 +550,8 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
         .iter()
         .find_map(|m| m.get("fps").or_else(|| m.get("control_freq")).and_then(|v| v.as_f64()))
         .filter(|f| f.is_finite() && *f > 0.0);
-    let robot_type = sources.iter().find_map(|m| m.get("robot_type").and_then(|v| v.as_str()).map(str::to_string));
+    let robot_type =
+        sources.iter().find_map(|m| m.get("robot_type").and_then(|v| v.as_str()).map(str::to_string));
     let mut tasks: BTreeMap<String, i64> = BTreeMap::new();
     for e in &sel.episodes {
         let t = e.task.clone().unwrap_or_else(|| NO_TASK.to_string());
@@ -522,40 +574,53 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
     let total = sel.episodes.len();
     let mut writer: Option<Writer> = None;
     let root = staged.tmp.clone();
-    for_each_episode_with_layers(store, &sel.episodes, &sel.selection.layers, Some(sel.version), |i, e, steps| {
-        if writer.is_none() {
-            let layout = layout_of(&steps.schema())?;
-            if layout.action == 0 {
-                return Err(no_actions(e));
+    for_each_episode_with_layers(
+        store,
+        &sel.episodes,
+        &sel.selection.layers,
+        Some(sel.version),
+        |i, e, steps| {
+            if writer.is_none() {
+                let layout = layout_of(&steps.schema())?;
+                if layout.action == 0 {
+                    return Err(no_actions(e));
+                }
+                let fps = match fps {
+                    Some(f) => f,
+                    None => estimate_fps(&steps),
+                };
+                let schema = data_schema(&steps.schema(), &layout, labeled)?;
+                writer = Some(Writer {
+                    root: root.clone(),
+                    schema,
+                    layout,
+                    fps,
+                    labeled,
+                    tasks: &tasks,
+                    file: None,
+                    file_index: 0,
+                    frames: 0,
+                    stats: BTreeMap::new(),
+                    episodes: Vec::new(),
+                    videos: BTreeMap::new(),
+                });
             }
-            let fps = match fps {
-                Some(f) => f,
-                None => estimate_fps(&steps),
-            };
-            let schema = data_schema(&steps.schema(), &layout, labeled)?;
-            writer = Some(Writer {
-                root: root.clone(),
-                schema,
-                layout,
-                fps,
-                labeled,
-                tasks: &tasks,
-                file: None,
-                file_index: 0,
-                frames: 0,
-                stats: BTreeMap::new(),
-                episodes: Vec::new(),
-                videos: BTreeMap::new(),
-            });
-        }
-        let w = writer.as_mut().expect("set above");
-        w.add(i, e, steps, sel.parts.get(&e.id), sel.scores.get(&e.id).copied(), sel.label_data.get(&e.id))?;
-        count_label(&mut report.labels, e.label);
-        if let Some(p) = progress {
-            p(i + 1, total);
-        }
-        Ok(())
-    })
+            let w = writer.as_mut().expect("set above");
+            w.add(
+                i,
+                e,
+                steps,
+                sel.parts.get(&e.id),
+                sel.scores.get(&e.id).copied(),
+                sel.label_data.get(&e.id),
+            )?;
+            count_label(&mut report.labels, e.label);
+            if let Some(p) = progress {
+                p(i + 1, total);
+            }
+            Ok(())
+        },
+    )
     .await?;
     let mut w = writer.expect("at least one episode");
     w.close_file()?;
@@ -572,7 +637,10 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
     // meta/
     let meta = root.join("meta");
     write_parquet(&meta.join("tasks.parquet"), &tasks_batch(&tasks)?)?;
-    write_parquet(&meta.join("episodes/chunk-000/file-000.parquet"), &episodes_batch(&w.episodes, &w.layout.videos)?)?;
+    write_parquet(
+        &meta.join("episodes/chunk-000/file-000.parquet"),
+        &episodes_batch(&w.episodes, &w.layout.videos)?,
+    )?;
     let mut stats = Map::new();
     for (k, s) in &w.stats {
         stats.insert(k.clone(), s.json());
@@ -592,12 +660,19 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
     }
     features.insert("action".into(), vector("action", w.layout.action));
     for (k, shape) in &w.layout.images {
-        features.insert(feature_key(k), json!({"dtype": "image", "shape": shape, "names": ["height", "width", "channel"]}));
+        features.insert(
+            feature_key(k),
+            json!({"dtype": "image", "shape": shape, "names": ["height", "width", "channel"]}),
+        );
     }
     for k in &w.layout.videos {
         let fk = feature_key(k);
         let f = source_feature(&sources, &fk).filter(|f| f.get("dtype") == Some(&json!("video")));
-        let f = f.ok_or_else(|| ExportError::invalid(format!("video {fk}: its source does not say the video's shape (not a LeRobot source)")))?;
+        let f = f.ok_or_else(|| {
+            ExportError::invalid(format!(
+                "video {fk}: its source does not say the video's shape (not a LeRobot source)"
+            ))
+        })?;
         features.insert(fk, f);
     }
     features.insert("next.reward".into(), json!({"dtype": "float32", "shape": [1], "names": null}));

@@ -100,7 +100,8 @@ pub trait StepScorer: Send + Sync {
 /// An episode's score: the mean of its steps' scores, as Demo-SCORE aggregates a rollout
 /// classifier over a demonstration. `None` for an episode without steps.
 pub fn episode_score(step_scores: &[f32]) -> Option<f64> {
-    (!step_scores.is_empty()).then(|| step_scores.iter().map(|&x| x as f64).sum::<f64>() / step_scores.len() as f64)
+    (!step_scores.is_empty())
+        .then(|| step_scores.iter().map(|&x| x as f64).sum::<f64>() / step_scores.len() as f64)
 }
 
 /// Scores every step of each episode (in order) with `scorer`, reading steps with bounded
@@ -112,9 +113,14 @@ pub async fn score_each_episode(
     mut f: impl FnMut(usize, &EpisodeRecord, Vec<f32>) -> Result<()>,
 ) -> Result<()> {
     for_each_episode_with_layers(store, episodes, &scorer.layers(), None, |i, e, steps| {
-        let s = scorer.score_steps(&steps).map_err(|m| ExportError::invalid(format!("scoring episode {}: {m}", e.id)))?;
+        let s = scorer
+            .score_steps(&steps)
+            .map_err(|m| ExportError::invalid(format!("scoring episode {}: {m}", e.id)))?;
         if s.iter().any(|x| !x.is_finite()) {
-            return Err(ExportError::invalid(format!("scoring episode {}: the verifier returned a non-finite score", e.id)));
+            return Err(ExportError::invalid(format!(
+                "scoring episode {}: the verifier returned a non-finite score",
+                e.id
+            )));
         }
         f(i, e, s)
     })
@@ -143,7 +149,12 @@ pub async fn score_episodes(
 
 /// Narrows a resolved selection to the episodes whose score lies in `sel.selection.score`
 /// (a no-op without one) and records each kept episode's score.
-pub async fn filter_by_score(store: &Store, sel: &mut Selected, scorer: &dyn StepScorer, progress: Progress<'_>) -> Result<()> {
+pub async fn filter_by_score(
+    store: &Store,
+    sel: &mut Selected,
+    scorer: &dyn StepScorer,
+    progress: Progress<'_>,
+) -> Result<()> {
     let Some(range) = sel.selection.score.clone() else { return Ok(()) };
     let scores = score_episodes(store, &sel.episodes, scorer, progress).await?;
     sel.scored = Some(sel.episodes.len());
@@ -243,11 +254,21 @@ pub async fn select(store: &Store, sel: &Selection) -> Result<Selected> {
         episodes.retain(|e| parts.contains_key(&e.id));
     }
     episodes.sort_by(|a, b| {
-        (a.version_added, &a.source_sha256, a.source_index).cmp(&(b.version_added, &b.source_sha256, b.source_index))
+        (a.version_added, &a.source_sha256, a.source_index).cmp(&(
+            b.version_added,
+            &b.source_sha256,
+            b.source_index,
+        ))
     });
     if let Some(r) = &sel.score {
-        if r.min.is_some_and(|m| !m.is_finite()) || r.max.is_some_and(|m| !m.is_finite()) || r.min.zip(r.max).is_some_and(|(a, b)| a > b) {
-            return Err(ExportError::invalid(format!("score range [{:?}, {:?}]: bounds must be finite with min <= max", r.min, r.max)));
+        if r.min.is_some_and(|m| !m.is_finite())
+            || r.max.is_some_and(|m| !m.is_finite())
+            || r.min.zip(r.max).is_some_and(|(a, b)| a > b)
+        {
+            return Err(ExportError::invalid(format!(
+                "score range [{:?}, {:?}]: bounds must be finite with min <= max",
+                r.min, r.max
+            )));
         }
     }
     let keys: Vec<(String, i64)> = episodes.iter().map(|e| (e.id.clone(), e.label_revision)).collect();
@@ -291,11 +312,15 @@ pub async fn for_each_episode_with_layers(
     while start < episodes.len() {
         let mut end = start;
         let mut rows = 0;
-        while end < episodes.len() && (end == start || rows + episodes[end].row_count <= GROUP_ROWS) && end - start < GROUP_EPISODES {
+        while end < episodes.len()
+            && (end == start || rows + episodes[end].row_count <= GROUP_ROWS)
+            && end - start < GROUP_EPISODES
+        {
             rows += episodes[end].row_count;
             end += 1;
         }
-        let locations = episodes[start..end].iter().map(EpisodeLocation::try_from).collect::<Result<Vec<_>, _>>()?;
+        let locations =
+            episodes[start..end].iter().map(EpisodeLocation::try_from).collect::<Result<Vec<_>, _>>()?;
         let mut slots: Vec<Option<RecordBatch>> = vec![None; end - start];
         let mut stream = if layers.is_empty() {
             store.read_episodes(locations)
@@ -310,7 +335,9 @@ pub async fn for_each_episode_with_layers(
         }
         for (k, steps) in slots.into_iter().enumerate() {
             let e = &episodes[start + k];
-            let steps = steps.ok_or_else(|| ExportError::invalid(format!("episode {}: the store returned no steps", e.id)))?;
+            let steps = steps.ok_or_else(|| {
+                ExportError::invalid(format!("episode {}: the store returned no steps", e.id))
+            })?;
             f(start + k, e, steps)?;
         }
         start = end;
@@ -329,9 +356,14 @@ pub(crate) struct Staged {
 impl Staged {
     pub fn new(dest: &Path, dir: bool) -> Result<Self> {
         if dest.exists() {
-            return Err(ExportError::invalid(format!("{} already exists: choose a new output path", dest.display())));
+            return Err(ExportError::invalid(format!(
+                "{} already exists: choose a new output path",
+                dest.display()
+            )));
         }
-        let name = dest.file_name().ok_or_else(|| ExportError::invalid(format!("{}: not a file or folder name", dest.display())))?;
+        let name = dest
+            .file_name()
+            .ok_or_else(|| ExportError::invalid(format!("{}: not a file or folder name", dest.display())))?;
         let parent = dest.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
         if !parent.is_dir() {
             return Err(ExportError::invalid(format!("{}: the folder does not exist", parent.display())));
@@ -345,7 +377,10 @@ impl Staged {
 
     pub fn commit(mut self) -> Result<()> {
         if self.dest.exists() {
-            return Err(ExportError::invalid(format!("{} appeared while exporting: not replaced", self.dest.display())));
+            return Err(ExportError::invalid(format!(
+                "{} appeared while exporting: not replaced",
+                self.dest.display()
+            )));
         }
         std::fs::rename(&self.tmp, &self.dest).map_err(|e| ExportError::io(&self.dest, e))?;
         self.committed = true;
@@ -356,7 +391,11 @@ impl Staged {
 impl Drop for Staged {
     fn drop(&mut self) {
         if !self.committed {
-            let _ = if self.tmp.is_dir() { std::fs::remove_dir_all(&self.tmp) } else { std::fs::remove_file(&self.tmp) };
+            let _ = if self.tmp.is_dir() {
+                std::fs::remove_dir_all(&self.tmp)
+            } else {
+                std::fs::remove_file(&self.tmp)
+            };
         }
     }
 }
@@ -389,9 +428,9 @@ pub(crate) fn count_label(c: &mut store::LabelCounts, l: Label) {
 /// Size of a file or of every file under a folder.
 pub(crate) fn disk_size(p: &Path) -> u64 {
     match std::fs::metadata(p) {
-        Ok(m) if m.is_dir() => std::fs::read_dir(p)
-            .map(|rd| rd.flatten().map(|e| disk_size(&e.path())).sum())
-            .unwrap_or(0),
+        Ok(m) if m.is_dir() => {
+            std::fs::read_dir(p).map(|rd| rd.flatten().map(|e| disk_size(&e.path())).sum()).unwrap_or(0)
+        }
         Ok(m) => m.len(),
         Err(_) => 0,
     }

@@ -27,7 +27,10 @@ use serde_json::Value;
 use store::steps::{EXTRA_PREFIX, IMAGE_PREFIX, OBS_PREFIX};
 use store::{EpisodeRecord, Store};
 
-use crate::{count_label, disk_size, for_each_episode_with_layers, ExportError, ExportReport, Progress, Result, Selected, Staged};
+use crate::{
+    count_label, disk_size, for_each_episode_with_layers, ExportError, ExportReport, Progress, Result,
+    Selected, Staged,
+};
 
 fn bad(e: &EpisodeRecord, what: impl std::fmt::Display) -> ExportError {
     ExportError::invalid(format!("episode {}: {what}", e.id))
@@ -85,7 +88,9 @@ fn next_obs(obs: &Obs, kept: Option<&ArrayRef>, t: usize) -> Obs {
             let mut out = Vec::with_capacity(values.len());
             for k in 0..t {
                 match (pick(k), &src) {
-                    (Some(k), Some(s)) if s.len() == t * row => out.extend_from_slice(&s[k * row..(k + 1) * row]),
+                    (Some(k), Some(s)) if s.len() == t * row => {
+                        out.extend_from_slice(&s[k * row..(k + 1) * row])
+                    }
                     _ => {
                         let n = (k + 1).min(t - 1);
                         out.extend_from_slice(&values[n * row..(n + 1) * row]);
@@ -103,7 +108,9 @@ fn next_obs(obs: &Obs, kept: Option<&ArrayRef>, t: usize) -> Obs {
             let mut out = Vec::with_capacity(values.len());
             for k in 0..t {
                 match (pick(k), &src) {
-                    (Some(k), Some(s)) if s.len() == t * row => out.extend_from_slice(&s[k * row..(k + 1) * row]),
+                    (Some(k), Some(s)) if s.len() == t * row => {
+                        out.extend_from_slice(&s[k * row..(k + 1) * row])
+                    }
                     _ => {
                         let n = (k + 1).min(t - 1);
                         out.extend_from_slice(&values[n * row..(n + 1) * row]);
@@ -133,19 +140,33 @@ fn put_obs(g: &mut GroupBuilder, key: &str, o: &Obs, t: usize, wide: bool) {
 }
 
 /// An extra column back as a dataset in its source dtype and shape.
-fn put_extra(g: &mut GroupBuilder, e: &EpisodeRecord, name: &str, col: &ArrayRef, meta: &HashMap<String, String>, t: usize) -> Result<()> {
-    let l = col.as_fixed_size_list_opt().ok_or_else(|| bad(e, format!("extra column {name} is not a list column")))?;
+fn put_extra(
+    g: &mut GroupBuilder,
+    e: &EpisodeRecord,
+    name: &str,
+    col: &ArrayRef,
+    meta: &HashMap<String, String>,
+    t: usize,
+) -> Result<()> {
+    let l = col
+        .as_fixed_size_list_opt()
+        .ok_or_else(|| bad(e, format!("extra column {name} is not a list column")))?;
     let d = l.value_length() as usize;
-    let shape: Vec<usize> = meta.get("ufops.shape").and_then(|s| serde_json::from_str(s).ok()).unwrap_or_else(|| vec![d]);
+    let shape: Vec<usize> =
+        meta.get("ufops.shape").and_then(|s| serde_json::from_str(s).ok()).unwrap_or_else(|| vec![d]);
     let shape = dims(t, &shape);
     let (a, b) = (l.offset() * d, (l.offset() + l.len()) * d);
     let dtype = meta.get("ufops.dtype").map(String::as_str).unwrap_or("");
     match l.value_type() {
         DataType::UInt8 => {
-            g.create_dataset(name).with_u8_data(&l.values().as_primitive::<UInt8Type>().values()[a..b]).with_shape(&shape);
+            g.create_dataset(name)
+                .with_u8_data(&l.values().as_primitive::<UInt8Type>().values()[a..b])
+                .with_shape(&shape);
         }
         DataType::Float32 => {
-            g.create_dataset(name).with_f32_data(&l.values().as_primitive::<Float32Type>().values()[a..b]).with_shape(&shape);
+            g.create_dataset(name)
+                .with_f32_data(&l.values().as_primitive::<Float32Type>().values()[a..b])
+                .with_shape(&shape);
         }
         DataType::Float64 => {
             let v = &l.values().as_primitive::<Float64Type>().values()[a..b];
@@ -163,7 +184,13 @@ fn put_extra(g: &mut GroupBuilder, e: &EpisodeRecord, name: &str, col: &ArrayRef
 }
 
 /// Builds one `demo_<i>` group from an episode's steps.
-fn demo_group(fb: &mut FileBuilder, name: &str, e: &EpisodeRecord, steps: &RecordBatch, robomimic_source: bool) -> Result<GroupBuilder> {
+fn demo_group(
+    fb: &mut FileBuilder,
+    name: &str,
+    e: &EpisodeRecord,
+    steps: &RecordBatch,
+    robomimic_source: bool,
+) -> Result<GroupBuilder> {
     let t = steps.num_rows();
     let schema = steps.schema();
     let mut g = fb.create_group(name);
@@ -172,14 +199,18 @@ fn demo_group(fb: &mut FileBuilder, name: &str, e: &EpisodeRecord, steps: &Recor
     for f in schema.fields() {
         let col = steps.column_by_name(f.name()).expect("field of the batch");
         let (key, o) = if let Some(k) = f.name().strip_prefix(OBS_PREFIX) {
-            let (dim, values) = f32_rows(col).ok_or_else(|| bad(e, format!("{} is not a float32 list column", f.name())))?;
+            let (dim, values) =
+                f32_rows(col).ok_or_else(|| bad(e, format!("{} is not a float32 list column", f.name())))?;
             (k, Obs::F32 { dim, values })
         } else if let Some(k) = f.name().strip_prefix(IMAGE_PREFIX) {
-            let bin = col.as_binary_opt::<i32>().ok_or_else(|| bad(e, format!("{} is not a binary column", f.name())))?;
+            let bin = col
+                .as_binary_opt::<i32>()
+                .ok_or_else(|| bad(e, format!("{} is not a binary column", f.name())))?;
             let mut values = Vec::new();
             let mut shape = [0; 3];
             for r in 0..t {
-                let (px, s) = decode_png(bin.value(r)).map_err(|err| bad(e, format!("{} row {r}: {err}", f.name())))?;
+                let (px, s) =
+                    decode_png(bin.value(r)).map_err(|err| bad(e, format!("{} row {r}: {err}", f.name())))?;
                 if r > 0 && s != shape {
                     return Err(bad(e, format!("{}: frames of different sizes", f.name())));
                 }
@@ -194,19 +225,29 @@ fn demo_group(fb: &mut FileBuilder, name: &str, e: &EpisodeRecord, steps: &Recor
         // next_obs alike).
         let kept_name = format!("{EXTRA_PREFIX}next_obs/{key}");
         let kept = steps.column_by_name(&kept_name);
-        let wide = schema.field_with_name(&kept_name).is_ok_and(|f| f.metadata().get("ufops.dtype").is_some_and(|d| d == "float64"));
+        let wide = schema
+            .field_with_name(&kept_name)
+            .is_ok_and(|f| f.metadata().get("ufops.dtype").is_some_and(|d| d == "float64"));
         put_obs(&mut obs_g, key, &o, t, wide);
         put_obs(&mut next_g, key, &next_obs(&o, kept, t), t, wide);
     }
     g.add_group(obs_g.finish());
     g.add_group(next_g.finish());
-    let actions = steps.column_by_name("action").ok_or_else(|| bad(e, "has no actions: robomimic needs one per step"))?;
+    let actions = steps
+        .column_by_name("action")
+        .ok_or_else(|| bad(e, "has no actions: robomimic needs one per step"))?;
     let (adim, avals) = f32_rows(actions).ok_or_else(|| bad(e, "action is not a float32 list column"))?;
     g.create_dataset("actions").with_f32_data(&avals).with_shape(&dims(t, &[adim]));
-    let reward = steps.column_by_name("reward").and_then(|c| c.as_primitive_opt::<Float32Type>().cloned()).ok_or_else(|| bad(e, "no reward column"))?;
+    let reward = steps
+        .column_by_name("reward")
+        .and_then(|c| c.as_primitive_opt::<Float32Type>().cloned())
+        .ok_or_else(|| bad(e, "no reward column"))?;
     let rewards: Vec<f64> = reward.values().iter().map(|&r| r as f64).collect();
     g.create_dataset("rewards").with_f64_data(&rewards);
-    let done = steps.column_by_name("done").and_then(|c| c.as_boolean_opt().cloned()).ok_or_else(|| bad(e, "no done column"))?;
+    let done = steps
+        .column_by_name("done")
+        .and_then(|c| c.as_boolean_opt().cloned())
+        .ok_or_else(|| bad(e, "no done column"))?;
     let dones: Vec<u8> = done.iter().map(|d| (d == Some(true)) as u8).collect();
     g.create_dataset("dones").with_u8_data(&dones);
     let mut attrs: BTreeMap<String, AttrValue> = BTreeMap::new();
@@ -257,7 +298,12 @@ fn demo_group(fb: &mut FileBuilder, name: &str, e: &EpisodeRecord, steps: &Recor
 }
 
 /// Writes the selected episodes as one robomimic HDF5 file at `out` (a new file).
-pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progress<'_>) -> Result<ExportReport> {
+pub async fn export(
+    store: &Store,
+    sel: &Selected,
+    out: &Path,
+    progress: Progress<'_>,
+) -> Result<ExportReport> {
     if sel.episodes.is_empty() {
         return Err(ExportError::invalid("the selection holds no episodes: nothing to export"));
     }
@@ -300,39 +346,45 @@ pub async fn export(store: &Store, sel: &Selected, out: &Path, progress: Progres
     let mut data = fb.create_group("data");
     let total = sel.episodes.len();
     let mut videos_left_out = 0;
-    for_each_episode_with_layers(store, &sel.episodes, &sel.selection.layers, Some(sel.version), |i, e, steps| {
-        let name = format!("demo_{i}");
-        let robomimic_source = sources.get(&e.source_sha256).is_some_and(|(f, _)| f == "robomimic");
-        if steps.schema().fields().iter().any(|f| f.name().starts_with(store::steps::MEDIA_PREFIX)) {
-            videos_left_out += 1;
-        }
-        let mut g = demo_group(&mut fb, &name, e, &steps, robomimic_source)?;
-        if let Some(score) = sel.scores.get(&e.id) {
-            g.set_attr("verifier_score", AttrValue::F64(*score));
-        }
-        if let Some(c) = crate::failure_cause(sel.label_data.get(&e.id)) {
-            g.set_attr("failure_cause", AttrValue::VarLenString(c));
-        }
-        if let Some(spans) = crate::label_spans(sel.label_data.get(&e.id)) {
-            g.set_attr("label_spans", AttrValue::VarLenString(spans));
-        }
-        data.add_group(g.finish());
-        for tag in &e.tags {
-            if filters.contains(tag) {
-                masks.entry(tag.clone()).or_default().push(name.clone());
+    for_each_episode_with_layers(
+        store,
+        &sel.episodes,
+        &sel.selection.layers,
+        Some(sel.version),
+        |i, e, steps| {
+            let name = format!("demo_{i}");
+            let robomimic_source = sources.get(&e.source_sha256).is_some_and(|(f, _)| f == "robomimic");
+            if steps.schema().fields().iter().any(|f| f.name().starts_with(store::steps::MEDIA_PREFIX)) {
+                videos_left_out += 1;
             }
-        }
-        if let Some(part) = sel.parts.get(&e.id) {
-            let key = if part == "val" { "valid" } else { part.as_str() };
-            masks.entry(key.to_string()).or_default().push(name.clone());
-        }
-        report.frames += steps.num_rows() as u64;
-        count_label(&mut report.labels, e.label);
-        if let Some(p) = progress {
-            p(i + 1, total);
-        }
-        Ok(())
-    })
+            let mut g = demo_group(&mut fb, &name, e, &steps, robomimic_source)?;
+            if let Some(score) = sel.scores.get(&e.id) {
+                g.set_attr("verifier_score", AttrValue::F64(*score));
+            }
+            if let Some(c) = crate::failure_cause(sel.label_data.get(&e.id)) {
+                g.set_attr("failure_cause", AttrValue::VarLenString(c));
+            }
+            if let Some(spans) = crate::label_spans(sel.label_data.get(&e.id)) {
+                g.set_attr("label_spans", AttrValue::VarLenString(spans));
+            }
+            data.add_group(g.finish());
+            for tag in &e.tags {
+                if filters.contains(tag) {
+                    masks.entry(tag.clone()).or_default().push(name.clone());
+                }
+            }
+            if let Some(part) = sel.parts.get(&e.id) {
+                let key = if part == "val" { "valid" } else { part.as_str() };
+                masks.entry(key.to_string()).or_default().push(name.clone());
+            }
+            report.frames += steps.num_rows() as u64;
+            count_label(&mut report.labels, e.label);
+            if let Some(p) = progress {
+                p(i + 1, total);
+            }
+            Ok(())
+        },
+    )
     .await?;
     data.set_attr("total", AttrValue::I64(report.frames as i64));
     data.set_attr("env_args", AttrValue::VarLenString(env_args.to_string()));

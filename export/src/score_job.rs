@@ -38,7 +38,11 @@ pub async fn run_score_job(
     progress: &(dyn Fn(serde_json::Value) + Send + Sync),
     cancelled: &(dyn Fn() -> bool + Send + Sync),
 ) -> Result<ScoreJobResult> {
-    let filter = EpisodeFilter { policy: Some(spec.policy.clone()), checkpoint: spec.checkpoint.clone(), ..Default::default() };
+    let filter = EpisodeFilter {
+        policy: Some(spec.policy.clone()),
+        checkpoint: spec.checkpoint.clone(),
+        ..Default::default()
+    };
     let episodes = store.episodes(&filter).await?;
     let total = episodes.len();
     progress(serde_json::json!({"scored": 0, "total": total}));

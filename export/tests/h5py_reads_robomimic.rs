@@ -42,7 +42,8 @@ async fn h5py_reads_the_robomimic_export_of_a_split() {
             max_episodes: None,
         };
         let split = store.create_split(&req).await.unwrap();
-        let sel = select(&store, &Selection { split: Some(split.id.clone()), ..Default::default() }).await.unwrap();
+        let sel =
+            select(&store, &Selection { split: Some(split.id.clone()), ..Default::default() }).await.unwrap();
         let out = tmp.path().join("export.hdf5");
         let rep = export::robomimic::export(&store, &sel, &out, None).await.unwrap();
         assert_eq!(rep.episodes, sel.episodes.len());
@@ -57,8 +58,15 @@ async fn h5py_reads_the_robomimic_export_of_a_split() {
         }
         let expected = tmp.path().join("expected.json");
         std::fs::write(&expected, serde_json::json!({"labels": labels, "masks": masks}).to_string()).unwrap();
-        let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/python/check_robomimic_export.py");
-        let out = std::process::Command::new("python3").arg(script).arg(&out).arg(&src).arg(&expected).output().unwrap();
+        let script =
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/python/check_robomimic_export.py");
+        let out = std::process::Command::new("python3")
+            .arg(script)
+            .arg(&out)
+            .arg(&src)
+            .arg(&expected)
+            .output()
+            .unwrap();
         assert!(
             out.status.success(),
             "{name}: h5py check failed:\n{}\n{}",

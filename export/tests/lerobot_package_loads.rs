@@ -40,8 +40,14 @@ async fn lerobot_loads_the_export_frame_for_frame() {
         let sel = select(&store, &Selection::default()).await.unwrap();
         let out = tmp.path().join("export");
         let report = export::lerobot::export(&store, &sel, &out, None).await.unwrap();
-        let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/python/check_lerobot_package.py");
-        let res = std::process::Command::new("python3").arg(script).arg(&out).env("HF_HUB_OFFLINE", "1").output().unwrap();
+        let script =
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/python/check_lerobot_package.py");
+        let res = std::process::Command::new("python3")
+            .arg(script)
+            .arg(&out)
+            .env("HF_HUB_OFFLINE", "1")
+            .output()
+            .unwrap();
         assert!(
             res.status.success(),
             "{name}: lerobot could not load the export:\n{}\n{}",

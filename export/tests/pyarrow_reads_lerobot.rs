@@ -30,7 +30,8 @@ async fn pyarrow_reads_the_lerobot_export_as_the_source() {
         let sel = select(&store, &Selection::default()).await.unwrap();
         let out = tmp.path().join("export");
         export::lerobot::export(&store, &sel, &out, None).await.unwrap();
-        let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/python/check_lerobot_export.py");
+        let script =
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/python/check_lerobot_export.py");
         let res = std::process::Command::new("python3").arg(script).arg(&out).arg(&src).output().unwrap();
         assert!(
             res.status.success(),

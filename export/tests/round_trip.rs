@@ -19,7 +19,12 @@ fn fixtures() -> PathBuf {
 }
 
 fn opts(success_file: Option<PathBuf>) -> IngestOptions {
-    IngestOptions { policy: "toy-dp".into(), checkpoint: "step-80000".into(), success_file, ..Default::default() }
+    IngestOptions {
+        policy: "toy-dp".into(),
+        checkpoint: "step-80000".into(),
+        success_file,
+        ..Default::default()
+    }
 }
 
 async fn open(dir: &Path) -> Store {
@@ -46,14 +51,21 @@ fn same_steps(a: &RecordBatch, b: &RecordBatch, what: &str) {
         }
         let (x, y) = (a.column_by_name(f.name()).unwrap(), b.column_by_name(f.name()).unwrap());
         assert_eq!(x.data_type(), y.data_type(), "{what}: {} type", f.name());
-        assert_eq!(f.metadata(), b.schema().field_with_name(f.name()).unwrap().metadata(), "{what}: {} metadata", f.name());
+        assert_eq!(
+            f.metadata(),
+            b.schema().field_with_name(f.name()).unwrap().metadata(),
+            "{what}: {} metadata",
+            f.name()
+        );
         assert!(x.to_data() == y.to_data(), "{what}: column {} differs", f.name());
         // Floats: the same bits (not only equal values).
         if let Some(l) = x.as_any().downcast_ref::<arrow::array::FixedSizeListArray>() {
             if let Some(v) = l.values().as_any().downcast_ref::<arrow::array::Float32Array>() {
                 let w = y.as_any().downcast_ref::<arrow::array::FixedSizeListArray>().unwrap().values();
                 let w = w.as_any().downcast_ref::<arrow::array::Float32Array>().unwrap();
-                let bits = |a: &arrow::array::Float32Array| a.values().iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+                let bits = |a: &arrow::array::Float32Array| {
+                    a.values().iter().map(|f| f.to_bits()).collect::<Vec<_>>()
+                };
                 assert_eq!(bits(v), bits(w), "{what}: {} bits", f.name());
             }
         }
@@ -74,7 +86,11 @@ async fn round_trip(source: &Path, success_file: Option<PathBuf>, format: &str) 
     };
     assert_eq!(rep.episodes, sel.episodes.len());
     // Nothing staged is left beside the export.
-    let left: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().flatten().filter(|e| e.file_name().to_string_lossy().contains(".tmp-")).collect();
+    let left: Vec<_> = std::fs::read_dir(tmp.path())
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().contains(".tmp-"))
+        .collect();
     assert!(left.is_empty(), "{left:?}");
     let back = ingest(&b, &out, &opts(None)).await.unwrap();
     assert!(back.notes.is_empty(), "{}: {:?}", source.display(), back.notes);
@@ -112,7 +128,12 @@ async fn lerobot_fixtures_round_trip_through_lerobot_v30() {
 async fn robomimic_fixtures_round_trip_through_robomimic_hdf5() {
     for name in ["lift_rollouts_lowdim", "lift_rollouts_image"] {
         let dir = fixtures().join("robomimic");
-        round_trip(&dir.join(format!("{name}.hdf5")), Some(dir.join(format!("{name}.success.json"))), "robomimic").await;
+        round_trip(
+            &dir.join(format!("{name}.hdf5")),
+            Some(dir.join(format!("{name}.success.json"))),
+            "robomimic",
+        )
+        .await;
     }
 }
 
@@ -127,17 +148,26 @@ async fn exports_frozen_labels_with_provenance() {
     // A label edit after the version: not in the version's frozen labels.
     let flipped = eps.iter().find(|e| e.label == store::Label::Success).unwrap();
     a.set_label(
-        store::LabelUpdate { episode_id: flipped.id.clone(), label: store::Label::Failure, expect_revision: None, note: None },
+        store::LabelUpdate {
+            episode_id: flipped.id.clone(),
+            label: store::Label::Failure,
+            expect_revision: None,
+            note: None,
+        },
         "t",
         "test",
     )
     .await
     .unwrap();
-    let sel = select(&a, &Selection { version: Some(v), label: Some(store::Label::Success), ..Default::default() }).await.unwrap();
+    let sel =
+        select(&a, &Selection { version: Some(v), label: Some(store::Label::Success), ..Default::default() })
+            .await
+            .unwrap();
     assert_eq!(sel.episodes.len(), eps.iter().filter(|e| e.label == store::Label::Success).count());
     let out = tmp.path().join("succ");
     export::lerobot::export(&a, &sel, &out, None).await.unwrap();
-    let info: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("meta/info.json")).unwrap()).unwrap();
+    let info: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("meta/info.json")).unwrap()).unwrap();
     assert_eq!(info["codebase_version"], "v3.0");
     assert_eq!(info["ufops"]["store_version"], v);
     assert_eq!(info["ufops"]["selection"]["label"], "success");

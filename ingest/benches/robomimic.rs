@@ -206,7 +206,8 @@ fn main() {
     let ing = s(median(t_ingest));
     println!();
     println!("{:<46} {:>8} {:>10} {:>12}", "", "seconds", "MB/s", "episodes/s");
-    let row = |name: &str, t: f64| println!("{name:<46} {t:>8.3} {:>10.1} {:>12.0}", mb / t, episodes as f64 / t);
+    let row =
+        |name: &str, t: f64| println!("{name:<46} {t:>8.3} {:>10.1} {:>12.0}", mb / t, episodes as f64 / t);
     row("ufops ingest (hash+decode+parquet+commit)", ing);
     let py = if t_py.is_empty() {
         println!("python reference: unavailable (needs python3 with h5py, pyarrow)");
@@ -225,11 +226,19 @@ fn main() {
     row("limit: read file + zstd(1) output, 1 core", fs + z);
     row("limit: read file + zstd(1) output, 2 cores", fs + z / 2.0);
     println!();
-    println!("{episodes} episodes, {steps} steps; output columns {:.1} MB raw -> {:.1} MB zstd(1)", raw_out as f64 / 1e6, z_out as f64 / 1e6);
+    println!(
+        "{episodes} episodes, {steps} steps; output columns {:.1} MB raw -> {:.1} MB zstd(1)",
+        raw_out as f64 / 1e6,
+        z_out as f64 / 1e6
+    );
     println!("  read file alone {fs:.3} s, zstd(1) alone {z:.3} s (1 core)");
     if let Some(p) = py {
         println!("ratio: ufops ingest is {:.2}x the Python reference's throughput (goal >= 3x)", p / ing);
     }
     println!("load average at end: {}", loadavg());
-    println!("distance to the machine's limit: {:.2}x slower than read+zstd on 1 core, {:.2}x on 2 cores", ing / (fs + z), ing / (fs + z / 2.0));
+    println!(
+        "distance to the machine's limit: {:.2}x slower than read+zstd on 1 core, {:.2}x on 2 cores",
+        ing / (fs + z),
+        ing / (fs + z / 2.0)
+    );
 }

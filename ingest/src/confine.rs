@@ -31,7 +31,8 @@ pub struct Root {
 pub fn hub_cache_blobs(canon_root: &Path) -> Option<PathBuf> {
     let snapshots = canon_root.parent()?;
     let repo = snapshots.parent()?;
-    let is_repo = repo.file_name()?.to_str().is_some_and(|n| n.starts_with("datasets--") || n.starts_with("models--"));
+    let is_repo =
+        repo.file_name()?.to_str().is_some_and(|n| n.starts_with("datasets--") || n.starts_with("models--"));
     if snapshots.file_name()? != "snapshots" || !is_repo {
         return None;
     }
@@ -142,8 +143,10 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         std::fs::create_dir(d.path().join("data")).unwrap();
         std::fs::write(d.path().join("data/ok.parquet"), b"x").unwrap();
-        std::os::unix::fs::symlink(outside.path().join("secret"), d.path().join("data/link.parquet")).unwrap();
-        std::os::unix::fs::symlink(d.path().join("data/ok.parquet"), d.path().join("data/inner.parquet")).unwrap();
+        std::os::unix::fs::symlink(outside.path().join("secret"), d.path().join("data/link.parquet"))
+            .unwrap();
+        std::os::unix::fs::symlink(d.path().join("data/ok.parquet"), d.path().join("data/inner.parquet"))
+            .unwrap();
         let r = Root::new(d.path()).unwrap();
         let src = d.path().join("meta/info.json");
         r.file(&src, "data_path", "data/ok.parquet").unwrap();

@@ -43,4 +43,3 @@ impl IngestError {
 }
 
 pub type Result<T, E = IngestError> = std::result::Result<T, E>;
-

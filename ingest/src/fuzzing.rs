@@ -10,7 +10,12 @@ use crate::sink::CountSink;
 /// A robomimic HDF5 file's bytes.
 pub fn robomimic_bytes(data: &[u8]) {
     let mut sink = CountSink::default();
-    let _ = crate::robomimic::read_bytes(Path::new("fuzz.hdf5"), data.to_vec(), &ReadOptions::default(), &mut sink);
+    let _ = crate::robomimic::read_bytes(
+        Path::new("fuzz.hdf5"),
+        data.to_vec(),
+        &ReadOptions::default(),
+        &mut sink,
+    );
 }
 
 /// A LeRobot `info.json` and a data Parquet file: the input is split at the first NUL byte
@@ -60,7 +65,11 @@ impl Rng {
         x.wrapping_mul(0x2545_f491_4f6c_dd1d)
     }
     pub fn below(&mut self, n: usize) -> usize {
-        if n == 0 { 0 } else { (self.next_u64() % n as u64) as usize }
+        if n == 0 {
+            0
+        } else {
+            (self.next_u64() % n as u64) as usize
+        }
     }
 }
 

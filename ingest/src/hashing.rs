@@ -3,8 +3,8 @@
 //! the contents).
 
 use std::io::Read;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use sha2::{Digest, Sha256};
 
@@ -24,7 +24,11 @@ fn hash_file_progress(path: &Path, progress: Option<&AtomicU64>) -> Result<(Stri
     Ok((hex::encode(h.finalize()), size))
 }
 
-fn hash_reader_progress(r: &mut impl Read, h: &mut Sha256, progress: Option<&AtomicU64>) -> std::io::Result<u64> {
+fn hash_reader_progress(
+    r: &mut impl Read,
+    h: &mut Sha256,
+    progress: Option<&AtomicU64>,
+) -> std::io::Result<u64> {
     let mut buf = vec![0u8; BUF];
     let mut n = 0u64;
     loop {

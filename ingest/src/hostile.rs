@@ -41,7 +41,11 @@ pub struct Case {
 /// Writes every case under `dir` (one sub-folder per case) and lists them.
 pub fn write_corpus(dir: &Path) -> Result<Vec<Case>> {
     let mut cases = Vec::new();
-    let mut add = |name: &'static str, attack: Attack, expect: &'static str, write: &dyn Fn(&Path) -> Result<PathBuf>| -> Result<()> {
+    let mut add = |name: &'static str,
+                   attack: Attack,
+                   expect: &'static str,
+                   write: &dyn Fn(&Path) -> Result<PathBuf>|
+     -> Result<()> {
         let d = dir.join(name);
         std::fs::create_dir_all(&d)?;
         let path = write(&d).with_context(|| format!("writing hostile case {name}"))?;
@@ -52,7 +56,13 @@ pub fn write_corpus(dir: &Path) -> Result<Vec<Case>> {
     // --- LeRobot: paths named by the dataset's metadata ----------------------------------------
     add("lerobot_data_path_parent", Attack::Path, "climbs out with `..`", &|d| {
         write_data(&d.join("outside/file-000.parquet"), 2, 5)?;
-        lerobot(&d.join("ds"), &LeRobot { data_path: Some("../outside/file-{file_index:03d}.parquet".into()), ..Default::default() })
+        lerobot(
+            &d.join("ds"),
+            &LeRobot {
+                data_path: Some("../outside/file-{file_index:03d}.parquet".into()),
+                ..Default::default()
+            },
+        )
     })?;
     add("lerobot_data_path_absolute", Attack::Path, "which is absolute", &|d| {
         let outside = d.join("outside/file-000.parquet");
@@ -64,7 +74,10 @@ pub fn write_corpus(dir: &Path) -> Result<Vec<Case>> {
     add("lerobot_video_path_absolute", Attack::Path, "which is absolute", &|d| {
         std::fs::write(d.join("secret.txt"), b"a private key")?;
         let tpl = d.join("secret.txt").to_string_lossy().into_owned();
-        lerobot(&d.join("ds"), &LeRobot { video: Some(VIDEO_KEY.into()), video_path: Some(tpl), ..Default::default() })
+        lerobot(
+            &d.join("ds"),
+            &LeRobot { video: Some(VIDEO_KEY.into()), video_path: Some(tpl), ..Default::default() },
+        )
     })?;
     add("lerobot_video_key_parent", Attack::Path, "climbs out with `..`", &|d| {
         // the default template `videos/{video_key}/chunk-000/file-000.mp4` with this key leaves the dataset
@@ -92,7 +105,13 @@ pub fn write_corpus(dir: &Path) -> Result<Vec<Case>> {
 
     // --- Declared sizes ----------------------------------------------------------------------
     add("lerobot_template_width", Attack::Size, "asks for a width of", &|d| {
-        lerobot(&d.join("ds"), &LeRobot { data_path: Some("data/chunk-{chunk_index:0999999999d}/file-{file_index:03d}.parquet".into()), ..Default::default() })
+        lerobot(
+            &d.join("ds"),
+            &LeRobot {
+                data_path: Some("data/chunk-{chunk_index:0999999999d}/file-{file_index:03d}.parquet".into()),
+                ..Default::default()
+            },
+        )
     })?;
     add("lerobot_huge_info_json", Attack::Size, "metadata file of", &|d| {
         let ds = lerobot(&d.join("ds"), &LeRobot::default())?;
@@ -112,7 +131,9 @@ pub fn write_corpus(dir: &Path) -> Result<Vec<Case>> {
         // 16 rows written, 2^24 rows declared: 1 GB of float64 from a ~10 kB file
         robomimic_declaring(&d.join("rollouts.hdf5"), 1 << 24)
     })?;
-    add("robomimic_shape_overflow", Attack::Size, "overflows 64 bits", &|d| robomimic_declaring(&d.join("rollouts.hdf5"), 1 << 62))?;
+    add("robomimic_shape_overflow", Attack::Size, "overflows 64 bits", &|d| {
+        robomimic_declaring(&d.join("rollouts.hdf5"), 1 << 62)
+    })?;
     add("mcap_chunk_declares_huge", Attack::Size, "uncompressed bytes from", &|d| {
         let frame = zstd_rle_frame(1 << 20, 0);
         let p = d.join("rec.mcap");
@@ -130,7 +151,10 @@ pub fn write_corpus(dir: &Path) -> Result<Vec<Case>> {
     })?;
     add("mcap_huge_json_event", Attack::Size, "decoded on a mapped topic", &|d| {
         // a 24 MB JSON list on the episode event topic (decoded: ~1 GB of values)
-        let msg: Vec<u8> = std::iter::once(b'[').chain(std::iter::repeat_n(*b"0,", 12 << 20).flatten()).chain(*b"0]").collect();
+        let msg: Vec<u8> = std::iter::once(b'[')
+            .chain(std::iter::repeat_n(*b"0,", 12 << 20).flatten())
+            .chain(*b"0]")
+            .collect();
         let recs = json_channel_and_message("/episode_event", &msg);
         let mut frame = skippable_frame(64 << 10);
         frame.extend(zstd::bulk::compress(&recs, 3)?);
@@ -177,7 +201,10 @@ fn write_data(path: &Path, episodes: usize, steps: usize) -> Result<()> {
         vec![
             ("observation.state", f32_list((0..n * 2).map(|k| k as f32).collect(), 2)?),
             ("action", f32_list((0..n * 2).map(|k| (k % 7) as f32).collect(), 2)?),
-            ("timestamp", Arc::new(Float32Array::from_iter_values((0..n).map(|r| (r % steps) as f32 / 10.0)))),
+            (
+                "timestamp",
+                Arc::new(Float32Array::from_iter_values((0..n).map(|r| (r % steps) as f32 / 10.0))),
+            ),
             ("frame_index", Arc::new(Int64Array::from_iter_values((0..n).map(|r| (r % steps) as i64)))),
             ("episode_index", Arc::new(Int64Array::from_iter_values((0..n).map(|r| (r / steps) as i64)))),
             ("index", Arc::new(Int64Array::from_iter_values(0..n as i64))),
@@ -214,8 +241,14 @@ fn lerobot(root: &Path, o: &LeRobot) -> Result<PathBuf> {
     let mut cols: Vec<(String, ArrayRef)> = vec![
         ("episode_index".into(), Arc::new(Int64Array::from(ep.clone()))),
         ("length".into(), Arc::new(Int64Array::from(vec![steps as i64; episodes]))),
-        ("dataset_from_index".into(), Arc::new(Int64Array::from_iter_values(ep.iter().map(|e| e * steps as i64)))),
-        ("dataset_to_index".into(), Arc::new(Int64Array::from_iter_values(ep.iter().map(|e| (e + 1) * steps as i64)))),
+        (
+            "dataset_from_index".into(),
+            Arc::new(Int64Array::from_iter_values(ep.iter().map(|e| e * steps as i64))),
+        ),
+        (
+            "dataset_to_index".into(),
+            Arc::new(Int64Array::from_iter_values(ep.iter().map(|e| (e + 1) * steps as i64))),
+        ),
         ("data/chunk_index".into(), Arc::new(Int64Array::from(vec![0i64; episodes]))),
         ("data/file_index".into(), Arc::new(Int64Array::from(vec![0i64; episodes]))),
     ];
@@ -232,7 +265,10 @@ fn lerobot(root: &Path, o: &LeRobot) -> Result<PathBuf> {
         }
         std::fs::write(&mp4, b"\0\0\0\x18ftypisom not a real video")?;
     }
-    parquet_file(&root.join("meta/episodes/chunk-000/file-000.parquet"), cols.iter().map(|(n, a)| (n.as_str(), a.clone())).collect())?;
+    parquet_file(
+        &root.join("meta/episodes/chunk-000/file-000.parquet"),
+        cols.iter().map(|(n, a)| (n.as_str(), a.clone())).collect(),
+    )?;
     write_data(&root.join("data/chunk-000/file-000.parquet"), episodes, steps)?;
     Ok(root.to_path_buf())
 }
@@ -408,7 +444,8 @@ fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
 
 /// Recomputes the checksum of the version-2 object header (`OHDR`) holding byte `at`.
 fn fix_object_header_checksum(bytes: &mut [u8], at: usize) -> Result<()> {
-    let start = bytes[..at].windows(4).rposition(|w| w == b"OHDR").context("no OHDR before the patched bytes")?;
+    let start =
+        bytes[..at].windows(4).rposition(|w| w == b"OHDR").context("no OHDR before the patched bytes")?;
     let flags = bytes[start + 5];
     let mut p = start + 6;
     if flags & 0x20 != 0 {
@@ -439,12 +476,24 @@ pub fn lookup3(data: &[u8]) -> u32 {
         a = a.wrapping_add(le(&k[0..4]));
         b = b.wrapping_add(le(&k[4..8]));
         c = c.wrapping_add(le(&k[8..12]));
-        a = a.wrapping_sub(c); a ^= c.rotate_left(4); c = c.wrapping_add(b);
-        b = b.wrapping_sub(a); b ^= a.rotate_left(6); a = a.wrapping_add(c);
-        c = c.wrapping_sub(b); c ^= b.rotate_left(8); b = b.wrapping_add(a);
-        a = a.wrapping_sub(c); a ^= c.rotate_left(16); c = c.wrapping_add(b);
-        b = b.wrapping_sub(a); b ^= a.rotate_left(19); a = a.wrapping_add(c);
-        c = c.wrapping_sub(b); c ^= b.rotate_left(4); b = b.wrapping_add(a);
+        a = a.wrapping_sub(c);
+        a ^= c.rotate_left(4);
+        c = c.wrapping_add(b);
+        b = b.wrapping_sub(a);
+        b ^= a.rotate_left(6);
+        a = a.wrapping_add(c);
+        c = c.wrapping_sub(b);
+        c ^= b.rotate_left(8);
+        b = b.wrapping_add(a);
+        a = a.wrapping_sub(c);
+        a ^= c.rotate_left(16);
+        c = c.wrapping_add(b);
+        b = b.wrapping_sub(a);
+        b ^= a.rotate_left(19);
+        a = a.wrapping_add(c);
+        c = c.wrapping_sub(b);
+        c ^= b.rotate_left(4);
+        b = b.wrapping_add(a);
         k = &k[12..];
     }
     if k.is_empty() {
@@ -455,13 +504,20 @@ pub fn lookup3(data: &[u8]) -> u32 {
     a = a.wrapping_add(le(&t[0..4]));
     b = b.wrapping_add(le(&t[4..8]));
     c = c.wrapping_add(le(&t[8..12]));
-    c ^= b; c = c.wrapping_sub(b.rotate_left(14));
-    a ^= c; a = a.wrapping_sub(c.rotate_left(11));
-    b ^= a; b = b.wrapping_sub(a.rotate_left(25));
-    c ^= b; c = c.wrapping_sub(b.rotate_left(16));
-    a ^= c; a = a.wrapping_sub(c.rotate_left(4));
-    b ^= a; b = b.wrapping_sub(a.rotate_left(14));
-    c ^= b; c = c.wrapping_sub(b.rotate_left(24));
+    c ^= b;
+    c = c.wrapping_sub(b.rotate_left(14));
+    a ^= c;
+    a = a.wrapping_sub(c.rotate_left(11));
+    b ^= a;
+    b = b.wrapping_sub(a.rotate_left(25));
+    c ^= b;
+    c = c.wrapping_sub(b.rotate_left(16));
+    a ^= c;
+    a = a.wrapping_sub(c.rotate_left(4));
+    b ^= a;
+    b = b.wrapping_sub(a.rotate_left(14));
+    c ^= b;
+    c = c.wrapping_sub(b.rotate_left(24));
     c
 }
 

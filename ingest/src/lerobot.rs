@@ -16,7 +16,9 @@ use std::path::{Path, PathBuf};
 
 use arrow::array::{Array, ArrayRef, AsArray, RecordBatch};
 use arrow::datatypes::{DataType, Float32Type, Float64Type, Int64Type};
-use parquet::arrow::arrow_reader::{ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReaderBuilder};
+use parquet::arrow::arrow_reader::{
+    ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReaderBuilder,
+};
 use parquet::file::reader::ChunkReader;
 use serde_json::{json, Map, Value};
 
@@ -101,7 +103,12 @@ pub fn parse_info(path: &Path, bytes: &[u8]) -> Result<Info> {
                 .ok_or_else(|| IngestError::invalid(path, format!("feature {key:?} has a bad shape")))?,
             _ => vec![1],
         };
-        features.push(Feature { key: key.clone(), dtype, shape, names: f.get("names").cloned().unwrap_or(Value::Null) });
+        features.push(Feature {
+            key: key.clone(),
+            dtype,
+            shape,
+            names: f.get("names").cloned().unwrap_or(Value::Null),
+        });
     }
     let v3 = codebase_version.starts_with("v3");
     let data_path = obj.get("data_path").and_then(|v| v.as_str()).map(str::to_string).unwrap_or_else(|| {
@@ -149,7 +156,9 @@ pub fn fill_template(t: &str, vars: &[(&str, &str, u64)]) -> std::result::Result
                 } else {
                     let width: usize = fmt.trim_start_matches('0').trim_end_matches('d').parse().unwrap_or(0);
                     if width > MAX_TEMPLATE_WIDTH {
-                        return Err(format!("{{{inner}}} asks for a width of {width} digits (at most {MAX_TEMPLATE_WIDTH})"));
+                        return Err(format!(
+                            "{{{inner}}} asks for a width of {width} digits (at most {MAX_TEMPLATE_WIDTH})"
+                        ));
                     }
                     out.push_str(&format!("{:0width$}", v, width = width));
                 }
@@ -177,12 +186,18 @@ fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>> {
     let f = std::fs::File::open(path).map_err(|e| IngestError::io(path, e))?;
     let len = f.metadata().map_err(|e| IngestError::io(path, e))?.len();
     if len > max {
-        return Err(IngestError::invalid(path, format!("metadata file of {len} bytes (at most {max} are read): refused")));
+        return Err(IngestError::invalid(
+            path,
+            format!("metadata file of {len} bytes (at most {max} are read): refused"),
+        ));
     }
     let mut out = Vec::with_capacity(len as usize);
     f.take(max + 1).read_to_end(&mut out).map_err(|e| IngestError::io(path, e))?;
     if out.len() as u64 > max {
-        return Err(IngestError::invalid(path, format!("metadata file grew past {max} bytes while read: refused")));
+        return Err(IngestError::invalid(
+            path,
+            format!("metadata file grew past {max} bytes while read: refused"),
+        ));
     }
     Ok(out)
 }
@@ -229,7 +244,10 @@ fn open_parquet(path: &Path) -> Result<Vec<RecordBatch>> {
 
 /// Opens a Parquet reader after checking what the parquet crate asserts on (it panics on
 /// negative column offsets/sizes in corrupt footers).
-fn checked_builder<R: ChunkReader + 'static>(path: &Path, r: R) -> Result<ParquetRecordBatchReaderBuilder<R>> {
+fn checked_builder<R: ChunkReader + 'static>(
+    path: &Path,
+    r: R,
+) -> Result<ParquetRecordBatchReaderBuilder<R>> {
     guarded(path, || checked_builder_inner(path, r))
 }
 
@@ -240,12 +258,18 @@ pub(crate) fn guarded<T>(path: &Path, f: impl FnOnce() -> Result<T>) -> Result<T
         Ok(r) => r,
         Err(p) => Err(IngestError::invalid(
             path,
-            format!("corrupt Parquet data: the parquet decoder failed ({})", crate::panic_message(p.as_ref())),
+            format!(
+                "corrupt Parquet data: the parquet decoder failed ({})",
+                crate::panic_message(p.as_ref())
+            ),
         )),
     }
 }
 
-fn checked_builder_inner<R: ChunkReader + 'static>(path: &Path, r: R) -> Result<ParquetRecordBatchReaderBuilder<R>> {
+fn checked_builder_inner<R: ChunkReader + 'static>(
+    path: &Path,
+    r: R,
+) -> Result<ParquetRecordBatchReaderBuilder<R>> {
     let bad = |e: String| IngestError::invalid(path, format!("not a readable Parquet file: {e}"));
     // The parquet crate trusts the element counts in the footer when it allocates: check them first.
     crate::pqfooter::check(&r).map_err(bad)?;
@@ -254,11 +278,13 @@ fn checked_builder_inner<R: ChunkReader + 'static>(path: &Path, r: R) -> Result<
         .map_err(|e| bad(e.to_string()))?;
     // ... and the page sizes the page headers declare (the decompression buffers' sizes); this
     // also checks that every column chunk lies inside the file.
-    crate::pqfooter::check_pages(&r, &meta).map_err(|e| IngestError::invalid(path, format!("corrupt Parquet data: {e}")))?;
+    crate::pqfooter::check_pages(&r, &meta)
+        .map_err(|e| IngestError::invalid(path, format!("corrupt Parquet data: {e}")))?;
     // The embedded Arrow schema (IPC flatbuffer in the footer) is skipped: the schema derived from
     // the Parquet types is enough here, and arrow-ipc panics on some corrupt ones (fuzzing).
     let opts = ArrowReaderOptions::new().with_skip_arrow_metadata(true);
-    let meta = ArrowReaderMetadata::try_new(std::sync::Arc::new(meta), opts).map_err(|e| bad(e.to_string()))?;
+    let meta =
+        ArrowReaderMetadata::try_new(std::sync::Arc::new(meta), opts).map_err(|e| bad(e.to_string()))?;
     Ok(ParquetRecordBatchReaderBuilder::new_with_metadata(r, meta))
 }
 
@@ -400,14 +426,17 @@ fn load_tasks(confine: &crate::confine::Root, info: &Info) -> Result<HashMap<i64
         }
         confine.check_inside(&p, "meta/tasks.parquet")?;
         for b in open_parquet(&p)? {
-            let idx = col(&b, "task_index")
-                .ok_or_else(|| IngestError::invalid(&p, "no task_index column"))?;
+            let idx =
+                col(&b, "task_index").ok_or_else(|| IngestError::invalid(&p, "no task_index column"))?;
             let idx = ints(&p, idx, "task_index")?;
             let names = ["task", "__index_level_0__"]
                 .iter()
                 .find_map(|n| col(&b, n).and_then(strings))
                 .or_else(|| {
-                    b.columns().iter().find(|c| matches!(c.data_type(), DataType::Utf8 | DataType::LargeUtf8)).and_then(strings)
+                    b.columns()
+                        .iter()
+                        .find(|c| matches!(c.data_type(), DataType::Utf8 | DataType::LargeUtf8))
+                        .and_then(strings)
                 })
                 .ok_or_else(|| IngestError::invalid(&p, "no task text column"))?;
             for (i, t) in idx.into_iter().zip(names) {
@@ -421,7 +450,9 @@ fn load_tasks(confine: &crate::confine::Root, info: &Info) -> Result<HashMap<i64
         }
         confine.check_inside(&p, "meta/tasks.jsonl")?;
         for v in read_jsonl(&p)? {
-            if let (Some(i), Some(t)) = (v.get("task_index").and_then(|x| x.as_i64()), v.get("task").and_then(|x| x.as_str())) {
+            if let (Some(i), Some(t)) =
+                (v.get("task_index").and_then(|x| x.as_i64()), v.get("task").and_then(|x| x.as_str()))
+            {
                 tasks.insert(i, t.to_string());
             }
         }
@@ -437,7 +468,10 @@ fn load_episodes(confine: &crate::confine::Root, info: &Info) -> Result<Vec<Epis
         confine.check_inside(&dir, "meta/episodes")?;
         let mut files: Vec<PathBuf> = crate::hashing::list_files(&dir)
             .map_err(|e| match e {
-                IngestError::Io { .. } => IngestError::invalid(&dir, "missing: a v3.0 dataset needs meta/episodes/chunk-*/file-*.parquet"),
+                IngestError::Io { .. } => IngestError::invalid(
+                    &dir,
+                    "missing: a v3.0 dataset needs meta/episodes/chunk-*/file-*.parquet",
+                ),
                 refused => refused,
             })?
             .into_iter()
@@ -453,7 +487,8 @@ fn load_episodes(confine: &crate::confine::Root, info: &Info) -> Result<Vec<Epis
             for b in open_parquet(&p)? {
                 let n = b.num_rows();
                 let need = |name: &str| -> Result<Vec<i64>> {
-                    let c = col(&b, name).ok_or_else(|| IngestError::invalid(&p, format!("no {name} column")))?;
+                    let c =
+                        col(&b, name).ok_or_else(|| IngestError::invalid(&p, format!("no {name} column")))?;
                     ints(&p, c, name)
                 };
                 let idx = need("episode_index")?;
@@ -492,15 +527,27 @@ fn load_episodes(confine: &crate::confine::Root, info: &Info) -> Result<Vec<Epis
                     for (k, c, f, t) in &vids {
                         videos.insert(
                             k.clone(),
-                            VideoRef { chunk_index: nonneg(c[r], "chunk_index")?, file_index: nonneg(f[r], "file_index")?, from_timestamp: t[r] },
+                            VideoRef {
+                                chunk_index: nonneg(c[r], "chunk_index")?,
+                                file_index: nonneg(f[r], "file_index")?,
+                                from_timestamp: t[r],
+                            },
                         );
                     }
                     eps.push(EpisodeMeta {
                         episode_index: nonneg(idx[r], "episode_index")?,
                         tasks: tasks.as_ref().map(|t| t[r].clone()).unwrap_or_default(),
                         length: length.as_ref().map(|l| nonneg(l[r], "length")).transpose()?,
-                        data_chunk: dchunk.as_ref().map(|l| nonneg(l[r], "data/chunk_index")).transpose()?.unwrap_or(0),
-                        data_file: dfile.as_ref().map(|l| nonneg(l[r], "data/file_index")).transpose()?.unwrap_or(0),
+                        data_chunk: dchunk
+                            .as_ref()
+                            .map(|l| nonneg(l[r], "data/chunk_index"))
+                            .transpose()?
+                            .unwrap_or(0),
+                        data_file: dfile
+                            .as_ref()
+                            .map(|l| nonneg(l[r], "data/file_index"))
+                            .transpose()?
+                            .unwrap_or(0),
                         from_index: from.as_ref().map(|l| nonneg(l[r], "dataset_from_index")).transpose()?,
                         to_index: to.as_ref().map(|l| nonneg(l[r], "dataset_to_index")).transpose()?,
                         videos,
@@ -536,7 +583,10 @@ fn load_episodes(confine: &crate::confine::Root, info: &Info) -> Result<Vec<Epis
     eps.sort_by_key(|e| e.episode_index);
     for w in eps.windows(2) {
         if w[0].episode_index == w[1].episode_index {
-            return Err(IngestError::invalid(root, format!("episode {} is listed twice in the episode metadata", w[0].episode_index)));
+            return Err(IngestError::invalid(
+                root,
+                format!("episode {} is listed twice in the episode metadata", w[0].episode_index),
+            ));
         }
     }
     if eps.is_empty() {
@@ -602,25 +652,47 @@ struct DataReader<'a> {
 }
 
 impl<'a> DataReader<'a> {
-    fn push_batch(&mut self, path: &Path, b: &RecordBatch, emit: &mut dyn FnMut(EpBuf) -> Result<()>) -> Result<()> {
+    fn push_batch(
+        &mut self,
+        path: &Path,
+        b: &RecordBatch,
+        emit: &mut dyn FnMut(EpBuf) -> Result<()>,
+    ) -> Result<()> {
         let n = b.num_rows();
         if n == 0 {
             return Ok(());
         }
-        let need = |name: &str| col(b, name).ok_or_else(|| IngestError::invalid(path, format!("no `{name}` column")));
+        let need = |name: &str| {
+            col(b, name).ok_or_else(|| IngestError::invalid(path, format!("no `{name}` column")))
+        };
         let ep = ints(path, need("episode_index")?, "episode_index")?;
         let ts = floats64(path, &flatten_single(path, need("timestamp")?, "timestamp")?, "timestamp")?;
-        let fi = col(b, "frame_index").map(|c| flatten_single(path, c, "frame_index").and_then(|c| ints(path, &c, "frame_index"))).transpose()?;
-        let gi = col(b, "index").map(|c| flatten_single(path, c, "index").and_then(|c| ints(path, &c, "index"))).transpose()?;
-        let ti = col(b, "task_index").map(|c| flatten_single(path, c, "task_index").and_then(|c| ints(path, &c, "task_index"))).transpose()?;
+        let fi = col(b, "frame_index")
+            .map(|c| flatten_single(path, c, "frame_index").and_then(|c| ints(path, &c, "frame_index")))
+            .transpose()?;
+        let gi = col(b, "index")
+            .map(|c| flatten_single(path, c, "index").and_then(|c| ints(path, &c, "index")))
+            .transpose()?;
+        let ti = col(b, "task_index")
+            .map(|c| flatten_single(path, c, "task_index").and_then(|c| ints(path, &c, "task_index")))
+            .transpose()?;
         let (alens, avals) = list_f32(path, need("action")?, "action")?;
         let mut obs = Vec::new();
         for (c, _) in &self.plan.observations {
             obs.push(list_f32(path, need(c)?, c)?);
         }
-        let reward = if self.plan.has_reward { Some(list_f32(path, need("next.reward")?, "next.reward")?) } else { None };
-        let done = if self.plan.has_done { Some(bools(path, need("next.done")?, "next.done")?) } else { None };
-        let success = if self.plan.has_success { Some(opt_bools(path, need("next.success")?, "next.success")?) } else { None };
+        let reward = if self.plan.has_reward {
+            Some(list_f32(path, need("next.reward")?, "next.reward")?)
+        } else {
+            None
+        };
+        let done =
+            if self.plan.has_done { Some(bools(path, need("next.done")?, "next.done")?) } else { None };
+        let success = if self.plan.has_success {
+            Some(opt_bools(path, need("next.success")?, "next.success")?)
+        } else {
+            None
+        };
         let mut imgs = Vec::new();
         for (c, _) in &self.plan.images {
             imgs.push(image_bytes(path, need(c)?, c)?);
@@ -644,7 +716,8 @@ impl<'a> DataReader<'a> {
         let aoff = offsets(&alens);
         let ooffs: Vec<Vec<usize>> = obs.iter().map(|(l, _)| offsets(l)).collect();
         for r in 0..n {
-            let e = u64::try_from(ep[r]).map_err(|_| IngestError::invalid(path, format!("negative episode_index {}", ep[r])))?;
+            let e = u64::try_from(ep[r])
+                .map_err(|_| IngestError::invalid(path, format!("negative episode_index {}", ep[r])))?;
             if self.cur.as_ref().map(|c| c.episode_index) != Some(e) {
                 if let Some(prev) = self.cur.take() {
                     emit(prev)?;
@@ -671,14 +744,20 @@ impl<'a> DataReader<'a> {
                 cur.task_index.push(ti[r]);
             }
             if alens[r] != cur.action.0 {
-                return Err(IngestError::invalid(path, format!("episode {e}: action length changes from {} to {}", cur.action.0, alens[r])));
+                return Err(IngestError::invalid(
+                    path,
+                    format!("episode {e}: action length changes from {} to {}", cur.action.0, alens[r]),
+                ));
             }
             cur.action.1.extend_from_slice(&avals[aoff[r]..aoff[r + 1]]);
             for (k, (lens, vals)) in obs.iter().enumerate() {
                 if lens[r] != cur.obs[k].0 {
                     return Err(IngestError::invalid(
                         path,
-                        format!("episode {e}: {} length changes from {} to {}", self.plan.observations[k].0, cur.obs[k].0, lens[r]),
+                        format!(
+                            "episode {e}: {} length changes from {} to {}",
+                            self.plan.observations[k].0, cur.obs[k].0, lens[r]
+                        ),
                     ));
                 }
                 cur.obs[k].1.extend_from_slice(&vals[ooffs[k][r]..ooffs[k][r + 1]]);
@@ -705,9 +784,9 @@ fn image_bytes(path: &Path, a: &ArrayRef, what: &str) -> Result<Vec<Vec<u8>>> {
     let bin: ArrayRef = match a.data_type() {
         DataType::Struct(_) => {
             let s = a.as_struct();
-            s.column_by_name("bytes")
-                .cloned()
-                .ok_or_else(|| IngestError::invalid(path, format!("image column {what} has no `bytes` field")))?
+            s.column_by_name("bytes").cloned().ok_or_else(|| {
+                IngestError::invalid(path, format!("image column {what} has no `bytes` field"))
+            })?
         }
         _ => a.clone(),
     };
@@ -721,7 +800,10 @@ fn image_bytes(path: &Path, a: &ArrayRef, what: &str) -> Result<Vec<Vec<u8>>> {
         }
         let v = bin.value(i);
         if !v.starts_with(b"\x89PNG\r\n\x1a\n") {
-            return Err(IngestError::invalid(path, format!("image column {what}: row {i} is not a PNG image")));
+            return Err(IngestError::invalid(
+                path,
+                format!("image column {what}: row {i} is not a PNG image"),
+            ));
         }
         out.push(v.to_vec());
     }
@@ -760,7 +842,13 @@ struct Ctx<'a> {
 }
 
 impl Ctx<'_> {
-    fn media_for(&mut self, key: &str, v: Option<&VideoRef>, episode_index: u64, sink: &mut dyn EpisodeSink) -> Result<(MediaFile, f64)> {
+    fn media_for(
+        &mut self,
+        key: &str,
+        v: Option<&VideoRef>,
+        episode_index: u64,
+        sink: &mut dyn EpisodeSink,
+    ) -> Result<(MediaFile, f64)> {
         let tpl = self.info.video_path.clone().unwrap_or_else(|| {
             if self.info.is_v3() {
                 "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4".into()
@@ -790,7 +878,10 @@ impl Ctx<'_> {
         }
         self.confine.check_inside(&abs, &field)?;
         if !abs.is_file() {
-            return Err(IngestError::invalid(&abs, format!("missing video file for feature {key}, episode {episode_index}")));
+            return Err(IngestError::invalid(
+                &abs,
+                format!("missing video file for feature {key}, episode {episode_index}"),
+            ));
         }
         let (sha, size) = crate::hashing::hash_file(&abs)?;
         let ct = if rel.ends_with(".mp4") { "video/mp4" } else { "application/octet-stream" };
@@ -803,22 +894,36 @@ impl Ctx<'_> {
     fn finish(&mut self, path: &Path, b: EpBuf, sink: &mut dyn EpisodeSink) -> Result<()> {
         let e = b.episode_index;
         let Some((pos, meta)) = self.metas.get(&e).cloned() else {
-            return Err(IngestError::invalid(path, format!("data rows for episode {e}, which the episode metadata does not list")));
+            return Err(IngestError::invalid(
+                path,
+                format!("data rows for episode {e}, which the episode metadata does not list"),
+            ));
         };
         if !self.seen.insert(e) {
             return Err(IngestError::invalid(path, format!("rows of episode {e} are not contiguous")));
         }
         if let Some(l) = meta.length {
             if l as usize != b.rows {
-                return Err(IngestError::invalid(path, format!("episode {e} has {} rows but its metadata says length {l}", b.rows)));
+                return Err(IngestError::invalid(
+                    path,
+                    format!("episode {e} has {} rows but its metadata says length {l}", b.rows),
+                ));
             }
         }
         if let (Some(f), Some(t)) = (meta.from_index, meta.to_index) {
             if t.saturating_sub(f) as usize != b.rows {
-                return Err(IngestError::invalid(path, format!("episode {e} has {} rows but dataset_from_index..dataset_to_index is {f}..{t}", b.rows)));
+                return Err(IngestError::invalid(
+                    path,
+                    format!(
+                        "episode {e} has {} rows but dataset_from_index..dataset_to_index is {f}..{t}",
+                        b.rows
+                    ),
+                ));
             }
             if let (Some(first), Some(last)) = (b.global_index.first(), b.global_index.last()) {
-                if u64::try_from(*first).ok() != Some(f) || u64::try_from(*last).ok().and_then(|l| l.checked_add(1)) != Some(t) {
+                if u64::try_from(*first).ok() != Some(f)
+                    || u64::try_from(*last).ok().and_then(|l| l.checked_add(1)) != Some(t)
+                {
                     return Err(IngestError::invalid(path, format!("episode {e}: index column {first}..={last} does not match dataset_from_index..dataset_to_index {f}..{t}")));
                 }
             }
@@ -847,7 +952,11 @@ impl Ctx<'_> {
             let (m, from) = self.media_for(&key, meta.videos.get(&key), e, sink)?;
             let short = key.strip_prefix("observation.").unwrap_or(&key).to_string();
             video_md.insert(key.clone(), json!({"sha256": m.sha256, "from_timestamp": from, "file": m.local_path.strip_prefix(self.root).unwrap_or(&m.local_path).to_string_lossy()}));
-            media.push(MediaColumn { name: short, sha256: m.sha256.clone(), timestamps: b.timestamps.iter().map(|t| from + t).collect() });
+            media.push(MediaColumn {
+                name: short,
+                sha256: m.sha256.clone(),
+                timestamps: b.timestamps.iter().map(|t| from + t).collect(),
+            });
         }
         let reward = if self.plan.has_reward { b.reward } else { vec![0.0; steps] };
         let done = if self.plan.has_done {
@@ -868,9 +977,12 @@ impl Ctx<'_> {
             }
             None => (Label::Unknown, String::new()),
         };
-        let task = self.opts.task.clone().or_else(|| meta.tasks.first().cloned()).or_else(|| {
-            b.task_index.first().and_then(|i| self.tasks.get(i).cloned())
-        });
+        let task = self
+            .opts
+            .task
+            .clone()
+            .or_else(|| meta.tasks.first().cloned())
+            .or_else(|| b.task_index.first().and_then(|i| self.tasks.get(i).cloned()));
         let mut md = Map::new();
         md.insert("episode_index".into(), json!(e));
         md.insert("length".into(), json!(steps));
@@ -1004,7 +1116,12 @@ pub fn read_dir(root: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> 
     Ok(())
 }
 
-fn stream_data<R: ChunkReader + 'static>(path: &Path, r: R, plan: &Plan, emit: &mut dyn FnMut(EpBuf) -> Result<()>) -> Result<()> {
+fn stream_data<R: ChunkReader + 'static>(
+    path: &Path,
+    r: R,
+    plan: &Plan,
+    emit: &mut dyn FnMut(EpBuf) -> Result<()>,
+) -> Result<()> {
     // Rows are decoded a batch at a time, page by page from the file (the sync reader reads
     // pages, not whole row groups); PNG image columns make a row KBs, so their batches are small.
     let batch_rows = if plan.images.is_empty() { 4096 } else { 64 };

@@ -25,8 +25,8 @@ pub mod mapping;
 pub mod mcapfmt;
 /// The data types readers produce (the store's own model).
 pub use store::model;
-pub mod pipeline;
 pub mod options;
+pub mod pipeline;
 pub mod pqfooter;
 pub mod robomimic;
 pub mod ros2msg;
@@ -79,7 +79,12 @@ pub fn detect(path: &Path) -> Result<Format> {
 }
 
 /// Runs the right reader over `path`, pushing everything into `sink`.
-pub fn read_path(path: &Path, format: Format, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<Format> {
+pub fn read_path(
+    path: &Path,
+    format: Format,
+    opts: &ReadOptions,
+    sink: &mut dyn EpisodeSink,
+) -> Result<Format> {
     Ok(read_path_report(path, format, opts, sink)?.format)
 }
 
@@ -94,8 +99,14 @@ pub struct ReadOutcome {
 ///
 /// A panic inside a decoding library (none is known: fuzzing found and worked around the ones in
 /// `mcap` and `parquet`) is turned into an error naming the file, as a last line of defence.
-pub fn read_path_report(path: &Path, format: Format, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<ReadOutcome> {
-    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| read_path_inner(path, format, opts, sink))) {
+pub fn read_path_report(
+    path: &Path,
+    format: Format,
+    opts: &ReadOptions,
+    sink: &mut dyn EpisodeSink,
+) -> Result<ReadOutcome> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| read_path_inner(path, format, opts, sink)))
+    {
         Ok(r) => r,
         Err(p) => Err(IngestError::invalid(
             path,
@@ -113,7 +124,12 @@ pub(crate) fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
         .unwrap_or_else(|| "unknown".into())
 }
 
-fn read_path_inner(path: &Path, format: Format, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<ReadOutcome> {
+fn read_path_inner(
+    path: &Path,
+    format: Format,
+    opts: &ReadOptions,
+    sink: &mut dyn EpisodeSink,
+) -> Result<ReadOutcome> {
     let format = match format {
         Format::Auto => detect(path)?,
         f => f,

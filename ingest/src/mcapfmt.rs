@@ -74,9 +74,7 @@ fn stream_records(
     let limit = (size_hint as usize).saturating_add(1024).max(1 << 16);
     // Chunks are emitted whole and unpacked here: the crate's in-place unpacking of
     // uncompressed chunks underflows on a record longer than its chunk (fuzzing found it).
-    let opts = LinearReaderOptions::default()
-        .with_emit_chunks(true)
-        .with_record_length_limit(limit);
+    let opts = LinearReaderOptions::default().with_emit_chunks(true).with_record_length_limit(limit);
     let mut reader = LinearReader::new_with_options(opts);
     let mut total = 0u64;
     while let Some(ev) = reader.next_event() {
@@ -95,7 +93,10 @@ fn stream_records(
             }
             Ok(LinearReadEvent::Record { opcode, data }) => {
                 let rec = mcap::parse_record(opcode, data).map_err(|e| {
-                    IngestError::invalid(path, format!("corrupt MCAP record (opcode {opcode:#04x}) near byte {total}: {e}"))
+                    IngestError::invalid(
+                        path,
+                        format!("corrupt MCAP record (opcode {opcode:#04x}) near byte {total}: {e}"),
+                    )
                 })?;
                 match rec {
                     Record::Chunk { header, data } => unpack_chunk(path, total, header, &data, on)?,
@@ -108,7 +109,9 @@ fn stream_records(
             Err(mcap::McapError::BadMagic) => {
                 return Err(IngestError::invalid(path, "not an MCAP file (bad magic)"));
             }
-            Err(e) => return Err(IngestError::invalid(path, format!("corrupt MCAP data near byte {total}: {e}"))),
+            Err(e) => {
+                return Err(IngestError::invalid(path, format!("corrupt MCAP data near byte {total}: {e}")))
+            }
         }
     }
     Ok(End::Clean)
@@ -128,7 +131,8 @@ fn unpack_chunk(
         data
     } else {
         // bound the claimed size by a generous compression ratio before allocating it
-        let max = (data.len() as u64).saturating_mul(MAX_CHUNK_RATIO).saturating_add(1 << 16).min(MAX_CHUNK_BYTES);
+        let max =
+            (data.len() as u64).saturating_mul(MAX_CHUNK_RATIO).saturating_add(1 << 16).min(MAX_CHUNK_BYTES);
         if header.uncompressed_size > max {
             return Err(bad(format!(
                 "claims {} uncompressed bytes from {} compressed bytes (more than {max}: at most {MAX_CHUNK_RATIO}:1 and {MAX_CHUNK_BYTES} bytes): refused",
@@ -151,12 +155,19 @@ fn unpack_chunk(
         &owned
     };
     if header.uncompressed_size != data.len() as u64 {
-        return Err(bad(format!("uncompressed_size {} but {} bytes of records", header.uncompressed_size, data.len())));
+        return Err(bad(format!(
+            "uncompressed_size {} but {} bytes of records",
+            header.uncompressed_size,
+            data.len()
+        )));
     }
     if header.uncompressed_crc != 0 {
         let c = crc32(data);
         if c != header.uncompressed_crc {
-            return Err(bad(format!("CRC mismatch (saved {:#010x}, computed {c:#010x})", header.uncompressed_crc)));
+            return Err(bad(format!(
+                "CRC mismatch (saved {:#010x}, computed {c:#010x})",
+                header.uncompressed_crc
+            )));
         }
     }
     let mut p = 0usize;
@@ -167,7 +178,9 @@ fn unpack_chunk(
         let op = data[p];
         let len = u64::from_le_bytes(data[p + 1..p + 9].try_into().expect("8 bytes"));
         if len > (data.len() - p - 9) as u64 {
-            return Err(bad(format!("record of {len} bytes (opcode {op:#04x}) runs past the end of its chunk")));
+            return Err(bad(format!(
+                "record of {len} bytes (opcode {op:#04x}) runs past the end of its chunk"
+            )));
         }
         let body = &data[p + 9..p + 9 + len as usize];
         let rec = mcap::parse_record(op, body).map_err(|e| bad(format!("record (opcode {op:#04x}): {e}")))?;
@@ -216,7 +229,10 @@ pub fn scan(path: &Path, r: &mut dyn Read, size_hint: u64) -> Result<McapSummary
             }
             Record::Message { header, .. } => {
                 s.message_count += 1;
-                let t = topics.get(&header.channel_id).cloned().unwrap_or_else(|| format!("<channel {}>", header.channel_id));
+                let t = topics
+                    .get(&header.channel_id)
+                    .cloned()
+                    .unwrap_or_else(|| format!("<channel {}>", header.channel_id));
                 *s.message_counts.entry(t).or_default() += 1;
                 s.first_log_time = Some(s.first_log_time.map_or(header.log_time, |x| x.min(header.log_time)));
                 s.last_log_time = Some(s.last_log_time.map_or(header.log_time, |x| x.max(header.log_time)));
@@ -255,7 +271,9 @@ impl Decoder {
                         let text = std::str::from_utf8(&s.data).map_err(|_| "ros2msg schema is not UTF-8")?;
                         Ok(Decoder::Cdr(Arc::new(ros2msg::parse_schema(&s.name, text)?)))
                     }
-                    other => Err(format!("cdr with schema encoding {other:?} is not supported (only ros2msg)")),
+                    other => {
+                        Err(format!("cdr with schema encoding {other:?} is not supported (only ros2msg)"))
+                    }
                 }
             }
             "protobuf" => {
@@ -303,7 +321,9 @@ fn proto_to_dvalue(v: &prost_reflect::Value) -> DValue {
         P::Message(m) => {
             use prost_reflect::ReflectMessage;
             let desc = m.descriptor();
-            DValue::Msg(desc.fields().map(|f| (f.name().to_string(), proto_to_dvalue(&m.get_field(&f)))).collect())
+            DValue::Msg(
+                desc.fields().map(|f| (f.name().to_string(), proto_to_dvalue(&m.get_field(&f)))).collect(),
+            )
         }
         P::List(l) => DValue::List(l.iter().map(proto_to_dvalue).collect()),
         P::Map(m) => DValue::Msg(m.iter().map(|(k, v)| (format!("{k:?}"), proto_to_dvalue(v))).collect()),
@@ -456,7 +476,10 @@ impl<'a> Assembler<'a> {
             }
             Record::Schema { header, data } => {
                 self.summary.schemas += 1;
-                self.schemas.insert(header.id, SchemaRec { name: header.name, encoding: header.encoding, data: data.into_owned() });
+                self.schemas.insert(
+                    header.id,
+                    SchemaRec { name: header.name, encoding: header.encoding, data: data.into_owned() },
+                );
             }
             Record::Channel(c) => {
                 if self.chans.contains_key(&c.id) {
@@ -489,7 +512,11 @@ impl<'a> Assembler<'a> {
                 self.first_t = Some(self.first_t.map_or(t, |x| x.min(t)));
                 self.summary.first_log_time = self.first_t;
                 self.summary.last_log_time = Some(self.summary.last_log_time.map_or(t, |x| x.max(t)));
-                let topic = self.chans.get(&header.channel_id).map(|c| c.topic.clone()).unwrap_or_else(|| format!("<channel {}>", header.channel_id));
+                let topic = self
+                    .chans
+                    .get(&header.channel_id)
+                    .map(|c| c.topic.clone())
+                    .unwrap_or_else(|| format!("<channel {}>", header.channel_id));
                 *self.summary.message_counts.entry(topic).or_default() += 1;
                 self.on_message(header.channel_id, t, &data)?;
                 if t > self.max_t {
@@ -503,19 +530,33 @@ impl<'a> Assembler<'a> {
                     let start = parse_u64(m.metadata.get("start_ns"));
                     let end = parse_u64(m.metadata.get("end_ns"));
                     let (Some(start), Some(end)) = (start, end) else {
-                        return Err(self.err(format!("Metadata record {:?} without numeric start_ns/end_ns: {:?}", m.name, m.metadata)));
+                        return Err(self.err(format!(
+                            "Metadata record {:?} without numeric start_ns/end_ns: {:?}",
+                            m.name, m.metadata
+                        )));
                     };
                     if end < start {
-                        return Err(self.err(format!("Metadata record {:?} has end_ns {end} before start_ns {start}", m.name)));
+                        return Err(self.err(format!(
+                            "Metadata record {:?} has end_ns {end} before start_ns {start}",
+                            m.name
+                        )));
                     }
                     let success = m.metadata.get("success").and_then(|s| DValue::Str(s.clone()).as_bool());
                     let index = m.metadata.get("index").and_then(|s| s.trim().parse::<i64>().ok());
                     self.saw_episode_markers = true;
                     let ls = format!("mcap:metadata:{}", m.name);
-                    self.add_pending(PendingEp { index, start, end, success, meta: m.metadata, label_source: ls });
+                    self.add_pending(PendingEp {
+                        index,
+                        start,
+                        end,
+                        success,
+                        meta: m.metadata,
+                        label_source: ls,
+                    });
                     self.flush(sink, false)?;
                 } else {
-                    let v: Map<String, Value> = m.metadata.iter().map(|(k, v)| (k.clone(), json!(v))).collect();
+                    let v: Map<String, Value> =
+                        m.metadata.iter().map(|(k, v)| (k.clone(), json!(v))).collect();
                     self.other_metadata.insert(m.name, Value::Object(v));
                 }
             }
@@ -547,7 +588,8 @@ impl<'a> Assembler<'a> {
         let Some(c) = self.chans.get(&chan) else {
             return Err(self.err(format!("message on channel {chan}, which no Channel record declared")));
         };
-        let (is_action, obs, is_reward, is_events, topic) = (c.action, c.obs.clone(), c.reward, c.events, c.topic.clone());
+        let (is_action, obs, is_reward, is_events, topic) =
+            (c.action, c.obs.clone(), c.reward, c.events, c.topic.clone());
         if !(is_action || is_reward || is_events || !obs.is_empty()) {
             self.buf.push_back(Sample { t, chan, kind: Kind::Other });
             return Ok(());
@@ -564,7 +606,9 @@ impl<'a> Assembler<'a> {
                 format!("topic {topic}, message at log time {t}: {} bytes, more than the {MAX_MAPPED_MESSAGE_BYTES} decoded on a mapped topic: refused", data.len()),
             ));
         }
-        let v = dec.decode(data).map_err(|e| IngestError::invalid(&path, format!("topic {topic}, message at log time {t}: {e}")))?;
+        let v = dec.decode(data).map_err(|e| {
+            IngestError::invalid(&path, format!("topic {topic}, message at log time {t}: {e}"))
+        })?;
         let to_f32 = |x: Vec<f64>| x.into_iter().map(|v| v as f32).collect::<Vec<f32>>();
         let mut first = true;
         let mut push = |buf: &mut VecDeque<Sample>, kind: Kind| {
@@ -583,7 +627,10 @@ impl<'a> Assembler<'a> {
                     if let DValue::Msg(fields) = &v {
                         for (k, x) in fields {
                             if k != "event" {
-                                meta.insert(k.clone(), x.as_str().map(str::to_string).unwrap_or_else(|| x.to_json().to_string()));
+                                meta.insert(
+                                    k.clone(),
+                                    x.as_str().map(str::to_string).unwrap_or_else(|| x.to_json().to_string()),
+                                );
                             }
                         }
                     }
@@ -598,20 +645,36 @@ impl<'a> Assembler<'a> {
                     if let DValue::Msg(fields) = &v {
                         for (k, x) in fields {
                             if k != "event" {
-                                meta.insert(k.clone(), x.as_str().map(str::to_string).unwrap_or_else(|| x.to_json().to_string()));
+                                meta.insert(
+                                    k.clone(),
+                                    x.as_str().map(str::to_string).unwrap_or_else(|| x.to_json().to_string()),
+                                );
                             }
                         }
                     }
                     let success = v.get_path("success").and_then(|x| x.as_bool());
-                    self.add_pending(PendingEp { index: Some(i), start, end: t, success, meta, label_source: format!("mcap:topic:{topic}") });
+                    self.add_pending(PendingEp {
+                        index: Some(i),
+                        start,
+                        end: t,
+                        success,
+                        meta,
+                        label_source: format!("mcap:topic:{topic}"),
+                    });
                 }
                 _ => {}
             }
         }
         if is_action {
-            let vals = v
-                .numbers_any(&self.mapping.action.field)
-                .ok_or_else(|| IngestError::invalid(&path, format!("topic {topic}: no numeric field {:?} in the action message", self.mapping.action.field)))?;
+            let vals = v.numbers_any(&self.mapping.action.field).ok_or_else(|| {
+                IngestError::invalid(
+                    &path,
+                    format!(
+                        "topic {topic}: no numeric field {:?} in the action message",
+                        self.mapping.action.field
+                    ),
+                )
+            })?;
             push(&mut self.buf, Kind::Action(to_f32(vals)));
         }
         for k in obs {
@@ -666,7 +729,8 @@ impl<'a> Assembler<'a> {
         let ep = self.build(&p, index, &samples, counts)?;
         // drop what no later episode can use
         let end = p.end;
-        let min_start = self.pending.iter().map(|q| q.start).chain(self.open_events.values().map(|v| v.0)).min();
+        let min_start =
+            self.pending.iter().map(|q| q.start).chain(self.open_events.values().map(|v| v.0)).min();
         self.buf.retain(|s| s.t > end || min_start.map(|m| s.t >= m).unwrap_or(false));
         match ep {
             Some(ep) => {
@@ -680,7 +744,13 @@ impl<'a> Assembler<'a> {
         Ok(())
     }
 
-    fn build(&self, p: &PendingEp, index: i64, samples: &[&Sample], counts: BTreeMap<String, u64>) -> Result<Option<EpisodeInput>> {
+    fn build(
+        &self,
+        p: &PendingEp,
+        index: i64,
+        samples: &[&Sample],
+        counts: BTreeMap<String, u64>,
+    ) -> Result<Option<EpisodeInput>> {
         let nobs = self.obs_keys.len();
         struct Col {
             dim: Option<usize>,
@@ -703,7 +773,10 @@ impl<'a> Assembler<'a> {
                     match c.dim {
                         None => c.dim = Some(v.len()),
                         Some(d) if d != v.len() => {
-                            return Err(self.err(format!("{what}: {} values at log time {t}, earlier messages had {d}", v.len())));
+                            return Err(self.err(format!(
+                                "{what}: {} values at log time {t}, earlier messages had {d}",
+                                v.len()
+                            )));
                         }
                         _ => {}
                     }
@@ -723,7 +796,12 @@ impl<'a> Assembler<'a> {
             reward.push(r);
             push_col(action, act, &format!("action topic {}", self.mapping.action.topic), t)?;
             for (k, c) in cols.iter_mut().enumerate() {
-                push_col(c, latest[k], &format!("observation {} (topic {})", self.obs_keys[k], topic_of(k)), t)?;
+                push_col(
+                    c,
+                    latest[k],
+                    &format!("observation {} (topic {})", self.obs_keys[k], topic_of(k)),
+                    t,
+                )?;
             }
             Ok(())
         };
@@ -734,7 +812,9 @@ impl<'a> Assembler<'a> {
                     match &s.kind {
                         Kind::Obs(k, v) => latest[*k] = Some(v),
                         Kind::Reward(r) => latest_reward = *r,
-                        Kind::Action(v) => step(s.t, &latest, Some(v), latest_reward, &mut cols, &mut action)?,
+                        Kind::Action(v) => {
+                            step(s.t, &latest, Some(v), latest_reward, &mut cols, &mut action)?
+                        }
                         Kind::Other => {}
                     }
                 }
@@ -749,7 +829,11 @@ impl<'a> Assembler<'a> {
                         _ => {}
                     }
                     let last_at_t = samples.get(i + 1).is_none_or(|n| n.t != s.t);
-                    let obs_at_t = samples[..=i].iter().rev().take_while(|p| p.t == s.t).any(|p| matches!(p.kind, Kind::Obs(..)));
+                    let obs_at_t = samples[..=i]
+                        .iter()
+                        .rev()
+                        .take_while(|p| p.t == s.t)
+                        .any(|p| matches!(p.kind, Kind::Obs(..)));
                     if last_at_t && obs_at_t {
                         step(s.t, &latest, None, latest_reward, &mut cols, &mut action)?;
                     }
@@ -870,7 +954,13 @@ pub fn read_file(path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) ->
 }
 
 /// Reads an MCAP stream and emits its episodes.
-pub fn read(path: &Path, r: &mut dyn Read, size_hint: u64, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<McapReadReport> {
+pub fn read(
+    path: &Path,
+    r: &mut dyn Read,
+    size_hint: u64,
+    opts: &ReadOptions,
+    sink: &mut dyn EpisodeSink,
+) -> Result<McapReadReport> {
     let mut a = Assembler::new(path, opts);
     let mut saw_footer = false;
     let end = stream_records(path, r, size_hint, &mut |rec| {
@@ -889,11 +979,15 @@ pub fn read(path: &Path, r: &mut dyn Read, size_hint: u64, opts: &ReadOptions, s
         Some(m) if !a.summary.data_complete => {
             // episodes complete: data continued past their end
             let max_t = a.max_t;
-            let (complete, partial): (Vec<PendingEp>, Vec<PendingEp>) = a.pending.drain(..).partition(|p| max_t > p.end);
+            let (complete, partial): (Vec<PendingEp>, Vec<PendingEp>) =
+                a.pending.drain(..).partition(|p| max_t > p.end);
             for p in complete {
                 a.emit(p, sink)?;
             }
-            let mut lost: Vec<String> = partial.iter().map(|p| format!("episode {}", p.index.map(|i| i.to_string()).unwrap_or_else(|| "?".into()))).collect();
+            let mut lost: Vec<String> = partial
+                .iter()
+                .map(|p| format!("episode {}", p.index.map(|i| i.to_string()).unwrap_or_else(|| "?".into())))
+                .collect();
             let mut opens: Vec<_> = a.open_events.keys().copied().collect();
             opens.sort();
             lost.extend(opens.iter().map(|i| format!("episode {i} (started, never ended)")));
@@ -913,7 +1007,10 @@ pub fn read(path: &Path, r: &mut dyn Read, size_hint: u64, opts: &ReadOptions, s
             if !opts.recover {
                 return Err(IngestError::Truncated {
                     path: path.to_path_buf(),
-                    msg: format!("{what}. Run again with --recover to ingest the {} complete episode(s)", a.emitted),
+                    msg: format!(
+                        "{what}. Run again with --recover to ingest the {} complete episode(s)",
+                        a.emitted
+                    ),
                     recoverable: a.emitted,
                 });
             }
@@ -932,14 +1029,28 @@ pub fn read(path: &Path, r: &mut dyn Read, size_hint: u64, opts: &ReadOptions, s
                 for (i, (start, meta)) in opens {
                     let end = a.summary.last_log_time.unwrap_or(start);
                     let ls = String::new();
-                    a.add_pending(PendingEp { index: Some(i), start, end, success: None, meta, label_source: ls });
+                    a.add_pending(PendingEp {
+                        index: Some(i),
+                        start,
+                        end,
+                        success: None,
+                        meta,
+                        label_source: ls,
+                    });
                 }
             }
             if !a.saw_episode_markers && a.summary.message_count > 0 {
                 // the whole recording is one episode
                 let start = a.first_t.unwrap_or(0);
                 let end = a.summary.last_log_time.unwrap_or(start);
-                a.add_pending(PendingEp { index: Some(0), start, end, success: None, meta: BTreeMap::new(), label_source: String::new() });
+                a.add_pending(PendingEp {
+                    index: Some(0),
+                    start,
+                    end,
+                    success: None,
+                    meta: BTreeMap::new(),
+                    label_source: String::new(),
+                });
             }
             a.flush(sink, true)?;
         }
@@ -949,7 +1060,8 @@ pub fn read(path: &Path, r: &mut dyn Read, size_hint: u64, opts: &ReadOptions, s
     report.skipped_empty = a.skipped_empty.clone();
     report.summary = a.summary.clone();
     if a.emitted == 0 {
-        let topics: Vec<String> = a.summary.message_counts.iter().map(|(t, n)| format!("{t} ({n})")).collect();
+        let topics: Vec<String> =
+            a.summary.message_counts.iter().map(|(t, n)| format!("{t} ({n})")).collect();
         return Err(IngestError::invalid(
             path,
             format!(

@@ -156,15 +156,15 @@ pub fn parse_success_text(text: &str) -> std::result::Result<HashMap<String, boo
     let trimmed = text.trim_start();
     let mut out = HashMap::new();
     if trimmed.starts_with('{') {
-        let v: serde_json::Value =
-            serde_json::from_str(text).map_err(|e| format!("not valid JSON: {e}"))?;
+        let v: serde_json::Value = serde_json::from_str(text).map_err(|e| format!("not valid JSON: {e}"))?;
         let obj = v.as_object().ok_or("expected a JSON object {\"demo_0\": true, ...}")?;
         for (k, v) in obj {
             let b = match v {
                 serde_json::Value::Bool(b) => *b,
                 serde_json::Value::Number(n) => n.as_f64().map(|x| x != 0.0).unwrap_or(false),
-                serde_json::Value::String(s) => parse_bool(s)
-                    .ok_or_else(|| format!("value of {k:?} is not a boolean: {s:?}"))?,
+                serde_json::Value::String(s) => {
+                    parse_bool(s).ok_or_else(|| format!("value of {k:?} is not a boolean: {s:?}"))?
+                }
                 other => return Err(format!("value of {k:?} is not a boolean: {other}")),
             };
             out.insert(k.clone(), b);
@@ -177,9 +177,9 @@ pub fn parse_success_text(text: &str) -> std::result::Result<HashMap<String, boo
             }
             let mut parts = line.splitn(2, [',', ';', '\t']);
             let name = parts.next().unwrap_or("").trim().trim_matches('"');
-            let val = parts.next().ok_or_else(|| {
-                format!("line {}: expected `name,true|false`, got {line:?}", i + 1)
-            })?;
+            let val = parts
+                .next()
+                .ok_or_else(|| format!("line {}: expected `name,true|false`, got {line:?}", i + 1))?;
             match parse_bool(val) {
                 Some(b) => {
                     out.insert(name.to_string(), b);

@@ -366,7 +366,9 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
             report.bytes = size;
             match writer.set_source_hash(&sha256, size).await {
                 Ok(()) => {}
-                Err(store::StoreError::AlreadyIngested { version, .. }) => return Ok(Fed::AlreadyIngested(version)),
+                Err(store::StoreError::AlreadyIngested { version, .. }) => {
+                    return Ok(Fed::AlreadyIngested(version))
+                }
                 Err(e) => return Err(store_err(path, e)),
             }
         }

@@ -33,7 +33,10 @@ const MAX_PAGE_HEADER: u64 = 16 << 20;
 
 /// Checks the page headers of every column chunk of `meta` (see the module doc); the error names
 /// the row group, the column and the sizes.
-pub fn check_pages<R: ChunkReader>(r: &R, meta: &parquet::file::metadata::ParquetMetaData) -> Result<(), String> {
+pub fn check_pages<R: ChunkReader>(
+    r: &R,
+    meta: &parquet::file::metadata::ParquetMetaData,
+) -> Result<(), String> {
     let len = r.len();
     for (g, rg) in meta.row_groups().iter().enumerate() {
         for c in rg.columns() {
@@ -49,8 +52,11 @@ pub fn check_pages<R: ChunkReader>(r: &R, meta: &parquet::file::metadata::Parque
             let mut pos = start;
             let mut page = 0usize;
             while pos < end {
-                let (hlen, unc, comp) = read_page_header(r, pos, end)
-                    .map_err(|e| format!("row group {g}, column {col}, page {page} at byte {pos}: corrupt page header: {e}"))?;
+                let (hlen, unc, comp) = read_page_header(r, pos, end).map_err(|e| {
+                    format!(
+                        "row group {g}, column {col}, page {page} at byte {pos}: corrupt page header: {e}"
+                    )
+                })?;
                 let (Ok(unc), Ok(comp)) = (u64::try_from(unc), u64::try_from(comp)) else {
                     return Err(format!("row group {g}, column {col}, page {page}: negative page sizes ({unc} uncompressed, {comp} compressed)"));
                 };
@@ -112,7 +118,9 @@ pub fn check<R: ChunkReader>(r: &R) -> Result<(), String> {
     if meta_len == 0 || meta_len + 12 > len {
         return Err(format!("footer length {meta_len} does not fit in the {len}-byte file"));
     }
-    let meta = r.get_bytes(len - 8 - meta_len, meta_len as usize).map_err(|e| format!("cannot read the footer: {e}"))?;
+    let meta = r
+        .get_bytes(len - 8 - meta_len, meta_len as usize)
+        .map_err(|e| format!("cannot read the footer: {e}"))?;
     if meta.len() as u64 != meta_len {
         return Err("cannot read the footer".into());
     }
@@ -308,7 +316,9 @@ mod tests {
     #[test]
     fn accepts_a_real_footer() {
         use arrow::array::{Int32Array, RecordBatch};
-        let batch = RecordBatch::try_from_iter([("x", std::sync::Arc::new(Int32Array::from(vec![1, 2, 3])) as _)]).unwrap();
+        let batch =
+            RecordBatch::try_from_iter([("x", std::sync::Arc::new(Int32Array::from(vec![1, 2, 3])) as _)])
+                .unwrap();
         let mut out = Vec::new();
         let mut w = parquet::arrow::ArrowWriter::try_new(&mut out, batch.schema(), None).unwrap();
         w.write(&batch).unwrap();

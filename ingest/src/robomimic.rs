@@ -19,12 +19,12 @@ use sha2::Digest;
 
 use crate::error::{IngestError, Result};
 use crate::model::{EpisodeInput, ExtraColumn, ImageColumn, Label, VectorColumn};
+use crate::options::ReadOptions;
+use crate::sink::{EpisodeSink, SourceMeta};
 use arrow::array::{ArrayRef, FixedSizeListArray, PrimitiveArray, StringArray};
 use arrow::buffer::NullBuffer;
 use arrow::datatypes::{ArrowPrimitiveType, Field, Float32Type, Float64Type, UInt8Type};
 use std::sync::Arc;
-use crate::options::ReadOptions;
-use crate::sink::{EpisodeSink, SourceMeta};
 
 /// Budget of the metadata cache of the streaming reader (object headers, B-tree and heap blocks
 /// of the demo groups are read once each; a few MB keeps the ones still in use).
@@ -84,12 +84,19 @@ impl AsRef<Path> for Src<'_> {
 /// declaring 10 GB). Called before every read of a dataset.
 fn check_declared(ds: &Dataset, path: &Src, what: &str, shape: &[u64]) -> Result<u64> {
     let elem = ds.element_size().map_err(h5err(path, format!("cannot read the datatype of {what}")))?;
-    let impossible = || IngestError::invalid(path, format!("{what} declares shape {shape:?} of {elem}-byte elements: the size overflows 64 bits"));
+    let impossible = || {
+        IngestError::invalid(
+            path,
+            format!("{what} declares shape {shape:?} of {elem}-byte elements: the size overflows 64 bits"),
+        )
+    };
     let elements = shape.iter().try_fold(1u64, |a, &d| a.checked_mul(d)).ok_or_else(impossible)?;
     let bytes = elements.checked_mul(elem).ok_or_else(impossible)?;
     let max = path.max_dataset_bytes();
     if bytes > max {
-        let why = if max == MAX_DATASET_BYTES && path.file_len.saturating_mul(MAX_DECLARED_RATIO) >= MAX_DATASET_BYTES {
+        let why = if max == MAX_DATASET_BYTES
+            && path.file_len.saturating_mul(MAX_DECLARED_RATIO) >= MAX_DATASET_BYTES
+        {
             format!("more than the {max} bytes one dataset may decode to")
         } else {
             format!("more than the {}-byte file can hold (at most {max} at a {MAX_DECLARED_RATIO}:1 compression ratio)", path.file_len)
@@ -145,12 +152,7 @@ pub fn read_file_notes(path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSi
 }
 
 /// Reads a robomimic file held in memory (`name` is used in error messages).
-pub fn read_bytes(
-    name: &Path,
-    bytes: Vec<u8>,
-    opts: &ReadOptions,
-    sink: &mut dyn EpisodeSink,
-) -> Result<()> {
+pub fn read_bytes(name: &Path, bytes: Vec<u8>, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<()> {
     if !hdf5_pure::is_hdf5_bytes(&bytes) {
         return Err(IngestError::invalid(name, "not an HDF5 file (no HDF5 signature)"));
     }
@@ -218,9 +220,8 @@ fn group_attrs(
 ) -> Result<HashMap<String, AttrValue>> {
     let attrs = g.attrs().map_err(h5err(path, format!("cannot read the attributes of {where_}")))?;
     if !required.is_empty() {
-        let types = g
-            .attr_datatypes()
-            .map_err(h5err(path, format!("cannot read the attributes of {where_}")))?;
+        let types =
+            g.attr_datatypes().map_err(h5err(path, format!("cannot read the attributes of {where_}")))?;
         for r in required {
             if types.contains_key(*r) && !attrs.contains_key(*r) {
                 return Err(IngestError::invalid(
@@ -266,7 +267,12 @@ fn is_numeric(d: &DType) -> bool {
 }
 
 /// Rows x columns of a (T, ...) numeric dataset, read as f32.
-fn read_matrix(ds: &Dataset, path: &Src, what: &str, steps: Option<usize>) -> Result<(usize, usize, Vec<f32>)> {
+fn read_matrix(
+    ds: &Dataset,
+    path: &Src,
+    what: &str,
+    steps: Option<usize>,
+) -> Result<(usize, usize, Vec<f32>)> {
     let inf = info(ds, path, what)?;
     if !is_numeric(&inf.dtype) {
         return Err(IngestError::invalid(
@@ -304,9 +310,8 @@ fn read_env_args(data: &Group, path: &Path) -> Result<(Value, Map<String, Value>
     let mut extra = Map::new();
     let env_args = match attrs.get("env_args") {
         Some(v) => match v.as_str() {
-            Some(s) => serde_json::from_str::<Value>(s).map_err(|e| {
-                IngestError::invalid(path, format!("data@env_args is not valid JSON: {e}"))
-            })?,
+            Some(s) => serde_json::from_str::<Value>(s)
+                .map_err(|e| IngestError::invalid(path, format!("data@env_args is not valid JSON: {e}")))?,
             None => {
                 return Err(IngestError::invalid(path, "data@env_args is not a string"));
             }
@@ -329,9 +334,8 @@ fn read_masks(file: &File, path: &Src) -> Result<HashMap<String, Vec<String>>> {
     for filter in names {
         let ds = mask.dataset(&filter).map_err(h5err(path, format!("cannot open mask/{filter}")))?;
         info(&ds, path, &format!("mask/{filter}"))?;
-        let demos = ds
-            .read_string()
-            .map_err(h5err(path, format!("mask/{filter} is not a list of demo names")))?;
+        let demos =
+            ds.read_string().map_err(h5err(path, format!("mask/{filter} is not a list of demo names")))?;
         for d in demos {
             let d = d.trim_end_matches('\0').trim().to_string();
             tags.entry(d).or_default().push(filter.clone());
@@ -341,30 +345,22 @@ fn read_masks(file: &File, path: &Src) -> Result<HashMap<String, Vec<String>>> {
 }
 
 fn control_freq(env_args: &Value) -> Option<f64> {
-    let f = env_args
-        .pointer("/env_kwargs/control_freq")
-        .or_else(|| env_args.get("control_freq"))?
-        .as_f64()?;
+    let f =
+        env_args.pointer("/env_kwargs/control_freq").or_else(|| env_args.get("control_freq"))?.as_f64()?;
     (f.is_finite() && f > 0.0).then_some(f)
 }
 
-fn read_h5(
-    file: &File,
-    path: &Path,
-    opts: &ReadOptions,
-    sink: &mut dyn EpisodeSink,
-) -> Result<Vec<String>> {
+fn read_h5(file: &File, path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<Vec<String>> {
     let path = &Src::new(path, file.file_size());
-    let data = file
-        .group("data")
-        .map_err(h5err(path, "no `data` group: not a robomimic file"))?;
+    let data = file.group("data").map_err(h5err(path, "no `data` group: not a robomimic file"))?;
     let (env_args, data_attrs) = read_env_args(&data, path)?;
     let freq = control_freq(&env_args);
     let masks = read_masks(file, path)?;
 
     // One walk of data/ yields every demo group's handle: looking each one up by name instead
     // scans data/'s symbol table again per demo (quadratic in the number of demos).
-    let mut demos: Vec<(String, Group)> = data.iter_groups().map_err(h5err(path, "cannot list data/"))?.collect();
+    let mut demos: Vec<(String, Group)> =
+        data.iter_groups().map_err(h5err(path, "cannot list data/"))?.collect();
     demos.sort_by(|(a, _), (b, _)| match (demo_index(a), demo_index(b)) {
         (Some(x), Some(y)) => x.cmp(&y).then(a.cmp(b)),
         (Some(_), None) => std::cmp::Ordering::Less,
@@ -394,7 +390,8 @@ fn read_h5(
     let env_name = env_args.get("env_name").and_then(|v| v.as_str()).map(str::to_string);
     let mut left_out: BTreeMap<String, Vec<String>> = BTreeMap::new();
     for (index, (name, g)) in demos.iter().enumerate() {
-        let (ep, extras, skipped) = read_demo(g, path, name, index as u32, freq, &masks, env_name.as_deref(), opts)?;
+        let (ep, extras, skipped) =
+            read_demo(g, path, name, index as u32, freq, &masks, env_name.as_deref(), opts)?;
         for s in skipped {
             left_out.entry(s).or_default().push(name.clone());
         }
@@ -408,11 +405,17 @@ fn read_h5(
 
 /// A `(T, ...)` array as a fixed-size-list column (`dim` values per row); rows where `valid` is
 /// false are null.
-fn fsl_column<T: ArrowPrimitiveType>(dim: usize, values: Vec<T::Native>, valid: Option<Vec<bool>>) -> Result<ArrayRef, String> {
+fn fsl_column<T: ArrowPrimitiveType>(
+    dim: usize,
+    values: Vec<T::Native>,
+    valid: Option<Vec<bool>>,
+) -> Result<ArrayRef, String> {
     let item = Arc::new(Field::new("item", T::DATA_TYPE, false));
     let child = Arc::new(PrimitiveArray::<T>::from_iter_values(values));
     let nulls = valid.map(NullBuffer::from);
-    FixedSizeListArray::try_new(item, dim as i32, child, nulls).map(|a| Arc::new(a) as ArrayRef).map_err(|e| e.to_string())
+    FixedSizeListArray::try_new(item, dim as i32, child, nulls)
+        .map(|a| Arc::new(a) as ArrayRef)
+        .map_err(|e| e.to_string())
 }
 
 fn dtype_name(d: &DType) -> String {
@@ -432,7 +435,13 @@ fn dtype_name(d: &DType) -> String {
     }
 }
 
-fn extra(name: String, values: ArrayRef, dtype: &DType, row_shape: &[u64], extra_meta: &[(&str, String)]) -> ExtraColumn {
+fn extra(
+    name: String,
+    values: ArrayRef,
+    dtype: &DType,
+    row_shape: &[u64],
+    extra_meta: &[(&str, String)],
+) -> ExtraColumn {
     let mut metadata = HashMap::from([
         ("ufops.dtype".to_string(), dtype_name(dtype)),
         ("ufops.shape".to_string(), json!(row_shape).to_string()),
@@ -445,17 +454,37 @@ fn extra(name: String, values: ArrayRef, dtype: &DType, row_shape: &[u64], extra
 
 /// A per-step dataset (`T` rows) as an extra column: u8 kept as u8, floats of 32 bits as f32,
 /// every other number type as f64 (exact for integers up to 2^53).
-fn read_extra(ds: &Dataset, path: &Src, what: &str, name: String, steps: usize) -> Result<Option<ExtraColumn>> {
+fn read_extra(
+    ds: &Dataset,
+    path: &Src,
+    what: &str,
+    name: String,
+    steps: usize,
+) -> Result<Option<ExtraColumn>> {
     let inf = info(ds, path, what)?;
-    if inf.shape.first().copied() != Some(steps as u64) || !(is_numeric(&inf.dtype) || matches!(inf.dtype, DType::Enum(_))) {
+    if inf.shape.first().copied() != Some(steps as u64)
+        || !(is_numeric(&inf.dtype) || matches!(inf.dtype, DType::Enum(_)))
+    {
         return Ok(None);
     }
     let dim = inf.shape[1..].iter().product::<u64>() as usize;
     let bad = |e: String| IngestError::invalid(path, format!("{what}: {e}"));
     let values = match inf.dtype {
-        DType::U8 => fsl_column::<UInt8Type>(dim, ds.read_u8().map_err(h5err(path, format!("cannot read {what}")))?, None),
-        DType::F32 => fsl_column::<Float32Type>(dim, ds.read_f32().map_err(h5err(path, format!("cannot read {what}")))?, None),
-        _ => fsl_column::<Float64Type>(dim, ds.read_f64().map_err(h5err(path, format!("cannot read {what}")))?, None),
+        DType::U8 => fsl_column::<UInt8Type>(
+            dim,
+            ds.read_u8().map_err(h5err(path, format!("cannot read {what}")))?,
+            None,
+        ),
+        DType::F32 => fsl_column::<Float32Type>(
+            dim,
+            ds.read_f32().map_err(h5err(path, format!("cannot read {what}")))?,
+            None,
+        ),
+        _ => fsl_column::<Float64Type>(
+            dim,
+            ds.read_f64().map_err(h5err(path, format!("cannot read {what}")))?,
+            None,
+        ),
     }
     .map_err(bad)?;
     Ok(Some(extra(name, values, &inf.dtype, &inf.shape[1..], &[])))
@@ -463,19 +492,30 @@ fn read_extra(ds: &Dataset, path: &Src, what: &str, name: String, steps: usize) 
 
 /// `next_obs/<key>` keeping only the rows that differ from `obs/<key>` of the next step (robomimic
 /// writes `next_obs[t] == obs[t + 1]` but for the last step; rendered images may differ).
-fn read_next_obs(ds: &Dataset, path: &Src, what: &str, key: &str, obs: Option<&ObsValues>, steps: usize) -> Result<Option<ExtraColumn>> {
+fn read_next_obs(
+    ds: &Dataset,
+    path: &Src,
+    what: &str,
+    key: &str,
+    obs: Option<&ObsValues>,
+    steps: usize,
+) -> Result<Option<ExtraColumn>> {
     let inf = info(ds, path, what)?;
     if inf.shape.first().copied() != Some(steps as u64) {
         return Ok(None);
     }
     let dim = inf.shape[1..].iter().product::<u64>() as usize;
     let bad = |e: String| IngestError::invalid(path, format!("{what}: {e}"));
-    let keep = |same: &dyn Fn(usize) -> bool| -> Vec<bool> { (0..steps).map(|t| t + 1 == steps || !same(t)).collect() };
+    let keep = |same: &dyn Fn(usize) -> bool| -> Vec<bool> {
+        (0..steps).map(|t| t + 1 == steps || !same(t)).collect()
+    };
     let meta = [("ufops.null_means", format!("obs/{key} of the next step"))];
     let values = if inf.dtype == DType::U8 {
         let v = ds.read_u8().map_err(h5err(path, format!("cannot read {what}")))?;
         let valid = match obs {
-            Some(ObsValues::U8(o)) if o.len() == v.len() => keep(&|t| v[t * dim..(t + 1) * dim] == o[(t + 1) * dim..(t + 2) * dim]),
+            Some(ObsValues::U8(o)) if o.len() == v.len() => {
+                keep(&|t| v[t * dim..(t + 1) * dim] == o[(t + 1) * dim..(t + 2) * dim])
+            }
             _ => vec![true; steps],
         };
         fsl_column::<UInt8Type>(dim, v, Some(valid))
@@ -483,7 +523,10 @@ fn read_next_obs(ds: &Dataset, path: &Src, what: &str, key: &str, obs: Option<&O
         let v = ds.read_f32().map_err(h5err(path, format!("cannot read {what}")))?;
         let valid = match obs {
             Some(ObsValues::F32(o)) if o.len() == v.len() => keep(&|t| {
-                v[t * dim..(t + 1) * dim].iter().zip(&o[(t + 1) * dim..(t + 2) * dim]).all(|(a, b)| a.to_bits() == b.to_bits())
+                v[t * dim..(t + 1) * dim]
+                    .iter()
+                    .zip(&o[(t + 1) * dim..(t + 2) * dim])
+                    .all(|(a, b)| a.to_bits() == b.to_bits())
             }),
             _ => vec![true; steps],
         };
@@ -645,7 +688,8 @@ fn read_demo(
     for (k, v) in &md {
         if let (Some(obj), Some(text)) = (v.as_object(), attrs.get(k).and_then(|a| a.as_str())) {
             if obj.contains_key("sha256") && obj.contains_key("chars") {
-                let col: ArrayRef = Arc::new(StringArray::from_iter((0..steps).map(|t| (t == 0).then_some(text))));
+                let col: ArrayRef =
+                    Arc::new(StringArray::from_iter((0..steps).map(|t| (t == 0).then_some(text))));
                 let meta = HashMap::from([("ufops.attribute".to_string(), k.clone())]);
                 extras.push(ExtraColumn { name: format!("attr/{k}"), values: col, metadata: meta });
             }
@@ -686,9 +730,12 @@ fn read_dones(g: &Group, path: &Src, name: &str, steps: usize) -> Result<Vec<boo
         ));
     }
     let vals: Vec<bool> = match &inf.dtype {
-        DType::F32 | DType::F64 => {
-            ds.read_f64().map_err(h5err(path, format!("cannot read {what}")))?.into_iter().map(|x| x != 0.0).collect()
-        }
+        DType::F32 | DType::F64 => ds
+            .read_f64()
+            .map_err(h5err(path, format!("cannot read {what}")))?
+            .into_iter()
+            .map(|x| x != 0.0)
+            .collect(),
         DType::Enum(_) => {
             // bool stored as an HDF5 enum {FALSE=0, TRUE=1} over an integer base.
             match ds.read_i64() {
@@ -703,15 +750,24 @@ fn read_dones(g: &Group, path: &Src, name: &str, steps: usize) -> Result<Vec<boo
                 }
             }
         }
-        d if is_numeric(d) => {
-            ds.read_i64().map_err(h5err(path, format!("cannot read {what}")))?.into_iter().map(|x| x != 0).collect()
-        }
+        d if is_numeric(d) => ds
+            .read_i64()
+            .map_err(h5err(path, format!("cannot read {what}")))?
+            .into_iter()
+            .map(|x| x != 0)
+            .collect(),
         other => {
-            return Err(IngestError::invalid(path, format!("{what} has datatype {other} (expected bool or integer)")));
+            return Err(IngestError::invalid(
+                path,
+                format!("{what} has datatype {other} (expected bool or integer)"),
+            ));
         }
     };
     if vals.len() != steps {
-        return Err(IngestError::invalid(path, format!("{what}: read {} values for {steps} steps", vals.len())));
+        return Err(IngestError::invalid(
+            path,
+            format!("{what}: read {} values for {steps} steps", vals.len()),
+        ));
     }
     Ok(vals)
 }
@@ -726,17 +782,27 @@ fn read_images(
 ) -> Result<(ImageColumn, Vec<u8>)> {
     let (t, h, w, c) = (shape[0] as usize, shape[1] as usize, shape[2] as usize, shape[3] as usize);
     if t != steps {
-        return Err(IngestError::invalid(path, format!("{what} has {t} frames but the demo has {steps} steps")));
+        return Err(IngestError::invalid(
+            path,
+            format!("{what} has {t} frames but the demo has {steps} steps"),
+        ));
     }
     if !(1..=4).contains(&c) || h == 0 || w == 0 || h > 1 << 15 || w > 1 << 15 {
-        return Err(IngestError::invalid(path, format!("{what}: unsupported image shape {shape:?} (expected T x H x W x C, C in 1..=4)")));
+        return Err(IngestError::invalid(
+            path,
+            format!("{what}: unsupported image shape {shape:?} (expected T x H x W x C, C in 1..=4)"),
+        ));
     }
     let bytes = ds.read_u8().map_err(h5err(path, format!("cannot read {what}")))?;
     let frame = h * w * c;
     if bytes.len() != frame * t {
-        return Err(IngestError::invalid(path, format!("{what}: read {} bytes, shape says {}", bytes.len(), frame * t)));
+        return Err(IngestError::invalid(
+            path,
+            format!("{what}: read {} bytes, shape says {}", bytes.len(), frame * t),
+        ));
     }
-    let png_frames = encode_png_frames(&bytes, t, h, w, c).map_err(|e| IngestError::invalid(path, format!("{what}: {e}")))?;
+    let png_frames = encode_png_frames(&bytes, t, h, w, c)
+        .map_err(|e| IngestError::invalid(path, format!("{what}: {e}")))?;
     Ok((ImageColumn { name: key.to_string(), shape: [h, w, c], png_frames }, bytes))
 }
 

@@ -133,12 +133,17 @@ fn parse_fields(text: &str) -> Result<Vec<RawField>, String> {
         }
         // constants: `TYPE NAME=VALUE`
         let name_part = rest.split_whitespace().next().unwrap_or("");
-        if name_part.contains('=') || rest.trim_start().starts_with('=') || rest.split_whitespace().nth(1).map(|s| s.starts_with('=')).unwrap_or(false) {
+        if name_part.contains('=')
+            || rest.trim_start().starts_with('=')
+            || rest.split_whitespace().nth(1).map(|s| s.starts_with('=')).unwrap_or(false)
+        {
             continue;
         }
         let name = name_part.to_string();
         let (base, arity) = if let Some(i) = ty.find('[') {
-            let inner = ty[i + 1..].strip_suffix(']').ok_or_else(|| format!("line {}: bad array type {ty:?}", ln + 1))?;
+            let inner = ty[i + 1..]
+                .strip_suffix(']')
+                .ok_or_else(|| format!("line {}: bad array type {ty:?}", ln + 1))?;
             let arity = if inner.is_empty() || inner.starts_with("<=") {
                 Arity::Seq
             } else {
@@ -353,7 +358,11 @@ fn read_prim(c: &mut Cur, p: Prim) -> Result<DValue, String> {
             let s: String = b
                 .chunks(4)
                 .filter_map(|ch| {
-                    let v = if c.le { u32::from_le_bytes(ch.try_into().ok()?) } else { u32::from_be_bytes(ch.try_into().ok()?) };
+                    let v = if c.le {
+                        u32::from_le_bytes(ch.try_into().ok()?)
+                    } else {
+                        u32::from_be_bytes(ch.try_into().ok()?)
+                    };
                     char::from_u32(v)
                 })
                 .filter(|&ch| ch != '\0')
@@ -389,7 +398,10 @@ fn read_msg(schema: &Schema, idx: usize, c: &mut Cur, depth: usize) -> Result<DV
             Arity::Seq => {
                 let n = c.u32()? as usize;
                 if n.saturating_mul(min_wire_size(schema, &f.ty)) > c.remaining() {
-                    return Err(format!("{}.{}: sequence of {n} elements does not fit in the message", def.name, f.name));
+                    return Err(format!(
+                        "{}.{}: sequence of {n} elements does not fit in the message",
+                        def.name, f.name
+                    ));
                 }
                 read_many(schema, &f.ty, n, c, depth)?
             }
@@ -423,10 +435,10 @@ pub fn decode_cdr(schema: &Schema, data: &[u8]) -> Result<DValue, String> {
         return Err("CDR message shorter than its 4-byte encapsulation header".into());
     }
     let (le, max_align) = match (data[0], data[1]) {
-        (0x00, 0x00) | (0x00, 0x02) => (false, 8),   // CDR_BE, PL_CDR_BE
-        (0x00, 0x01) | (0x00, 0x03) => (true, 8),    // CDR_LE, PL_CDR_LE
+        (0x00, 0x00) | (0x00, 0x02) => (false, 8), // CDR_BE, PL_CDR_BE
+        (0x00, 0x01) | (0x00, 0x03) => (true, 8),  // CDR_LE, PL_CDR_LE
         (0x00, 0x06) | (0x00, 0x08) | (0x00, 0x0a) => (false, 4), // XCDR2 BE
-        (0x00, 0x07) | (0x00, 0x09) | (0x00, 0x0b) => (true, 4),  // XCDR2 LE
+        (0x00, 0x07) | (0x00, 0x09) | (0x00, 0x0b) => (true, 4), // XCDR2 LE
         (a, b) => return Err(format!("unknown CDR encapsulation {a:#04x} {b:#04x}")),
     };
     let mut c = Cur { buf: &data[4..], pos: 0, le, max_align };
@@ -468,7 +480,11 @@ mod tests {
 
     #[test]
     fn constants_and_bounds() {
-        let s = parse_schema("a/msg/B", "int32 X=3\nint32 Y = 4\nstring<=10 s\nfloat32[<=3] f\nuint8[2] u\nint32 d 7\n").unwrap();
+        let s = parse_schema(
+            "a/msg/B",
+            "int32 X=3\nint32 Y = 4\nstring<=10 s\nfloat32[<=3] f\nuint8[2] u\nint32 d 7\n",
+        )
+        .unwrap();
         let names: Vec<_> = s.msgs[0].fields.iter().map(|f| f.name.as_str()).collect();
         assert_eq!(names, ["s", "f", "u", "d"]);
         assert_eq!(s.msgs[0].fields[1].arity, Arity::Seq);

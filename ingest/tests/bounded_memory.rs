@@ -14,7 +14,10 @@ use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
-use arrow::array::{ArrayRef, BinaryArray, FixedSizeListArray, Float32Array, Int64Array, RecordBatch, StringArray, StructArray};
+use arrow::array::{
+    ArrayRef, BinaryArray, FixedSizeListArray, Float32Array, Int64Array, RecordBatch, StringArray,
+    StructArray,
+};
 use arrow::datatypes::{DataType, Field};
 use hdf5_pure::{AttrValue, FileBuilder};
 use ingest::{Format, IngestOptions, MemoryBudget};
@@ -107,7 +110,10 @@ fn write_robomimic(path: &Path, demos: usize) {
         data.add_group(g.finish());
     }
     data.set_attr("total", AttrValue::I64((demos * STEPS) as i64));
-    data.set_attr("env_args", AttrValue::String(r#"{"env_name": "Lift", "env_kwargs": {"control_freq": 20}}"#.into()));
+    data.set_attr(
+        "env_args",
+        AttrValue::String(r#"{"env_name": "Lift", "env_kwargs": {"control_freq": 20}}"#.into()),
+    );
     b.add_group(data.finish());
     b.write(path).unwrap();
 }
@@ -149,9 +155,15 @@ fn write_lerobot_v3(root: &Path, episodes: usize) {
         ("episode_index", Arc::new(Int64Array::from(ep.clone()))),
         ("length", Arc::new(Int64Array::from(vec![STEPS as i64; episodes]))),
         ("dataset_from_index", Arc::new(Int64Array::from_iter_values(ep.iter().map(|e| e * STEPS as i64)))),
-        ("dataset_to_index", Arc::new(Int64Array::from_iter_values(ep.iter().map(|e| (e + 1) * STEPS as i64)))),
+        (
+            "dataset_to_index",
+            Arc::new(Int64Array::from_iter_values(ep.iter().map(|e| (e + 1) * STEPS as i64))),
+        ),
     ];
-    parquet(&root.join("meta/episodes/chunk-000/file-000.parquet"), RecordBatch::try_from_iter(cols).unwrap());
+    parquet(
+        &root.join("meta/episodes/chunk-000/file-000.parquet"),
+        RecordBatch::try_from_iter(cols).unwrap(),
+    );
     let pngs: Vec<Vec<u8>> = (0..n)
         .map(|r| ingest::robomimic::encode_png(&noise(r as u64, IMG * IMG * 3), IMG, IMG, 3).unwrap())
         .collect();
@@ -160,7 +172,10 @@ fn write_lerobot_v3(root: &Path, episodes: usize) {
             Arc::new(Field::new("bytes", DataType::Binary, true)),
             Arc::new(BinaryArray::from_iter_values(pngs.iter())) as ArrayRef,
         ),
-        (Arc::new(Field::new("path", DataType::Utf8, true)), Arc::new(StringArray::from(vec![Some(""); n])) as ArrayRef),
+        (
+            Arc::new(Field::new("path", DataType::Utf8, true)),
+            Arc::new(StringArray::from(vec![Some(""); n])) as ArrayRef,
+        ),
     ]);
     let cols: Vec<(&str, ArrayRef)> = vec![
         ("observation.state", f32_list((0..n * 6).map(|k| k as f32 * 1e-3).collect(), 6)),
@@ -177,7 +192,12 @@ fn write_lerobot_v3(root: &Path, episodes: usize) {
 
 /// Peak heap growth (bytes above what was live before) while `path` is ingested into a fresh
 /// store, and the number of episodes ingested.
-fn peak_while_ingesting(rt: &tokio::runtime::Runtime, path: &Path, format: Format, store_dir: &Path) -> (usize, usize) {
+fn peak_while_ingesting(
+    rt: &tokio::runtime::Runtime,
+    path: &Path,
+    format: Format,
+    store_dir: &Path,
+) -> (usize, usize) {
     let store = rt.block_on(store::Store::open(&store::StoreConfig::local(store_dir))).unwrap();
     let opts = IngestOptions {
         policy: "p".into(),
@@ -259,14 +279,20 @@ fn tiny_budgets_store_the_same_steps() {
         let mut ids = Vec::new();
         let mut stores = Vec::new();
         for (name, memory) in [("default", MemoryBudget::default()), ("tiny", tiny)] {
-            let store = rt.block_on(store::Store::open(&store::StoreConfig::local(dir.path().join(name)))).unwrap();
-            let opts = IngestOptions { policy: "p".into(), checkpoint: "c".into(), memory, ..Default::default() };
+            let store =
+                rt.block_on(store::Store::open(&store::StoreConfig::local(dir.path().join(name)))).unwrap();
+            let opts =
+                IngestOptions { policy: "p".into(), checkpoint: "c".into(), memory, ..Default::default() };
             let report = rt.block_on(ingest::ingest(&store, &f.join(source), &opts)).unwrap();
             let eps = rt.block_on(store.episodes(&store::EpisodeFilter::default())).unwrap();
             assert_eq!(eps.len(), report.episodes, "{source}");
             let files: std::collections::HashSet<_> = eps.iter().map(|e| e.data_file.clone()).collect();
             if name == "tiny" {
-                assert_eq!(files.len(), eps.len(), "{source}: one steps file per episode with a 1-byte file budget");
+                assert_eq!(
+                    files.len(),
+                    eps.len(),
+                    "{source}: one steps file per episode with a 1-byte file budget"
+                );
             }
             let mut e: Vec<String> = eps.into_iter().map(|e| e.id).collect();
             e.sort();

@@ -50,7 +50,8 @@ async fn robomimic_ingest_reingest_and_broken() {
     assert_eq!(rep.steps, 1014);
     assert_eq!(rep.format, "robomimic");
 
-    let eps = store.episodes(&EpisodeFilter { version: Some(rep.version), ..Default::default() }).await.unwrap();
+    let eps =
+        store.episodes(&EpisodeFilter { version: Some(rep.version), ..Default::default() }).await.unwrap();
     assert_eq!(eps.len(), 12);
     for x in exp["episodes"].as_array().unwrap() {
         let e = eps.iter().find(|e| e.source_name == x["name"].as_str().unwrap()).expect("episode listed");
@@ -112,7 +113,10 @@ async fn lerobot_and_mcap_into_one_store() {
         assert_eq!(rep.media_files, media, "{rel}");
         assert!(rep.version > last);
         last = rep.version;
-        let eps = store.episodes(&EpisodeFilter { version: Some(rep.version), ..Default::default() }).await.unwrap();
+        let eps = store
+            .episodes(&EpisodeFilter { version: Some(rep.version), ..Default::default() })
+            .await
+            .unwrap();
         let mine: Vec<_> = eps.iter().filter(|e| e.source_sha256 == rep.sha256).collect();
         assert_eq!(mine.len(), n, "{rel}");
     }
@@ -145,7 +149,8 @@ async fn lerobot_and_mcap_into_one_store() {
     let victim = ds2.join("data/chunk-000/episode_000003.parquet");
     let b = std::fs::read(&victim).unwrap();
     std::fs::write(&victim, &b[..b.len() / 2]).unwrap();
-    let err = ingest(&store, &ds2, &IngestOptions { format: Format::Lerobot, ..opts(None) }).await.unwrap_err();
+    let err =
+        ingest(&store, &ds2, &IngestOptions { format: Format::Lerobot, ..opts(None) }).await.unwrap_err();
     assert!(err.to_string().contains("episode_000003.parquet"), "{err}");
     assert_eq!(snapshot(&store).await, before);
 }

@@ -48,7 +48,8 @@ fn check_robomimic(name: &str) {
                 assert_eq!(c.dim as u64, d, "{k}");
                 assert_eq!(c.values.len(), e.len() * c.dim);
             } else {
-                let shape: Vec<usize> = v.as_array().unwrap().iter().map(|x| x.as_u64().unwrap() as usize).collect();
+                let shape: Vec<usize> =
+                    v.as_array().unwrap().iter().map(|x| x.as_u64().unwrap() as usize).collect();
                 let im = e.images.iter().find(|i| &i.name == k).unwrap_or_else(|| panic!("no image {k}"));
                 assert_eq!(im.shape.to_vec(), shape);
                 assert_eq!(im.png_frames.len(), e.len());
@@ -174,7 +175,8 @@ fn check_lerobot(name: &str) {
     assert_eq!(src.metadata["fps"].as_f64().unwrap(), exp["fps"].as_f64().unwrap());
     assert_eq!(src.metadata["robot_type"], exp["robot_type"]);
     assert_eq!(src.metadata["codebase_version"], exp["codebase_version"]);
-    let tasks: Vec<&str> = src.metadata["tasks"].as_array().unwrap().iter().map(|t| t.as_str().unwrap()).collect();
+    let tasks: Vec<&str> =
+        src.metadata["tasks"].as_array().unwrap().iter().map(|t| t.as_str().unwrap()).collect();
     let mut want: Vec<&str> = exp["tasks"].as_array().unwrap().iter().map(|t| t.as_str().unwrap()).collect();
     let mut got = tasks.clone();
     got.sort();
@@ -303,13 +305,18 @@ fn mcap_truncated_refused_then_recovered() {
     let rep = ingest::mcapfmt::read_file(&path, &opts, &mut s).unwrap();
     assert_eq!(rep.summary.message_counts, counts(&rec["message_counts"]));
     assert_eq!(rep.summary.last_log_time, rec["last_recovered_log_time_ns"].as_u64());
-    let complete: Vec<i64> = rec["episodes_fully_recovered"].as_array().unwrap().iter().map(|x| x.as_i64().unwrap()).collect();
+    let complete: Vec<i64> =
+        rec["episodes_fully_recovered"].as_array().unwrap().iter().map(|x| x.as_i64().unwrap()).collect();
     assert_eq!(rep.episodes, complete);
     let full = exp["full_file_episodes"].as_array().unwrap();
-    let want: Vec<Value> = full.iter().filter(|e| complete.contains(&e["index"].as_i64().unwrap())).cloned().collect();
+    let want: Vec<Value> =
+        full.iter().filter(|e| complete.contains(&e["index"].as_i64().unwrap())).cloned().collect();
     check_mcap_episodes(&s, &want);
     let names: Vec<&str> = rep.summary.metadata.iter().map(|(n, _)| n.as_str()).collect();
-    assert_eq!(names.iter().filter(|n| **n == "episode").count(), rec["episode_metadata_indices"].as_array().unwrap().len());
+    assert_eq!(
+        names.iter().filter(|n| **n == "episode").count(),
+        rec["episode_metadata_indices"].as_array().unwrap().len()
+    );
 }
 
 #[test]
@@ -322,7 +329,8 @@ fn mcap_conformance_all_read() {
             continue;
         }
         n += 1;
-        let exp: Value = serde_json::from_str(&std::fs::read_to_string(p.with_extension("json")).unwrap()).unwrap();
+        let exp: Value =
+            serde_json::from_str(&std::fs::read_to_string(p.with_extension("json")).unwrap()).unwrap();
         let recs = exp["records"].as_array().unwrap();
         let count = |t: &str| recs.iter().filter(|r| r["type"] == t).count();
         let f = std::fs::File::open(&p).unwrap();

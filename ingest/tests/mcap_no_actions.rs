@@ -24,12 +24,16 @@ const WITHOUT_ACTIONS: [i64; 2] = [1, 3];
 /// `start_ns`/`end_ns` of their `episode` Metadata records).
 fn drop_actions(src: &[u8], episodes: &[i64]) -> Vec<u8> {
     use mcap::records::Record;
-    let records = || mcap::read::ChunkFlattener::new(src).expect("source is MCAP").map(|r| r.expect("readable record"));
+    let records =
+        || mcap::read::ChunkFlattener::new(src).expect("source is MCAP").map(|r| r.expect("readable record"));
     let mut spans = Vec::new();
     for r in records() {
         if let Record::Metadata(m) = r {
             if m.name == "episode" && episodes.contains(&m.metadata["index"].parse::<i64>().unwrap()) {
-                spans.push((m.metadata["start_ns"].parse::<u64>().unwrap(), m.metadata["end_ns"].parse::<u64>().unwrap()));
+                spans.push((
+                    m.metadata["start_ns"].parse::<u64>().unwrap(),
+                    m.metadata["end_ns"].parse::<u64>().unwrap(),
+                ));
             }
         }
     }
@@ -50,7 +54,9 @@ fn drop_actions(src: &[u8], episodes: &[i64]) -> Vec<u8> {
                 schema_ids.insert(header.id, id);
             }
             Record::Channel(c) => {
-                let id = w.add_channel(schema_ids[&c.schema_id], &c.topic, &c.message_encoding, &c.metadata).unwrap();
+                let id = w
+                    .add_channel(schema_ids[&c.schema_id], &c.topic, &c.message_encoding, &c.metadata)
+                    .unwrap();
                 channel_ids.insert(c.id, (id, c.topic.clone()));
             }
             Record::Message { header, data } => {
@@ -92,13 +98,20 @@ fn labeled_episodes_without_actions_are_read() {
     assert_eq!(idx, vec![0, 1, 2, 3, 4]);
     let full = {
         let mut f = CollectSink::default();
-        read_path(&fixtures().join("mcap/ros2_jointstate_eval.mcap"), Format::Auto, &ReadOptions::default(), &mut f).unwrap();
+        read_path(
+            &fixtures().join("mcap/ros2_jointstate_eval.mcap"),
+            Format::Auto,
+            &ReadOptions::default(),
+            &mut f,
+        )
+        .unwrap();
         f
     };
     for (e, f) in s.episodes.iter().zip(&full.episodes) {
         let i = e.metadata["index"].as_i64().unwrap();
         assert_eq!(e.label, f.label, "episode {i}: the label of its Metadata record");
-        let counts: BTreeMap<String, u64> = serde_json::from_value(e.metadata["message_counts"].clone()).unwrap();
+        let counts: BTreeMap<String, u64> =
+            serde_json::from_value(e.metadata["message_counts"].clone()).unwrap();
         if WITHOUT_ACTIONS.contains(&i) {
             assert_eq!(e.action.dim, 0, "episode {i}");
             assert!(e.action.values.is_empty());
@@ -119,7 +132,8 @@ fn labeled_episodes_without_actions_are_read() {
 async fn labeled_episodes_without_actions_are_ingested() {
     let tmp = tempfile::tempdir().unwrap();
     let store = Store::open(&StoreConfig::local(tmp.path())).await.unwrap();
-    let opts = IngestOptions { policy: "toy-dp".into(), checkpoint: "step-80000".into(), ..Default::default() };
+    let opts =
+        IngestOptions { policy: "toy-dp".into(), checkpoint: "step-80000".into(), ..Default::default() };
     let rep = ingest(&store, &fixtures().join(FIXTURE), &opts).await.unwrap();
     assert_eq!(rep.episodes, 5);
     assert_eq!((rep.labels.success, rep.labels.failure, rep.labels.unknown), (3, 2, 0));

@@ -7,10 +7,11 @@ mod largest_alloc;
 use largest_alloc::LARGEST;
 use std::sync::atomic::Ordering;
 
-
 #[test]
 fn corrupt_footer_list_count_is_refused_without_a_huge_allocation() {
-    let data = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/corrupt_footer_huge_list.parquet")).unwrap();
+    let data =
+        std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/corrupt_footer_huge_list.parquet"))
+            .unwrap();
     LARGEST.store(0, Ordering::Relaxed);
     let err = ingest::lerobot::fuzz_entry(b"", &data).unwrap_err().to_string();
     let largest = LARGEST.load(Ordering::Relaxed);

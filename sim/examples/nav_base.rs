@@ -15,17 +15,35 @@ fn main() -> anyhow::Result<()> {
     let demos = expert_demos(&env, 100, 0);
     let mut pc = PolicyConfig::default();
     let ev = |k: &str| std::env::var(k).ok().map(|v| v.parse::<usize>().unwrap());
-    if let Some(v) = ev("H") { pc.horizon = v; }
-    if let Some(v) = ev("EXEC") { pc.n_exec = v; }
-    if let Some(v) = ev("HIDDEN") { pc.hidden = v; }
-    if let Some(v) = ev("DEPTH") { pc.depth = v; }
+    if let Some(v) = ev("H") {
+        pc.horizon = v;
+    }
+    if let Some(v) = ev("EXEC") {
+        pc.n_exec = v;
+    }
+    if let Some(v) = ev("HIDDEN") {
+        pc.hidden = v;
+    }
+    if let Some(v) = ev("DEPTH") {
+        pc.depth = v;
+    }
     println!("{pc:?}");
     let mut tc = TrainConfig { steps, ..Default::default() };
-    if let Ok(v) = std::env::var("LR") { tc.lr = v.parse().unwrap(); }
-    if let Some(v) = ev("BATCH") { tc.batch = v; }
-    if let Some(v) = ev("K") { pc.diffusion_steps = v; }
-    if let Ok(v) = std::env::var("NOISE") { env.pos_noise = v.parse().unwrap(); }
-    if let Ok(v) = std::env::var("NARROW") { env.narrow_gap.1 = v.parse().unwrap(); }
+    if let Ok(v) = std::env::var("LR") {
+        tc.lr = v.parse().unwrap();
+    }
+    if let Some(v) = ev("BATCH") {
+        tc.batch = v;
+    }
+    if let Some(v) = ev("K") {
+        pc.diffusion_steps = v;
+    }
+    if let Ok(v) = std::env::var("NOISE") {
+        env.pos_noise = v.parse().unwrap();
+    }
+    if let Ok(v) = std::env::var("NARROW") {
+        env.narrow_gap.1 = v.parse().unwrap();
+    }
     let only_ddpm = std::env::var("ONLY_DDPM").is_ok();
     let t0 = Instant::now();
     let ddpm = DiffusionPolicy::train(&pc, &tc, &demos)?;
@@ -37,7 +55,12 @@ fn main() -> anyhow::Result<()> {
     if only_ddpm {
         let noiseless = rollout(&ddpm, &EnvConfig { pos_noise: 0.0, ..env.clone() }, n, Steering::None, 1)?;
         println!("{}", summary("ddpm base, no noise", &noiseless));
-        plot_panels(&out.join("base.png"), &env, &[Panel::from_demos("demos", &demos, 100), Panel::from_episodes("ddpm", &base, 100)], 400)?;
+        plot_panels(
+            &out.join("base.png"),
+            &env,
+            &[Panel::from_demos("demos", &demos, 100), Panel::from_episodes("ddpm", &base, 100)],
+            400,
+        )?;
         return Ok(());
     }
     let t0 = Instant::now();
@@ -52,7 +75,11 @@ fn main() -> anyhow::Result<()> {
     plot_panels(
         &out.join("base.png"),
         &env,
-        &[Panel::from_demos("demos", &demos, 100), Panel::from_episodes("ddpm", &base, 100), Panel::from_episodes("flow", &fbase, 100)],
+        &[
+            Panel::from_demos("demos", &demos, 100),
+            Panel::from_episodes("ddpm", &base, 100),
+            Panel::from_episodes("flow", &fbase, 100),
+        ],
         400,
     )?;
     Ok(())

@@ -63,7 +63,12 @@ fn main() -> anyhow::Result<()> {
         let (k1, n1, _) = success_rate(&bon);
         let (k0, n0, _) = success_rate(&base);
         let (lo, hi) = stats::newcombe_diff(k1, n1, k0, n0);
-        println!("  BoN - base: {:+.1} pp, 95% CI [{:+.1}, {:+.1}]", 100.0 * (k1 as f64 / n1 as f64 - k0 as f64 / n0 as f64), 100.0 * lo, 100.0 * hi);
+        println!(
+            "  BoN - base: {:+.1} pp, 95% CI [{:+.1}, {:+.1}]",
+            100.0 * (k1 as f64 / n1 as f64 - k0 as f64 / n0 as f64),
+            100.0 * lo,
+            100.0 * hi
+        );
         if name == "ddpm" {
             sim::plot::plot_panels(
                 std::path::Path::new("/tmp/sim_out/steer.png"),

@@ -14,10 +14,16 @@ pub struct Panel<'a> {
 
 impl<'a> Panel<'a> {
     pub fn from_episodes(title: &str, eps: &'a [Episode], max: usize) -> Self {
-        Panel { title: title.into(), trajs: eps.iter().take(max).map(|e| (e.positions.as_slice(), e.success)).collect() }
+        Panel {
+            title: title.into(),
+            trajs: eps.iter().take(max).map(|e| (e.positions.as_slice(), e.success)).collect(),
+        }
     }
     pub fn from_demos(title: &str, demos: &'a [Demo], max: usize) -> Self {
-        Panel { title: title.into(), trajs: demos.iter().take(max).map(|d| (d.positions.as_slice(), true)).collect() }
+        Panel {
+            title: title.into(),
+            trajs: demos.iter().take(max).map(|d| (d.positions.as_slice(), true)).collect(),
+        }
     }
 }
 
@@ -79,7 +85,9 @@ pub fn plot_panels(path: &Path, cfg: &EnvConfig, panels: &[Panel], size: usize) 
         let to = |p: [f32; 2]| [ox + p[0] * s, (1.0 - p[1]) * s];
         // frame
         for k in 0..size {
-            for &(x, y) in &[(ox, k as f32), (ox + s - 1.0, k as f32), (ox + k as f32, 0.0), (ox + k as f32, s - 1.0)] {
+            for &(x, y) in
+                &[(ox, k as f32), (ox + s - 1.0, k as f32), (ox + k as f32, 0.0), (ox + k as f32, s - 1.0)]
+            {
                 cv.blend(x as i64, y as i64, [0.3, 0.3, 0.3], 1.0);
             }
         }
@@ -105,7 +113,8 @@ pub fn plot_panels(path: &Path, cfg: &EnvConfig, panels: &[Panel], size: usize) 
     enc.set_color(png::ColorType::Rgb);
     enc.set_depth(png::BitDepth::Eight);
     let mut wr = enc.write_header()?;
-    let data: Vec<u8> = cv.px.iter().flat_map(|p| p.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)).collect();
+    let data: Vec<u8> =
+        cv.px.iter().flat_map(|p| p.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)).collect();
     wr.write_image_data(&data)?;
     Ok(())
 }

@@ -196,7 +196,8 @@ fn train_mlp(cfg: &PolicyConfig, tc: &TrainConfig, demos: &[Demo], obj: &Objecti
     let (od, ad) = (cfg.obs_dim(), cfg.act_dim());
     let n = obs.len() / od;
     anyhow::ensure!(n > 0, "no training pairs");
-    let mut opt = AdamW::new(mlp.vars.clone(), ParamsAdamW { lr: tc.lr, weight_decay: 1e-4, ..Default::default() })?;
+    let mut opt =
+        AdamW::new(mlp.vars.clone(), ParamsAdamW { lr: tc.lr, weight_decay: 1e-4, ..Default::default() })?;
     let mut last = f32::NAN;
     let mut ema = None::<f32>;
     for step in 0..tc.steps {
@@ -254,7 +255,12 @@ pub trait ChunkPolicy {
         self.config().action_normalizer()
     }
     /// One raw chunk (`horizon * 2` velocities) per observation row (`obs` is `B * 4`).
-    fn sample_chunks(&self, obs: &[f32], guidance: Option<&Guidance>, rng: &mut ChaCha8Rng) -> steer::Result<Vec<f32>>;
+    fn sample_chunks(
+        &self,
+        obs: &[f32],
+        guidance: Option<&Guidance>,
+        rng: &mut ChaCha8Rng,
+    ) -> steer::Result<Vec<f32>>;
     fn name(&self) -> &'static str;
 }
 
@@ -328,7 +334,12 @@ impl ChunkPolicy for DiffusionPolicy {
     fn config(&self) -> &PolicyConfig {
         &self.cfg
     }
-    fn sample_chunks(&self, obs: &[f32], guidance: Option<&Guidance>, rng: &mut ChaCha8Rng) -> steer::Result<Vec<f32>> {
+    fn sample_chunks(
+        &self,
+        obs: &[f32],
+        guidance: Option<&Guidance>,
+        rng: &mut ChaCha8Rng,
+    ) -> steer::Result<Vec<f32>> {
         match guidance {
             None => steer::ddpm_sample(self, obs, rng),
             Some(g) => steer::ddpm_sample_guided(self, obs, g, rng),
@@ -395,7 +406,12 @@ impl ChunkPolicy for FlowPolicy {
     fn config(&self) -> &PolicyConfig {
         &self.cfg
     }
-    fn sample_chunks(&self, obs: &[f32], guidance: Option<&Guidance>, rng: &mut ChaCha8Rng) -> steer::Result<Vec<f32>> {
+    fn sample_chunks(
+        &self,
+        obs: &[f32],
+        guidance: Option<&Guidance>,
+        rng: &mut ChaCha8Rng,
+    ) -> steer::Result<Vec<f32>> {
         match guidance {
             None => steer::flow_sample(self, obs, rng),
             Some(g) => steer::flow_sample_guided(self, obs, g, rng),

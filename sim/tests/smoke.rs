@@ -50,7 +50,11 @@ fn policies_train_sample_and_roll_out_with_every_steering() {
     let v = Verifier::load_dir(dir.path()).unwrap();
     let small = EnvConfig { max_steps: 24, ..env.clone() };
     for p in [&ddpm as &dyn ChunkPolicy, &flow as &dyn ChunkPolicy] {
-        for s in [Steering::None, Steering::BestOfN { scorer: &v, n: 4 }, Steering::Guided { scorer: &v, lambda: 0.01 }] {
+        for s in [
+            Steering::None,
+            Steering::BestOfN { scorer: &v, n: 4 },
+            Steering::Guided { scorer: &v, lambda: 0.01 },
+        ] {
             let eps = rollout(p, &small, 6, s, 5).unwrap();
             assert_eq!(eps.len(), 6);
             check_episodes(&eps, pc.horizon);
@@ -74,7 +78,13 @@ fn policies_train_sample_and_roll_out_with_every_steering() {
     // plot
     let eps = rollout(&ddpm, &small, 4, Steering::None, 1).unwrap();
     let png = dir.path().join("t.png");
-    plot_panels(&png, &env, &[Panel::from_demos("demos", &demos, 10), Panel::from_episodes("base", &eps, 10)], 120).unwrap();
+    plot_panels(
+        &png,
+        &env,
+        &[Panel::from_demos("demos", &demos, 10), Panel::from_episodes("base", &eps, 10)],
+        120,
+    )
+    .unwrap();
     let bytes = std::fs::read(&png).unwrap();
     assert_eq!(&bytes[1..4], b"PNG");
 }

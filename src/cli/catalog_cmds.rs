@@ -49,7 +49,17 @@ pub enum SplitCommand {
 pub async fn split(args: &StoreArgs, cmd: SplitCommand) -> Result<()> {
     let store = args.open().await?;
     match cmd {
-        SplitCommand::Create { policy, checkpoint, version, off_policy_from, val_fraction, seed, max_episodes, actor, json } => {
+        SplitCommand::Create {
+            policy,
+            checkpoint,
+            version,
+            off_policy_from,
+            val_fraction,
+            seed,
+            max_episodes,
+            actor,
+            json,
+        } => {
             let off = off_policy_from
                 .iter()
                 .map(|s| match s.split_once('/') {
@@ -57,7 +67,16 @@ pub async fn split(args: &StoreArgs, cmd: SplitCommand) -> Result<()> {
                     None => (policy.clone(), s.clone()),
                 })
                 .collect();
-            let req = SplitRequest { policy, checkpoint, version, off_policy_from: off, val_fraction, seed, actor, max_episodes };
+            let req = SplitRequest {
+                policy,
+                checkpoint,
+                version,
+                off_policy_from: off,
+                val_fraction,
+                seed,
+                actor,
+                max_episodes,
+            };
             let s = store.create_split(&req).await?;
             if json {
                 return print_json(&s);
@@ -73,8 +92,14 @@ pub async fn split(args: &StoreArgs, cmd: SplitCommand) -> Result<()> {
             if json {
                 return print_json(&serde_json::json!({ "split": s, "episodes": members }));
             }
-            println!("{} ({}) {}/{} version {} seed {} val {:.2}", s.id, s.mode, s.policy, s.checkpoint, s.version, s.seed, s.val_fraction);
-            println!("sources: {:?}; {} train / {} val", s.source_checkpoints, s.train_episodes, s.val_episodes);
+            println!(
+                "{} ({}) {}/{} version {} seed {} val {:.2}",
+                s.id, s.mode, s.policy, s.checkpoint, s.version, s.seed, s.val_fraction
+            );
+            println!(
+                "sources: {:?}; {} train / {} val",
+                s.source_checkpoints, s.train_episodes, s.val_episodes
+            );
             for m in members.unwrap_or_default() {
                 println!("  {:<20} {:<5} {}", m.episode_id, m.part, m.label);
             }
@@ -85,7 +110,10 @@ pub async fn split(args: &StoreArgs, cmd: SplitCommand) -> Result<()> {
                 return print_json(&all);
             }
             for s in all {
-                println!("{}  {:<10} {}/{} v{} {}+{}", s.id, s.mode, s.policy, s.checkpoint, s.version, s.train_episodes, s.val_episodes);
+                println!(
+                    "{}  {:<10} {}/{} v{} {}+{}",
+                    s.id, s.mode, s.policy, s.checkpoint, s.version, s.train_episodes, s.val_episodes
+                );
             }
         }
     }
@@ -124,7 +152,8 @@ pub async fn artifacts(args: &StoreArgs, a: ArtifactsArgs) -> Result<()> {
     let store = args.open().await?;
     match a.command {
         None => {
-            let list = store.artifacts(a.policy.as_deref(), a.checkpoint.as_deref(), a.kind.as_deref()).await?;
+            let list =
+                store.artifacts(a.policy.as_deref(), a.checkpoint.as_deref(), a.kind.as_deref()).await?;
             if a.json {
                 return print_json(&list);
             }
@@ -132,7 +161,9 @@ pub async fn artifacts(args: &StoreArgs, a: ArtifactsArgs) -> Result<()> {
                 let m = &r.config["metrics"];
                 // Verifier quality on the split's held-out samples (classifier calibration).
                 let f = &m["final"];
-                let num = |v: &serde_json::Value| v.as_f64().map(|x| format!("{x:.3}")).unwrap_or_else(|| "-".into());
+                let num = |v: &serde_json::Value| {
+                    v.as_f64().map(|x| format!("{x:.3}")).unwrap_or_else(|| "-".into())
+                };
                 println!(
                     "{}  {:<10} {}/{}  split {}  aliases [{}]  val_loss {}  auroc {}  acc {}  brier {}  ece {}",
                     r.id,
@@ -190,7 +221,9 @@ pub enum TokenCommand {
         #[arg(long)]
         json: bool,
     },
-    Revoke { id: String },
+    Revoke {
+        id: String,
+    },
 }
 
 pub async fn token(args: &StoreArgs, cmd: TokenCommand) -> Result<()> {
@@ -202,7 +235,12 @@ pub async fn token(args: &StoreArgs, cmd: TokenCommand) -> Result<()> {
             if json {
                 return print_json(&serde_json::json!({ "token": secret, "record": rec }));
             }
-            eprintln!("token {} ({}, {}) — store the secret now, it is not shown again:", rec.id, rec.name, rec.role.as_str());
+            eprintln!(
+                "token {} ({}, {}) — store the secret now, it is not shown again:",
+                rec.id,
+                rec.name,
+                rec.role.as_str()
+            );
             println!("{secret}");
         }
         TokenCommand::List { json } => {
@@ -211,7 +249,14 @@ pub async fn token(args: &StoreArgs, cmd: TokenCommand) -> Result<()> {
                 return print_json(&all);
             }
             for t in all {
-                println!("{}  {:<16} {:<8} {}{}", t.id, t.name, t.role.as_str(), t.created_at, if t.revoked_at.is_some() { "  revoked" } else { "" });
+                println!(
+                    "{}  {:<16} {:<8} {}{}",
+                    t.id,
+                    t.name,
+                    t.role.as_str(),
+                    t.created_at,
+                    if t.revoked_at.is_some() { "  revoked" } else { "" }
+                );
             }
         }
         TokenCommand::Revoke { id } => {
@@ -225,7 +270,12 @@ pub async fn token(args: &StoreArgs, cmd: TokenCommand) -> Result<()> {
     Ok(())
 }
 
-pub async fn layers(args: &StoreArgs, episode: Option<String>, version: Option<i64>, json: bool) -> Result<()> {
+pub async fn layers(
+    args: &StoreArgs,
+    episode: Option<String>,
+    version: Option<i64>,
+    json: bool,
+) -> Result<()> {
     let store = args.open().await?;
     if let Some(id) = episode {
         let held = store.episode_layers(&id, version).await?;
@@ -244,7 +294,15 @@ pub async fn layers(args: &StoreArgs, episode: Option<String>, version: Option<i
     }
     println!("{:<32} {:>6} {:>9} {:>8}  producer", "layer", "dim", "episodes", "version");
     for l in all {
-        println!("{:<32} {:>6} {:>9} {:>8}  {} {}", l.name, l.dim, l.episodes, l.version, &l.producer_hash[..12], l.producer);
+        println!(
+            "{:<32} {:>6} {:>9} {:>8}  {} {}",
+            l.name,
+            l.dim,
+            l.episodes,
+            l.version,
+            &l.producer_hash[..12],
+            l.producer
+        );
     }
     Ok(())
 }

@@ -39,9 +39,25 @@ pub enum DevCommand {
 
 pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
     match cmd {
-        DevCommand::Synth { episodes, steps, seed, policy, checkpoint, max_file_bytes, success_rate, run, steering, run_artifact } => {
+        DevCommand::Synth {
+            episodes,
+            steps,
+            seed,
+            policy,
+            checkpoint,
+            max_file_bytes,
+            success_rate,
+            run,
+            steering,
+            run_artifact,
+        } => {
             let store = args.open().await?;
-            let run = super::serve_cmds::run_input(run.as_deref(), steering.as_deref(), run_artifact.as_deref(), &[])?;
+            let run = super::serve_cmds::run_input(
+                run.as_deref(),
+                steering.as_deref(),
+                run_artifact.as_deref(),
+                &[],
+            )?;
             let mut key = format!("synth:{seed}:{episodes}:{steps}:{policy}:{checkpoint}");
             if let Some(r) = &run {
                 key.push_str(&format!(":{}:{success_rate}", r.id()));
@@ -81,7 +97,9 @@ pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
                     timestamps: (0..steps).map(|t| t as f64 * 0.1).collect(),
                     observations: vec![VectorColumn { name: "pos".into(), dim: 3, values: obs }],
                     action: VectorColumn { name: "action".into(), dim: 2, values: act },
-                    reward: (0..steps).map(|t| if t + 1 == steps && label == Label::Success { 1.0 } else { 0.0 }).collect(),
+                    reward: (0..steps)
+                        .map(|t| if t + 1 == steps && label == Label::Success { 1.0 } else { 0.0 })
+                        .collect(),
                     done: (0..steps).map(|t| t + 1 == steps).collect(),
                     action_chunk: None,
                     images: vec![],
@@ -105,16 +123,29 @@ async fn verify(args: &StoreArgs) -> Result<()> {
     let mut checked = 0usize;
     for (i, v) in versions.iter().enumerate() {
         if v.version != i as i64 + 1 {
-            problems.push(format!("version numbers are not dense: found {} at position {}", v.version, i + 1));
+            problems.push(format!(
+                "version numbers are not dense: found {} at position {}",
+                v.version,
+                i + 1
+            ));
         }
-        let eps = store.episodes(&store::EpisodeFilter { version: Some(v.version), ..Default::default() }).await?;
+        let eps =
+            store.episodes(&store::EpisodeFilter { version: Some(v.version), ..Default::default() }).await?;
         if eps.len() as i64 != v.episode_count {
-            problems.push(format!("version {} lists {} episodes, recorded {}", v.version, eps.len(), v.episode_count));
+            problems.push(format!(
+                "version {} lists {} episodes, recorded {}",
+                v.version,
+                eps.len(),
+                v.episode_count
+            ));
         }
         let labels = store.get_object(&v.labels_path).await;
         match labels.map(|b| parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(b)) {
             Ok(Ok(b)) if b.metadata().file_metadata().num_rows() == v.episode_count => {}
-            _ => problems.push(format!("version {}: label snapshot {} unreadable or wrong size", v.version, v.labels_path)),
+            _ => problems.push(format!(
+                "version {}: label snapshot {} unreadable or wrong size",
+                v.version, v.labels_path
+            )),
         }
         // Every episode of the version, read in one pass grouped by steps file.
         let mut locations = Vec::with_capacity(eps.len());
@@ -125,7 +156,8 @@ async fn verify(args: &StoreArgs) -> Result<()> {
             }
         }
         let mut read = vec![false; locations.len()];
-        let by_id: std::collections::HashMap<&str, &store::EpisodeRecord> = eps.iter().map(|e| (e.id.as_str(), e)).collect();
+        let by_id: std::collections::HashMap<&str, &store::EpisodeRecord> =
+            eps.iter().map(|e| (e.id.as_str(), e)).collect();
         let mut steps = store.read_episodes(locations.clone());
         while let Some(item) = steps.next().await {
             match item {
@@ -133,23 +165,35 @@ async fn verify(args: &StoreArgs) -> Result<()> {
                     read[got.index] = true;
                     let e = by_id[locations[got.index].episode_id.as_str()];
                     let batch = got.steps;
-                    let ids = batch.column_by_name("episode_id").and_then(|c| c.as_any().downcast_ref::<StringArray>().cloned());
+                    let ids = batch
+                        .column_by_name("episode_id")
+                        .and_then(|c| c.as_any().downcast_ref::<StringArray>().cloned());
                     let ok_ids = ids.is_some_and(|a| (0..a.len()).all(|k| a.value(k) == e.id));
                     if batch.num_rows() as i64 != e.length || !ok_ids {
-                        problems.push(format!("episode {} in version {}: {} rows, expected {}", e.id, v.version, batch.num_rows(), e.length));
+                        problems.push(format!(
+                            "episode {} in version {}: {} rows, expected {}",
+                            e.id,
+                            v.version,
+                            batch.num_rows(),
+                            e.length
+                        ));
                     }
                 }
                 Err(err) => {
                     for &i in &err.indexes {
                         read[i] = true;
-                        problems.push(format!("episode {} in version {}: {}", locations[i].episode_id, v.version, err.error));
+                        problems.push(format!(
+                            "episode {} in version {}: {}",
+                            locations[i].episode_id, v.version, err.error
+                        ));
                     }
                 }
             }
         }
         for (i, done) in read.iter().enumerate() {
             if !done {
-                problems.push(format!("episode {} in version {}: not read", locations[i].episode_id, v.version));
+                problems
+                    .push(format!("episode {} in version {}: not read", locations[i].episode_id, v.version));
             }
         }
         checked += eps.len();

@@ -84,7 +84,8 @@ impl StoreScorer {
         let rec = store.resolve_artifact(reference).await?;
         let tmp = tempfile::tempdir()?;
         store.download_artifact(&rec.id, tmp.path()).await?;
-        let verifier = verifier::Verifier::load_dir(tmp.path()).with_context(|| format!("loading artifact {}", rec.id))?;
+        let verifier = verifier::Verifier::load_dir(tmp.path())
+            .with_context(|| format!("loading artifact {}", rec.id))?;
         Ok(StoreScorer { verifier, artifact: rec.id })
     }
 }
@@ -102,9 +103,11 @@ fn progress_bar(show: bool, len: usize, what: &str) -> Option<indicatif::Progres
     (show && std::io::stderr().is_terminal()).then(|| {
         let b = indicatif::ProgressBar::new(len as u64);
         b.set_style(
-            indicatif::ProgressStyle::with_template(&format!("{{spinner}} [{{elapsed_precise}}] [{{bar:30}}] {{pos}}/{{len}} {what}"))
-                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
-                .progress_chars("=> "),
+            indicatif::ProgressStyle::with_template(&format!(
+                "{{spinner}} [{{elapsed_precise}}] [{{bar:30}}] {{pos}}/{{len}} {what}"
+            ))
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
         );
         b
     })
@@ -125,7 +128,11 @@ pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
         Some(r) => Some(StoreScorer::load(&store, r).await?),
         None => None,
     };
-    let range = scorer.as_ref().map(|s| ::export::ScoreRange { artifact: s.artifact.clone(), min: a.min_score, max: a.max_score });
+    let range = scorer.as_ref().map(|s| ::export::ScoreRange {
+        artifact: s.artifact.clone(),
+        min: a.min_score,
+        max: a.max_score,
+    });
     let mut selected = ::export::select(&store, &a.select.selection(range)?).await?;
     if let Some(s) = &scorer {
         let bar = progress_bar(!a.json, selected.episodes.len(), "episodes scored");
@@ -154,7 +161,11 @@ pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
         return print_json(&v);
     }
     if let Some(n) = selected.scored {
-        println!("scored {n} episodes with {}: {} in range", scorer.as_ref().map(|s| s.artifact.as_str()).unwrap_or_default(), report.episodes);
+        println!(
+            "scored {n} episodes with {}: {} in range",
+            scorer.as_ref().map(|s| s.artifact.as_str()).unwrap_or_default(),
+            report.episodes
+        );
     }
     println!(
         "exported {} episodes, {} frames of version {} as {} to {} ({:.1} MB) — labels: {} success, {} failure, {} unknown",
@@ -207,12 +218,16 @@ pub async fn rank(args: &StoreArgs, a: RankArgs) -> Result<()> {
     if a.json {
         let out: Vec<serde_json::Value> = rows
             .iter()
-            .map(|(e, s)| serde_json::json!({
-                "episode_id": e.id, "score": s, "label": e.label.as_str(), "policy": e.policy,
-                "checkpoint": e.checkpoint, "source_name": e.source_name, "source_index": e.source_index,
-            }))
+            .map(|(e, s)| {
+                serde_json::json!({
+                    "episode_id": e.id, "score": s, "label": e.label.as_str(), "policy": e.policy,
+                    "checkpoint": e.checkpoint, "source_name": e.source_name, "source_index": e.source_index,
+                })
+            })
             .collect();
-        return print_json(&serde_json::json!({ "artifact": v.artifact, "version": selected.version, "episodes": out }));
+        return print_json(
+            &serde_json::json!({ "artifact": v.artifact, "version": selected.version, "episodes": out }),
+        );
     }
     println!("{:<40} {:>8}  {:<8} source", "episode", "score", "label");
     for (e, s) in rows {

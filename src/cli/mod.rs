@@ -7,15 +7,19 @@ mod review_cmds;
 mod run_cmds;
 mod scoreboard_cmd;
 mod serve_cmds;
-mod view_cmd;
 mod store_cmds;
+mod view_cmd;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 
 #[derive(Parser, Debug)]
-#[command(name = "ufops", version, about = "Update-free on-policy steering: rollouts store, verifiers, steering")]
+#[command(
+    name = "ufops",
+    version,
+    about = "Update-free on-policy steering: rollouts store, verifiers, steering"
+)]
 pub struct Cli {
     #[command(flatten)]
     pub store: StoreArgs,
@@ -194,10 +198,14 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Label(a) => store_cmds::label(&cli.store, a).await,
         Command::History { episode, json } => store_cmds::history(&cli.store, &episode, json).await,
         Command::Snapshot { message, actor } => store_cmds::snapshot(&cli.store, &message, &actor).await,
-        Command::Gc { grace_seconds, dry_run, json } => store_cmds::gc(&cli.store, grace_seconds, dry_run, json).await,
+        Command::Gc { grace_seconds, dry_run, json } => {
+            store_cmds::gc(&cli.store, grace_seconds, dry_run, json).await
+        }
         Command::Split { command } => catalog_cmds::split(&cli.store, command).await,
         Command::Artifacts(a) => catalog_cmds::artifacts(&cli.store, a).await,
-        Command::Layers { episode, version, json } => catalog_cmds::layers(&cli.store, episode, version, json).await,
+        Command::Layers { episode, version, json } => {
+            catalog_cmds::layers(&cli.store, episode, version, json).await
+        }
         Command::Token { command } => catalog_cmds::token(&cli.store, command).await,
         Command::Ingest(a) => serve_cmds::ingest(&cli.store, a).await,
         Command::Export(a) => export_cmd::export(&cli.store, a).await,
@@ -205,7 +213,8 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Review { command } => review_cmds::review(&cli.store, command).await,
         Command::Serve(a) => serve_cmds::serve(&cli.store, a).await,
         Command::Openapi { write } => match write {
-            Some(path) => std::fs::write(&path, api::openapi_json()).with_context(|| format!("write {}", path.display())),
+            Some(path) => std::fs::write(&path, api::openapi_json())
+                .with_context(|| format!("write {}", path.display())),
             None => {
                 print!("{}", api::openapi_json());
                 Ok(())

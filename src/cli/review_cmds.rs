@@ -85,12 +85,17 @@ pub async fn review(args: &StoreArgs, command: ReviewCommand) -> Result<()> {
                 .artifact_to_score(&policy, checkpoint.as_deref(), artifact.as_deref())
                 .await?
                 .with_context(|| match &checkpoint {
-                    Some(c) => format!("no review artifact for {policy}/{c}: give --artifact or alias a classifier@latest"),
-                    None => format!("{policy} has no review artifact setting: give --artifact or --checkpoint"),
+                    Some(c) => format!(
+                        "no review artifact for {policy}/{c}: give --artifact or alias a classifier@latest"
+                    ),
+                    None => {
+                        format!("{policy} has no review artifact setting: give --artifact or --checkpoint")
+                    }
                 })?;
             let scorer = super::export_cmd::StoreScorer::load(&store, &artifact_id).await?;
             let spec = ::export::score_job::ScoreJobSpec { artifact_id, policy, checkpoint };
-            let r = ::export::score_job::run_score_job(&store, None, &spec, &scorer, &|_| {}, &|| false).await?;
+            let r =
+                ::export::score_job::run_score_job(&store, None, &spec, &scorer, &|_| {}, &|| false).await?;
             if json {
                 return print_json(&r);
             }
@@ -135,7 +140,12 @@ pub async fn review(args: &StoreArgs, command: ReviewCommand) -> Result<()> {
             if json {
                 return print_json(&c);
             }
-            println!("{}: {} verdict(s) per episode, {}", c.policy, c.labels_needed, if c.blind { "blind" } else { "not blind" });
+            println!(
+                "{}: {} verdict(s) per episode, {}",
+                c.policy,
+                c.labels_needed,
+                if c.blind { "blind" } else { "not blind" }
+            );
             Ok(())
         }
         ReviewCommand::Agreement { policy, json } => {
@@ -148,7 +158,14 @@ pub async fn review(args: &StoreArgs, command: ReviewCommand) -> Result<()> {
                 a.policy, a.episodes_voted, a.agreed, a.disputed, a.settled, a.pending, or_dash(a.krippendorff_alpha)
             );
             for p in &a.pairs {
-                println!("  {} / {}: {} common episodes, observed {}, kappa {}", p.a, p.b, p.episodes, or_dash(p.observed), or_dash(p.kappa));
+                println!(
+                    "  {} / {}: {} common episodes, observed {}, kappa {}",
+                    p.a,
+                    p.b,
+                    p.episodes,
+                    or_dash(p.observed),
+                    or_dash(p.kappa)
+                );
             }
             Ok(())
         }

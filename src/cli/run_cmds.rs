@@ -73,7 +73,10 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
         c.action_space = match &a.action_scale {
             Some(scale) => {
                 let offset = a.action_offset.clone().unwrap_or_else(|| vec![0.0; scale.len()]);
-                anyhow::ensure!(offset.len() == scale.len(), "--action-offset needs one value per --action-scale value");
+                anyhow::ensure!(
+                    offset.len() == scale.len(),
+                    "--action-offset needs one value per --action-scale value"
+                );
                 trainer::ActionSpace::policy(scale.clone(), offset)
             }
             None => trainer::ActionSpace::Standardized,
@@ -94,7 +97,10 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
     let job = store.create_job("train", &serde_json::to_value(&spec)?, &a.actor).await?;
     let worker = api::worker_identity("cli");
     let claimed = store.claim_job(&worker, 3_600_000).await?;
-    anyhow::ensure!(claimed.as_ref().map(|j| j.id.as_str()) == Some(job.id.as_str()), "another queued job was claimed first; run `ufops worker`");
+    anyhow::ensure!(
+        claimed.as_ref().map(|j| j.id.as_str()) == Some(job.id.as_str()),
+        "another queued job was claimed first; run `ufops worker`"
+    );
     let attempt = claimed.map(|j| j.attempts).unwrap_or(1);
     let pb = if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
         let pb = ProgressBar::new(1);
@@ -118,11 +124,20 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
     pb.finish_and_clear();
     match result {
         Ok(rec) => {
-            store.finish_job(&job.id, &worker, attempt, Ok(serde_json::json!({ "artifact": rec.id }))).await?;
+            store
+                .finish_job(&job.id, &worker, attempt, Ok(serde_json::json!({ "artifact": rec.id })))
+                .await?;
             if a.json {
                 return print_json(&rec);
             }
-            println!("artifact {} ({} for {}/{}), aliases [{}]", rec.id, rec.kind, rec.policy, rec.checkpoint, rec.aliases.join(", "));
+            println!(
+                "artifact {} ({} for {}/{}), aliases [{}]",
+                rec.id,
+                rec.kind,
+                rec.policy,
+                rec.checkpoint,
+                rec.aliases.join(", ")
+            );
             println!("metrics: {}", rec.config["metrics"]["final"]);
             Ok(())
         }
@@ -143,7 +158,14 @@ pub struct ScoreOptions {
 
 /// Scores rows with an artifact through the verifier core: from `ufops serve` (`--api`), a
 /// directory, or the store (id or POLICY/CHECKPOINT/KIND@ALIAS).
-pub async fn score(args: &StoreArgs, artifact: &str, input: &PathBuf, api: Option<&str>, token: Option<&str>, opts: ScoreOptions) -> Result<()> {
+pub async fn score(
+    args: &StoreArgs,
+    artifact: &str,
+    input: &PathBuf,
+    api: Option<&str>,
+    token: Option<&str>,
+    opts: ScoreOptions,
+) -> Result<()> {
     let dir = PathBuf::from(artifact);
     let v = if let Some(base) = api {
         let token = token.context("--api needs a token: --token or UFOPS_TOKEN")?;
@@ -170,19 +192,32 @@ pub async fn score(args: &StoreArgs, artifact: &str, input: &PathBuf, api: Optio
     print_json(&out)
 }
 
-pub async fn demo(args: &StoreArgs, quick: bool, lambdas: Option<Vec<f32>>, ablation: Option<Vec<usize>>) -> Result<()> {
+pub async fn demo(
+    args: &StoreArgs,
+    quick: bool,
+    lambdas: Option<Vec<f32>>,
+    ablation: Option<Vec<usize>>,
+) -> Result<()> {
     let store = args.open().await?;
     let out = args.data_dir.join("demo");
     let mut cfg = if quick { demo::DemoConfig::quick(&out) } else { demo::DemoConfig::full(&out) };
     if let Some(l) = lambdas {
-        anyhow::ensure!(!l.is_empty() && l.iter().all(|x| x.is_finite() && *x >= 0.0), "--lambdas: finite values >= 0");
+        anyhow::ensure!(
+            !l.is_empty() && l.iter().all(|x| x.is_finite() && *x >= 0.0),
+            "--lambdas: finite values >= 0"
+        );
         cfg.lambdas = l;
     }
     if let Some(a) = ablation {
         anyhow::ensure!(a.iter().all(|&s| s > 0), "--ablation-sizes: sizes of at least 1");
         cfg.ablation_sizes = a;
     }
-    eprintln!("ufops demo{}: {} rollouts per row, store {}", if quick { " --quick" } else { "" }, cfg.episodes, store.describe());
+    eprintln!(
+        "ufops demo{}: {} rollouts per row, store {}",
+        if quick { " --quick" } else { "" },
+        cfg.episodes,
+        store.describe()
+    );
     let report = demo::run(&store, &cfg).await?;
     println!("{}", report.markdown());
     println!(

@@ -65,7 +65,9 @@ pub async fn scoreboard(args: &StoreArgs, a: ScoreboardArgs) -> Result<()> {
                     r.checkpoint,
                     r.task.as_deref().unwrap_or("-"),
                     r.run_name,
-                    run.filter(|x| !x.tags.is_empty()).map(|x| format!(" ({})", x.tags.join(", "))).unwrap_or_default(),
+                    run.filter(|x| !x.tags.is_empty())
+                        .map(|x| format!(" ({})", x.tags.join(", ")))
+                        .unwrap_or_default(),
                     run.map(|x| x.steering.to_string()).unwrap_or_else(|| "-".into()),
                     run.and_then(|x| x.artifact_id.as_deref()).unwrap_or("-"),
                     r.successes,
@@ -77,7 +79,9 @@ pub async fn scoreboard(args: &StoreArgs, a: ScoreboardArgs) -> Result<()> {
                     b.map(|b| format!("{:+.1} pp", 100.0 * b.diff)).unwrap_or_else(|| "-".into()),
                     b.map(|b| format!("[{:+.1}, {:+.1}]", 100.0 * b.newcombe_95.0, 100.0 * b.newcombe_95.1))
                         .unwrap_or_else(|| "-".into()),
-                    b.and_then(|b| b.rollouts_to_separate).map(|n| n.to_string()).unwrap_or_else(|| "-".into()),
+                    b.and_then(|b| b.rollouts_to_separate)
+                        .map(|n| n.to_string())
+                        .unwrap_or_else(|| "-".into()),
                     b.map(|b| b.unlabeled_to_flip.map(|n| n.to_string()).unwrap_or_else(|| "none".into()))
                         .unwrap_or_else(|| "-".into()),
                 );

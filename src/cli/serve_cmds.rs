@@ -93,7 +93,12 @@ pub async fn ingest(args: &StoreArgs, a: IngestArgs) -> Result<()> {
         return super::print_json(&r);
     }
     if r.already_ingested {
-        println!("{} is already in the store (version {}, sha256 {}): nothing to do", a.path.display(), r.version, r.sha256);
+        println!(
+            "{} is already in the store (version {}, sha256 {}): nothing to do",
+            a.path.display(),
+            r.version,
+            r.sha256
+        );
     } else {
         println!(
             "version {}: {} episodes, {} steps from {} ({}, {:.1} MB) — labels: {} success, {} failure, {} unknown",
@@ -154,7 +159,9 @@ impl api::JobRunner for Runner {
                     let r = trainer::run_train_job(store, &spec, Some(&job.id), observer, Some(cancel)).await;
                     watcher.abort();
                     let rec = r.map_err(|e| format!("{e:#}"))?;
-                    Ok(serde_json::json!({ "artifact_id": rec.id, "metrics": rec.config["metrics"]["final"] }))
+                    Ok(
+                        serde_json::json!({ "artifact_id": rec.id, "metrics": rec.config["metrics"]["final"] }),
+                    )
                 }
                 "ingest" => {
                     let s = &job.spec;
@@ -164,7 +171,10 @@ impl api::JobRunner for Runner {
                         policy: field("policy").ok_or("ingest job has no policy")?,
                         checkpoint: field("checkpoint").ok_or("ingest job has no checkpoint")?,
                         task: field("task"),
-                        format: field("format").unwrap_or_else(|| "auto".into()).parse().map_err(|e| format!("{e}"))?,
+                        format: field("format")
+                            .unwrap_or_else(|| "auto".into())
+                            .parse()
+                            .map_err(|e| format!("{e}"))?,
                         success_file: None,
                         success_from_rewards: s.get("reward_threshold").and_then(|v| v.as_f64()),
                         mapping: None,
@@ -177,37 +187,55 @@ impl api::JobRunner for Runner {
                                 .and_then(|v| v.as_array())
                                 .map(|a| a.iter().filter_map(|t| t.as_str().map(String::from)).collect())
                                 .unwrap_or_default();
-                            let (run, steering, artifact) = (field("run"), field("steering"), field("run_artifact"));
-                            run_input(run.as_deref(), steering.as_deref(), artifact.as_deref(), &tags).map_err(|e| format!("{e:#}"))?
+                            let (run, steering, artifact) =
+                                (field("run"), field("steering"), field("run_artifact"));
+                            run_input(run.as_deref(), steering.as_deref(), artifact.as_deref(), &tags)
+                                .map_err(|e| format!("{e:#}"))?
                         },
                     };
-                    let r = ingest::ingest(store, std::path::Path::new(&path), &opts).await.map_err(|e| format!("{e:#}"))?;
+                    let r = ingest::ingest(store, std::path::Path::new(&path), &opts)
+                        .await
+                        .map_err(|e| format!("{e:#}"))?;
                     serde_json::to_value(&r).map_err(|e| e.to_string())
                 }
                 "export" => {
-                    let spec: ::export::job::ExportJobSpec =
-                        serde_json::from_value(job.spec.clone()).map_err(|e| format!("bad export job spec: {e}"))?;
+                    let spec: ::export::job::ExportJobSpec = serde_json::from_value(job.spec.clone())
+                        .map_err(|e| format!("bad export job spec: {e}"))?;
                     let scorer = match &spec.selection.score {
-                        Some(r) => Some(super::export_cmd::StoreScorer::load(store, &r.artifact).await.map_err(|e| format!("{e:#}"))?),
+                        Some(r) => Some(
+                            super::export_cmd::StoreScorer::load(store, &r.artifact)
+                                .await
+                                .map_err(|e| format!("{e:#}"))?,
+                        ),
                         None => None,
                     };
                     let progress = |v: serde_json::Value| ctx.progress(v);
                     let cancelled = || ctx.is_cancelled();
                     let scorer = scorer.as_ref().map(|s| s as &dyn ::export::StepScorer);
-                    let r = ::export::job::run_export_job(store, &job.id, &spec, scorer, &progress, &cancelled)
-                        .await
-                        .map_err(|e| e.to_string())?;
+                    let r =
+                        ::export::job::run_export_job(store, &job.id, &spec, scorer, &progress, &cancelled)
+                            .await
+                            .map_err(|e| e.to_string())?;
                     serde_json::to_value(&r).map_err(|e| e.to_string())
                 }
                 "score" => {
-                    let spec: ::export::score_job::ScoreJobSpec =
-                        serde_json::from_value(job.spec.clone()).map_err(|e| format!("bad score job spec: {e}"))?;
-                    let scorer = super::export_cmd::StoreScorer::load(store, &spec.artifact_id).await.map_err(|e| format!("{e:#}"))?;
+                    let spec: ::export::score_job::ScoreJobSpec = serde_json::from_value(job.spec.clone())
+                        .map_err(|e| format!("bad score job spec: {e}"))?;
+                    let scorer = super::export_cmd::StoreScorer::load(store, &spec.artifact_id)
+                        .await
+                        .map_err(|e| format!("{e:#}"))?;
                     let progress = |v: serde_json::Value| ctx.progress(v);
                     let cancelled = || ctx.is_cancelled();
-                    let r = ::export::score_job::run_score_job(store, Some(&job.id), &spec, &scorer, &progress, &cancelled)
-                        .await
-                        .map_err(|e| e.to_string())?;
+                    let r = ::export::score_job::run_score_job(
+                        store,
+                        Some(&job.id),
+                        &spec,
+                        &scorer,
+                        &progress,
+                        &cancelled,
+                    )
+                    .await
+                    .map_err(|e| e.to_string())?;
                     serde_json::to_value(&r).map_err(|e| e.to_string())
                 }
                 other => Err(format!("unknown job kind {other:?}")),

@@ -16,7 +16,10 @@ pub async fn versions(args: &StoreArgs, json: bool) -> Result<()> {
     if json {
         return print_json(&versions);
     }
-    println!("{:>7}  {:<15} {:>8} {:>6} {:>8}  {:<24} message", "version", "kind", "episodes", "added", "relabel", "created");
+    println!(
+        "{:>7}  {:<15} {:>8} {:>6} {:>8}  {:<24} message",
+        "version", "kind", "episodes", "added", "relabel", "created"
+    );
     for v in versions {
         println!(
             "{:>7}  {:<15} {:>8} {:>6} {:>8}  {:<24} {}",
@@ -70,7 +73,10 @@ pub async fn episodes(args: &StoreArgs, a: EpisodesArgs) -> Result<()> {
     if a.json {
         return print_json(&eps);
     }
-    println!("{:<20} {:<28} {:>6}  {:<8} {:>3}  {:<24} task", "id", "policy/checkpoint", "steps", "label", "rev", "label source");
+    println!(
+        "{:<20} {:<28} {:>6}  {:<8} {:>3}  {:<24} task",
+        "id", "policy/checkpoint", "steps", "label", "rev", "label source"
+    );
     for e in &eps {
         println!(
             "{:<20} {:<28} {:>6}  {:<8} {:>3}  {:<24} {}",
@@ -115,7 +121,12 @@ pub async fn label(args: &StoreArgs, a: LabelArgs) -> Result<()> {
     let label: Label = a.label.parse()?;
     let change = store
         .set_label(
-            LabelUpdate { episode_id: a.episode.clone(), label, expect_revision: a.expect_revision, note: a.note },
+            LabelUpdate {
+                episode_id: a.episode.clone(),
+                label,
+                expect_revision: a.expect_revision,
+                note: a.note,
+            },
             &a.actor,
             "human",
         )
@@ -123,7 +134,10 @@ pub async fn label(args: &StoreArgs, a: LabelArgs) -> Result<()> {
     if a.json {
         return print_json(&change);
     }
-    println!("{}: {} -> {} (revision {})", change.episode_id, change.old_label, change.label, change.revision);
+    println!(
+        "{}: {} -> {} (revision {})",
+        change.episode_id, change.old_label, change.label, change.revision
+    );
     Ok(())
 }
 
@@ -150,7 +164,8 @@ pub async fn history(args: &StoreArgs, episode: &str, json: bool) -> Result<()> 
 
 pub async fn snapshot(args: &StoreArgs, message: &str, actor: &str) -> Result<()> {
     let store = args.open().await?;
-    let (c, created) = store.snapshot_labels_if_changed(actor, message).await.context("label snapshot failed")?;
+    let (c, created) =
+        store.snapshot_labels_if_changed(actor, message).await.context("label snapshot failed")?;
     if created {
         println!("version {}: labels of {} episodes frozen", c.version, c.episodes);
     } else {

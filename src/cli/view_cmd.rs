@@ -50,8 +50,13 @@ pub async fn view(args: &StoreArgs, a: ViewArgs) -> Result<()> {
         Some(r) => Some(viewer::VerifierScorer(load_verifier(&store, r).await?)),
         None => None,
     };
-    let report =
-        viewer::write_recording(&store, &opts, scorer.as_ref().map(|s| s as &dyn viewer::EpisodeScorer), &a.out).await?;
+    let report = viewer::write_recording(
+        &store,
+        &opts,
+        scorer.as_ref().map(|s| s as &dyn viewer::EpisodeScorer),
+        &a.out,
+    )
+    .await?;
     println!(
         "{}: {} episodes ({} success, {} failure, {} unknown), {} steps",
         a.out.display(),
@@ -62,7 +67,10 @@ pub async fn view(args: &StoreArgs, a: ViewArgs) -> Result<()> {
         report.steps
     );
     if let (Some(s), Some(f)) = (report.mean_score_success, report.mean_score_failure) {
-        println!("mean verifier score: successes {s:.3}, failures {f:.3}; largest gap at {:?}", report.max_separation);
+        println!(
+            "mean verifier score: successes {s:.3}, failures {f:.3}; largest gap at {:?}",
+            report.max_separation
+        );
     }
     Ok(())
 }

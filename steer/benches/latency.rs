@@ -26,7 +26,8 @@ fn measure(iters: usize, mut f: impl FnMut()) -> (f64, f64) {
 }
 
 fn torch_peer() -> Option<(f64, f64, f64, f64)> {
-    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../bench/reference/torch_bon_latency.py");
+    let script =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../bench/reference/torch_bon_latency.py");
     if !script.exists() {
         return None;
     }
@@ -71,7 +72,8 @@ fn main() {
     let bon_ref = measure(nr, || sink += select_best(&reference.score(&obs, &cands, 7).unwrap()));
     let cg_ref = measure(nr, || sink += reference.grad(&obs, &chunk, 7).unwrap().len());
     std::hint::black_box(sink);
-    let row = |name: &str, (p50, p99): (f64, f64)| println!("  {name:<28} p50 {p50:>9.1} us   p99 {p99:>9.1} us");
+    let row =
+        |name: &str, (p50, p99): (f64, f64)| println!("  {name:<28} p50 {p50:>9.1} us   p99 {p99:>9.1} us");
     row("BoN(10) score, fast", bon_fast);
     row("BoN(10) score, portable", bon_ref);
     row("CG gradient, fast", cg_fast);

@@ -40,9 +40,13 @@ fn is_plain(s: &str) -> bool {
 fn record_path(reference: &str) -> Result<String> {
     let parts: Vec<&str> = reference.split('/').collect();
     match parts.as_slice() {
-        [policy, checkpoint, kind_at_alias] if [policy, checkpoint, kind_at_alias].iter().all(|p| is_plain(p)) => {
+        [policy, checkpoint, kind_at_alias]
+            if [policy, checkpoint, kind_at_alias].iter().all(|p| is_plain(p)) =>
+        {
             if !kind_at_alias.contains('@') {
-                return Err(SteerError::Input(format!("{reference:?}: expected POLICY/CHECKPOINT/KIND@ALIAS")));
+                return Err(SteerError::Input(format!(
+                    "{reference:?}: expected POLICY/CHECKPOINT/KIND@ALIAS"
+                )));
             }
             Ok(format!("/v1/policies/{policy}/checkpoints/{checkpoint}/verifiers/{kind_at_alias}"))
         }
@@ -102,7 +106,8 @@ impl FetchedArtifact {
 
     /// The verifier, loaded through the core from the fetched (and re-checked) files.
     pub fn verifier(&self) -> Result<Verifier> {
-        let manifest = self.file(MANIFEST_FILE).ok_or_else(|| SteerError::Http("no manifest.json fetched".into()))?;
+        let manifest =
+            self.file(MANIFEST_FILE).ok_or_else(|| SteerError::Http("no manifest.json fetched".into()))?;
         let v = Verifier::load_with(manifest, |name| {
             self.file(name)
                 .map(<[u8]>::to_vec)
@@ -113,7 +118,10 @@ impl FetchedArtifact {
 
     /// Writes the files into `dir` (an artifact directory [`Verifier::load_dir`] reads).
     pub fn write_to(&self, dir: &std::path::Path) -> Result<()> {
-        let io = |p: &std::path::Path, e: std::io::Error| VerifierError::Io { path: p.display().to_string(), source: e };
+        let io = |p: &std::path::Path, e: std::io::Error| VerifierError::Io {
+            path: p.display().to_string(),
+            source: e,
+        };
         std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
         for (name, bytes) in &self.files {
             let p = dir.join(name);

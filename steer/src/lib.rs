@@ -20,8 +20,8 @@ pub mod schedule;
 pub use error::{Result, SteerError};
 pub use policy::{ActionAffine, NoisePredictor, VelocityField};
 pub use sample::{
-    best_of_n, best_of_n_raw, ddpm_sample, ddpm_sample_guided, flow_sample, flow_sample_guided, select_best, BestOfN,
-    Guidance,
+    best_of_n, best_of_n_raw, ddpm_sample, ddpm_sample_guided, flow_sample, flow_sample_guided, select_best,
+    BestOfN, Guidance,
 };
 pub use schedule::DdpmSchedule;
 pub use verifier;

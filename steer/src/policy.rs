@@ -27,10 +27,16 @@ impl ActionAffine {
             )));
         }
         if !act_dim.is_multiple_of(d) {
-            return Err(SteerError::Input(format!("chunk of {act_dim} values is not whole actions of {d} dimensions")));
+            return Err(SteerError::Input(format!(
+                "chunk of {act_dim} values is not whole actions of {d} dimensions"
+            )));
         }
-        if self.scale.iter().any(|s| !s.is_finite() || *s == 0.0) || self.offset.iter().any(|o| !o.is_finite()) {
-            return Err(SteerError::Input("action affine scales must be finite and non-zero, offsets finite".into()));
+        if self.scale.iter().any(|s| !s.is_finite() || *s == 0.0)
+            || self.offset.iter().any(|o| !o.is_finite())
+        {
+            return Err(SteerError::Input(
+                "action affine scales must be finite and non-zero, offsets finite".into(),
+            ));
         }
         Ok(())
     }

@@ -65,7 +65,11 @@ fn guide_x0(g: &Guidance, aff: &Option<ActionAffine>, x0: &mut [f32]) -> Result<
         _ => g.scorer.grad_batch(g.obs, g.t, x0)?,
     };
     if grad.len() != x0.len() {
-        return Err(SteerError::Model(format!("scorer returned {} gradient values, expected {}", grad.len(), x0.len())));
+        return Err(SteerError::Model(format!(
+            "scorer returned {} gradient values, expected {}",
+            grad.len(),
+            x0.len()
+        )));
     }
     for (x, gr) in x0.iter_mut().zip(grad) {
         *x += g.lambda * gr;
@@ -83,7 +87,11 @@ fn clip(x: &mut [f32], c: Option<f32>) {
 
 /// Unguided DDPM sampling: one chunk per observation row (`B = obs.len() / obs_dim`). Returns
 /// `B * act_dim` raw chunks.
-pub fn ddpm_sample<P: NoisePredictor + ?Sized, R: Rng + ?Sized>(policy: &P, obs: &[f32], rng: &mut R) -> Result<Vec<f32>> {
+pub fn ddpm_sample<P: NoisePredictor + ?Sized, R: Rng + ?Sized>(
+    policy: &P,
+    obs: &[f32],
+    rng: &mut R,
+) -> Result<Vec<f32>> {
     ddpm_impl(policy, obs, None, rng)
 }
 
@@ -120,7 +128,10 @@ fn ddpm_impl<P: NoisePredictor + ?Sized, R: Rng + ?Sized>(
         let z = if k > 1 { randn(rng, n) } else { vec![0.0; n] };
         let eps = policy.predict_noise(obs, &x, k - 1)?;
         if eps.len() != n {
-            return Err(SteerError::Model(format!("noise predictor returned {} values, expected {n}", eps.len())));
+            return Err(SteerError::Model(format!(
+                "noise predictor returned {} values, expected {n}",
+                eps.len()
+            )));
         }
         let ab = sched.alpha_bar(k);
         let (sa, s1a) = (ab.sqrt() as f32, (1.0 - ab).sqrt() as f32);
@@ -150,7 +161,11 @@ fn ddpm_impl<P: NoisePredictor + ?Sized, R: Rng + ?Sized>(
 }
 
 /// Unguided flow sampling: Euler from t = 1 (noise) to t = 0 (data).
-pub fn flow_sample<P: VelocityField + ?Sized, R: Rng + ?Sized>(policy: &P, obs: &[f32], rng: &mut R) -> Result<Vec<f32>> {
+pub fn flow_sample<P: VelocityField + ?Sized, R: Rng + ?Sized>(
+    policy: &P,
+    obs: &[f32],
+    rng: &mut R,
+) -> Result<Vec<f32>> {
     flow_impl(policy, obs, None, rng)
 }
 
@@ -188,7 +203,10 @@ fn flow_impl<P: VelocityField + ?Sized, R: Rng + ?Sized>(
         let t = 1.0 - i as f32 * dt;
         let mut v = policy.velocity(obs, &x, t)?;
         if v.len() != n {
-            return Err(SteerError::Model(format!("velocity field returned {} values, expected {n}", v.len())));
+            return Err(SteerError::Model(format!(
+                "velocity field returned {} values, expected {n}",
+                v.len()
+            )));
         }
         if let (Some(g), true) = (guidance, i >= 1) {
             let x0: Vec<f32> = x.iter().zip(&v).map(|(a, v)| a - t * v).collect();
@@ -238,7 +256,13 @@ pub struct BestOfN {
 
 /// Best-of-N (Algorithm 1): score `n` candidates per group (`candidates` is `B * n * act_dim`,
 /// group-major, in the space the scorer takes) and keep the argmax of each group.
-pub fn best_of_n(scorer: &dyn Scorer, obs: &[f32], t: &[u32], candidates: &[f32], n: usize) -> Result<BestOfN> {
+pub fn best_of_n(
+    scorer: &dyn Scorer,
+    obs: &[f32],
+    t: &[u32],
+    candidates: &[f32],
+    n: usize,
+) -> Result<BestOfN> {
     check_n(n)?;
     let scores = scorer.score_batch(obs, t, candidates, n)?;
     pick(scorer.act_dim(), scores, t.len(), candidates, n)

@@ -29,9 +29,8 @@ impl DdpmSchedule {
 
     /// diffusers' `linear` schedule.
     pub fn linear(k: usize, beta_start: f64, beta_end: f64) -> Result<Self> {
-        let betas = (0..k)
-            .map(|i| beta_start + (beta_end - beta_start) * i as f64 / (k.max(2) - 1) as f64)
-            .collect();
+        let betas =
+            (0..k).map(|i| beta_start + (beta_end - beta_start) * i as f64 / (k.max(2) - 1) as f64).collect();
         Self::from_betas(betas)
     }
 

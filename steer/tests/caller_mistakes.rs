@@ -3,8 +3,8 @@
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use steer::{
-    best_of_n, best_of_n_raw, ddpm_sample, ddpm_sample_guided, flow_sample, ActionAffine, DdpmSchedule, Guidance,
-    NoisePredictor, Result, Scorer, VelocityField,
+    best_of_n, best_of_n_raw, ddpm_sample, ddpm_sample_guided, flow_sample, ActionAffine, DdpmSchedule,
+    Guidance, NoisePredictor, Result, Scorer, VelocityField,
 };
 
 /// Scores every chunk by its first value; the gradient has `grad_len` values per chunk.

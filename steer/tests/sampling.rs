@@ -1,8 +1,8 @@
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use steer::{
-    best_of_n, ddpm_sample, ddpm_sample_guided, flow_sample, flow_sample_guided, select_best, DdpmSchedule, Guidance,
-    NoisePredictor, Result, Scorer, VelocityField,
+    best_of_n, ddpm_sample, ddpm_sample_guided, flow_sample, flow_sample_guided, select_best, DdpmSchedule,
+    Guidance, NoisePredictor, Result, Scorer, VelocityField,
 };
 
 /// eps(s, a, k) = c[k] * a + 0.1 * s   (obs_dim = act_dim)
@@ -97,7 +97,12 @@ fn squaredcos_schedule_values() {
 /// Algorithm 2 with K = 2, hand-computed.
 #[test]
 fn ddpm_guidance_two_step_hand_computed() {
-    let p = LinEps { sched: DdpmSchedule::from_betas(vec![0.1, 0.5]).unwrap(), c: vec![0.25, 0.5], ad: 1, clip: None };
+    let p = LinEps {
+        sched: DdpmSchedule::from_betas(vec![0.1, 0.5]).unwrap(),
+        c: vec![0.25, 0.5],
+        ad: 1,
+        clip: None,
+    };
     let q = Quad { target: vec![2.0] };
     let obs = [0.3f32];
     let lam = 0.4f64;
@@ -106,7 +111,8 @@ fn ddpm_guidance_two_step_hand_computed() {
     let out = ddpm_sample_guided(&p, &obs, &g, &mut ChaCha8Rng::seed_from_u64(seed)).unwrap();
     // the same random draws: a_2, then z for k = 2 (none for k = 1)
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let draw = |r: &mut ChaCha8Rng| -> f64 { rand::Rng::sample::<f32, _>(r, rand_distr::StandardNormal) as f64 };
+    let draw =
+        |r: &mut ChaCha8Rng| -> f64 { rand::Rng::sample::<f32, _>(r, rand_distr::StandardNormal) as f64 };
     let a2 = draw(&mut rng);
     let z = draw(&mut rng);
     let s = 0.3f64;
@@ -130,7 +136,8 @@ fn flow_guidance_two_step_hand_computed() {
     let lam = 0.3f64;
     let g = Guidance { scorer: &q, obs: &[0.0], t: &[0], lambda: lam as f32 };
     let out = flow_sample_guided(&p, &[0.2], &g, &mut ChaCha8Rng::seed_from_u64(5)).unwrap();
-    let a1: f64 = rand::Rng::sample::<f32, _>(&mut ChaCha8Rng::seed_from_u64(5), rand_distr::StandardNormal) as f64;
+    let a1: f64 =
+        rand::Rng::sample::<f32, _>(&mut ChaCha8Rng::seed_from_u64(5), rand_distr::StandardNormal) as f64;
     // step 0 (t = 1): no guidance
     let x = a1 - 0.5 * (1.5 * a1 - 0.2);
     // step 1 (t = 0.5): x0 = x - 0.5 v, x0' = x0 + lam (1.5 - x0), v' = (x - x0') / 0.5, x -= 0.5 v'
@@ -197,12 +204,14 @@ fn best_of_n_picks_the_argmax() {
 #[test]
 fn ddpm_guidance_does_not_clip_after_the_gradient_step() {
     // K = 1: alpha_bar_0 = 1, so the posterior mean is x̂0 itself and there is no noise.
-    let p = LinEps { sched: DdpmSchedule::from_betas(vec![0.3]).unwrap(), c: vec![0.5], ad: 1, clip: Some(1.0) };
+    let p =
+        LinEps { sched: DdpmSchedule::from_betas(vec![0.3]).unwrap(), c: vec![0.5], ad: 1, clip: Some(1.0) };
     let q = Quad { target: vec![5.0] };
     let lam = 0.5f64;
     let g = Guidance { scorer: &q, obs: &[0.0], t: &[0], lambda: lam as f32 };
     let out = ddpm_sample_guided(&p, &[0.3], &g, &mut ChaCha8Rng::seed_from_u64(3)).unwrap();
-    let a1: f64 = rand::Rng::sample::<f32, _>(&mut ChaCha8Rng::seed_from_u64(3), rand_distr::StandardNormal) as f64;
+    let a1: f64 =
+        rand::Rng::sample::<f32, _>(&mut ChaCha8Rng::seed_from_u64(3), rand_distr::StandardNormal) as f64;
     let eps = 0.5 * a1 + 0.1 * 0.3;
     let x0 = ((a1 - 0.3f64.sqrt() * eps) / 0.7f64.sqrt()).clamp(-1.0, 1.0);
     let want = x0 + lam * (5.0 - x0);
@@ -250,9 +259,15 @@ fn guidance_takes_the_gradient_in_the_space_the_scorer_takes() {
             self.0.grad_batch(o, t, c)
         }
     }
-    let p = Affine(LinEps { sched: DdpmSchedule::from_betas(vec![0.3]).unwrap(), c: vec![0.5], ad: 1, clip: None });
+    let p = Affine(LinEps {
+        sched: DdpmSchedule::from_betas(vec![0.3]).unwrap(),
+        c: vec![0.5],
+        ad: 1,
+        clip: None,
+    });
     let lam = 0.1f64;
-    let a1: f64 = rand::Rng::sample::<f32, _>(&mut ChaCha8Rng::seed_from_u64(4), rand_distr::StandardNormal) as f64;
+    let a1: f64 =
+        rand::Rng::sample::<f32, _>(&mut ChaCha8Rng::seed_from_u64(4), rand_distr::StandardNormal) as f64;
     let x0 = (a1 - 0.3f64.sqrt() * (0.5 * a1 + 0.03)) / 0.7f64.sqrt();
     // Raw scorer, target 3 in raw units: d/dx log C(2x + 1) = 2 * (3 - (2 x0 + 1)).
     let raw = RawQuad(Quad { target: vec![3.0] });

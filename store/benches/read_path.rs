@@ -21,11 +21,10 @@
 mod seaweedfs;
 
 use arrow::array::RecordBatch;
-use store::*;
 use std::time::Instant;
+use store::*;
 
 use store::test_support::{square_rollout as rollout, SQUARE_ACTION as ACTION, SQUARE_OBS as OBS};
-
 
 /// A store of `n` rollouts and a split of all of them (made once, reused across runs).
 async fn make_store(config: &StoreConfig, n: u32) -> (Store, SplitRecord) {
@@ -90,8 +89,13 @@ async fn load_split(store: &Store, split: &SplitRecord) -> (usize, usize) {
 async fn split_files(store: &Store, split: &SplitRecord) -> Vec<(String, u64)> {
     let members = store.split_episodes(&split.id).await.unwrap();
     let ids: Vec<String> = members.iter().map(|m| m.episode_id.clone()).collect();
-    let mut files: Vec<String> =
-        store.locate_episodes(&ids, Some(split.version)).await.unwrap().into_iter().map(|l| l.data_file).collect();
+    let mut files: Vec<String> = store
+        .locate_episodes(&ids, Some(split.version))
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|l| l.data_file)
+        .collect();
     files.sort();
     files.dedup();
     let mut out = Vec::new();
@@ -229,7 +233,13 @@ async fn s3(n: u32, root: &std::path::Path) {
     let before = store.fetch_counts();
     let (t, shape) = timed(load_split(&store, &split)).await;
     let got = store.fetch_counts().since(before);
-    println!("  split: {} episodes, {} steps, {} steps files of {:.1} MB", shape.0, shape.1, files.len(), bytes as f64 / 1e6);
+    println!(
+        "  split: {} episodes, {} steps, {} steps files of {:.1} MB",
+        shape.0,
+        shape.1,
+        files.len(),
+        bytes as f64 / 1e6
+    );
     println!(
         "  load from S3: {t:.2} s, {} GET + {} HEAD requests, {:.1} MB fetched = {:.3}x the steps files (goal <= 1.2x)",
         got.get_requests,

@@ -129,7 +129,10 @@ impl Store {
         if !off_policy {
             upsert_alias(&mut tx, new.policy, new.checkpoint, new.kind, "latest", &id, &now).await?;
         }
-        sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(&publisher).execute(&mut *tx).await?;
+        sqlx::query("DELETE FROM pending_objects WHERE writer = $1")
+            .bind(&publisher)
+            .execute(&mut *tx)
+            .await?;
         tx.commit().await?;
         self.artifact(&id).await
     }

@@ -28,7 +28,11 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/sqlite/0001_store.sql")),
     (2, "splits_artifacts_jobs", include_str!("../../migrations/sqlite/0002_splits_artifacts_jobs.sql")),
     (3, "episode_row_ranges", include_str!("../../migrations/sqlite/0003_episode_row_ranges.sql")),
-    (4, "catalog_indexes_and_counts", include_str!("../../migrations/sqlite/0004_catalog_indexes_and_counts.sql")),
+    (
+        4,
+        "catalog_indexes_and_counts",
+        include_str!("../../migrations/sqlite/0004_catalog_indexes_and_counts.sql"),
+    ),
     (5, "episode_media", include_str!("../../migrations/sqlite/0005_episode_media.sql")),
     (6, "runs", include_str!("../../migrations/sqlite/0006_runs.sql")),
     (7, "pending_objects", include_str!("../../migrations/sqlite/0007_pending_objects.sql")),
@@ -40,7 +44,11 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
     (2, "splits_artifacts_jobs", include_str!("../../migrations/postgres/0002_splits_artifacts_jobs.sql")),
     (3, "episode_row_ranges", include_str!("../../migrations/postgres/0003_episode_row_ranges.sql")),
-    (4, "catalog_indexes_and_counts", include_str!("../../migrations/postgres/0004_catalog_indexes_and_counts.sql")),
+    (
+        4,
+        "catalog_indexes_and_counts",
+        include_str!("../../migrations/postgres/0004_catalog_indexes_and_counts.sql"),
+    ),
     (5, "episode_media", include_str!("../../migrations/postgres/0005_episode_media.sql")),
     (6, "runs", include_str!("../../migrations/postgres/0006_runs.sql")),
     (7, "pending_objects", include_str!("../../migrations/postgres/0007_pending_objects.sql")),
@@ -338,7 +346,10 @@ mod tests {
         .unwrap();
         pool.close().await;
         let cat = Catalog::connect(&url).await.unwrap();
-        let r = sqlx::query("SELECT row_group, row_offset, row_count FROM episodes").fetch_one(&cat.pool).await.unwrap();
+        let r = sqlx::query("SELECT row_group, row_offset, row_count FROM episodes")
+            .fetch_one(&cat.pool)
+            .await
+            .unwrap();
         assert_eq!(r.try_get::<i64, _>("row_group").unwrap(), 3);
         assert_eq!(r.try_get::<i64, _>("row_offset").unwrap(), 0);
         assert_eq!(r.try_get::<i64, _>("row_count").unwrap(), 7);
@@ -389,14 +400,24 @@ mod tests {
             async move {
                 let rows = sqlx::query(sql).fetch_all(&pool).await.unwrap();
                 rows.iter()
-                    .map(|r| (r.try_get::<String, _>("task").unwrap(), r.try_get::<String, _>("label").unwrap(), r.try_get::<i64, _>("n").unwrap()))
+                    .map(|r| {
+                        (
+                            r.try_get::<String, _>("task").unwrap(),
+                            r.try_get::<String, _>("label").unwrap(),
+                            r.try_get::<i64, _>("n").unwrap(),
+                        )
+                    })
                     .collect::<Vec<_>>()
             }
         };
-        let now = read("SELECT task, label, SUM(n) AS n FROM episode_counts GROUP BY task, label ORDER BY task, label").await;
+        let now = read(
+            "SELECT task, label, SUM(n) AS n FROM episode_counts GROUP BY task, label ORDER BY task, label",
+        )
+        .await;
         let s = |t: &str, l: &str, n: i64| (t.to_string(), l.to_string(), n);
         assert_eq!(now, [s("", "failure", 1), s("reach", "success", 1), s("reach", "unknown", 1)]);
-        let v1 = read("SELECT task, label, n FROM version_counts WHERE version = 1 ORDER BY task, label").await;
+        let v1 =
+            read("SELECT task, label, n FROM version_counts WHERE version = 1 ORDER BY task, label").await;
         assert_eq!(v1, [s("", "failure", 1), s("reach", "success", 1), s("reach", "unknown", 2)]);
     }
 }

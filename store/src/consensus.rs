@@ -236,7 +236,12 @@ fn merged_data(votes: &[Vote]) -> Value {
     let cause = causes.first().filter(|c| causes.iter().all(|x| x == *c));
     let spans: Vec<Value> = votes
         .iter()
-        .flat_map(|v| v.data.spans.iter().map(|s| json!({"start_step": s.start_step, "end_step": s.end_step, "actor": v.actor})))
+        .flat_map(|v| {
+            v.data
+                .spans
+                .iter()
+                .map(|s| json!({"start_step": s.start_step, "end_step": s.end_step, "actor": v.actor}))
+        })
         .collect();
     let each: Vec<Value> = votes
         .iter()
@@ -257,7 +262,13 @@ fn vote_from_row(r: &sqlx::any::AnyRow) -> Result<Vote, StoreError> {
         Some(t) => serde_json::from_str(&t).map_err(|e| StoreError::Corrupt(format!("vote data: {e}")))?,
         None => VerdictData::default(),
     };
-    Ok(Vote { actor: r.s("actor")?, label: r.s("label")?.parse()?, data, note: r.os("note")?, created_at: r.s("created_at")? })
+    Ok(Vote {
+        actor: r.s("actor")?,
+        label: r.s("label")?.parse()?,
+        data,
+        note: r.os("note")?,
+        created_at: r.s("created_at")?,
+    })
 }
 
 /// The episode row a vote or adjudication works on, locked on Postgres.
@@ -288,10 +299,11 @@ async fn episode_head(tx: &mut Tx, backend: Backend, id: &str) -> Result<Episode
 }
 
 async fn campaign_in(tx: &mut Tx, policy: &str) -> Result<Campaign, StoreError> {
-    let r = sqlx::query("SELECT labels_needed, blind, updated_by, updated_at FROM campaigns WHERE policy = $1")
-        .bind(policy)
-        .fetch_optional(&mut **tx)
-        .await?;
+    let r =
+        sqlx::query("SELECT labels_needed, blind, updated_by, updated_at FROM campaigns WHERE policy = $1")
+            .bind(policy)
+            .fetch_optional(&mut **tx)
+            .await?;
     campaign_from(policy, r)
 }
 
@@ -304,15 +316,23 @@ fn campaign_from(policy: &str, r: Option<sqlx::any::AnyRow>) -> Result<Campaign,
             updated_by: Some(r.s("updated_by")?),
             updated_at: Some(r.s("updated_at")?),
         },
-        None => Campaign { policy: policy.to_string(), labels_needed: 1, blind: false, updated_by: None, updated_at: None },
+        None => Campaign {
+            policy: policy.to_string(),
+            labels_needed: 1,
+            blind: false,
+            updated_by: None,
+            updated_at: None,
+        },
     })
 }
 
 async fn votes_in(tx: &mut Tx, id: &str) -> Result<Vec<Vote>, StoreError> {
-    let rows = sqlx::query("SELECT actor, label, data, note, created_at FROM label_votes WHERE episode_id = $1 ORDER BY id")
-        .bind(id)
-        .fetch_all(&mut **tx)
-        .await?;
+    let rows = sqlx::query(
+        "SELECT actor, label, data, note, created_at FROM label_votes WHERE episode_id = $1 ORDER BY id",
+    )
+    .bind(id)
+    .fetch_all(&mut **tx)
+    .await?;
     rows.iter().map(vote_from_row).collect()
 }
 
@@ -334,20 +354,24 @@ async fn adjudicated_after_votes(tx: &mut Tx, id: &str) -> Result<bool, StoreErr
 impl Store {
     /// A policy's campaign settings (defaults when none were set).
     pub async fn campaign(&self, policy: &str) -> Result<Campaign, StoreError> {
-        let r = sqlx::query("SELECT labels_needed, blind, updated_by, updated_at FROM campaigns WHERE policy = $1")
-            .bind(policy)
-            .fetch_optional(&self.db().pool)
-            .await?;
+        let r = sqlx::query(
+            "SELECT labels_needed, blind, updated_by, updated_at FROM campaigns WHERE policy = $1",
+        )
+        .bind(policy)
+        .fetch_optional(&self.db().pool)
+        .await?;
         campaign_from(policy, r)
     }
 
     /// Whether the episode's campaign needs several labelers (a plain label write would bypass
     /// their votes).
     pub async fn votes_required(&self, episode_id: &str) -> Result<bool, StoreError> {
-        let r = sqlx::query("SELECT c.labels_needed FROM episodes e JOIN campaigns c ON c.policy = e.policy WHERE e.id = $1")
-            .bind(episode_id)
-            .fetch_optional(&self.db().pool)
-            .await?;
+        let r = sqlx::query(
+            "SELECT c.labels_needed FROM episodes e JOIN campaigns c ON c.policy = e.policy WHERE e.id = $1",
+        )
+        .bind(episode_id)
+        .fetch_optional(&self.db().pool)
+        .await?;
         Ok(match r {
             Some(r) => r.i("labels_needed")? > 1,
             None => false,
@@ -356,7 +380,10 @@ impl Store {
 
     /// The data of the label events `(episode id, revision)` that have any (exports record the
     /// failure cause and spans behind each label), by episode id.
-    pub async fn label_event_data(&self, keys: &[(String, i64)]) -> Result<std::collections::HashMap<String, Value>, StoreError> {
+    pub async fn label_event_data(
+        &self,
+        keys: &[(String, i64)],
+    ) -> Result<std::collections::HashMap<String, Value>, StoreError> {
         let mut out = std::collections::HashMap::new();
         for chunk in keys.chunks(500) {
             let marks: Vec<String> = (1..=chunk.len()).map(|i| format!("${i}")).collect();
@@ -368,11 +395,13 @@ impl Store {
             for (id, _) in chunk {
                 q = q.bind(id);
             }
-            let wanted: std::collections::HashMap<&str, i64> = chunk.iter().map(|(id, rev)| (id.as_str(), *rev)).collect();
+            let wanted: std::collections::HashMap<&str, i64> =
+                chunk.iter().map(|(id, rev)| (id.as_str(), *rev)).collect();
             for r in q.fetch_all(&self.db().pool).await? {
                 let id = r.s("episode_id")?;
                 if wanted.get(id.as_str()) == Some(&r.i("revision")?) {
-                    let d = serde_json::from_str(&r.s("data")?).map_err(|e| StoreError::Corrupt(format!("label event data: {e}")))?;
+                    let d = serde_json::from_str(&r.s("data")?)
+                        .map_err(|e| StoreError::Corrupt(format!("label event data: {e}")))?;
                     out.insert(id, d);
                 }
             }
@@ -382,16 +411,26 @@ impl Store {
 
     /// Whether any campaign needs several labelers.
     pub async fn any_multi_labeler_campaign(&self) -> Result<bool, StoreError> {
-        let r = sqlx::query("SELECT COUNT(*) AS n FROM campaigns WHERE labels_needed > 1").fetch_one(&self.db().pool).await?;
+        let r = sqlx::query("SELECT COUNT(*) AS n FROM campaigns WHERE labels_needed > 1")
+            .fetch_one(&self.db().pool)
+            .await?;
         Ok(r.i("n")? > 0)
     }
 
     /// Sets a policy's campaign settings.
-    pub async fn set_campaign(&self, policy: &str, labels_needed: i64, blind: bool, actor: &str) -> Result<Campaign, StoreError> {
+    pub async fn set_campaign(
+        &self,
+        policy: &str,
+        labels_needed: i64,
+        blind: bool,
+        actor: &str,
+    ) -> Result<Campaign, StoreError> {
         crate::writer::check_name("policy", policy)?;
         crate::writer::check_name("actor", actor)?;
         if !(1..=MAX_LABELS_NEEDED).contains(&labels_needed) {
-            return Err(StoreError::invalid(format!("labels_needed must be 1 to {MAX_LABELS_NEEDED}, not {labels_needed}")));
+            return Err(StoreError::invalid(format!(
+                "labels_needed must be 1 to {MAX_LABELS_NEEDED}, not {labels_needed}"
+            )));
         }
         let mut tx = self.db().begin_write().await?;
         sqlx::query(
@@ -420,17 +459,25 @@ impl Store {
             .await?;
         let pick = rows.iter().find(|r| r.s("task").ok().as_deref() == Some(task)).or_else(|| rows.first());
         match pick {
-            Some(r) => serde_json::from_str(&r.s("causes")?).map_err(|e| StoreError::Corrupt(format!("failure causes: {e}"))),
+            Some(r) => serde_json::from_str(&r.s("causes")?)
+                .map_err(|e| StoreError::Corrupt(format!("failure causes: {e}"))),
             None => Ok(Vec::new()),
         }
     }
 
     /// Sets a task's failure causes (`*`: every task without its own).
-    pub async fn set_failure_causes(&self, task: &str, causes: &[String], actor: &str) -> Result<Vec<String>, StoreError> {
+    pub async fn set_failure_causes(
+        &self,
+        task: &str,
+        causes: &[String],
+        actor: &str,
+    ) -> Result<Vec<String>, StoreError> {
         crate::writer::check_name("task", task)?;
         crate::writer::check_name("actor", actor)?;
         if causes.len() > MAX_FAILURE_CAUSES {
-            return Err(StoreError::invalid(format!("at most {MAX_FAILURE_CAUSES} failure causes (one number key each)")));
+            return Err(StoreError::invalid(format!(
+                "at most {MAX_FAILURE_CAUSES} failure causes (one number key each)"
+            )));
         }
         for (i, c) in causes.iter().enumerate() {
             crate::writer::check_name("failure cause", c)?;
@@ -465,7 +512,9 @@ impl Store {
             let causes = self.failure_causes(head.task.as_deref().unwrap_or("*")).await?;
             if !causes.contains(c) {
                 // The taxonomy is the campaign's state, not the request's shape: 409.
-                return Err(StoreError::Conflict(format!("{c:?} is not a failure cause of this task (causes: {causes:?})")));
+                return Err(StoreError::Conflict(format!(
+                    "{c:?} is not a failure cause of this task (causes: {causes:?})"
+                )));
             }
         }
         if d.spans.len() > MAX_SPANS {
@@ -473,7 +522,10 @@ impl Store {
         }
         for s in &d.spans {
             if s.start_step < 0 || s.end_step < s.start_step {
-                return Err(StoreError::invalid(format!("span {}..{}: steps from 0, start before end", s.start_step, s.end_step)));
+                return Err(StoreError::invalid(format!(
+                    "span {}..{}: steps from 0, start before end",
+                    s.start_step, s.end_step
+                )));
             }
             if s.end_step >= head.length {
                 // The episode's length is its state: a span past its end is a conflict (409).
@@ -506,7 +558,11 @@ impl Store {
         let mut tx = self.db().begin_write().await?;
         let head = episode_head(&mut tx, backend, &vote.episode_id).await?;
         let campaign = campaign_in(&mut tx, &head.policy).await?;
-        let data_text = if vote.data.is_empty() { None } else { Some(serde_json::to_string(&vote.data).expect("plain data")) };
+        let data_text = if vote.data.is_empty() {
+            None
+        } else {
+            Some(serde_json::to_string(&vote.data).expect("plain data"))
+        };
         sqlx::query(
             "INSERT INTO label_votes (episode_id, actor, label, data, note, created_at) VALUES ($1, $2, $3, $4, $5, $6)",
         )
@@ -538,8 +594,12 @@ impl Store {
                 ("consensus", merged_data(&latest), None)
             };
             let data = if campaign.labels_needed == 1 && vote.data.is_empty() { None } else { Some(data) };
-            let update =
-                LabelUpdate { episode_id: vote.episode_id.clone(), label: vote.label, expect_revision: expect, note: vote.note.clone() };
+            let update = LabelUpdate {
+                episode_id: vote.episode_id.clone(),
+                label: vote.label,
+                expect_revision: expect,
+                note: vote.note.clone(),
+            };
             let change = write_event(&mut tx, backend, &update, actor, source, data).await?;
             out.label = change.label;
             out.revision = change.revision;
@@ -606,7 +666,11 @@ impl Store {
     }
 
     /// Disputed episodes of a policy (or all), oldest episode id first.
-    pub async fn adjudication_queue(&self, policy: Option<&str>, limit: usize) -> Result<Vec<Dispute>, StoreError> {
+    pub async fn adjudication_queue(
+        &self,
+        policy: Option<&str>,
+        limit: usize,
+    ) -> Result<Vec<Dispute>, StoreError> {
         let votes = self.policy_votes(policy).await?;
         let mut out = Vec::new();
         let mut tx = self.db().pool.begin().await?;
@@ -630,7 +694,10 @@ impl Store {
     /// Each labeler's latest vote per episode of a policy (or all): id → (policy, label,
     /// revision, votes).
     #[allow(clippy::type_complexity)]
-    async fn policy_votes(&self, policy: Option<&str>) -> Result<BTreeMap<String, (String, Label, i64, Vec<Vote>)>, StoreError> {
+    async fn policy_votes(
+        &self,
+        policy: Option<&str>,
+    ) -> Result<BTreeMap<String, (String, Label, i64, Vec<Vote>)>, StoreError> {
         let rows = sqlx::query(
             "SELECT v.episode_id, e.policy, e.label AS episode_label, e.label_revision, v.actor, v.label, v.data, v.note, \
              v.created_at FROM label_votes v JOIN episodes e ON e.id = v.episode_id \

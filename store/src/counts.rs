@@ -59,11 +59,21 @@ pub(crate) struct CountDeltas {
 
 impl CountDeltas {
     pub(crate) fn add(&mut self, policy: &str, checkpoint: &str, task: Option<&str>, label: Label, n: i64) {
-        *self.by_key.entry((policy.to_string(), checkpoint.to_string(), task_key(task), label.as_str())).or_default() += n;
+        *self
+            .by_key
+            .entry((policy.to_string(), checkpoint.to_string(), task_key(task), label.as_str()))
+            .or_default() += n;
     }
 
     /// One episode moved from `old` to `new`.
-    pub(crate) fn relabel(&mut self, policy: &str, checkpoint: &str, task: Option<&str>, old: Label, new: Label) {
+    pub(crate) fn relabel(
+        &mut self,
+        policy: &str,
+        checkpoint: &str,
+        task: Option<&str>,
+        old: Label,
+        new: Label,
+    ) {
         if old != new {
             self.add(policy, checkpoint, task, old, -1);
             self.add(policy, checkpoint, task, new, 1);
@@ -83,15 +93,31 @@ impl CountDeltas {
             Backend::Postgres => (uuid::Uuid::new_v4().as_u128() as u64 % POSTGRES_SHARDS) as i64,
         };
         // A few keys per transaction: far below the bound-parameter limits.
-        let mut sql = String::from("INSERT INTO episode_counts (policy, checkpoint, task, label, shard, n) VALUES ");
+        let mut sql =
+            String::from("INSERT INTO episode_counts (policy, checkpoint, task, label, shard, n) VALUES ");
         let mut args: Vec<Val> = Vec::with_capacity(rows.len() * 6);
         for (i, ((policy, checkpoint, task, label), n)) in rows.into_iter().enumerate() {
             if i > 0 {
                 sql.push_str(", ");
             }
             let b = args.len();
-            sql.push_str(&format!("(${}, ${}, ${}, ${}, ${}, ${})", b + 1, b + 2, b + 3, b + 4, b + 5, b + 6));
-            args.extend([Val::S(policy), Val::S(checkpoint), Val::S(task), Val::S(label.into()), Val::I(shard), Val::I(n)]);
+            sql.push_str(&format!(
+                "(${}, ${}, ${}, ${}, ${}, ${})",
+                b + 1,
+                b + 2,
+                b + 3,
+                b + 4,
+                b + 5,
+                b + 6
+            ));
+            args.extend([
+                Val::S(policy),
+                Val::S(checkpoint),
+                Val::S(task),
+                Val::S(label.into()),
+                Val::I(shard),
+                Val::I(n),
+            ]);
         }
         sql.push_str(
             " ON CONFLICT (policy, checkpoint, task, label, shard) DO UPDATE SET n = episode_counts.n + excluded.n",
@@ -120,7 +146,8 @@ pub(crate) async fn insert_version_counts<'a>(
         .into_iter()
         .map(|((p, c, t, l), n)| vec![Val::I(v), p.into(), c.into(), t.into(), l.into(), Val::I(n)])
         .collect();
-    insert_rows(tx, "version_counts", &["version", "policy", "checkpoint", "task", "label", "n"], rows, "").await
+    insert_rows(tx, "version_counts", &["version", "policy", "checkpoint", "task", "label", "n"], rows, "")
+        .await
 }
 
 /// `WHERE` terms for the filter's policy/checkpoint/task on columns prefixed by `p`.

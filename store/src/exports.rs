@@ -23,7 +23,9 @@ pub struct ExportFile {
 pub fn check_export_path(rel: &str) -> Result<(), StoreError> {
     let ok = !rel.is_empty()
         && rel.len() <= 1024
-        && rel.split('/').all(|p| !p.is_empty() && p != "." && p != ".." && !p.contains('\\') && !p.chars().any(char::is_control));
+        && rel.split('/').all(|p| {
+            !p.is_empty() && p != "." && p != ".." && !p.contains('\\') && !p.chars().any(char::is_control)
+        });
     if ok {
         Ok(())
     } else {
@@ -40,7 +42,12 @@ fn export_folder(export_id: &str) -> Result<String, StoreError> {
 
 impl Store {
     /// Copies one local file of a finished export into the store (streamed in parts).
-    pub async fn put_export_file(&self, export_id: &str, rel: &str, local: &std::path::Path) -> Result<u64, StoreError> {
+    pub async fn put_export_file(
+        &self,
+        export_id: &str,
+        rel: &str,
+        local: &std::path::Path,
+    ) -> Result<u64, StoreError> {
         check_export_path(rel)?;
         let path = format!("{}/{rel}", export_folder(export_id)?);
         self.objects().put_file(&path, local).await
@@ -54,7 +61,9 @@ impl Store {
             .list_prefix(&folder)
             .await?
             .into_iter()
-            .filter_map(|(p, bytes)| p.strip_prefix(&format!("{folder}/")).map(|r| ExportFile { path: r.to_string(), bytes }))
+            .filter_map(|(p, bytes)| {
+                p.strip_prefix(&format!("{folder}/")).map(|r| ExportFile { path: r.to_string(), bytes })
+            })
             .collect();
         files.sort_by(|a, b| a.path.cmp(&b.path));
         Ok(files)

@@ -94,8 +94,13 @@ impl Store {
                 .and_then(|r| r.split('/').next())
                 .is_some_and(|id| live_exports.contains(id))
         };
-        let mut report =
-            GcReport { objects_scanned: objects.len(), referenced: 0, deleted: Vec::new(), kept_recent: 0, kept_pending: 0 };
+        let mut report = GcReport {
+            objects_scanned: objects.len(),
+            referenced: 0,
+            deleted: Vec::new(),
+            kept_recent: 0,
+            kept_pending: 0,
+        };
         let mut candidates = Vec::new();
         for o in objects {
             if referenced.contains(&o.path) || export_is_live(&o.path) {
@@ -145,7 +150,10 @@ impl Store {
                 referenced.insert(r.s("path")?);
             }
         }
-        let sql = format!("SELECT path FROM pending_objects WHERE created_ms > ${} AND path IN ({list})", paths.len() + 1);
+        let sql = format!(
+            "SELECT path FROM pending_objects WHERE created_ms > ${} AND path IN ({list})",
+            paths.len() + 1
+        );
         let mut q = sqlx::query(&sql);
         for p in paths {
             q = q.bind(p);
@@ -200,7 +208,10 @@ impl Store {
 
     /// Forgets a writer's pending records outside a commit (after a publish, or an abort).
     pub(crate) async fn clear_pending(&self, writer: &str) -> Result<(), StoreError> {
-        sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(writer).execute(&self.db().pool).await?;
+        sqlx::query("DELETE FROM pending_objects WHERE writer = $1")
+            .bind(writer)
+            .execute(&self.db().pool)
+            .await?;
         Ok(())
     }
 }

@@ -89,7 +89,12 @@ fn job_from_row(r: &sqlx::any::AnyRow) -> Result<JobRecord, StoreError> {
 }
 
 impl Store {
-    pub async fn create_job(&self, kind: &str, spec: &serde_json::Value, actor: &str) -> Result<JobRecord, StoreError> {
+    pub async fn create_job(
+        &self,
+        kind: &str,
+        spec: &serde_json::Value,
+        actor: &str,
+    ) -> Result<JobRecord, StoreError> {
         let id = format!("job-{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
         let now = now_rfc3339();
         sqlx::query(&format!(
@@ -254,11 +259,13 @@ impl Store {
             .bind(id)
             .execute(&self.db().pool)
             .await?;
-        sqlx::query("UPDATE jobs SET cancel_requested = 1, updated_at = $1 WHERE id = $2 AND state = 'running'")
-            .bind(&now)
-            .bind(id)
-            .execute(&self.db().pool)
-            .await?;
+        sqlx::query(
+            "UPDATE jobs SET cancel_requested = 1, updated_at = $1 WHERE id = $2 AND state = 'running'",
+        )
+        .bind(&now)
+        .bind(id)
+        .execute(&self.db().pool)
+        .await?;
         // Its worker already gone (lease expired): nobody will see the request, so finish it here.
         sqlx::query(&format!("{CANCEL_ORPHANS} AND lease_until_ms < $2 AND id = $3"))
             .bind(&now)

@@ -51,7 +51,12 @@ pub struct LabelChange {
 
 impl Store {
     /// Sets one episode's label (source `human` unless given), recording an audit event.
-    pub async fn set_label(&self, update: LabelUpdate, actor: &str, source: &str) -> Result<LabelChange, StoreError> {
+    pub async fn set_label(
+        &self,
+        update: LabelUpdate,
+        actor: &str,
+        source: &str,
+    ) -> Result<LabelChange, StoreError> {
         let mut v = self.set_labels(vec![update], actor, source).await?;
         Ok(v.remove(0))
     }
@@ -137,7 +142,11 @@ impl Store {
     }
 
     /// All label events after `after_id` (for replaying the audit log), with their ids.
-    pub async fn label_events_since(&self, after_id: i64, limit: i64) -> Result<Vec<(i64, LabelEvent)>, StoreError> {
+    pub async fn label_events_since(
+        &self,
+        after_id: i64,
+        limit: i64,
+    ) -> Result<Vec<(i64, LabelEvent)>, StoreError> {
         let rows = sqlx::query(
             "SELECT id, episode_id, revision, old_label, new_label, source, actor, note, created_at, data \
              FROM label_events WHERE id > $1 ORDER BY id LIMIT $2",
@@ -158,7 +167,11 @@ impl Store {
     /// Freezes the current labels into a new version only if one changed since the head froze
     /// them: `(head, false)` otherwise, so a client repeating the request (or many clients) does
     /// not pile up identical versions, each a full copy of the label table.
-    pub async fn snapshot_labels_if_changed(&self, actor: &str, message: &str) -> Result<(CommitInfo, bool), StoreError> {
+    pub async fn snapshot_labels_if_changed(
+        &self,
+        actor: &str,
+        message: &str,
+    ) -> Result<(CommitInfo, bool), StoreError> {
         match self.prepare_label_snapshot().await? {
             None => Ok((self.head_commit().await?, false)),
             Some(p) => Ok((self.commit_label_snapshot(p, actor, message).await?, true)),
@@ -179,7 +192,12 @@ impl Store {
 
     /// A label snapshot's second step, under the version lock: the new version, with the file
     /// written ahead if the labels did not change meanwhile (else with a new file).
-    pub async fn commit_label_snapshot(&self, prepared: PreparedLabelSnapshot, actor: &str, message: &str) -> Result<CommitInfo, StoreError> {
+    pub async fn commit_label_snapshot(
+        &self,
+        prepared: PreparedLabelSnapshot,
+        actor: &str,
+        message: &str,
+    ) -> Result<CommitInfo, StoreError> {
         let mut tx = self.db().begin_version_write().await?;
         let version = next_version(&mut tx).await?;
         let head = VersionHead {
@@ -216,7 +234,12 @@ impl Store {
     }
 
     /// Removes episodes from the next version (their data stays readable in older versions).
-    pub async fn delete_episodes(&self, ids: &[String], actor: &str, message: &str) -> Result<CommitInfo, StoreError> {
+    pub async fn delete_episodes(
+        &self,
+        ids: &[String],
+        actor: &str,
+        message: &str,
+    ) -> Result<CommitInfo, StoreError> {
         let mut tx = self.db().begin_version_write().await?;
         let version = next_version(&mut tx).await?;
         let mut counts = CountDeltas::default();
@@ -232,7 +255,13 @@ impl Store {
             .fetch_optional(&mut *tx)
             .await?
             .ok_or_else(|| StoreError::not_found("episode", id.clone()))?;
-            counts.add(&r.s("policy")?, &r.s("checkpoint")?, r.os("task")?.as_deref(), r.s("label")?.parse()?, -1);
+            counts.add(
+                &r.s("policy")?,
+                &r.s("checkpoint")?,
+                r.os("task")?.as_deref(),
+                r.s("label")?.parse()?,
+                -1,
+            );
         }
         let head = VersionHead {
             version,
@@ -290,7 +319,10 @@ FROM cur LEFT JOIN ev ON TRUE";
 fn item_error(e: &StoreError) -> bool {
     matches!(
         e,
-        StoreError::Invalid(_) | StoreError::NotFound { .. } | StoreError::LabelConflict { .. } | StoreError::Conflict(_)
+        StoreError::Invalid(_)
+            | StoreError::NotFound { .. }
+            | StoreError::LabelConflict { .. }
+            | StoreError::Conflict(_)
     )
 }
 
@@ -336,7 +368,12 @@ pub(crate) async fn apply_one(
     for r in &rows {
         match r.s("kind")?.as_str() {
             "current" => {
-                current = Some((r.i("revision")?, r.s("old_label")?, r.s("label_actor")?, r.s("label_updated_at")?));
+                current = Some((
+                    r.i("revision")?,
+                    r.s("old_label")?,
+                    r.s("label_actor")?,
+                    r.s("label_updated_at")?,
+                ));
                 group = Some((r.s("policy")?, r.s("checkpoint")?, r.os("task")?));
                 if backend == Backend::Postgres {
                     // One statement: the event exists only if the episode row was updated.
@@ -395,7 +432,10 @@ pub(crate) async fn apply_one(
 
 /// Not an item error: the whole transaction is rolled back.
 fn inconsistent(u: &LabelUpdate) -> StoreError {
-    StoreError::Corrupt(format!("label write on {} updated the event log and the episode inconsistently", u.episode_id))
+    StoreError::Corrupt(format!(
+        "label write on {} updated the event log and the episode inconsistently",
+        u.episode_id
+    ))
 }
 
 fn event_from_row(r: &sqlx::any::AnyRow) -> Result<LabelEvent, StoreError> {
@@ -409,7 +449,10 @@ fn event_from_row(r: &sqlx::any::AnyRow) -> Result<LabelEvent, StoreError> {
         note: r.os("note")?,
         created_at: r.s("created_at")?,
         data: match r.os("data")? {
-            Some(t) => Some(serde_json::from_str(&t).map_err(|e| StoreError::Corrupt(format!("label event data: {e}")))?),
+            Some(t) => Some(
+                serde_json::from_str(&t)
+                    .map_err(|e| StoreError::Corrupt(format!("label event data: {e}")))?,
+            ),
             None => None,
         },
     })
@@ -424,7 +467,9 @@ mod tests {
             Backend::Sqlite => StoreConfig::local(dir),
             Backend::Postgres => StoreConfig {
                 data_dir: dir.into(),
-                database_url: Some(create_test_schema("labels").await.expect("the Postgres tests need a server")),
+                database_url: Some(
+                    create_test_schema("labels").await.expect("the Postgres tests need a server"),
+                ),
                 object_store_url: None,
             },
         };
@@ -454,7 +499,12 @@ mod tests {
     }
 
     fn upd(id: &str, label: Label, expect: Option<i64>) -> LabelUpdate {
-        LabelUpdate { episode_id: id.to_string(), label, expect_revision: expect, note: Some(label.as_str().to_string()) }
+        LabelUpdate {
+            episode_id: id.to_string(),
+            label,
+            expect_revision: expect,
+            note: Some(label.as_str().to_string()),
+        }
     }
 
     async fn group_commit_keeps_per_item_outcomes(db: Backend) {
@@ -476,7 +526,10 @@ mod tests {
         let out = store.set_labels_each(items, "human").await.unwrap();
         assert_eq!(out.len(), 8);
         let ok = |i: usize| out[i].as_ref().unwrap_or_else(|e| panic!("item {i}: {e}")).clone();
-        assert_eq!((ok(0).old_label, ok(0).label, ok(0).revision, ok(0).changed), (Label::Success, Label::Failure, 2, true));
+        assert_eq!(
+            (ok(0).old_label, ok(0).label, ok(0).revision, ok(0).changed),
+            (Label::Success, Label::Failure, 2, true)
+        );
         match &out[1] {
             Err(StoreError::LabelConflict { expected, revision, label, actor, at, .. }) => {
                 let eb = store.episode(b, None).await.unwrap();
@@ -489,19 +542,31 @@ mod tests {
         // Items of one batch apply in order: the second write to `a` sees the first.
         assert_eq!((ok(3).old_label, ok(3).revision, ok(3).actor.as_str()), (Label::Failure, 3, "bob"));
         match &out[4] {
-            Err(StoreError::LabelConflict { expected: 2, revision: 3, label: Label::Unknown, actor, .. }) => {
+            Err(StoreError::LabelConflict {
+                expected: 2, revision: 3, label: Label::Unknown, actor, ..
+            }) => {
                 assert_eq!(actor, "bob")
             }
             other => panic!("item 4: {other:?}"),
         }
         assert!(matches!(out[5], Err(StoreError::Invalid(_))), "{:?}", out[5]);
         assert!(matches!(out[6], Err(StoreError::Invalid(_))), "{:?}", out[6]);
-        assert_eq!((ok(7).old_label, ok(7).label, ok(7).revision, ok(7).changed), (Label::Success, Label::Failure, 2, true));
+        assert_eq!(
+            (ok(7).old_label, ok(7).label, ok(7).revision, ok(7).changed),
+            (Label::Success, Label::Failure, 2, true)
+        );
 
         // The audit log holds exactly the applied writes, chained old → new.
         let ha = store.label_history(a).await.unwrap();
-        let got: Vec<_> = ha.iter().map(|e| (e.revision, e.old_label, e.new_label, e.actor.as_str())).collect();
-        assert_eq!(got[1..], [(2, Some(Label::Success), Label::Failure, "alice"), (3, Some(Label::Failure), Label::Unknown, "bob")]);
+        let got: Vec<_> =
+            ha.iter().map(|e| (e.revision, e.old_label, e.new_label, e.actor.as_str())).collect();
+        assert_eq!(
+            got[1..],
+            [
+                (2, Some(Label::Success), Label::Failure, "alice"),
+                (3, Some(Label::Failure), Label::Unknown, "bob")
+            ]
+        );
         assert_eq!(ha[2].note.as_deref(), Some("unknown"));
         assert_eq!(store.label_history(b).await.unwrap().len(), 1);
         assert_eq!(store.label_history(c).await.unwrap().len(), 2);
@@ -510,7 +575,10 @@ mod tests {
 
         // Bulk labeling stays all-or-nothing: one stale item and nothing is written.
         let bulk = vec![upd(b, Label::Success, Some(1)), upd(c, Label::Success, Some(1))];
-        assert!(matches!(store.set_labels(bulk, "dave", "human").await, Err(StoreError::LabelConflict { .. })));
+        assert!(matches!(
+            store.set_labels(bulk, "dave", "human").await,
+            Err(StoreError::LabelConflict { .. })
+        ));
         assert_eq!(store.episode(b, None).await.unwrap().label_revision, 1);
         assert_eq!(store.label_history(b).await.unwrap().len(), 1);
         let bulk = vec![upd(b, Label::Success, Some(1)), upd(c, Label::Success, Some(2))];
@@ -549,7 +617,12 @@ mod tests {
         assert_eq!(h.len(), 81);
         for (i, w) in h.windows(2).enumerate() {
             assert_eq!(w[1].revision, i as i64 + 2);
-            assert_eq!(w[1].old_label, Some(w[0].new_label), "event {} does not start from the previous label", w[1].revision);
+            assert_eq!(
+                w[1].old_label,
+                Some(w[0].new_label),
+                "event {} does not start from the previous label",
+                w[1].revision
+            );
         }
         let e = store.episode(&id, None).await.unwrap();
         assert_eq!((e.label, e.label_revision), (h[80].new_label, 81));

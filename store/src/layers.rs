@@ -171,7 +171,8 @@ fn encode_layer_file(eps: &[&LayerValues], dim: usize) -> Result<LayerFile, Stor
             let t: ArrayRef = Arc::new(Int32Array::from_iter_values((start..start + len).map(|t| t as i32)));
             let values = Float32Array::from(ep.values[start * dim..(start + len) * dim].to_vec());
             let item = Arc::new(Field::new("item", DataType::Float32, false));
-            let value: ArrayRef = Arc::new(FixedSizeListArray::try_new(item, dim as i32, Arc::new(values), None)?);
+            let value: ArrayRef =
+                Arc::new(FixedSizeListArray::try_new(item, dim as i32, Arc::new(values), None)?);
             w.write(&RecordBatch::try_new(schema.clone(), vec![ids, t, value])?)?;
             start += len;
         }
@@ -205,7 +206,9 @@ impl Store {
             return Err(StoreError::invalid(format!("layer {name}: no episodes given")));
         };
         if dim == 0 || dim > MAX_LAYER_DIM {
-            return Err(StoreError::invalid(format!("layer {name}: dim {dim} is not in 1..={MAX_LAYER_DIM}")));
+            return Err(StoreError::invalid(format!(
+                "layer {name}: dim {dim} is not in 1..={MAX_LAYER_DIM}"
+            )));
         }
         let mut seen = HashSet::new();
         for e in &episodes {
@@ -230,7 +233,10 @@ impl Store {
                 )));
             }
             if !seen.insert(e.episode_id.as_str()) {
-                return Err(StoreError::invalid(format!("layer {name}: episode {} given twice", e.episode_id)));
+                return Err(StoreError::invalid(format!(
+                    "layer {name}: episode {} given twice",
+                    e.episode_id
+                )));
             }
         }
         if let Some(existing) = self.layer_dim(name, &hash).await? {
@@ -271,7 +277,12 @@ impl Store {
         }
         let skipped = episodes.len() - todo.len();
         if todo.is_empty() {
-            return Ok(LayerWrite { version: None, producer_hash: hash, episodes_written: 0, episodes_skipped: skipped });
+            return Ok(LayerWrite {
+                version: None,
+                producer_hash: hash,
+                episodes_written: 0,
+                episodes_skipped: skipped,
+            });
         }
         let file = encode_layer_file(&todo, dim)?;
         let path = format!("layers/{}.parquet", uuid::Uuid::new_v4());
@@ -283,13 +294,32 @@ impl Store {
             self.clear_pending(&writer).await.ok();
             return Err(e.into());
         }
-        let committed = self.commit_layer(name, producer, &hash, dim, &todo, &file.ranges, &path, size, file.rows, &writer, actor).await;
+        let committed = self
+            .commit_layer(
+                name,
+                producer,
+                &hash,
+                dim,
+                &todo,
+                &file.ranges,
+                &path,
+                size,
+                file.rows,
+                &writer,
+                actor,
+            )
+            .await;
         if committed.is_err() {
             // The file is left for gc (no longer protected).
             self.clear_pending(&writer).await.ok();
         }
         let version = committed?;
-        Ok(LayerWrite { version: Some(version), producer_hash: hash, episodes_written: todo.len(), episodes_skipped: skipped })
+        Ok(LayerWrite {
+            version: Some(version),
+            producer_hash: hash,
+            episodes_written: todo.len(),
+            episodes_skipped: skipped,
+        })
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -323,7 +353,9 @@ impl Store {
                 q = q.bind(e.episode_id.as_str());
             }
             if q.fetch_one(&mut *tx).await?.i("n")? != chunk.len() as i64 {
-                return Err(StoreError::Conflict(format!("layer {name}: an episode was removed while its values were written; retry")));
+                return Err(StoreError::Conflict(format!(
+                    "layer {name}: an episode was removed while its values were written; retry"
+                )));
             }
             // The values they held so far (another producer's, or a concurrent writer's) end here.
             let sql = format!(
@@ -379,7 +411,16 @@ impl Store {
         insert_rows(
             &mut tx,
             "episode_layers",
-            &["layer", "episode_id", "producer_hash", "data_file", "row_group", "row_offset", "row_count", "version_added"],
+            &[
+                "layer",
+                "episode_id",
+                "producer_hash",
+                "data_file",
+                "row_group",
+                "row_offset",
+                "row_count",
+                "version_added",
+            ],
             rows,
             "",
         )
@@ -406,7 +447,12 @@ impl Store {
     }
 
     /// Which of `ids` hold layer `name` from `producer_hash` now.
-    async fn episodes_with_layer(&self, name: &str, producer_hash: &str, ids: &[String]) -> Result<HashSet<String>, StoreError> {
+    async fn episodes_with_layer(
+        &self,
+        name: &str,
+        producer_hash: &str,
+        ids: &[String],
+    ) -> Result<HashSet<String>, StoreError> {
         let mut out = HashSet::new();
         for chunk in ids.chunks(IDS_PER_QUERY) {
             let marks: Vec<String> = (3..chunk.len() + 3).map(|i| format!("${i}")).collect();
@@ -465,7 +511,11 @@ impl Store {
     }
 
     /// The layers an episode holds, now or as of `version`.
-    pub async fn episode_layers(&self, episode_id: &str, version: Option<i64>) -> Result<Vec<EpisodeLayer>, StoreError> {
+    pub async fn episode_layers(
+        &self,
+        episode_id: &str,
+        version: Option<i64>,
+    ) -> Result<Vec<EpisodeLayer>, StoreError> {
         let rows = sqlx::query(
             "SELECT e.layer, e.producer_hash, e.version_added, e.version_removed, l.dim FROM episode_layers e \
              JOIN layers l ON l.name = e.layer AND l.producer_hash = e.producer_hash \
@@ -524,7 +574,10 @@ impl Store {
                 .map(|id| {
                     found.remove(id).ok_or_else(|| {
                         let at = version.map_or_else(|| "now".to_string(), |v| format!("in version {v}"));
-                        StoreError::not_found("layer", format!("{name} of episode {id} {at} (see `ufops layers`)"))
+                        StoreError::not_found(
+                            "layer",
+                            format!("{name} of episode {id} {at} (see `ufops layers`)"),
+                        )
                     })
                 })
                 .collect::<Result<Vec<_>, _>>()?;
@@ -577,7 +630,9 @@ impl Store {
             while start < order.len() {
                 let mut end = start;
                 let mut rows = 0;
-                while end < order.len() && (end == start || rows + locations[order[end]].row_count <= JOIN_GROUP_ROWS) {
+                while end < order.len()
+                    && (end == start || rows + locations[order[end]].row_count <= JOIN_GROUP_ROWS)
+                {
                     rows += locations[order[end]].row_count;
                     end += 1;
                 }
@@ -592,7 +647,6 @@ impl Store {
     }
 }
 
-
 /// Reads one group's layer values, then its steps, and sends each episode joined. False when
 /// the receiver is gone.
 async fn join_group(
@@ -604,7 +658,8 @@ async fn join_group(
     tx: &mpsc::Sender<Result<EpisodeSteps, StepsReadError>>,
 ) -> bool {
     // values[layer][position in group] = the value column and its producer.
-    let mut values: Vec<Vec<Option<(ArrayRef, Arc<Int32Array>)>>> = vec![vec![None; group.len()]; layers.len()];
+    let mut values: Vec<Vec<Option<(ArrayRef, Arc<Int32Array>)>>> =
+        vec![vec![None; group.len()]; layers.len()];
     let mut failed: HashMap<usize, StepsReadError> = HashMap::new();
     for (li, locs) in layer_locations.iter().enumerate() {
         let wanted: Vec<EpisodeLocation> = group.iter().map(|&i| locs[i].0.clone()).collect();
@@ -617,20 +672,39 @@ async fn join_group(
                         (Some(v), Some(t)) => match t.as_any().downcast_ref::<Int32Array>() {
                             Some(t) => values[li][ep.index] = Some((v, Arc::new(t.clone()))),
                             None => {
-                                let err = StoreError::Corrupt(format!("layer {}: column t is not int32", layers[li]));
-                                failed.insert(group[ep.index], read_error(vec![group[ep.index]], &locs[group[ep.index]].0, err));
+                                let err = StoreError::Corrupt(format!(
+                                    "layer {}: column t is not int32",
+                                    layers[li]
+                                ));
+                                failed.insert(
+                                    group[ep.index],
+                                    read_error(vec![group[ep.index]], &locs[group[ep.index]].0, err),
+                                );
                             }
                         },
                         _ => {
-                            let err = StoreError::Corrupt(format!("layer {}: file lacks its value or t column", layers[li]));
-                            failed.insert(group[ep.index], read_error(vec![group[ep.index]], &locs[group[ep.index]].0, err));
+                            let err = StoreError::Corrupt(format!(
+                                "layer {}: file lacks its value or t column",
+                                layers[li]
+                            ));
+                            failed.insert(
+                                group[ep.index],
+                                read_error(vec![group[ep.index]], &locs[group[ep.index]].0, err),
+                            );
                         }
                     }
                 }
                 Err(e) => {
                     for k in &e.indexes {
                         let i = group[*k];
-                        failed.insert(i, StepsReadError { indexes: vec![i], file: e.file.clone(), error: StoreError::Corrupt(e.error.to_string()) });
+                        failed.insert(
+                            i,
+                            StepsReadError {
+                                indexes: vec![i],
+                                file: e.file.clone(),
+                                error: StoreError::Corrupt(e.error.to_string()),
+                            },
+                        );
                     }
                 }
             }
@@ -640,7 +714,11 @@ async fn join_group(
     let mut stream = store.read_episodes(wanted);
     while let Some(item) = stream.next().await {
         let out = match item {
-            Err(e) => Err(StepsReadError { indexes: e.indexes.iter().map(|k| group[*k]).collect(), file: e.file, error: e.error }),
+            Err(e) => Err(StepsReadError {
+                indexes: e.indexes.iter().map(|k| group[*k]).collect(),
+                file: e.file,
+                error: e.error,
+            }),
             Ok(ep) => {
                 let i = group[ep.index];
                 match failed.remove(&i) {
@@ -680,7 +758,10 @@ fn join_episode(
     for (li, name) in layers.iter().enumerate() {
         let (loc, producer) = &layer_locations[li][index];
         let Some((value, t)) = &values[li][pos] else {
-            return Err(StoreError::Corrupt(format!("episode {}: layer {name} was not read", loc.episode_id)));
+            return Err(StoreError::Corrupt(format!(
+                "episode {}: layer {name} was not read",
+                loc.episode_id
+            )));
         };
         if t.values() != steps_t.values() {
             return Err(StoreError::Corrupt(format!(
@@ -692,7 +773,10 @@ fn join_episode(
         }
         let column = format!("{OBS_PREFIX}{name}");
         if fields.iter().any(|f| f.name() == &column) {
-            return Err(StoreError::invalid(format!("layer {name} shadows the observation key {name:?} of episode {}", loc.episode_id)));
+            return Err(StoreError::invalid(format!(
+                "layer {name} shadows the observation key {name:?} of episode {}",
+                loc.episode_id
+            )));
         }
         let meta = HashMap::from([
             ("ufops.observation_key".to_string(), name.clone()),
@@ -714,7 +798,8 @@ mod tests {
     fn producer_hash_ignores_key_order_and_needs_an_object() {
         let a = serde_json::json!({"encoder": "cnn", "policy": "p", "nested": {"b": 1, "a": [1, 2]}});
         let b: serde_json::Value =
-            serde_json::from_str(r#"{"nested": {"a": [1, 2], "b": 1}, "policy": "p", "encoder": "cnn"}"#).unwrap();
+            serde_json::from_str(r#"{"nested": {"a": [1, 2], "b": 1}, "policy": "p", "encoder": "cnn"}"#)
+                .unwrap();
         assert_eq!(producer_hash(&a).unwrap(), producer_hash(&b).unwrap());
         let c = serde_json::json!({"encoder": "cnn2", "policy": "p", "nested": {"b": 1, "a": [1, 2]}});
         assert_ne!(producer_hash(&a).unwrap(), producer_hash(&c).unwrap());

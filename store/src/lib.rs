@@ -15,6 +15,7 @@ mod gc;
 mod jobs;
 mod labels;
 mod layers;
+mod media;
 pub mod model;
 mod objects;
 mod query;
@@ -22,7 +23,6 @@ mod read;
 mod review;
 mod runs;
 mod scoreboard;
-mod media;
 mod splits;
 pub mod steps;
 #[doc(hidden)]
@@ -33,25 +33,27 @@ mod writer;
 pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
 pub use catalog::{migration_names, Backend};
 pub use consensus::{
-    Agreement, Campaign, ConsensusState, Dispute, EpisodeVotes, LabelerCounts, NewVote, PairAgreement, Span, VerdictData,
-    Vote, VoteOutcome, MAX_FAILURE_CAUSES, MAX_LABELS_NEEDED, MAX_SPANS,
+    Agreement, Campaign, ConsensusState, Dispute, EpisodeVotes, LabelerCounts, NewVote, PairAgreement, Span,
+    VerdictData, Vote, VoteOutcome, MAX_FAILURE_CAUSES, MAX_LABELS_NEEDED, MAX_SPANS,
 };
 pub use counts::{CountFilter, LabelCounts};
 pub use error::StoreError;
 pub use exports::{check_export_path, ExportFile, EXPORTS_PREFIX};
 pub use gc::{GcReport, MAX_GRACE_SECONDS};
 pub use jobs::{JobRecord, JobState};
-pub use layers::{
-    check_layer_name, producer_hash, EpisodeLayer, LayerRecord, LayerValues, LayerWrite, LAYER_META_KEY, MAX_LAYER_DIM,
-    PRODUCER_META_KEY,
-};
 pub use labels::{LabelChange, LabelEvent, LabelUpdate, PreparedLabelSnapshot};
-pub use model::*;
+pub use layers::{
+    check_layer_name, producer_hash, EpisodeLayer, LayerRecord, LayerValues, LayerWrite, LAYER_META_KEY,
+    MAX_LAYER_DIM, PRODUCER_META_KEY,
+};
 pub use media::EpisodeMedia;
+pub use model::*;
 pub use objects::FetchCounts;
 pub use query::{EpisodeFilter, EpisodeRecord, VersionDiff, VersionInfo};
 pub use read::{EpisodeLocation, EpisodeSteps, StepsReadError, StepsStream};
-pub use review::{EpisodeScore, ReviewArtifact, ReviewEntry, ReviewOrder, DEFAULT_REVIEW_ALIAS, DEFAULT_REVIEW_KIND};
+pub use review::{
+    EpisodeScore, ReviewArtifact, ReviewEntry, ReviewOrder, DEFAULT_REVIEW_ALIAS, DEFAULT_REVIEW_KIND,
+};
 pub use runs::{RunInput, RunRecord, Steering};
 pub use scoreboard::{BaselineComparison, Scoreboard, ScoreboardRequest, ScoreboardRow, NO_RUN};
 pub use splits::{SplitEpisode, SplitRecord, SplitRequest};
@@ -98,10 +100,7 @@ impl Store {
             Some(u) => u.clone(),
             None => {
                 std::fs::create_dir_all(&config.data_dir).map_err(|e| {
-                    StoreError::invalid(format!(
-                        "cannot create data dir {}: {e}",
-                        config.data_dir.display()
-                    ))
+                    StoreError::invalid(format!("cannot create data dir {}: {e}", config.data_dir.display()))
                 })?;
                 format!("sqlite://{}/catalog.sqlite", config.data_dir.display())
             }
@@ -187,7 +186,9 @@ pub async fn create_test_schema(prefix: &str) -> Result<String, StoreError> {
     let base = test_postgres_base();
     let schema = format!("{prefix}_{}", &uuid::Uuid::new_v4().simple().to_string()[..10]);
     let mut conn = sqlx::AnyConnection::connect(&base).await.map_err(|e| {
-        StoreError::invalid(format!("cannot reach the test Postgres at {base}: {e} (start it, or set UFOPS_TEST_POSTGRES)"))
+        StoreError::invalid(format!(
+            "cannot reach the test Postgres at {base}: {e} (start it, or set UFOPS_TEST_POSTGRES)"
+        ))
     })?;
     conn.execute(format!("CREATE SCHEMA {schema}").as_str()).await?;
     let sep = if base.contains('?') { '&' } else { '?' };

@@ -165,7 +165,12 @@ mod tests {
             metadata: serde_json::json!({}),
         };
         let mut w = store.begin_ingest(src, "pol", "c").await.unwrap();
-        let file = MediaFile { sha256: sha.clone(), local_path: video, content_type: "video/mp4".into(), size_bytes: 5000 };
+        let file = MediaFile {
+            sha256: sha.clone(),
+            local_path: video,
+            content_type: "video/mp4".into(),
+            size_bytes: 5000,
+        };
         w.add_media(&file).await.unwrap();
         for i in 0..300u32 {
             let mut ep = crate::read::tests::episode(i, 50 + i as usize % 7);
@@ -199,7 +204,10 @@ mod tests {
         let fetched = store.fetch_counts().since(before).bytes_fetched;
         let size: u64 = std::fs::metadata(dir.path().join("objects").join(&with.data_file)).unwrap().len();
         assert!(fetched * 4 < size, "indexing read {fetched} bytes of a {size}-byte file");
-        let rows: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM episode_media").fetch_one(&store.db().pool).await.unwrap();
+        let rows: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM episode_media")
+            .fetch_one(&store.db().pool)
+            .await
+            .unwrap();
         assert_eq!(rows, 150);
         // Indexed once: the next look-up reads no steps at all.
         let before = store.fetch_counts();

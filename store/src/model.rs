@@ -152,7 +152,9 @@ pub struct ExtraColumn {
 
 impl PartialEq for ExtraColumn {
     fn eq(&self, other: &Self) -> bool {
-        self.name == other.name && self.metadata == other.metadata && self.values.to_data() == other.values.to_data()
+        self.name == other.name
+            && self.metadata == other.metadata
+            && self.values.to_data() == other.values.to_data()
     }
 }
 

@@ -222,7 +222,11 @@ impl Objects {
             }
             None => {
                 let actual = hex::encode(hasher.finalize_reset());
-                if actual == sha256 { Ok(()) } else { Err(changed(actual)) }
+                if actual == sha256 {
+                    Ok(())
+                } else {
+                    Err(changed(actual))
+                }
             }
         })
         .await
@@ -310,10 +314,9 @@ impl Objects {
         self.counters.get(r.as_ref().map_or(0, |b| b.len() as u64));
         match r {
             // Callers slice what they asked for out of the answer: a short one is an error here.
-            Ok(b) if b.len() as u64 != range.end.saturating_sub(range.start) => Err(StoreError::Corrupt(format!(
-                "object {path}: asked for bytes {range:?}, got {} bytes",
-                b.len()
-            ))),
+            Ok(b) if b.len() as u64 != range.end.saturating_sub(range.start) => Err(StoreError::Corrupt(
+                format!("object {path}: asked for bytes {range:?}, got {} bytes", b.len()),
+            )),
             Ok(b) => Ok(b),
             Err(object_store::Error::NotFound { .. }) => Err(StoreError::not_found("object", path)),
             Err(e) => Err(e.into()),

@@ -277,7 +277,13 @@ impl Store {
         let b = self.episodes(&EpisodeFilter { version: Some(to), ..Default::default() }).await?;
         let am: std::collections::HashMap<&str, Label> = a.iter().map(|e| (e.id.as_str(), e.label)).collect();
         let bm: std::collections::HashMap<&str, Label> = b.iter().map(|e| (e.id.as_str(), e.label)).collect();
-        let mut d = VersionDiff { from, to, episodes_added: vec![], episodes_removed: vec![], labels_changed: vec![] };
+        let mut d = VersionDiff {
+            from,
+            to,
+            episodes_added: vec![],
+            episodes_removed: vec![],
+            labels_changed: vec![],
+        };
         for e in &b {
             match am.get(e.id.as_str()) {
                 None => d.episodes_added.push(e.id.clone()),
@@ -285,7 +291,8 @@ impl Store {
                 _ => {}
             }
         }
-        d.episodes_removed = a.iter().filter(|e| !bm.contains_key(e.id.as_str())).map(|e| e.id.clone()).collect();
+        d.episodes_removed =
+            a.iter().filter(|e| !bm.contains_key(e.id.as_str())).map(|e| e.id.clone()).collect();
         Ok(d)
     }
 }

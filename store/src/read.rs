@@ -15,7 +15,9 @@ use crate::{EpisodeRecord, Store, StoreError};
 use arrow::array::RecordBatch;
 use arrow::datatypes::SchemaRef;
 use futures::StreamExt;
-use parquet::arrow::arrow_reader::{ArrowReaderMetadata, ArrowReaderOptions, RowSelection, RowSelectionPolicy, RowSelector};
+use parquet::arrow::arrow_reader::{
+    ArrowReaderMetadata, ArrowReaderOptions, RowSelection, RowSelectionPolicy, RowSelector,
+};
 use parquet::arrow::push_decoder::ParquetPushDecoderBuilder;
 use parquet::arrow::ProjectionMask;
 use parquet::file::metadata::{PageIndexPolicy, ParquetMetaDataPushDecoder};
@@ -53,7 +55,13 @@ pub struct EpisodeLocation {
 }
 
 impl EpisodeLocation {
-    pub(crate) fn try_from_parts(id: &str, file: String, rg: i64, offset: i64, count: i64) -> Result<Self, StoreError> {
+    pub(crate) fn try_from_parts(
+        id: &str,
+        file: String,
+        rg: i64,
+        offset: i64,
+        count: i64,
+    ) -> Result<Self, StoreError> {
         if rg < 0 || offset < 0 || count < 0 {
             return Err(StoreError::Corrupt(format!(
                 "episode {id} points at row group {rg}, rows {offset}+{count}"
@@ -74,7 +82,13 @@ impl EpisodeLocation {
     /// `row_group`, `row_offset` and `row_count` (an episode, or its values of a layer).
     pub(crate) fn from_row(r: &sqlx::any::AnyRow, id_column: &str) -> Result<(String, Self), StoreError> {
         let id = r.s(id_column)?;
-        let loc = EpisodeLocation::try_from_parts(&id, r.s("data_file")?, r.i("row_group")?, r.i("row_offset")?, r.i("row_count")?)?;
+        let loc = EpisodeLocation::try_from_parts(
+            &id,
+            r.s("data_file")?,
+            r.i("row_group")?,
+            r.i("row_offset")?,
+            r.i("row_count")?,
+        )?;
         Ok((id, loc))
     }
 }
@@ -170,7 +184,12 @@ impl FileMeta {
     }
 
     /// The ranges' bytes: from the tail when it holds them, else fetched (coalesced).
-    async fn fetch(&self, store: &Store, path: &str, ranges: &[Range<u64>]) -> Result<Vec<bytes::Bytes>, StoreError> {
+    async fn fetch(
+        &self,
+        store: &Store,
+        path: &str,
+        ranges: &[Range<u64>],
+    ) -> Result<Vec<bytes::Bytes>, StoreError> {
         check_ranges(path, ranges, self.size)?;
         let start = self.tail_start();
         let missing: Vec<Range<u64>> = ranges.iter().filter(|r| r.start < start).cloned().collect();
@@ -179,7 +198,9 @@ impl FileMeta {
             .iter()
             .map(|r| match r.start >= start {
                 true => Ok(self.tail.slice((r.start - start) as usize..(r.end - start) as usize)),
-                false => fetched.next().ok_or_else(|| StoreError::Corrupt(format!("{path}: a range was not fetched"))),
+                false => fetched
+                    .next()
+                    .ok_or_else(|| StoreError::Corrupt(format!("{path}: a range was not fetched"))),
             })
             .collect()
     }
@@ -452,7 +473,8 @@ fn plan_jobs(
 ) -> Vec<Result<Job, StepsReadError>> {
     let md = fm.meta.metadata();
     let projection = columns.map(|accept| {
-        let roots = fm.meta.schema().fields().iter().enumerate().filter(|(_, f)| accept(f.name())).map(|(i, _)| i);
+        let roots =
+            fm.meta.schema().fields().iter().enumerate().filter(|(_, f)| accept(f.name())).map(|(i, _)| i);
         ProjectionMask::roots(fm.meta.parquet_schema(), roots.collect::<Vec<_>>())
     });
     eps.sort_by_key(|(_, l)| (l.row_group, l.row_offset));
@@ -599,7 +621,10 @@ fn carve(
         let mut at = 0;
         while at < batch.num_rows() {
             let Some(&(index, _, count)) = episodes.get(sent) else {
-                return (sent, Err(StoreError::Corrupt("the decoder returned more rows than selected".into())));
+                return (
+                    sent,
+                    Err(StoreError::Corrupt("the decoder returned more rows than selected".into())),
+                );
             };
             let take = (count - have).min(batch.num_rows() - at);
             pieces.push(batch.slice(at, take));
@@ -649,9 +674,17 @@ pub(crate) mod tests {
                     dim: 3,
                     values: (0..steps * 3).map(|k| (k as f32 * 0.37 + i as f32).sin()).collect(),
                 },
-                VectorColumn { name: "grip".into(), dim: 1, values: (0..steps).map(|k| k as f32 + i as f32 * 1000.0).collect() },
+                VectorColumn {
+                    name: "grip".into(),
+                    dim: 1,
+                    values: (0..steps).map(|k| k as f32 + i as f32 * 1000.0).collect(),
+                },
             ],
-            action: VectorColumn { name: "action".into(), dim: 2, values: (0..steps * 2).map(|k| (k as f32).cos()).collect() },
+            action: VectorColumn {
+                name: "action".into(),
+                dim: 2,
+                values: (0..steps * 2).map(|k| (k as f32).cos()).collect(),
+            },
             reward: vec![0.0; steps],
             done: (0..steps).map(|t| t + 1 == steps).collect(),
             action_chunk: None,
@@ -693,7 +726,10 @@ pub(crate) mod tests {
     }
 
     fn file_sizes(dir: &std::path::Path) -> u64 {
-        std::fs::read_dir(dir.join("objects/steps")).unwrap().map(|e| e.unwrap().metadata().unwrap().len()).sum()
+        std::fs::read_dir(dir.join("objects/steps"))
+            .unwrap()
+            .map(|e| e.unwrap().metadata().unwrap().len())
+            .sum()
     }
 
     /// Each episode is its own pages: one page per episode per column in every row group.
@@ -788,7 +824,10 @@ pub(crate) mod tests {
         }
     }
 
-    async fn collect(store: &Store, locs: Vec<EpisodeLocation>) -> (Vec<Option<RecordBatch>>, Vec<StepsReadError>) {
+    async fn collect(
+        store: &Store,
+        locs: Vec<EpisodeLocation>,
+    ) -> (Vec<Option<RecordBatch>>, Vec<StepsReadError>) {
         let mut ok = vec![None; locs.len()];
         let mut errs = Vec::new();
         let mut s = store.read_episodes(locs);
@@ -818,7 +857,11 @@ pub(crate) mod tests {
         w.write(&batch.slice(30_000, 20_000)).unwrap();
         let data = bytes::Bytes::from(w.into_inner().unwrap());
         store.objects().put_new("steps/old.parquet", data).await.unwrap();
-        store.objects().put_new("steps/junk.parquet", bytes::Bytes::from_static(b"not parquet at all, PAR1")).await.unwrap();
+        store
+            .objects()
+            .put_new("steps/junk.parquet", bytes::Bytes::from_static(b"not parquet at all, PAR1"))
+            .await
+            .unwrap();
         let locs = vec![
             loc("a", "steps/old.parquet", 0, 19_990, 20),
             loc("b", "steps/old.parquet", 1, 0, 20_000),

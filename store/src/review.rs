@@ -140,10 +140,12 @@ impl Store {
 
     /// The artifact that scores `policy`'s queue when set explicitly.
     pub async fn review_artifact(&self, policy: &str) -> Result<Option<ReviewArtifact>, StoreError> {
-        let row = sqlx::query("SELECT policy, artifact_id, updated_by, updated_at FROM review_artifacts WHERE policy = $1")
-            .bind(policy)
-            .fetch_optional(&self.db().pool)
-            .await?;
+        let row = sqlx::query(
+            "SELECT policy, artifact_id, updated_by, updated_at FROM review_artifacts WHERE policy = $1",
+        )
+        .bind(policy)
+        .fetch_optional(&self.db().pool)
+        .await?;
         row.map(|r| {
             Ok(ReviewArtifact {
                 policy: r.s("policy")?,
@@ -157,7 +159,12 @@ impl Store {
 
     /// Scores `policy`'s queue with `reference` (an artifact id or `P/C/KIND@ALIAS`, resolved
     /// now so the setting names one artifact).
-    pub async fn set_review_artifact(&self, policy: &str, reference: &str, actor: &str) -> Result<ReviewArtifact, StoreError> {
+    pub async fn set_review_artifact(
+        &self,
+        policy: &str,
+        reference: &str,
+        actor: &str,
+    ) -> Result<ReviewArtifact, StoreError> {
         let a = self.resolve_artifact(reference).await?;
         let now = now_rfc3339();
         sqlx::query(
@@ -171,17 +178,29 @@ impl Store {
         .bind(&now)
         .execute(&self.db().pool)
         .await?;
-        Ok(ReviewArtifact { policy: policy.into(), artifact_id: a.id, updated_by: actor.into(), updated_at: now })
+        Ok(ReviewArtifact {
+            policy: policy.into(),
+            artifact_id: a.id,
+            updated_by: actor.into(),
+            updated_at: now,
+        })
     }
 
     /// Back to the default (each checkpoint's `classifier@latest`); false when none was set.
     pub async fn clear_review_artifact(&self, policy: &str) -> Result<bool, StoreError> {
-        let r = sqlx::query("DELETE FROM review_artifacts WHERE policy = $1").bind(policy).execute(&self.db().pool).await?;
+        let r = sqlx::query("DELETE FROM review_artifacts WHERE policy = $1")
+            .bind(policy)
+            .execute(&self.db().pool)
+            .await?;
         Ok(r.rows_affected() > 0)
     }
 
     /// The artifact that scores a checkpoint's episodes in the review queue, if any.
-    pub async fn review_artifact_for(&self, policy: &str, checkpoint: &str) -> Result<Option<String>, StoreError> {
+    pub async fn review_artifact_for(
+        &self,
+        policy: &str,
+        checkpoint: &str,
+    ) -> Result<Option<String>, StoreError> {
         if let Some(a) = self.review_artifact(policy).await? {
             return Ok(Some(a.artifact_id));
         }
@@ -210,7 +229,11 @@ impl Store {
     }
 
     /// An episode's stored score by `artifact_id` (default: the artifact of its review queue).
-    pub async fn episode_score(&self, episode_id: &str, artifact_id: Option<&str>) -> Result<EpisodeScore, StoreError> {
+    pub async fn episode_score(
+        &self,
+        episode_id: &str,
+        artifact_id: Option<&str>,
+    ) -> Result<EpisodeScore, StoreError> {
         let artifact = match artifact_id {
             Some(a) => a.to_string(),
             None => {
@@ -218,7 +241,10 @@ impl Store {
                 self.review_artifact_for(&e.policy, &e.checkpoint).await?.ok_or_else(|| {
                     StoreError::not_found(
                         "review artifact",
-                        format!("{}/{}/{DEFAULT_REVIEW_KIND}@{DEFAULT_REVIEW_ALIAS} (or a policy setting)", e.policy, e.checkpoint),
+                        format!(
+                            "{}/{}/{DEFAULT_REVIEW_KIND}@{DEFAULT_REVIEW_ALIAS} (or a policy setting)",
+                            e.policy, e.checkpoint
+                        ),
                     )
                 })?
             }
@@ -256,7 +282,9 @@ impl Store {
         limit: i64,
     ) -> Result<Vec<ReviewEntry>, StoreError> {
         if filter.id.is_some() || filter.after.is_some() {
-            return Err(StoreError::invalid("a review order pages with its own cursor (no id or after filter)"));
+            return Err(StoreError::invalid(
+                "a review order pages with its own cursor (no id or after filter)",
+            ));
         }
         let mut args: Vec<Val> = Vec::new();
         let next = |v: Val, args: &mut Vec<Val>| {
@@ -328,7 +356,8 @@ impl Store {
             } else {
                 Val::S(k.to_string())
             };
-            let (pk, pk2, pid) = (next(kv.clone(), &mut args), next(kv, &mut args), next(Val::S(id.into()), &mut args));
+            let (pk, pk2, pid) =
+                (next(kv.clone(), &mut args), next(kv, &mut args), next(Val::S(id.into()), &mut args));
             cond(format!("({key} > {pk} OR ({key} = {pk2} AND e.id > {pid}))"));
         }
         sql.push_str(&format!(" ORDER BY review_key, e.id LIMIT {}", next(Val::I(limit.max(0)), &mut args)));

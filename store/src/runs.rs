@@ -58,7 +58,10 @@ impl std::str::FromStr for Steering {
         match method {
             "base" if arg.is_none() => Ok(Steering::Base),
             "bon" => {
-                let n: u32 = arg.ok_or_else(|| bad("missing N"))?.parse().map_err(|_| bad("N is not a whole number"))?;
+                let n: u32 = arg
+                    .ok_or_else(|| bad("missing N"))?
+                    .parse()
+                    .map_err(|_| bad("N is not a whole number"))?;
                 if n == 0 {
                     return Err(bad("N must be at least 1"));
                 }
@@ -164,10 +167,19 @@ pub(crate) fn run_from_row(r: &sqlx::any::AnyRow) -> Result<RunRecord, StoreErro
 
 /// Inserts the run's row if it is not there yet (inside an ingest's transaction), after checking
 /// that its artifact exists.
-pub(crate) async fn ensure_run(tx: &mut crate::catalog::Tx, run: &RunInput, now: &str) -> Result<String, StoreError> {
+pub(crate) async fn ensure_run(
+    tx: &mut crate::catalog::Tx,
+    run: &RunInput,
+    now: &str,
+) -> Result<String, StoreError> {
     run.validate()?;
     if let Some(a) = &run.artifact_id {
-        if sqlx::query("SELECT id FROM artifacts WHERE id = $1").bind(a).fetch_optional(&mut **tx).await?.is_none() {
+        if sqlx::query("SELECT id FROM artifacts WHERE id = $1")
+            .bind(a)
+            .fetch_optional(&mut **tx)
+            .await?
+            .is_none()
+        {
             return Err(StoreError::not_found("artifact", a));
         }
     }
@@ -205,11 +217,12 @@ impl Store {
 
     /// One run by id.
     pub async fn run(&self, id: &str) -> Result<RunRecord, StoreError> {
-        let row = sqlx::query("SELECT id, name, steering, artifact_id, tags, created_at FROM runs WHERE id = $1")
-            .bind(id)
-            .fetch_optional(&self.db().pool)
-            .await?
-            .ok_or_else(|| StoreError::not_found("run", id))?;
+        let row =
+            sqlx::query("SELECT id, name, steering, artifact_id, tags, created_at FROM runs WHERE id = $1")
+                .bind(id)
+                .fetch_optional(&self.db().pool)
+                .await?
+                .ok_or_else(|| StoreError::not_found("run", id))?;
         run_from_row(&row)
     }
 }
@@ -231,7 +244,9 @@ mod tests {
             assert_eq!(v.to_string(), s);
         }
         assert_eq!("cg:3.0".parse::<Steering>().unwrap().to_string(), "cg:3");
-        for bad in ["", "bon", "bon:0", "bon:-1", "bon:x", "cg", "cg:nan", "cg:inf", "cg:-1", "base:1", "ddim:3"] {
+        for bad in
+            ["", "bon", "bon:0", "bon:-1", "bon:x", "cg", "cg:nan", "cg:inf", "cg:-1", "base:1", "ddim:3"]
+        {
             let e = bad.parse::<Steering>().unwrap_err().to_string();
             assert!(e.contains("invalid steering"), "{bad}: {e}");
         }
@@ -253,12 +268,18 @@ mod tests {
     fn a_run_given_by_its_parts_is_named_after_its_steering_by_default() {
         assert_eq!(RunInput::from_parts(None, None, None, &[]).unwrap(), None);
         let bon = RunInput::from_parts(None, Some("bon:10"), Some("art-1"), &[]).unwrap().unwrap();
-        assert_eq!((bon.name.as_str(), bon.steering, bon.artifact_id.as_deref()), ("bon:10", Steering::Bon { n: 10 }, Some("art-1")));
+        assert_eq!(
+            (bon.name.as_str(), bon.steering, bon.artifact_id.as_deref()),
+            ("bon:10", Steering::Bon { n: 10 }, Some("art-1"))
+        );
         let tagged = RunInput::from_parts(None, None, None, &["eval-3".into()]).unwrap().unwrap();
         assert_eq!((tagged.name.as_str(), tagged.steering, tagged.tags.len()), ("base", Steering::Base, 1));
         let named = RunInput::from_parts(Some("night"), Some("cg:0.5"), None, &[]).unwrap().unwrap();
         assert_eq!((named.name.as_str(), named.steering), ("night", Steering::Cg { lambda: 0.5 }));
-        assert!(RunInput::from_parts(None, Some("bon:0"), None, &[]).unwrap_err().to_string().contains("invalid steering"));
+        assert!(RunInput::from_parts(None, Some("bon:0"), None, &[])
+            .unwrap_err()
+            .to_string()
+            .contains("invalid steering"));
         assert!(RunInput::from_parts(None, None, None, &[" x".into()]).is_err());
     }
 }

@@ -114,7 +114,11 @@ impl Scoreboard {
         };
         let f = |x: f64| format!("{x}");
         let vq = |r: &ScoreboardRow, k: &str| {
-            r.verifier_quality.as_ref().and_then(|v| v[k].as_f64()).map(|x| format!("{x}")).unwrap_or_default()
+            r.verifier_quality
+                .as_ref()
+                .and_then(|v| v[k].as_f64())
+                .map(|x| format!("{x}"))
+                .unwrap_or_default()
         };
         for r in &self.rows {
             let run = r.run.as_ref();
@@ -184,12 +188,28 @@ pub(crate) async fn insert_version_run_counts<'a>(
     }
     let rows: Vec<Vec<Val>> = counts
         .into_iter()
-        .map(|((p, c, t, r, l), n)| vec![Val::I(v), p.into(), c.into(), t.into(), r.into(), l.into(), Val::I(n)])
+        .map(|((p, c, t, r, l), n)| {
+            vec![Val::I(v), p.into(), c.into(), t.into(), r.into(), l.into(), Val::I(n)]
+        })
         .collect();
-    insert_rows(tx, "version_run_counts", &["version", "policy", "checkpoint", "task", "run_id", "label", "n"], rows, "").await
+    insert_rows(
+        tx,
+        "version_run_counts",
+        &["version", "policy", "checkpoint", "task", "run_id", "label", "n"],
+        rows,
+        "",
+    )
+    .await
 }
 
-fn add_cell(cells: &mut Cells, checkpoint: String, task: Option<String>, run: Option<String>, label: Label, n: i64) {
+fn add_cell(
+    cells: &mut Cells,
+    checkpoint: String,
+    task: Option<String>,
+    run: Option<String>,
+    label: Label,
+    n: i64,
+) {
     let c = cells.entry((checkpoint, task, run)).or_default();
     let n = u64::try_from(n).unwrap_or(0);
     match label {
@@ -202,7 +222,12 @@ fn add_cell(cells: &mut Cells, checkpoint: String, task: Option<String>, run: Op
 impl Store {
     /// The counts per (checkpoint, task, run) of `req.policy` at `version`: from the frozen
     /// `version_run_counts`, or (`recount`) with a `GROUP BY` over the version's labels.
-    async fn scoreboard_cells(&self, req: &ScoreboardRequest, version: i64, recount: bool) -> Result<Cells, StoreError> {
+    async fn scoreboard_cells(
+        &self,
+        req: &ScoreboardRequest,
+        version: i64,
+        recount: bool,
+    ) -> Result<Cells, StoreError> {
         let mut args = vec![Val::I(version), Val::S(req.policy.clone())];
         let (mut sql, col) = if recount {
             (
@@ -237,7 +262,14 @@ impl Store {
         let mut cells = Cells::new();
         let some = |s: String| if s.is_empty() { None } else { Some(s) };
         for r in q.fetch_all(&self.db().pool).await? {
-            add_cell(&mut cells, r.s("checkpoint")?, some(r.s("task")?), some(r.s("run_id")?), r.s("label")?.parse()?, r.i("n")?);
+            add_cell(
+                &mut cells,
+                r.s("checkpoint")?,
+                some(r.s("task")?),
+                some(r.s("run_id")?),
+                r.s("label")?.parse()?,
+                r.i("n")?,
+            );
         }
         Ok(cells)
     }
@@ -286,17 +318,22 @@ impl Store {
             _ => None,
         };
         let cells = match &other_baseline {
-            Some(_) => self.scoreboard_cells(&ScoreboardRequest { checkpoint: None, ..req.clone() }, version, false).await?,
+            Some(_) => {
+                self.scoreboard_cells(&ScoreboardRequest { checkpoint: None, ..req.clone() }, version, false)
+                    .await?
+            }
             None => self.scoreboard_cells(req, version, false).await?,
         };
         // The runs named by the rows (a few dozen at most).
         let ids: std::collections::BTreeSet<String> = cells.keys().filter_map(|k| k.2.clone()).collect();
         let mut runs: BTreeMap<String, RunRecord> = BTreeMap::new();
         for id in ids {
-            let row = sqlx::query("SELECT id, name, steering, artifact_id, tags, created_at FROM runs WHERE id = $1")
-                .bind(&id)
-                .fetch_one(&self.db().pool)
-                .await?;
+            let row = sqlx::query(
+                "SELECT id, name, steering, artifact_id, tags, created_at FROM runs WHERE id = $1",
+            )
+            .bind(&id)
+            .fetch_one(&self.db().pool)
+            .await?;
             runs.insert(id, run_from_row(&row)?);
         }
         let mut rows: Vec<ScoreboardRow> = cells
@@ -338,7 +375,8 @@ impl Store {
             .iter()
             .map(|r| {
                 let want_ckpt = req.baseline_checkpoint.as_ref().unwrap_or(&r.checkpoint);
-                let mut cands = rows.iter().filter(|b| b.is_baseline && b.task == r.task && &b.checkpoint == want_ckpt);
+                let mut cands =
+                    rows.iter().filter(|b| b.is_baseline && b.task == r.task && &b.checkpoint == want_ckpt);
                 let base = cands.next()?;
                 if cands.next().is_some() || std::ptr::eq(base, r) {
                     return None; // ambiguous (one name, several runs), or the baseline itself
@@ -380,6 +418,12 @@ impl Store {
             }
             r.verifier_quality = quality[&id].clone();
         }
-        Ok(Scoreboard { version, policy: req.policy.clone(), baseline, baseline_checkpoint: req.baseline_checkpoint.clone(), rows })
+        Ok(Scoreboard {
+            version,
+            policy: req.policy.clone(),
+            baseline,
+            baseline_checkpoint: req.baseline_checkpoint.clone(),
+            rows,
+        })
     }
 }

@@ -88,7 +88,10 @@ impl Store {
     pub async fn create_split(&self, req: &SplitRequest) -> Result<SplitRecord, StoreError> {
         // At most 0.99: a closed range a JSON client states exactly (near 1 nothing would train).
         if !(0.0..=MAX_VAL_FRACTION).contains(&req.val_fraction) {
-            return Err(StoreError::invalid(format!("val fraction {} must be in [0, {MAX_VAL_FRACTION}]", req.val_fraction)));
+            return Err(StoreError::invalid(format!(
+                "val fraction {} must be in [0, {MAX_VAL_FRACTION}]",
+                req.val_fraction
+            )));
         }
         let version = match req.version {
             Some(v) => {
@@ -111,7 +114,12 @@ impl Store {
         // Only what the checkpoint's policy did on its own: episodes of steered runs (best-of-N,
         // guidance) are evaluations of the policy plus a verifier, not its on-policy rollouts.
         let steered: std::collections::HashSet<String> =
-            sqlx::query("SELECT id FROM runs WHERE steering <> 'base'").fetch_all(&self.db().pool).await?.iter().map(|r| r.s("id")).collect::<Result<_, _>>()?;
+            sqlx::query("SELECT id FROM runs WHERE steering <> 'base'")
+                .fetch_all(&self.db().pool)
+                .await?
+                .iter()
+                .map(|r| r.s("id"))
+                .collect::<Result<_, _>>()?;
         let mut members = Vec::new();
         for (p, c) in &sources {
             let eps = self
@@ -122,9 +130,9 @@ impl Store {
                     ..Default::default()
                 })
                 .await?;
-            members.extend(
-                eps.into_iter().filter(|e| e.label != Label::Unknown && !e.run_id.as_ref().is_some_and(|r| steered.contains(r))),
-            );
+            members.extend(eps.into_iter().filter(|e| {
+                e.label != Label::Unknown && !e.run_id.as_ref().is_some_and(|r| steered.contains(r))
+            }));
         }
         if let Some(cap) = req.max_episodes {
             if cap == 0 {
@@ -191,7 +199,14 @@ impl Store {
             &["split_id", "episode_id", "part", "label"],
             parts
                 .iter()
-                .map(|p| vec![Val::S(id.clone()), p.episode_id.as_str().into(), p.part.as_str().into(), p.label.as_str().into()])
+                .map(|p| {
+                    vec![
+                        Val::S(id.clone()),
+                        p.episode_id.as_str().into(),
+                        p.part.as_str().into(),
+                        p.label.as_str().into(),
+                    ]
+                })
                 .collect(),
             "",
         )
@@ -218,12 +233,20 @@ impl Store {
 
     pub async fn split_episodes(&self, id: &str) -> Result<Vec<SplitEpisode>, StoreError> {
         self.split(id).await?;
-        let rows = sqlx::query("SELECT episode_id, part, label FROM split_episodes WHERE split_id = $1 ORDER BY episode_id")
-            .bind(id)
-            .fetch_all(&self.db().pool)
-            .await?;
+        let rows = sqlx::query(
+            "SELECT episode_id, part, label FROM split_episodes WHERE split_id = $1 ORDER BY episode_id",
+        )
+        .bind(id)
+        .fetch_all(&self.db().pool)
+        .await?;
         rows.iter()
-            .map(|r| Ok(SplitEpisode { episode_id: r.s("episode_id")?, part: r.s("part")?, label: r.s("label")?.parse()? }))
+            .map(|r| {
+                Ok(SplitEpisode {
+                    episode_id: r.s("episode_id")?,
+                    part: r.s("part")?,
+                    label: r.s("label")?.parse()?,
+                })
+            })
             .collect()
     }
 }

@@ -5,13 +5,17 @@
 
 use crate::{EpisodeInput, ExtraColumn, Label, StoreError};
 use arrow::array::{
-    Array, ArrayRef, BinaryArray, BinaryBuilder, BooleanArray, FixedSizeListArray, Float32Array, Float64Array,
-    Int32Array, RecordBatch, StringArray,
+    Array, ArrayRef, BinaryArray, BinaryBuilder, BooleanArray, FixedSizeListArray, Float32Array,
+    Float64Array, Int32Array, RecordBatch, StringArray,
 };
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
 use bytes::Bytes;
-use parquet::arrow::arrow_reader::{ArrowReaderOptions, ParquetRecordBatchReaderBuilder, RowSelection, RowSelector};
-use parquet::arrow::arrow_writer::{compute_leaves, ArrowColumnChunk, ArrowColumnWriter, ArrowRowGroupWriterFactory};
+use parquet::arrow::arrow_reader::{
+    ArrowReaderOptions, ParquetRecordBatchReaderBuilder, RowSelection, RowSelector,
+};
+use parquet::arrow::arrow_writer::{
+    compute_leaves, ArrowColumnChunk, ArrowColumnWriter, ArrowRowGroupWriterFactory,
+};
 use parquet::arrow::{add_encoded_arrow_schema_to_metadata, ArrowSchemaConverter, ArrowWriter};
 use parquet::basic::{Compression, ConvertedType, Type as PhysicalType, ZstdLevel};
 use parquet::file::metadata::PageIndexPolicy;
@@ -65,10 +69,7 @@ pub fn schema_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn]) -> SchemaRe
     fields.push(Field::new("reward", DataType::Float32, false));
     fields.push(Field::new("done", DataType::Boolean, false));
     if let Some(c) = &ep.action_chunk {
-        let meta = HashMap::from([(
-            "ufops.shape".to_string(),
-            format!("[{}, {}]", c.horizon, c.action_dim),
-        )]);
+        let meta = HashMap::from([("ufops.shape".to_string(), format!("[{}, {}]", c.horizon, c.action_dim))]);
         fields.push(fsl_field("action_chunk", c.horizon * c.action_dim, meta));
     }
     for im in &ep.images {
@@ -102,9 +103,7 @@ pub fn schema_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn]) -> SchemaRe
 /// Checks that every column of an episode has one value per step.
 pub fn validate(ep: &EpisodeInput) -> Result<(), StoreError> {
     let n = ep.len();
-    let bad = |what: String| {
-        Err(StoreError::invalid(format!("episode {:?}: {what}", ep.source_name)))
-    };
+    let bad = |what: String| Err(StoreError::invalid(format!("episode {:?}: {what}", ep.source_name)));
     if n == 0 {
         return bad("has no steps".into());
     }
@@ -134,11 +133,7 @@ pub fn validate(ep: &EpisodeInput) -> Result<(), StoreError> {
         }
     }
     if ep.reward.len() != n || ep.done.len() != n {
-        return bad(format!(
-            "reward/done have {}/{} values for {n} steps",
-            ep.reward.len(),
-            ep.done.len()
-        ));
+        return bad(format!("reward/done have {}/{} values for {n} steps", ep.reward.len(), ep.done.len()));
     }
     if let Some(c) = &ep.action_chunk {
         if c.horizon == 0 || c.action_dim == 0 || c.values.len() != n * c.horizon * c.action_dim {
@@ -169,7 +164,10 @@ pub fn validate_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn]) -> Result
     let mut names = std::collections::HashSet::new();
     for x in extras {
         if x.name.is_empty() || !names.insert(x.name.as_str()) {
-            return Err(StoreError::invalid(format!("episode {:?}: extra column {:?} is empty-named or appears twice", ep.source_name, x.name)));
+            return Err(StoreError::invalid(format!(
+                "episode {:?}: extra column {:?} is empty-named or appears twice",
+                ep.source_name, x.name
+            )));
         }
         if x.values.len() != ep.len() {
             return Err(StoreError::invalid(format!(
@@ -289,7 +287,8 @@ pub fn steps_writer_properties(parquet: &SchemaDescriptor) -> WriterProperties {
     for c in parquet.columns() {
         let float = matches!(c.physical_type(), PhysicalType::FLOAT | PhysicalType::DOUBLE);
         let vector = c.max_rep_level() > 0;
-        let binary = c.physical_type() == PhysicalType::BYTE_ARRAY && c.converted_type() != ConvertedType::UTF8
+        let binary = c.physical_type() == PhysicalType::BYTE_ARRAY
+            && c.converted_type() != ConvertedType::UTF8
             && c.logical_type_ref().is_none();
         if float || binary {
             b = b.set_column_dictionary_enabled(c.path().clone(), false);
@@ -393,7 +392,11 @@ impl StepsFileWriter {
         let parquet = ArrowSchemaConverter::new().convert(&schema)?;
         let mut props = steps_writer_properties(&parquet);
         add_encoded_arrow_schema_to_metadata(&schema, &mut props);
-        let file = SerializedFileWriter::new(Vec::with_capacity(1 << 20), parquet.root_schema_ptr(), Arc::new(props))?;
+        let file = SerializedFileWriter::new(
+            Vec::with_capacity(1 << 20),
+            parquet.root_schema_ptr(),
+            Arc::new(props),
+        )?;
         let factory = ArrowRowGroupWriterFactory::new(&file, schema.clone());
         Ok(StepsFileWriter {
             file,
@@ -467,7 +470,10 @@ impl StepsFileWriter {
             for (first, rows) in page_cuts(col.as_ref()) {
                 let page = col.slice(first, rows);
                 for (k, l) in compute_leaves(field, &page)?.into_iter().enumerate() {
-                    let w = rg.writers.get_mut(leaf + k).ok_or_else(|| StoreError::invalid("schema leaf mismatch"))?;
+                    let w = rg
+                        .writers
+                        .get_mut(leaf + k)
+                        .ok_or_else(|| StoreError::invalid("schema leaf mismatch"))?;
                     w.write(&l)?;
                     leaves = leaves.max(k + 1);
                 }
@@ -479,7 +485,8 @@ impl StepsFileWriter {
         rg.rows += n;
         self.rows += n;
         let full = rg.rows >= ROW_GROUP_MAX_ROWS
-            || rg.writers.iter().map(|w| w.get_estimated_total_bytes()).sum::<usize>() >= self.max_row_group_bytes;
+            || rg.writers.iter().map(|w| w.get_estimated_total_bytes()).sum::<usize>()
+                >= self.max_row_group_bytes;
         if full {
             self.close_row_group()?;
         }
@@ -495,14 +502,16 @@ impl StepsFileWriter {
         if self.id_prefix.is_some() && self.waiting.is_empty() {
             self.append_row_group(closed)
         } else {
-            self.waiting_bytes += closed.chunks.iter().map(|c| c.close().bytes_written as usize).sum::<usize>();
+            self.waiting_bytes +=
+                closed.chunks.iter().map(|c| c.close().bytes_written as usize).sum::<usize>();
             self.waiting.push(closed);
             Ok(())
         }
     }
 
     fn append_row_group(&mut self, rg: ClosedRowGroup) -> Result<(), StoreError> {
-        let prefix = self.id_prefix.as_deref().ok_or_else(|| StoreError::invalid("episode ids are not known yet"))?;
+        let prefix =
+            self.id_prefix.as_deref().ok_or_else(|| StoreError::invalid("episode ids are not known yet"))?;
         let mut id_writer = rg.id_writer;
         let field = self.schema.field(0);
         for (index, n) in &rg.episodes {
@@ -525,7 +534,10 @@ impl StepsFileWriter {
     pub fn bytes_written(&self) -> usize {
         self.file.bytes_written()
             + self.waiting_bytes
-            + self.open.as_ref().map_or(0, |rg| rg.writers.iter().map(|w| w.get_estimated_total_bytes()).sum())
+            + self
+                .open
+                .as_ref()
+                .map_or(0, |rg| rg.writers.iter().map(|w| w.get_estimated_total_bytes()).sum())
     }
 
     /// Closes the file (the id prefix must be known) and returns its bytes.
@@ -550,7 +562,11 @@ pub fn read_row_group(data: Bytes, row_group: usize) -> Result<RecordBatch, Stor
 
 /// Reads `range = (offset, count)` rows of a row group (all of it for `None`), skipping the pages
 /// before and after them (the offset index says where pages start).
-pub fn read_rows(data: Bytes, row_group: usize, range: Option<(usize, usize)>) -> Result<RecordBatch, StoreError> {
+pub fn read_rows(
+    data: Bytes,
+    row_group: usize,
+    range: Option<(usize, usize)>,
+) -> Result<RecordBatch, StoreError> {
     let opts = ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Optional);
     let builder = ParquetRecordBatchReaderBuilder::try_new_with_options(data, opts)?;
     let n_groups = builder.metadata().num_row_groups();
@@ -714,7 +730,8 @@ mod tests {
         assert_eq!(ints(&read_row_group(old.clone(), 1).unwrap()), vec![100, 101, 102]);
         assert!(read_row_group(old, 2).is_err());
 
-        let props = WriterProperties::builder().set_data_page_row_count_limit(64).set_write_batch_size(64).build();
+        let props =
+            WriterProperties::builder().set_data_page_row_count_limit(64).set_write_batch_size(64).build();
         let big = batch(0, 10_000);
         let mut w = ArrowWriter::try_new(Vec::new(), big.schema(), Some(props)).unwrap();
         w.write(&big).unwrap();

@@ -80,7 +80,10 @@ fn verdict(tool: Tool, required: bool, probe: Result<(), String>) -> Verdict {
     if required {
         Verdict::Fail(format!("{msg} ({}=1: a missing tool is a failure)", tool.switch()))
     } else {
-        Verdict::Skip(format!("{msg}\n!! (scripts/test.sh sets {}=1, which makes this a failure)", tool.switch()))
+        Verdict::Skip(format!(
+            "{msg}\n!! (scripts/test.sh sets {}=1, which makes this a failure)",
+            tool.switch()
+        ))
     }
 }
 
@@ -114,7 +117,8 @@ pub fn postgres_reachable() -> Result<(), String> {
     let url = crate::test_postgres_base();
     let addr = host_port(&url);
     let what = format!("the Postgres server at {addr}");
-    let addrs = addr.to_socket_addrs().map_err(|e| format!("{what} (cannot resolve: {e})"))?.collect::<Vec<_>>();
+    let addrs =
+        addr.to_socket_addrs().map_err(|e| format!("{what} (cannot resolve: {e})"))?.collect::<Vec<_>>();
     let mut last = String::from("no address");
     for a in addrs {
         match TcpStream::connect_timeout(&a, Duration::from_secs(2)) {
@@ -132,7 +136,9 @@ fn host_port(url: &str) -> String {
     let host = authority.rsplit_once('@').map_or(authority, |(_, h)| h);
     let host = if host.is_empty() { "localhost" } else { host };
     // `[::1]:5433`, `[::1]`, `db:5433`, `db`
-    let has_port = host.rsplit_once(':').is_some_and(|(h, p)| !p.is_empty() && p.bytes().all(|b| b.is_ascii_digit()) && (!h.contains(':') || h.ends_with(']')));
+    let has_port = host.rsplit_once(':').is_some_and(|(h, p)| {
+        !p.is_empty() && p.bytes().all(|b| b.is_ascii_digit()) && (!h.contains(':') || h.ends_with(']'))
+    });
     if has_port {
         host.to_string()
     } else {
@@ -160,7 +166,10 @@ mod tests {
         let Verdict::Fail(msg) = verdict(Tool::S3, true, Err("the weed binary".into())) else { panic!() };
         assert!(msg.contains("needs the weed binary") && msg.contains("requirements.txt"), "{msg}");
         // libtest names each test's thread after the test
-        assert!(msg.contains("missing_tool_skips_or_fails_by_its_switch") || msg.starts_with("this test"), "{msg}");
+        assert!(
+            msg.contains("missing_tool_skips_or_fails_by_its_switch") || msg.starts_with("this test"),
+            "{msg}"
+        );
     }
 }
 
@@ -194,7 +203,11 @@ pub fn square_rollout(i: u32) -> crate::EpisodeInput {
     let action = crate::VectorColumn {
         name: "action".into(),
         dim: SQUARE_ACTION,
-        values: (0..steps * SQUARE_ACTION).map(|k| ((k % SQUARE_ACTION) as f32 * 0.1 + (k / SQUARE_ACTION) as f32 * 0.02 + phase).cos() + noise()).collect(),
+        values: (0..steps * SQUARE_ACTION)
+            .map(|k| {
+                ((k % SQUARE_ACTION) as f32 * 0.1 + (k / SQUARE_ACTION) as f32 * 0.02 + phase).cos() + noise()
+            })
+            .collect(),
     };
     let success = i % 3 != 0;
     crate::EpisodeInput {

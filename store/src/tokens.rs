@@ -66,14 +66,16 @@ impl Store {
         let secret = format!("ufops_{}{}", uuid::Uuid::new_v4().simple(), uuid::Uuid::new_v4().simple());
         let id = format!("tok_{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
         let now = now_rfc3339();
-        sqlx::query("INSERT INTO tokens (id, name, role, token_hash, created_at) VALUES ($1, $2, $3, $4, $5)")
-            .bind(&id)
-            .bind(name)
-            .bind(role.as_str())
-            .bind(crate::sha256_hex(secret.as_bytes()))
-            .bind(&now)
-            .execute(&self.db().pool)
-            .await?;
+        sqlx::query(
+            "INSERT INTO tokens (id, name, role, token_hash, created_at) VALUES ($1, $2, $3, $4, $5)",
+        )
+        .bind(&id)
+        .bind(name)
+        .bind(role.as_str())
+        .bind(crate::sha256_hex(secret.as_bytes()))
+        .bind(&now)
+        .execute(&self.db().pool)
+        .await?;
         Ok((secret, TokenRecord { id, name: name.into(), role, created_at: now, revoked_at: None }))
     }
 
@@ -89,9 +91,10 @@ impl Store {
     }
 
     pub async fn tokens(&self) -> Result<Vec<TokenRecord>, StoreError> {
-        let rows = sqlx::query("SELECT id, name, role, created_at, revoked_at FROM tokens ORDER BY created_at")
-            .fetch_all(&self.db().pool)
-            .await?;
+        let rows =
+            sqlx::query("SELECT id, name, role, created_at, revoked_at FROM tokens ORDER BY created_at")
+                .fetch_all(&self.db().pool)
+                .await?;
         rows.iter().map(from_row).collect()
     }
 

@@ -160,11 +160,13 @@ impl Store {
 
     /// A source's record: what was ingested, its format and format-specific metadata.
     pub async fn source(&self, sha256: &str) -> Result<SourceRecord, StoreError> {
-        let r = sqlx::query("SELECT sha256, path, format, size_bytes, metadata, version FROM sources WHERE sha256 = $1")
-            .bind(sha256)
-            .fetch_optional(&self.db().pool)
-            .await?
-            .ok_or_else(|| StoreError::not_found("source", sha256))?;
+        let r = sqlx::query(
+            "SELECT sha256, path, format, size_bytes, metadata, version FROM sources WHERE sha256 = $1",
+        )
+        .bind(sha256)
+        .fetch_optional(&self.db().pool)
+        .await?
+        .ok_or_else(|| StoreError::not_found("source", sha256))?;
         let metadata = serde_json::from_str(&r.s("metadata")?)
             .map_err(|e| StoreError::Corrupt(format!("source {sha256}: metadata is not JSON: {e}")))?;
         Ok(SourceRecord {
@@ -256,10 +258,7 @@ impl IngestWriter {
         // Before the existence check inside: an object re-used from an earlier failed ingest must
         // not be collected between that check and our commit (gc.rs).
         self.protect(&path).await?;
-        self.store
-            .objects()
-            .put_file_content_addressed(&path, &file.local_path, &file.sha256)
-            .await?;
+        self.store.objects().put_file_content_addressed(&path, &file.local_path, &file.sha256).await?;
         self.media_paths.insert(file.sha256.clone(), path.clone());
         self.media.insert(file.sha256.clone(), (path, file.content_type.clone(), file.size_bytes as i64));
         Ok(())
@@ -277,7 +276,9 @@ impl IngestWriter {
     /// [`Self::push_episode`] otherwise).
     pub async fn add_episode(&mut self, ep: EpisodeInput) -> Result<String, StoreError> {
         let Some(prefix) = self.id_prefix.clone() else {
-            return Err(StoreError::invalid("episode ids are not known before the source's sha256: use push_episode"));
+            return Err(StoreError::invalid(
+                "episode ids are not known before the source's sha256: use push_episode",
+            ));
         };
         let index = ep.source_index;
         self.push_episode(ep).await?;
@@ -291,7 +292,11 @@ impl IngestWriter {
 
     /// [`Self::push_episode`] with per-step arrays of the source beyond the step model, stored as
     /// `extra.<name>` columns (store/README.md, "Steps schema").
-    pub async fn push_episode_with_extras(&mut self, ep: EpisodeInput, extras: Vec<ExtraColumn>) -> Result<(), StoreError> {
+    pub async fn push_episode_with_extras(
+        &mut self,
+        ep: EpisodeInput,
+        extras: Vec<ExtraColumn>,
+    ) -> Result<(), StoreError> {
         steps::validate_with_extras(&ep, &extras)?;
         if let Some(t) = &ep.task {
             check_name("task", t)?;
@@ -337,7 +342,13 @@ impl IngestWriter {
                 .collect(),
         };
         let index = ep.source_index;
-        let cols = steps::episode_columns_with_extras(ep, extras, &self.policy, &self.checkpoint, &self.media_paths)?;
+        let cols = steps::episode_columns_with_extras(
+            ep,
+            extras,
+            &self.policy,
+            &self.checkpoint,
+            &self.media_paths,
+        )?;
         let (path, w) = self.current.as_mut().expect("writer just created");
         let range = w.write_episode(index, &cols)?;
         self.episodes.push(PendingEpisode { data_file: path.clone(), range, ..pending });
@@ -411,12 +422,18 @@ impl IngestWriter {
             .fetch_optional(&mut *tx)
             .await?
         {
-            return Err(StoreError::AlreadyIngested { sha256: self.source.sha256.clone(), version: r.i("version")? });
+            return Err(StoreError::AlreadyIngested {
+                sha256: self.source.sha256.clone(),
+                version: r.i("version")?,
+            });
         }
         let version = next_version(&mut tx).await?;
         let now = now_rfc3339();
         // Referenced from this commit on: no longer pending.
-        sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(&self.writer_id).execute(&mut *tx).await?;
+        sqlx::query("DELETE FROM pending_objects WHERE writer = $1")
+            .bind(&self.writer_id)
+            .execute(&mut *tx)
+            .await?;
         ensure_checkpoint(&mut tx, &self.policy, &self.checkpoint, &now).await?;
         let run_id = match &self.run {
             Some(run) => Some(crate::runs::ensure_run(&mut tx, run, &now).await?),
@@ -451,7 +468,14 @@ impl IngestWriter {
             self.files
                 .iter()
                 .map(|f| {
-                    vec![f.path.as_str().into(), "steps".into(), f.size.into(), f.rows.into(), version.into(), 1i64.into()]
+                    vec![
+                        f.path.as_str().into(),
+                        "steps".into(),
+                        f.size.into(),
+                        f.rows.into(),
+                        version.into(),
+                        1i64.into(),
+                    ]
                 })
                 .collect(),
             "",
@@ -464,13 +488,20 @@ impl IngestWriter {
             self.media
                 .iter()
                 .map(|(sha, (p, ct, sz))| {
-                    vec![sha.as_str().into(), p.as_str().into(), ct.as_str().into(), (*sz).into(), version.into()]
+                    vec![
+                        sha.as_str().into(),
+                        p.as_str().into(),
+                        ct.as_str().into(),
+                        (*sz).into(),
+                        version.into(),
+                    ]
                 })
                 .collect(),
             "ON CONFLICT DO NOTHING",
         )
         .await?;
-        let ids: Vec<String> = self.episodes.iter().map(|e| steps::episode_id(&prefix, e.source_index)).collect();
+        let ids: Vec<String> =
+            self.episodes.iter().map(|e| steps::episode_id(&prefix, e.source_index)).collect();
         let ep_rows: Vec<Vec<Val>> = self
             .episodes
             .iter()
@@ -506,9 +537,28 @@ impl IngestWriter {
             &mut tx,
             "episodes",
             &[
-                "id", "policy", "checkpoint", "task", "source_sha256", "source_name", "source_index", "length",
-                "tags", "metadata", "data_file", "row_group", "row_offset", "row_count", "version_added", "label",
-                "label_source", "label_revision", "label_actor", "label_updated_at", "created_at", "run_id",
+                "id",
+                "policy",
+                "checkpoint",
+                "task",
+                "source_sha256",
+                "source_name",
+                "source_index",
+                "length",
+                "tags",
+                "metadata",
+                "data_file",
+                "row_group",
+                "row_offset",
+                "row_count",
+                "version_added",
+                "label",
+                "label_source",
+                "label_revision",
+                "label_actor",
+                "label_updated_at",
+                "created_at",
+                "run_id",
             ],
             ep_rows,
             "",
@@ -520,7 +570,13 @@ impl IngestWriter {
             .zip(&ids)
             .flat_map(|(e, id)| {
                 e.media.iter().map(move |(key, path, first, last)| {
-                    vec![id.as_str().into(), key.as_str().into(), path.as_str().into(), (*first).into(), (*last).into()]
+                    vec![
+                        id.as_str().into(),
+                        key.as_str().into(),
+                        path.as_str().into(),
+                        (*first).into(),
+                        (*last).into(),
+                    ]
                 })
             })
             .collect();
@@ -582,18 +638,25 @@ pub(crate) async fn next_version(tx: &mut Tx) -> Result<i64, StoreError> {
     Ok(row.i("version")? + 1)
 }
 
-pub(crate) async fn ensure_checkpoint(tx: &mut Tx, policy: &str, checkpoint: &str, now: &str) -> Result<(), StoreError> {
+pub(crate) async fn ensure_checkpoint(
+    tx: &mut Tx,
+    policy: &str,
+    checkpoint: &str,
+    now: &str,
+) -> Result<(), StoreError> {
     sqlx::query("INSERT INTO policies (name, created_at) VALUES ($1, $2) ON CONFLICT DO NOTHING")
         .bind(policy)
         .bind(now)
         .execute(&mut **tx)
         .await?;
-    sqlx::query("INSERT INTO checkpoints (policy, name, created_at) VALUES ($1, $2, $3) ON CONFLICT DO NOTHING")
-        .bind(policy)
-        .bind(checkpoint)
-        .bind(now)
-        .execute(&mut **tx)
-        .await?;
+    sqlx::query(
+        "INSERT INTO checkpoints (policy, name, created_at) VALUES ($1, $2, $3) ON CONFLICT DO NOTHING",
+    )
+    .bind(policy)
+    .bind(checkpoint)
+    .bind(now)
+    .execute(&mut **tx)
+    .await?;
     Ok(())
 }
 
@@ -720,12 +783,12 @@ pub(crate) async fn finish_version(
         label_rows.push(label_row(r)?);
     }
     drop(rows);
-    let frozen = label_rows.iter().map(|r| (r.policy.as_str(), r.checkpoint.as_str(), r.task.as_deref(), r.label));
+    let frozen =
+        label_rows.iter().map(|r| (r.policy.as_str(), r.checkpoint.as_str(), r.task.as_deref(), r.label));
     insert_version_counts(&mut tx, v, frozen).await?;
-    let by_run = label_rows
-        .iter()
-        .zip(&run_ids)
-        .map(|(r, run)| (r.policy.as_str(), r.checkpoint.as_str(), r.task.as_deref(), run.as_deref(), r.label));
+    let by_run = label_rows.iter().zip(&run_ids).map(|(r, run)| {
+        (r.policy.as_str(), r.checkpoint.as_str(), r.task.as_deref(), run.as_deref(), r.label)
+    });
     crate::scoreboard::insert_version_run_counts(&mut tx, v, by_run).await?;
     let changed = sqlx::query(
         "SELECT COUNT(*) AS n FROM version_labels a JOIN version_labels b \
@@ -741,16 +804,16 @@ pub(crate) async fn finish_version(
     // Its pending record must still be within its lease: then no gc can have deleted it (gc
     // deletes under this lock, and only objects whose lease had lapsed).
     let usable = match &ahead {
-        Some(a) if a.version == v && a.digest == label_rows_digest(v, &label_rows) => {
-            sqlx::query("SELECT COUNT(*) AS n FROM pending_objects WHERE writer = $1 AND path = $2 AND created_ms >= $3")
-                .bind(&a.writer)
-                .bind(&a.path)
-                .bind(crate::now_ms() - crate::gc::writer_lease_ms())
-                .fetch_one(&mut *tx)
-                .await?
-                .i("n")?
-                > 0
-        }
+        Some(a) if a.version == v && a.digest == label_rows_digest(v, &label_rows) => sqlx::query(
+            "SELECT COUNT(*) AS n FROM pending_objects WHERE writer = $1 AND path = $2 AND created_ms >= $3",
+        )
+        .bind(&a.writer)
+        .bind(&a.path)
+        .bind(crate::now_ms() - crate::gc::writer_lease_ms())
+        .fetch_one(&mut *tx)
+        .await?
+        .i("n")?
+            > 0,
         _ => false,
     };
     let (labels_path, size) = match ahead {
@@ -909,7 +972,8 @@ mod tests {
         w.set_source_hash(&sha, 1).await.unwrap();
         let v = w.commit("t").await.unwrap().version;
         let before = steps_files(dir.path());
-        let mut w = store.begin_ingest_unhashed(source("b again"), "pol", "c1").unwrap().with_max_file_bytes(1);
+        let mut w =
+            store.begin_ingest_unhashed(source("b again"), "pol", "c1").unwrap().with_max_file_bytes(1);
         for i in 0..5 {
             w.push_episode(episode(i, 4, 2)).await.unwrap();
         }

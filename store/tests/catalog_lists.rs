@@ -140,14 +140,20 @@ async fn counts_follow_every_write(db: Backend) {
     let frozen = CountFilter { version: Some(snap.version), ..Default::default() };
     let at_snap = store.episode_counts(&frozen).await.unwrap();
     assert_eq!(at_snap, store.episode_counts(&CountFilter::default()).await.unwrap());
-    store.set_labels(a[4..14].iter().map(|id| upd(id, Label::Failure)).collect(), "erin", "human").await.unwrap();
+    store
+        .set_labels(a[4..14].iter().map(|id| upd(id, Label::Failure)).collect(), "erin", "human")
+        .await
+        .unwrap();
     assert_eq!(store.episode_counts(&frozen).await.unwrap(), at_snap, "a version's counts never change");
     check_counts(&store, "after a snapshot and more writes").await;
 
     // Deletions (with their current labels) and an ingest into an existing checkpoint.
     store.delete_episodes(&[a[0].clone(), a[5].clone(), o[4].clone()], "alice", "bad runs").await.unwrap();
     check_counts(&store, "after a deletion").await;
-    assert!(store.set_label(upd(&a[0], Label::Unknown), "alice", "human").await.is_err(), "deleted: not writable");
+    assert!(
+        store.set_label(upd(&a[0], Label::Unknown), "alice", "human").await.is_err(),
+        "deleted: not writable"
+    );
     ingest(&store, "lists-a2", "pol", "c1", 12).await;
     check_counts(&store, "after another ingest").await;
 
@@ -243,14 +249,23 @@ async fn pages_cover_every_episode_once(db: Backend) {
     })
     .await;
     let got: Vec<&str> = all.iter().map(|e| e.id.as_str()).collect();
-    assert_eq!(got, ids.iter().map(String::as_str).collect::<Vec<_>>(), "every episode exactly once, in id order");
+    assert_eq!(
+        got,
+        ids.iter().map(String::as_str).collect::<Vec<_>>(),
+        "every episode exactly once, in id order"
+    );
 
     // label=unknown, while episodes are labeled and unlabeled between pages: never one twice,
     // every returned one was unknown when read, and every episode that stayed unknown throughout
     // is there.
     for base in [
         EpisodeFilter { label: Some(Label::Unknown), ..Default::default() },
-        EpisodeFilter { label: Some(Label::Unknown), policy: Some("pol".into()), checkpoint: Some("c1".into()), ..Default::default() },
+        EpisodeFilter {
+            label: Some(Label::Unknown),
+            policy: Some("pol".into()),
+            checkpoint: Some("c1".into()),
+            ..Default::default()
+        },
         EpisodeFilter { label: Some(Label::Unknown), task: Some("reach".into()), ..Default::default() },
     ] {
         let scope: Vec<String> = store
@@ -295,7 +310,13 @@ async fn pages_cover_every_episode_once(db: Backend) {
         EpisodeFilter { version: Some(v), ..Default::default() },
         EpisodeFilter { version: Some(v), label: Some(Label::Unknown), ..Default::default() },
         EpisodeFilter { version: Some(v), policy: Some("pol".into()), ..Default::default() },
-        EpisodeFilter { version: Some(v), policy: Some("pol".into()), checkpoint: Some("c2".into()), label: Some(Label::Failure), ..Default::default() },
+        EpisodeFilter {
+            version: Some(v),
+            policy: Some("pol".into()),
+            checkpoint: Some("c2".into()),
+            label: Some(Label::Failure),
+            ..Default::default()
+        },
         EpisodeFilter { version: Some(v), label_source: Some("human".into()), ..Default::default() },
     ];
     for base in shapes {

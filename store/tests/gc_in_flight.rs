@@ -20,7 +20,12 @@ fn video(dir: &std::path::Path) -> MediaFile {
     let bytes: Vec<u8> = (0..50_000u32).map(|i| (i.wrapping_mul(2654435761) >> 11) as u8).collect();
     let local_path = dir.join("front.mp4");
     std::fs::write(&local_path, &bytes).unwrap();
-    MediaFile { sha256: store::sha256_hex(&bytes), local_path, content_type: "video/mp4".into(), size_bytes: bytes.len() as u64 }
+    MediaFile {
+        sha256: store::sha256_hex(&bytes),
+        local_path,
+        content_type: "video/mp4".into(),
+        size_bytes: bytes.len() as u64,
+    }
 }
 
 #[tokio::test]
@@ -42,12 +47,19 @@ async fn gc_with_grace_zero_during_an_ingest_keeps_the_writers_objects() {
     w.add_media(&media).await.unwrap();
     for i in 0..6 {
         let mut ep = two_step_episode(i, Some("t"), if i % 2 == 0 { Label::Success } else { Label::Failure });
-        ep.media = vec![MediaColumn { name: "front".into(), sha256: media.sha256.clone(), timestamps: ep.timestamps.clone() }];
+        ep.media = vec![MediaColumn {
+            name: "front".into(),
+            sha256: media.sha256.clone(),
+            timestamps: ep.timestamps.clone(),
+        }];
         w.add_episode(ep).await.unwrap();
     }
     let report = store.gc(0, false).await.unwrap();
     assert!(report.kept_pending >= 2, "the live writer's steps files and video are pending: {report:?}");
-    assert!(report.deleted.iter().all(|p| !p.starts_with("media/")), "the re-used video was deleted: {report:?}");
+    assert!(
+        report.deleted.iter().all(|p| !p.starts_with("media/")),
+        "the re-used video was deleted: {report:?}"
+    );
     let c = w.commit("live").await.unwrap();
     assert_eq!(c.episodes, 6);
 

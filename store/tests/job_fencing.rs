@@ -7,9 +7,13 @@ use store::{JobState, Store, StoreConfig};
 
 async fn open() -> (tempfile::TempDir, Store) {
     let dir = tempfile::tempdir().unwrap();
-    let store = Store::open(&StoreConfig { data_dir: dir.path().to_path_buf(), database_url: None, object_store_url: None })
-        .await
-        .unwrap();
+    let store = Store::open(&StoreConfig {
+        data_dir: dir.path().to_path_buf(),
+        database_url: None,
+        object_store_url: None,
+    })
+    .await
+    .unwrap();
     (dir, store)
 }
 

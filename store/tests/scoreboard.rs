@@ -12,7 +12,9 @@ async fn open(db: Backend, dir: &std::path::Path) -> Store {
         Backend::Sqlite => StoreConfig::local(dir),
         Backend::Postgres => StoreConfig {
             data_dir: dir.into(),
-            database_url: Some(create_test_schema("scoreboard").await.expect("the Postgres tests need a server")),
+            database_url: Some(
+                create_test_schema("scoreboard").await.expect("the Postgres tests need a server"),
+            ),
             object_store_url: None,
         },
     };
@@ -20,7 +22,14 @@ async fn open(db: Backend, dir: &std::path::Path) -> Store {
 }
 
 /// Ingests `n` episodes of `pol/ckpt` as `run`; episode i's label is `labels[i % len]`.
-async fn ingest(store: &Store, tag: &str, ckpt: &str, run: Option<RunInput>, n: u32, labels: &[Label]) -> Result<i64, StoreError> {
+async fn ingest(
+    store: &Store,
+    tag: &str,
+    ckpt: &str,
+    run: Option<RunInput>,
+    n: u32,
+    labels: &[Label],
+) -> Result<i64, StoreError> {
     let src = SourceInput {
         path: format!("/tmp/{tag}"),
         sha256: sha256_hex(tag.as_bytes()),
@@ -41,13 +50,23 @@ async fn ingest(store: &Store, tag: &str, ckpt: &str, run: Option<RunInput>, n: 
 
 /// The scoreboard's rows against a count of the version's episodes made here.
 async fn check_against_episodes(store: &Store, version: i64) {
-    let sb = store.scoreboard(&ScoreboardRequest { policy: "pol".into(), version: Some(version), ..Default::default() }).await.unwrap();
+    let sb = store
+        .scoreboard(&ScoreboardRequest { policy: "pol".into(), version: Some(version), ..Default::default() })
+        .await
+        .unwrap();
     assert_eq!(sb.version, version);
     // The counts frozen with the version equal a GROUP BY over its labels.
     let req = ScoreboardRequest { policy: "pol".into(), ..Default::default() };
-    assert_eq!(store.scoreboard_counts(&req, version).await.unwrap(), store.recount_scoreboard(&req, version).await.unwrap());
-    let eps = store.episodes(&EpisodeFilter { version: Some(version), policy: Some("pol".into()), ..Default::default() }).await.unwrap();
-    let runs: BTreeMap<String, RunRecord> = store.runs(None).await.unwrap().into_iter().map(|r| (r.id.clone(), r)).collect();
+    assert_eq!(
+        store.scoreboard_counts(&req, version).await.unwrap(),
+        store.recount_scoreboard(&req, version).await.unwrap()
+    );
+    let eps = store
+        .episodes(&EpisodeFilter { version: Some(version), policy: Some("pol".into()), ..Default::default() })
+        .await
+        .unwrap();
+    let runs: BTreeMap<String, RunRecord> =
+        store.runs(None).await.unwrap().into_iter().map(|r| (r.id.clone(), r)).collect();
     let mut want: BTreeMap<(String, Option<String>, String), [u64; 3]> = BTreeMap::new();
     for e in &eps {
         let name = e.run_id.as_ref().map_or("-".to_string(), |id| runs[id].name.clone());
@@ -65,7 +84,9 @@ async fn check_against_episodes(store: &Store, version: i64) {
         assert_eq!(r.wilson_95, evalstats::wilson(s, s + f));
         assert_eq!(r.is_baseline, r.run_name == "base");
         match &r.baseline {
-            None => assert!(r.is_baseline || !want.contains_key(&(r.checkpoint.clone(), r.task.clone(), "base".into()))),
+            None => assert!(
+                r.is_baseline || !want.contains_key(&(r.checkpoint.clone(), r.task.clone(), "base".into()))
+            ),
             Some(b) => {
                 let [bs, bf, bu] = want[&(r.checkpoint.clone(), r.task.clone(), "base".to_string())];
                 assert_eq!(b.run_name, "base");
@@ -87,9 +108,22 @@ async fn runs_and_scoreboard(store: Store) {
     let base = RunInput::new("base", Steering::Base);
     let mut bon = RunInput::new("c-bon10", Steering::Bon { n: 10 });
     bon.tags = vec!["on-policy".into()];
-    ingest(&store, "base", "c1", Some(base.clone()), 60, &[Success, Failure, Failure, Unknown]).await.unwrap();
-    ingest(&store, "bon", "c1", Some(bon.clone()), 60, &[Success, Success, Success, Failure, Unknown]).await.unwrap();
-    ingest(&store, "cg", "c1", Some(RunInput::new("c-cg3", Steering::Cg { lambda: 3.0 })), 40, &[Success, Failure]).await.unwrap();
+    ingest(&store, "base", "c1", Some(base.clone()), 60, &[Success, Failure, Failure, Unknown])
+        .await
+        .unwrap();
+    ingest(&store, "bon", "c1", Some(bon.clone()), 60, &[Success, Success, Success, Failure, Unknown])
+        .await
+        .unwrap();
+    ingest(
+        &store,
+        "cg",
+        "c1",
+        Some(RunInput::new("c-cg3", Steering::Cg { lambda: 3.0 })),
+        40,
+        &[Success, Failure],
+    )
+    .await
+    .unwrap();
     // Another checkpoint with its own base run, and episodes ingested without a run.
     ingest(&store, "c2-base", "c2", Some(base.clone()), 30, &[Failure, Success, Failure]).await.unwrap();
     let v = ingest(&store, "plain", "c2", None, 20, &[Success]).await.unwrap();
@@ -101,8 +135,13 @@ async fn runs_and_scoreboard(store: Store) {
     check_against_episodes(&store, head).await;
 
     // The bon row of c1/reach at head, by hand.
-    let sb = store.scoreboard(&ScoreboardRequest { policy: "pol".into(), ..Default::default() }).await.unwrap();
-    let row = sb.rows.iter().find(|r| r.checkpoint == "c1" && r.task.as_deref() == Some("reach") && r.run_name == "c-bon10").unwrap();
+    let sb =
+        store.scoreboard(&ScoreboardRequest { policy: "pol".into(), ..Default::default() }).await.unwrap();
+    let row = sb
+        .rows
+        .iter()
+        .find(|r| r.checkpoint == "c1" && r.task.as_deref() == Some("reach") && r.run_name == "c-bon10")
+        .unwrap();
     let run = row.run.as_ref().unwrap();
     assert_eq!((run.steering, run.tags.clone()), (Steering::Bon { n: 10 }, vec!["on-policy".to_string()]));
     assert!(row.baseline.as_ref().unwrap().separates, "{row:?}");
@@ -110,19 +149,42 @@ async fn runs_and_scoreboard(store: Store) {
 
     // A label change shows at the version that freezes it, not before.
     let ep = store
-        .episodes(&EpisodeFilter { checkpoint: Some("c1".into()), task: Some("reach".into()), label: Some(Unknown), ..Default::default() })
+        .episodes(&EpisodeFilter {
+            checkpoint: Some("c1".into()),
+            task: Some("reach".into()),
+            label: Some(Unknown),
+            ..Default::default()
+        })
         .await
         .unwrap()
         .into_iter()
         .find(|e| e.run_id.as_deref() == Some(base.id().as_str()))
         .unwrap();
-    store.set_label(LabelUpdate { episode_id: ep.id.clone(), label: Success, expect_revision: None, note: None }, "t", "human").await.unwrap();
+    store
+        .set_label(
+            LabelUpdate { episode_id: ep.id.clone(), label: Success, expect_revision: None, note: None },
+            "t",
+            "human",
+        )
+        .await
+        .unwrap();
     let snap = store.snapshot_labels("t", "after a label").await.unwrap().version;
     let at = |v: i64| {
         let store = store.clone();
         async move {
-            let sb = store.scoreboard(&ScoreboardRequest { policy: "pol".into(), version: Some(v), ..Default::default() }).await.unwrap();
-            let r = sb.rows.into_iter().find(|r| r.checkpoint == "c1" && r.task.as_deref() == Some("reach") && r.run_name == "base").unwrap();
+            let sb = store
+                .scoreboard(&ScoreboardRequest {
+                    policy: "pol".into(),
+                    version: Some(v),
+                    ..Default::default()
+                })
+                .await
+                .unwrap();
+            let r = sb
+                .rows
+                .into_iter()
+                .find(|r| r.checkpoint == "c1" && r.task.as_deref() == Some("reach") && r.run_name == "base")
+                .unwrap();
             (r.successes, r.unlabeled)
         }
     };
@@ -140,7 +202,11 @@ async fn runs_and_scoreboard(store: Store) {
         })
         .await
         .unwrap();
-    let c2 = sb.rows.iter().find(|r| r.checkpoint == "c2" && r.task.as_deref() == Some("reach") && r.run_name == "-").unwrap();
+    let c2 = sb
+        .rows
+        .iter()
+        .find(|r| r.checkpoint == "c2" && r.task.as_deref() == Some("reach") && r.run_name == "-")
+        .unwrap();
     assert_eq!(c2.baseline.as_ref().unwrap().checkpoint, "c1");
     assert_eq!(c2.baseline.as_ref().unwrap().run_name, "c-bon10");
     // The same, asking for c2 only: its rows, the baseline's rows, the same comparisons.
@@ -154,7 +220,8 @@ async fn runs_and_scoreboard(store: Store) {
         })
         .await
         .unwrap();
-    let want: Vec<&ScoreboardRow> = sb.rows.iter().filter(|r| r.checkpoint == "c2" || r.is_baseline).collect();
+    let want: Vec<&ScoreboardRow> =
+        sb.rows.iter().filter(|r| r.checkpoint == "c2" || r.is_baseline).collect();
     assert_eq!(only.rows.iter().collect::<Vec<_>>(), want);
 
     // Steered episodes stay out of splits: c1's split holds its base run's labeled episodes only.
@@ -188,9 +255,13 @@ async fn runs_and_scoreboard(store: Store) {
     assert!(e.to_string().contains("art-does-not-exist"), "{e}");
     assert_eq!(store.head_version().await.unwrap(), before);
     assert!(store.runs(Some("c-bon30")).await.unwrap().is_empty());
-    let empty = store.scoreboard(&ScoreboardRequest { policy: "nobody".into(), ..Default::default() }).await.unwrap();
+    let empty =
+        store.scoreboard(&ScoreboardRequest { policy: "nobody".into(), ..Default::default() }).await.unwrap();
     assert!(empty.rows.is_empty());
-    let e = store.scoreboard(&ScoreboardRequest { policy: "pol".into(), version: Some(999), ..Default::default() }).await.unwrap_err();
+    let e = store
+        .scoreboard(&ScoreboardRequest { policy: "pol".into(), version: Some(999), ..Default::default() })
+        .await
+        .unwrap_err();
     assert!(e.to_string().contains("999"), "{e}");
 }
 

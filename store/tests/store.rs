@@ -51,7 +51,8 @@ async fn open_sqlite(dir: &std::path::Path) -> Store {
 }
 
 async fn open_postgres(dir: &std::path::Path) -> Store {
-    let url = create_test_schema("store").await.expect("the Postgres tests need a server (UFOPS_TEST_POSTGRES)");
+    let url =
+        create_test_schema("store").await.expect("the Postgres tests need a server (UFOPS_TEST_POSTGRES)");
     Store::open(&StoreConfig { data_dir: dir.into(), database_url: Some(url), object_store_url: None })
         .await
         .unwrap()
@@ -83,12 +84,30 @@ async fn versions_labels_time_travel(store: Store) {
 
     // Labels: optimistic concurrency and an audit log.
     let ch = store
-        .set_label(LabelUpdate { episode_id: id.clone(), label: Label::Success, expect_revision: Some(1), note: Some("looked again".into()) }, "alice", "human")
+        .set_label(
+            LabelUpdate {
+                episode_id: id.clone(),
+                label: Label::Success,
+                expect_revision: Some(1),
+                note: Some("looked again".into()),
+            },
+            "alice",
+            "human",
+        )
         .await
         .unwrap();
     assert_eq!((ch.old_label, ch.label, ch.revision), (Label::Failure, Label::Success, 2));
     let stale = store
-        .set_label(LabelUpdate { episode_id: id.clone(), label: Label::Failure, expect_revision: Some(1), note: None }, "bob", "human")
+        .set_label(
+            LabelUpdate {
+                episode_id: id.clone(),
+                label: Label::Failure,
+                expect_revision: Some(1),
+                note: None,
+            },
+            "bob",
+            "human",
+        )
         .await;
     match stale {
         Err(StoreError::LabelConflict { revision, label, actor, .. }) => {
@@ -116,8 +135,18 @@ async fn versions_labels_time_travel(store: Store) {
     let bad = store
         .set_labels(
             vec![
-                LabelUpdate { episode_id: eps[0].id.clone(), label: Label::Failure, expect_revision: None, note: None },
-                LabelUpdate { episode_id: "nope".into(), label: Label::Failure, expect_revision: None, note: None },
+                LabelUpdate {
+                    episode_id: eps[0].id.clone(),
+                    label: Label::Failure,
+                    expect_revision: None,
+                    note: None,
+                },
+                LabelUpdate {
+                    episode_id: "nope".into(),
+                    label: Label::Failure,
+                    expect_revision: None,
+                    note: None,
+                },
             ],
             "bob",
             "human",
@@ -139,7 +168,11 @@ async fn versions_labels_time_travel(store: Store) {
     let at1 = store.episodes(&EpisodeFilter { version: Some(1), ..Default::default() }).await.unwrap();
     assert_eq!(at1.len(), 4);
     let filtered = store
-        .episodes(&EpisodeFilter { checkpoint: Some("c2".into()), label: Some(Label::Success), ..Default::default() })
+        .episodes(&EpisodeFilter {
+            checkpoint: Some("c2".into()),
+            label: Some(Label::Success),
+            ..Default::default()
+        })
         .await
         .unwrap();
     assert_eq!(filtered.len(), 1);
@@ -176,7 +209,14 @@ async fn versions_labels_time_travel(store: Store) {
     let manifest = serde_json::json!({"schema_version": 1, "files": {
         "config.json": sha256_hex(b"{\"kind\":\"classifier\"}"), "model.safetensors": sha256_hex(b"weights")}});
     std::fs::write(dir.path().join("manifest.json"), serde_json::to_vec(&manifest).unwrap()).unwrap();
-    let new = || NewArtifact { dir: dir.path(), policy: "pol", checkpoint: "c1", kind: "classifier", split_id: Some(&s1.id), job_id: None };
+    let new = || NewArtifact {
+        dir: dir.path(),
+        policy: "pol",
+        checkpoint: "c1",
+        kind: "classifier",
+        split_id: Some(&s1.id),
+        job_id: None,
+    };
     let a = store.publish_artifact(new()).await.unwrap();
     assert_eq!(a.aliases, vec!["latest".to_string()]);
     assert_eq!(store.resolve_artifact("pol/c1/classifier@latest").await.unwrap().id, a.id);
@@ -189,7 +229,14 @@ async fn versions_labels_time_travel(store: Store) {
         "config.json": sha256_hex(off_cfg), "model.safetensors": sha256_hex(b"other weights")}});
     std::fs::write(off_dir.path().join("manifest.json"), serde_json::to_vec(&off_manifest).unwrap()).unwrap();
     let off_art = store
-        .publish_artifact(NewArtifact { dir: off_dir.path(), policy: "pol", checkpoint: "c1", kind: "classifier", split_id: Some(&off.id), job_id: None })
+        .publish_artifact(NewArtifact {
+            dir: off_dir.path(),
+            policy: "pol",
+            checkpoint: "c1",
+            kind: "classifier",
+            split_id: Some(&off.id),
+            job_id: None,
+        })
         .await
         .unwrap();
     assert!(off_art.aliases.is_empty(), "{:?}", off_art.aliases);
@@ -270,15 +317,25 @@ async fn aborted_ingest_is_invisible_and_collected() {
     let store = open_sqlite(dir.path()).await;
     // A video file for an ingest, and its media file record.
     let video = |seed: u32| {
-        let bytes: Vec<u8> = (0..50_000u32).map(|i| (i.wrapping_mul(2654435761).wrapping_add(seed) >> 11) as u8).collect();
+        let bytes: Vec<u8> =
+            (0..50_000u32).map(|i| (i.wrapping_mul(2654435761).wrapping_add(seed) >> 11) as u8).collect();
         let path = dir.path().join(format!("front-{seed}.mp4"));
         std::fs::write(&path, &bytes).unwrap();
-        MediaFile { sha256: sha256_hex(&bytes), local_path: path, content_type: "video/mp4".into(), size_bytes: bytes.len() as u64 }
+        MediaFile {
+            sha256: sha256_hex(&bytes),
+            local_path: path,
+            content_type: "video/mp4".into(),
+            size_bytes: bytes.len() as u64,
+        }
     };
     // An episode of 4 steps that shows `media`.
     let with_video = |i: u32, label: Label, media: &MediaFile| {
         let mut ep = episode(i, 4, label);
-        ep.media = vec![MediaColumn { name: "front".into(), sha256: media.sha256.clone(), timestamps: ep.timestamps.clone() }];
+        ep.media = vec![MediaColumn {
+            name: "front".into(),
+            sha256: media.sha256.clone(),
+            timestamps: ep.timestamps.clone(),
+        }];
         ep
     };
     // A committed ingest with its own video: gc must keep all of it.
@@ -289,7 +346,8 @@ async fn aborted_ingest_is_invisible_and_collected() {
         w.add_episode(with_video(i, Label::Success, &kept_video)).await.unwrap();
     }
     w.commit("kept").await.unwrap();
-    let kept_ids: Vec<String> = store.episodes(&EpisodeFilter::default()).await.unwrap().into_iter().map(|e| e.id).collect();
+    let kept_ids: Vec<String> =
+        store.episodes(&EpisodeFilter::default()).await.unwrap().into_iter().map(|e| e.id).collect();
     let committed = object_files(dir.path());
     assert!(committed.contains(&format!("media/{}.mp4", kept_video.sha256)), "{committed:?}");
 
@@ -303,7 +361,8 @@ async fn aborted_ingest_is_invisible_and_collected() {
         dropped_ids.push(w.add_episode(with_video(i, Label::Unknown, &dropped_video)).await.unwrap());
     }
     let video_sha = dropped_video.sha256.clone();
-    let orphans: std::collections::BTreeSet<String> = object_files(dir.path()).difference(&committed).cloned().collect();
+    let orphans: std::collections::BTreeSet<String> =
+        object_files(dir.path()).difference(&committed).cloned().collect();
     let video_object = format!("media/{video_sha}.mp4");
     assert!(orphans.contains(&video_object), "the video was written: {orphans:?}");
     let data_files = orphans.iter().filter(|p| p.starts_with("steps/") && p.ends_with(".parquet")).count();
@@ -313,7 +372,8 @@ async fn aborted_ingest_is_invisible_and_collected() {
 
     // Invisible: no new version, none of its episodes, its source not recorded.
     assert_eq!(store.head_version().await.unwrap(), 1);
-    let ids: Vec<String> = store.episodes(&EpisodeFilter::default()).await.unwrap().into_iter().map(|e| e.id).collect();
+    let ids: Vec<String> =
+        store.episodes(&EpisodeFilter::default()).await.unwrap().into_iter().map(|e| e.id).collect();
     assert_eq!(ids, kept_ids);
     for id in &dropped_ids {
         assert!(store.episode(id, None).await.is_err(), "{id} is visible");
@@ -348,7 +408,11 @@ async fn aborted_ingest_is_invisible_and_collected() {
     tokio::time::sleep(std::time::Duration::from_millis(20)).await;
     let dry = store.gc(0, true).await.unwrap();
     assert_eq!(dry.deleted.iter().cloned().collect::<std::collections::BTreeSet<_>>(), orphans);
-    assert_eq!(object_files(dir.path()), committed.union(&orphans).cloned().collect(), "a dry run deletes nothing");
+    assert_eq!(
+        object_files(dir.path()),
+        committed.union(&orphans).cloned().collect(),
+        "a dry run deletes nothing"
+    );
     let r = store.gc(0, false).await.unwrap();
     assert_eq!(r.deleted.iter().cloned().collect::<std::collections::BTreeSet<_>>(), orphans);
     assert_eq!(r.deleted.len(), orphans.len());
@@ -364,10 +428,11 @@ fn migration_histories_are_in_step() {
     let (sqlite, pg) = store::migration_names();
     assert_eq!(sqlite, pg);
     let names = |dir: &str| {
-        let mut v: Vec<String> = std::fs::read_dir(format!("{}/../migrations/{dir}", env!("CARGO_MANIFEST_DIR")))
-            .unwrap()
-            .map(|e| e.unwrap().file_name().into_string().unwrap())
-            .collect();
+        let mut v: Vec<String> =
+            std::fs::read_dir(format!("{}/../migrations/{dir}", env!("CARGO_MANIFEST_DIR")))
+                .unwrap()
+                .map(|e| e.unwrap().file_name().into_string().unwrap())
+                .collect();
         v.sort();
         v
     };
@@ -377,7 +442,9 @@ fn migration_histories_are_in_step() {
 
 /// One episode's values of a test layer: step t of episode `i` holds `[i, t, producer_seed, …]`.
 fn layer_values(id: &str, i: u32, steps: usize, dim: usize, seed: f32) -> LayerValues {
-    let values = (0..steps).flat_map(|t| (0..dim).map(move |d| i as f32 * 1000.0 + t as f32 + d as f32 * 0.01 + seed)).collect();
+    let values = (0..steps)
+        .flat_map(|t| (0..dim).map(move |d| i as f32 * 1000.0 + t as f32 + d as f32 * 0.01 + seed))
+        .collect();
     LayerValues { episode_id: id.to_string(), dim, values }
 }
 
@@ -388,12 +455,16 @@ fn layer_values(id: &str, i: u32, steps: usize, dim: usize, seed: f32) -> LayerV
 async fn layers_behaviour(store: Store, data_dir: &std::path::Path) {
     let before = ingest(&store, "layers", "c1", 4).await.version;
     let eps = store.episodes(&EpisodeFilter::default()).await.unwrap();
-    let steps_files: Vec<String> = object_files(data_dir).into_iter().filter(|p| p.starts_with("steps/")).collect();
+    let steps_files: Vec<String> =
+        object_files(data_dir).into_iter().filter(|p| p.starts_with("steps/")).collect();
     let name = "features.cnn";
-    let producer = serde_json::json!({"encoder": "cnn", "policy": "pol", "checkpoint": "c1", "content_hash": "aa"});
+    let producer =
+        serde_json::json!({"encoder": "cnn", "policy": "pol", "checkpoint": "c1", "content_hash": "aa"});
     let dim = 3;
     let values = |idx: &[usize], seed: f32| -> Vec<LayerValues> {
-        idx.iter().map(|&k| layer_values(&eps[k].id, eps[k].source_index as u32, eps[k].length as usize, dim, seed)).collect()
+        idx.iter()
+            .map(|&k| layer_values(&eps[k].id, eps[k].source_index as u32, eps[k].length as usize, dim, seed))
+            .collect()
     };
 
     // A partial computation: two episodes, then all four (the first two skipped).
@@ -409,7 +480,8 @@ async fn layers_behaviour(store: Store, data_dir: &std::path::Path) {
     let again = store.write_layer(name, &producer, values(&[0, 1, 2, 3], 0.0), "test").await.unwrap();
     assert_eq!((again.version, again.episodes_written, again.episodes_skipped), (None, 0, 4));
     assert_eq!(store.head_version().await.unwrap(), v2);
-    let after_steps: Vec<String> = object_files(data_dir).into_iter().filter(|p| p.starts_with("steps/")).collect();
+    let after_steps: Vec<String> =
+        object_files(data_dir).into_iter().filter(|p| p.starts_with("steps/")).collect();
     assert_eq!(after_steps, steps_files, "no steps file rewritten or added");
     assert_eq!(store.versions().await.unwrap().last().unwrap().kind, "layer");
 
@@ -422,11 +494,17 @@ async fn layers_behaviour(store: Store, data_dir: &std::path::Path) {
     assert_eq!(got, values(&[3], 0.0)[0].values);
     let field = b.schema().field_with_name(&format!("obs.{name}")).unwrap().clone();
     assert_eq!(field.metadata().get(PRODUCER_META_KEY), Some(&first.producer_hash));
-    assert_eq!(steps::vector_column(&b, "obs.pos").unwrap().1, steps::vector_column(&store.read_steps(&ids[3], None).await.unwrap(), "obs.pos").unwrap().1);
+    assert_eq!(
+        steps::vector_column(&b, "obs.pos").unwrap().1,
+        steps::vector_column(&store.read_steps(&ids[3], None).await.unwrap(), "obs.pos").unwrap().1
+    );
     let err = store.read_steps_with_layers(&ids[3], Some(v1), &layers).await.unwrap_err().to_string();
     assert!(err.contains("layer not found") && err.contains(&format!("version {v1}")), "{err}");
     assert!(store.read_steps_with_layers(&ids[0], Some(v1), &layers).await.is_ok());
-    assert!(store.read_steps_with_layers(&ids[0], Some(before), &layers).await.is_err(), "the version before has no layer");
+    assert!(
+        store.read_steps_with_layers(&ids[0], Some(before), &layers).await.is_err(),
+        "the version before has no layer"
+    );
     assert_eq!(store.episode_layers(&ids[0], Some(before)).await.unwrap(), vec![]);
     assert_eq!(store.episode_layers(&ids[3], None).await.unwrap().len(), 1);
     // Many episodes at once, in any order, each with its own values.
@@ -443,7 +521,8 @@ async fn layers_behaviour(store: Store, data_dir: &std::path::Path) {
     assert_eq!(seen, 4);
 
     // Another producer (new weights) replaces the values from its version on.
-    let producer2 = serde_json::json!({"encoder": "cnn", "policy": "pol", "checkpoint": "c1", "content_hash": "bb"});
+    let producer2 =
+        serde_json::json!({"encoder": "cnn", "policy": "pol", "checkpoint": "c1", "content_hash": "bb"});
     let w3 = store.write_layer(name, &producer2, values(&[0], 7.0), "test").await.unwrap();
     let v3 = w3.version.unwrap();
     let now = store.read_steps_with_layers(&ids[0], None, &layers).await.unwrap();
@@ -461,13 +540,36 @@ async fn layers_behaviour(store: Store, data_dir: &std::path::Path) {
     let mut short = values(&[1], 1.0);
     short[0].values.truncate(dim * 2);
     let bad_cases: Vec<(&str, serde_json::Value, Vec<LayerValues>, &str)> = vec![
-        (name, producer.clone(), vec![LayerValues { episode_id: "nope".into(), dim, values: vec![0.0; 3] }], "not found"),
+        (
+            name,
+            producer.clone(),
+            vec![LayerValues { episode_id: "nope".into(), dim, values: vec![0.0; 3] }],
+            "not found",
+        ),
         (name, serde_json::json!({"content_hash": "cc"}), short, "steps"),
         ("bad name", producer.clone(), values(&[1], 1.0), "invalid layer name"),
         ("pos", serde_json::json!({"content_hash": "dd"}), values(&[1], 1.0), "observation key"),
         (name, serde_json::json!("cnn"), values(&[1], 1.0), "JSON object"),
-        (name, serde_json::json!({"content_hash": "ee"}), vec![LayerValues { episode_id: ids[1].clone(), dim, values: vec![f32::NAN; eps[1].length as usize * dim] }], "non-finite"),
-        (name, producer.clone(), vec![LayerValues { episode_id: ids[1].clone(), dim: 2, values: vec![0.0; eps[1].length as usize * 2] }], "dim"),
+        (
+            name,
+            serde_json::json!({"content_hash": "ee"}),
+            vec![LayerValues {
+                episode_id: ids[1].clone(),
+                dim,
+                values: vec![f32::NAN; eps[1].length as usize * dim],
+            }],
+            "non-finite",
+        ),
+        (
+            name,
+            producer.clone(),
+            vec![LayerValues {
+                episode_id: ids[1].clone(),
+                dim: 2,
+                values: vec![0.0; eps[1].length as usize * 2],
+            }],
+            "dim",
+        ),
     ];
     for (n, p, vals, want) in bad_cases {
         let err = store.write_layer(n, &p, vals, "test").await.unwrap_err().to_string();
@@ -476,7 +578,8 @@ async fn layers_behaviour(store: Store, data_dir: &std::path::Path) {
     assert_eq!(store.head_version().await.unwrap(), head);
 
     // gc keeps every layer file (the replaced values are still in time travel).
-    let layer_files: Vec<String> = object_files(data_dir).into_iter().filter(|p| p.starts_with("layers/")).collect();
+    let layer_files: Vec<String> =
+        object_files(data_dir).into_iter().filter(|p| p.starts_with("layers/")).collect();
     assert_eq!(layer_files.len(), 3);
     let report = store.gc(0, false).await.unwrap();
     assert!(report.deleted.iter().all(|p| !p.starts_with("layers/")), "{:?}", report.deleted);

@@ -140,7 +140,11 @@ impl Target {
         let stdout = child.stdout.take().unwrap();
         let mut line = String::new();
         std::io::BufReader::new(stdout).read_line(&mut line).unwrap();
-        let url = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("unexpected: {line:?}")).to_string();
+        let url = line
+            .trim()
+            .strip_prefix("listening on ")
+            .unwrap_or_else(|| panic!("unexpected: {line:?}"))
+            .to_string();
         Server { child, url }
     }
 }
@@ -163,18 +167,34 @@ impl HttpResponse {
 }
 
 /// One HTTP/1.1 request (`Connection: close`, no chunked bodies sent) to a server of [`Target::serve`].
-pub fn http(url: &str, method: &str, path: &str, headers: &[(&str, &str)], body: Option<&serde_json::Value>) -> HttpResponse {
+pub fn http(
+    url: &str,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: Option<&serde_json::Value>,
+) -> HttpResponse {
     let body = body.map(|b| b.to_string()).unwrap_or_default();
     let ctype = (!body.is_empty()).then_some("application/json");
     http_bytes(url, method, path, headers, body.as_bytes(), ctype)
 }
 
 /// [`http`] with a raw body.
-pub fn http_bytes(url: &str, method: &str, path: &str, headers: &[(&str, &str)], body: &[u8], content_type: Option<&str>) -> HttpResponse {
+pub fn http_bytes(
+    url: &str,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &[u8],
+    content_type: Option<&str>,
+) -> HttpResponse {
     use std::io::{Read, Write};
     let addr = url.trim_start_matches("http://").trim_end_matches('/');
     let mut s = std::net::TcpStream::connect(addr).unwrap();
-    let mut req = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
+    let mut req = format!(
+        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n",
+        body.len()
+    );
     if let Some(ct) = content_type {
         req.push_str(&format!("Content-Type: {ct}\r\n"));
     }
@@ -188,7 +208,11 @@ pub fn http_bytes(url: &str, method: &str, path: &str, headers: &[(&str, &str)],
     let read = s.read_to_end(&mut raw);
     let Some(end) = raw.windows(4).position(|w| w == b"\r\n\r\n") else {
         // No response at all (status 0): the connection was closed on us.
-        return HttpResponse { status: 0, headers: Vec::new(), body: format!("no response; write: {wrote:?}, read: {read:?}").into_bytes() };
+        return HttpResponse {
+            status: 0,
+            headers: Vec::new(),
+            body: format!("no response; write: {wrote:?}, read: {read:?}").into_bytes(),
+        };
     };
     let head = String::from_utf8_lossy(&raw[..end]).into_owned();
     let mut lines = head.lines();
@@ -207,7 +231,11 @@ fn dechunk(mut raw: &[u8]) -> Vec<u8> {
     let mut out = Vec::new();
     loop {
         let Some(eol) = raw.windows(2).position(|w| w == b"\r\n") else { return out };
-        let size = usize::from_str_radix(String::from_utf8_lossy(&raw[..eol]).trim().split(';').next().unwrap_or("0"), 16).unwrap_or(0);
+        let size = usize::from_str_radix(
+            String::from_utf8_lossy(&raw[..eol]).trim().split(';').next().unwrap_or("0"),
+            16,
+        )
+        .unwrap_or(0);
         if size == 0 {
             return out;
         }
@@ -236,12 +264,26 @@ pub fn rank_scores(t: &Target, artifact: &str) -> std::collections::HashMap<Stri
 pub fn lift_with_classifier(t: &Target) -> (&'static str, usize) {
     let f = fixtures().join("robomimic");
     t.ok(&[
-        "ingest", f.join("lift_rollouts_lowdim.hdf5").to_str().unwrap(), "--policy", "bc", "--checkpoint", "e600",
-        "--success-file", f.join("lift_rollouts_lowdim.success.json").to_str().unwrap(),
+        "ingest",
+        f.join("lift_rollouts_lowdim.hdf5").to_str().unwrap(),
+        "--policy",
+        "bc",
+        "--checkpoint",
+        "e600",
+        "--success-file",
+        f.join("lift_rollouts_lowdim.success.json").to_str().unwrap(),
     ]);
     let split = t.json(&["split", "create", "--policy", "bc", "--checkpoint", "e600", "--json"]);
     let cfg = t.data_dir.join("train.json");
     std::fs::write(&cfg, r#"{"epochs": 60, "batch_size": 256}"#).unwrap();
-    t.ok(&["train", "--split", split["id"].as_str().unwrap(), "--kind", "classifier", "--config", cfg.to_str().unwrap()]);
+    t.ok(&[
+        "train",
+        "--split",
+        split["id"].as_str().unwrap(),
+        "--kind",
+        "classifier",
+        "--config",
+        cfg.to_str().unwrap(),
+    ]);
     ("bc/e600/classifier@latest", 12)
 }

@@ -117,13 +117,18 @@ impl SeaweedFs {
         let t0 = Instant::now();
         loop {
             let banner = std::fs::read_to_string(server._dir.path().join("weed.log")).unwrap_or_default();
-            if banner.contains("components are running") && TcpStream::connect(("127.0.0.1", s3_port)).is_ok() {
+            if banner.contains("components are running") && TcpStream::connect(("127.0.0.1", s3_port)).is_ok()
+            {
                 break;
             }
             if let Ok(Some(status)) = server.child.try_wait() {
                 return Err(format!("SeaweedFS exited with {status}: {}", server.log()));
             }
-            assert!(t0.elapsed() < Duration::from_secs(60), "SeaweedFS did not come up in 60 s: {}", server.log());
+            assert!(
+                t0.elapsed() < Duration::from_secs(60),
+                "SeaweedFS did not come up in 60 s: {}",
+                server.log()
+            );
             std::thread::sleep(Duration::from_millis(200));
         }
         Ok(server)

@@ -29,7 +29,9 @@ fn cpu_seconds() -> Option<f64> {
 /// Samples/s of the PyTorch peer (one thread) at its median epoch time, taken like ours (sorted
 /// epoch times, index len/2), parsed from its "N samples/s" lines.
 fn torch_peer(n: usize, epochs: usize) -> Option<f64> {
-    let script = std::env::var("UFOPS_TORCH_EPOCH_SCRIPT").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/../bench/reference/torch_verifier_epoch.py").into());
+    let script = std::env::var("UFOPS_TORCH_EPOCH_SCRIPT").unwrap_or_else(|_| {
+        concat!(env!("CARGO_MANIFEST_DIR"), "/../bench/reference/torch_verifier_epoch.py").into()
+    });
     if !std::path::Path::new(&script).exists() {
         return None;
     }
@@ -87,13 +89,8 @@ fn main() {
                 // candle's CPU matmul reads RAYON_NUM_THREADS on every call.
                 std::env::set_var("RAYON_NUM_THREADS", th.to_string());
             }
-            let cfg = TrainConfig {
-                kind: Kind::Classifier,
-                epochs,
-                threads: th,
-                backend,
-                ..Default::default()
-            };
+            let cfg =
+                TrainConfig { kind: Kind::Classifier, epochs, threads: th, backend, ..Default::default() };
             let mut times = Vec::new();
             let mut cpu = Vec::new();
             let mut last_cpu = cpu_seconds();
@@ -122,7 +119,9 @@ fn main() {
             let med = times[times.len() / 2];
             cpu.sort_by(|a, b| a.total_cmp(b));
             let cpu_txt = match cpu.get(cpu.len() / 2) {
-                Some(c) => format!(", CPU time {:.3} s/epoch ({:.0} samples per CPU-second)", c, n as f64 / c),
+                Some(c) => {
+                    format!(", CPU time {:.3} s/epoch ({:.0} samples per CPU-second)", c, n as f64 / c)
+                }
                 None => String::new(),
             };
             if backend == Backend::Fast && th == 1 {

@@ -13,8 +13,8 @@ use crate::model::{CandleModel, Kind, ModelSpec, ParamSet};
 use crate::train::Trained;
 
 pub use verifier::{
-    artifact_id, sha256_hex, ActionSpace, ArtifactConfig, ArtifactFiles, InputConfig, Manifest, Verifier, CONFIG_FILE,
-    MANIFEST_FILE, MODEL_FILE, SCHEMA_VERSION,
+    artifact_id, sha256_hex, ActionSpace, ArtifactConfig, ArtifactFiles, InputConfig, Manifest, Verifier,
+    CONFIG_FILE, MANIFEST_FILE, MODEL_FILE, SCHEMA_VERSION,
 };
 
 /// What [`write_artifact`] wrote.
@@ -28,7 +28,12 @@ pub struct ArtifactInfo {
 
 /// The model spec an artifact's configuration describes.
 pub fn model_spec(cfg: &ArtifactConfig) -> ModelSpec {
-    ModelSpec { kind: cfg.kind, arch: cfg.architecture.clone(), obs_dim: cfg.input.obs_dim, act_dim: cfg.input.act_dim }
+    ModelSpec {
+        kind: cfg.kind,
+        arch: cfg.architecture.clone(),
+        obs_dim: cfg.input.obs_dim,
+        act_dim: cfg.input.act_dim,
+    }
 }
 
 /// Build `config.json` for a trained model.
@@ -150,7 +155,9 @@ impl Artifact {
         let (y, _) = model.forward(&bt, &Default::default())?;
         let objective = match self.config.kind {
             // log sigmoid(y) = -relu(-y) - log(1 + exp(-|y|))
-            Kind::Classifier => (y.neg()?.relu()?.neg()? - y.abs()?.neg()?.exp()?.affine(1.0, 1.0)?.log()?)?,
+            Kind::Classifier => {
+                (y.neg()?.relu()?.neg()? - y.abs()?.neg()?.exp()?.affine(1.0, 1.0)?.log()?)?
+            }
             Kind::Q => y.clone(),
         };
         let grads = objective.sum_all()?.backward()?;

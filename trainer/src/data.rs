@@ -78,12 +78,17 @@ impl Normalization {
             let mut name = format!("obs[{k}]");
             for key in &input.obs_keys {
                 if off < key.dim {
-                    name = format!("obs[{k}] (key {:?}[{off}], history step {h} of {})", key.key, input.obs_history);
+                    name = format!(
+                        "obs[{k}] (key {:?}[{off}], history step {h} of {})",
+                        key.key, input.obs_history
+                    );
                     break;
                 }
                 off -= key.dim;
             }
-            warnings.push(format!("{name} is (near-)constant in the training set: std {sd:.3e} clamped to {std_floor:.1e}"));
+            warnings.push(format!(
+                "{name} is (near-)constant in the training set: std {sd:.3e} clamped to {std_floor:.1e}"
+            ));
         }
         let (act_mean, act_std) = if standardize_actions {
             let (m, sd, low) = col_stats(&s.act, s.act_dim, std_floor);

@@ -270,7 +270,12 @@ impl FastModel {
         let idx = |n: &str| params.index(n).unwrap();
         let lin = |name: &str| {
             let w = idx(&format!("{name}.weight"));
-            Lin { w, b: idx(&format!("{name}.bias")), input: params.shapes[w][1], output: params.shapes[w][0] }
+            Lin {
+                w,
+                b: idx(&format!("{name}.bias")),
+                input: params.shapes[w][1],
+                output: params.shapes[w][0],
+            }
         };
         let trunk: Vec<TrunkLayer> = (0..spec.arch.trunk_dims.len())
             .map(|i| TrunkLayer {
@@ -347,7 +352,14 @@ impl FastModel {
     /// Forward pass over `rows` (indices into `src`); `mask` is the scaled dropout mask
     /// `[rows.len(), zdim]` and `obs_noise` the Gaussian noise `[rows.len(), obs_dim]` added to
     /// the standardised observation (both None at evaluation). Results in [`Self::y`] / [`Self::z`].
-    pub fn forward(&mut self, p: &ParamSet, src: &BatchSource, rows: &[u32], mask: Option<&[f32]>, obs_noise: Option<&[f32]>) {
+    pub fn forward(
+        &mut self,
+        p: &ParamSet,
+        src: &BatchSource,
+        rows: &[u32],
+        mask: Option<&[f32]>,
+        obs_noise: Option<&[f32]>,
+    ) {
         let n = rows.len();
         let zdim = self.zdim();
         self.y.resize(n.max(self.y.len()), 0.0);
@@ -369,7 +381,12 @@ impl FastModel {
                 .map(|(i, w)| {
                     let s = (i * chunk).min(n);
                     let e = ((i + 1) * chunk).min(n);
-                    (w, &rows[s..e], mask.map(|m| &m[s * zdim..e * zdim]), obs_noise.map(|x| &x[s * od..e * od]))
+                    (
+                        w,
+                        &rows[s..e],
+                        mask.map(|m| &m[s * zdim..e * zdim]),
+                        obs_noise.map(|x| &x[s * od..e * od]),
+                    )
                 })
                 .collect();
             run_parallel(jobs, |(w, r, m, x)| ctx.forward(w, src, r, m, x));
@@ -470,7 +487,14 @@ struct Ctx<'a> {
 }
 
 impl Ctx<'_> {
-    fn forward(&self, w: &mut Worker, src: &BatchSource, rows: &[u32], mask: Option<&[f32]>, obs_noise: Option<&[f32]>) {
+    fn forward(
+        &self,
+        w: &mut Worker,
+        src: &BatchSource,
+        rows: &[u32],
+        mask: Option<&[f32]>,
+        obs_noise: Option<&[f32]>,
+    ) {
         let m = self.m;
         let p = &self.p.values;
         let n = rows.len();
@@ -499,26 +523,106 @@ impl Ctx<'_> {
         unsafe {
             // Encoders.
             let l = m.o0;
-            mm(n, l.output, l.input, w.h_o.as_mut_ptr(), ew, 1, false, w.obs.as_ptr(), od, 1, p[l.w].as_ptr(), 1, l.input);
+            mm(
+                n,
+                l.output,
+                l.input,
+                w.h_o.as_mut_ptr(),
+                ew,
+                1,
+                false,
+                w.obs.as_ptr(),
+                od,
+                1,
+                p[l.w].as_ptr(),
+                1,
+                l.input,
+            );
             dispatch!(m.isa, bias_relu(&mut w.h_o, n, ew, &p[l.b]));
             let l = m.o1;
-            mm(n, l.output, l.input, w.x.as_mut_ptr(), ti, 1, false, w.h_o.as_ptr(), ew, 1, p[l.w].as_ptr(), 1, l.input);
+            mm(
+                n,
+                l.output,
+                l.input,
+                w.x.as_mut_ptr(),
+                ti,
+                1,
+                false,
+                w.h_o.as_ptr(),
+                ew,
+                1,
+                p[l.w].as_ptr(),
+                1,
+                l.input,
+            );
             dispatch!(m.isa, bias_relu(&mut w.x, n, ti, &p[l.b]));
             let l = m.a0;
-            mm(n, l.output, l.input, w.h_a.as_mut_ptr(), ew, 1, false, w.act.as_ptr(), ad, 1, p[l.w].as_ptr(), 1, l.input);
+            mm(
+                n,
+                l.output,
+                l.input,
+                w.h_a.as_mut_ptr(),
+                ew,
+                1,
+                false,
+                w.act.as_ptr(),
+                ad,
+                1,
+                p[l.w].as_ptr(),
+                1,
+                l.input,
+            );
             dispatch!(m.isa, bias_relu(&mut w.h_a, n, ew, &p[l.b]));
             let l = m.a1;
-            mm(n, l.output, l.input, w.x.as_mut_ptr().add(ew), ti, 1, false, w.h_a.as_ptr(), ew, 1, p[l.w].as_ptr(), 1, l.input);
+            mm(
+                n,
+                l.output,
+                l.input,
+                w.x.as_mut_ptr().add(ew),
+                ti,
+                1,
+                false,
+                w.h_a.as_ptr(),
+                ew,
+                1,
+                p[l.w].as_ptr(),
+                1,
+                l.input,
+            );
             dispatch!(m.isa, bias_relu(&mut w.x[ew..], n, ti, &p[l.b]));
             // Trunk.
             for (i, tl) in m.trunk.iter().enumerate() {
                 let l = tl.lin;
                 let (inp, ins): (*const f32, usize) =
                     if i == 0 { (w.x.as_ptr(), ti) } else { (w.out[i - 1].as_ptr(), l.input) };
-                mm(n, l.output, l.input, w.pre[i].as_mut_ptr(), l.output, 1, false, inp, ins, 1, p[l.w].as_ptr(), 1, l.input);
+                mm(
+                    n,
+                    l.output,
+                    l.input,
+                    w.pre[i].as_mut_ptr(),
+                    l.output,
+                    1,
+                    false,
+                    inp,
+                    ins,
+                    1,
+                    p[l.w].as_ptr(),
+                    1,
+                    l.input,
+                );
                 ln_forward(
-                    m.isa, &mut w.pre[i], Some(p[l.b].as_slice()), &mut w.xhat[i], &mut w.rstd[i], &mut w.out[i],
-                    &p[tl.g], &p[tl.beta], m.eps, n, l.output, true,
+                    m.isa,
+                    &mut w.pre[i],
+                    Some(p[l.b].as_slice()),
+                    &mut w.xhat[i],
+                    &mut w.rstd[i],
+                    &mut w.out[i],
+                    &p[tl.g],
+                    &p[tl.beta],
+                    m.eps,
+                    n,
+                    l.output,
+                    true,
                 );
             }
             let z = w.out.last().unwrap();
@@ -548,7 +652,10 @@ impl Ctx<'_> {
         {
             let (gw, gb) = split_two(&mut w.grads, h.w, h.b);
             let z = &w.out[nt - 1];
-            let s = dispatch!(m.isa, head_back(&z[..n * zdim], mask, &p[h.w], &dy[..n], &mut w.dz[..n * zdim], gw));
+            let s = dispatch!(
+                m.isa,
+                head_back(&z[..n * zdim], mask, &p[h.w], &dy[..n], &mut w.dz[..n * zdim], gw)
+            );
             gb[0] += s;
         }
         unsafe {
@@ -560,15 +667,53 @@ impl Ctx<'_> {
                 {
                     let (dg, dbeta, db) = split_three(&mut w.grads, tl.g, tl.beta, l.b);
                     let grads = LnGrads { dg, dbeta, db };
-                    ln_backward(m.isa, &mut cur[..n * l.output], Some(w.out[i].as_slice()), &w.xhat[i], &w.rstd[i], &p[tl.g], n, l.output, Some(grads));
+                    ln_backward(
+                        m.isa,
+                        &mut cur[..n * l.output],
+                        Some(w.out[i].as_slice()),
+                        &w.xhat[i],
+                        &w.rstd[i],
+                        &p[tl.g],
+                        n,
+                        l.output,
+                        Some(grads),
+                    );
                 }
                 // dW = dpre^T @ input
                 let (inp, ins): (*const f32, usize) =
                     if i == 0 { (w.x.as_ptr(), ti) } else { (w.out[i - 1].as_ptr(), l.input) };
-                mm(l.output, l.input, n, w.grads[l.w].as_mut_ptr(), l.input, 1, false, cur.as_ptr(), 1, l.output, inp, ins, 1);
+                mm(
+                    l.output,
+                    l.input,
+                    n,
+                    w.grads[l.w].as_mut_ptr(),
+                    l.input,
+                    1,
+                    false,
+                    cur.as_ptr(),
+                    1,
+                    l.output,
+                    inp,
+                    ins,
+                    1,
+                );
                 // d input = dpre @ W (for the first trunk layer only the encoder columns).
                 let cols = if i == 0 { 2 * ew } else { l.input };
-                mm(n, cols, l.output, w.dtmp.as_mut_ptr(), cols, 1, false, cur.as_ptr(), l.output, 1, p[l.w].as_ptr(), l.input, 1);
+                mm(
+                    n,
+                    cols,
+                    l.output,
+                    w.dtmp.as_mut_ptr(),
+                    cols,
+                    1,
+                    false,
+                    cur.as_ptr(),
+                    l.output,
+                    1,
+                    p[l.w].as_ptr(),
+                    l.input,
+                    1,
+                );
                 if i > 0 {
                     // next iteration's cur = dtmp (d/d out[i-1])
                     let len = n * cols;
@@ -581,17 +726,58 @@ impl Ctx<'_> {
             w.dz = cur;
             // Encoders: dtmp = [n, 2*ew] = d/d(ho, ha).
             let d2 = 2 * ew;
-            for (l1, l0, h1, inp, ind, col) in [
-                (m.o1, m.o0, &w.h_o, &w.obs, od, 0usize),
-                (m.a1, m.a0, &w.h_a, &w.act, ad, ew),
-            ] {
+            for (l1, l0, h1, inp, ind, col) in
+                [(m.o1, m.o0, &w.h_o, &w.obs, od, 0usize), (m.a1, m.a0, &w.h_a, &w.act, ad, ew)]
+            {
                 let dptr = w.dtmp.as_mut_ptr().add(col);
                 let dsl = std::slice::from_raw_parts_mut(dptr, n * d2 - col);
                 dispatch!(m.isa, relu_back_colsum(dsl, d2, &w.x[col..], ti, n, &mut w.grads[l1.b]));
-                mm(l1.output, l1.input, n, w.grads[l1.w].as_mut_ptr(), l1.input, 1, false, dptr, 1, d2, h1.as_ptr(), ew, 1);
-                mm(n, l1.input, l1.output, w.dh.as_mut_ptr(), ew, 1, false, dptr, d2, 1, p[l1.w].as_ptr(), l1.input, 1);
+                mm(
+                    l1.output,
+                    l1.input,
+                    n,
+                    w.grads[l1.w].as_mut_ptr(),
+                    l1.input,
+                    1,
+                    false,
+                    dptr,
+                    1,
+                    d2,
+                    h1.as_ptr(),
+                    ew,
+                    1,
+                );
+                mm(
+                    n,
+                    l1.input,
+                    l1.output,
+                    w.dh.as_mut_ptr(),
+                    ew,
+                    1,
+                    false,
+                    dptr,
+                    d2,
+                    1,
+                    p[l1.w].as_ptr(),
+                    l1.input,
+                    1,
+                );
                 dispatch!(m.isa, relu_back_colsum(&mut w.dh, ew, h1, ew, n, &mut w.grads[l0.b]));
-                mm(l0.output, l0.input, n, w.grads[l0.w].as_mut_ptr(), l0.input, 1, false, w.dh.as_ptr(), 1, ew, inp.as_ptr(), ind, 1);
+                mm(
+                    l0.output,
+                    l0.input,
+                    n,
+                    w.grads[l0.w].as_mut_ptr(),
+                    l0.input,
+                    1,
+                    false,
+                    w.dh.as_ptr(),
+                    1,
+                    ew,
+                    inp.as_ptr(),
+                    ind,
+                    1,
+                );
             }
         }
     }

@@ -2,7 +2,10 @@
 //! turned into [`Episode`]s, trained on, and published as an artifact with its lineage. The CLI
 //! (`ufops train`), the API's workers and the demo all run training through this one function.
 
-use crate::{build_samples, train_samples, write_artifact, Episode, EpochReport, InputSpec, Kind, ObsKey, ObsSeries, TrainConfig};
+use crate::{
+    build_samples, train_samples, write_artifact, Episode, EpochReport, InputSpec, Kind, ObsKey, ObsSeries,
+    TrainConfig,
+};
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::AtomicBool;
@@ -57,7 +60,9 @@ fn episode_from_steps(
         Ok(_) => {
             let (hd, values) = store::steps::vector_column(batch, "action_chunk")?;
             if hd % action_dim != 0 {
-                bail!("episode {id}: action_chunk width {hd} is not a multiple of the action dim {action_dim}");
+                bail!(
+                    "episode {id}: action_chunk width {hd} is not a multiple of the action dim {action_dim}"
+                );
             }
             Some((hd / action_dim, values))
         }
@@ -106,7 +111,8 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
         (Some(k), _) => Some(k.clone()),
         // As before: the observation columns of the split's first episode.
         (None, Some(first)) => {
-            let at = store.locate_episodes(std::slice::from_ref(&first.episode_id), Some(split.version)).await?;
+            let at =
+                store.locate_episodes(std::slice::from_ref(&first.episode_id), Some(split.version)).await?;
             let schema = store.steps_schema(&at[0].data_file).await?;
             Some(store::steps::observation_keys(schema.as_ref()).into_iter().map(|(k, _)| k).collect())
         }
@@ -118,9 +124,13 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
     let layer_keys = match (&keys, locations.first()) {
         (Some(keys), Some(first)) => {
             let schema = store.steps_schema(&first.data_file).await?;
-            let names: std::collections::HashSet<String> = store.layers().await?.into_iter().map(|l| l.name).collect();
+            let names: std::collections::HashSet<String> =
+                store.layers().await?.into_iter().map(|l| l.name).collect();
             keys.iter()
-                .filter(|k| schema.field_with_name(&format!("{}{k}", store::steps::OBS_PREFIX)).is_err() && names.contains(*k))
+                .filter(|k| {
+                    schema.field_with_name(&format!("{}{k}", store::steps::OBS_PREFIX)).is_err()
+                        && names.contains(*k)
+                })
                 .cloned()
                 .collect::<Vec<String>>()
         }
@@ -155,7 +165,11 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
             action_dim = ep.action_dim;
             chunk_len = ep.action_chunk.as_ref().map(|(h, _)| *h);
         }
-        if m.part == "val" { val.push(ep) } else { train.push(ep) }
+        if m.part == "val" {
+            val.push(ep)
+        } else {
+            train.push(ep)
+        }
     }
     let keys = keys.unwrap_or_default();
     let chunk_len = match (chunk_len, spec.chunk_len) {
@@ -241,8 +255,12 @@ pub async fn run_train_job(
     let trained = tokio::task::spawn_blocking(move || -> Result<()> {
         let mut observer = observer;
         let keep = |t: u32| t % stride == 0;
-        let tr = build_samples(&data.train, &data.input, cfg.gamma).context("building train samples")?.filter_steps(keep);
-        let va = build_samples(&data.val, &data.input, cfg.gamma).context("building validation samples")?.filter_steps(keep);
+        let tr = build_samples(&data.train, &data.input, cfg.gamma)
+            .context("building train samples")?
+            .filter_steps(keep);
+        let va = build_samples(&data.val, &data.input, cfg.gamma)
+            .context("building validation samples")?
+            .filter_steps(keep);
         let t = train_samples(tr, va, &data.input, &cfg, &mut *observer, cancel.as_deref())?;
         write_artifact(&out, &t, lineage)?;
         Ok(())
@@ -268,7 +286,10 @@ pub async fn run_train_job(
 /// The verifier inputs of every step of a stored episode, built exactly as for training
 /// (observation history; stored chunk, else the next H actions; step index) with the raw chunks
 /// put into the space the artifact takes (`input.action_space`).
-pub fn step_inputs(cfg: &verifier::ArtifactConfig, batch: &arrow::array::RecordBatch) -> Result<crate::Samples> {
+pub fn step_inputs(
+    cfg: &verifier::ArtifactConfig,
+    batch: &arrow::array::RecordBatch,
+) -> Result<crate::Samples> {
     let input = &cfg.input.layout;
     if !cfg.architecture.extra_inputs.is_empty() {
         bail!("building stored steps for a verifier with extra inputs is not supported");
@@ -280,7 +301,10 @@ pub fn step_inputs(cfg: &verifier::ArtifactConfig, batch: &arrow::array::RecordB
     let mut provided = Vec::new();
     for (key, want) in input.required_producers() {
         let field = schema.field_with_name(&format!("{}{key}", store::steps::OBS_PREFIX)).map_err(|_| {
-            anyhow::anyhow!("this verifier reads layer {key} (features of producer {}): read the steps with that layer", verifier::short_hash(want))
+            anyhow::anyhow!(
+                "this verifier reads layer {key} (features of producer {}): read the steps with that layer",
+                verifier::short_hash(want)
+            )
         })?;
         provided.push((key, field.metadata().get(store::PRODUCER_META_KEY).cloned().unwrap_or_default()));
     }

@@ -23,11 +23,14 @@ pub mod optim;
 pub mod train;
 
 pub use artifact::{
-    grad_rows, load_artifact, parse_rows, score, score_json, score_rows, write_artifact, Artifact, ArtifactConfig,
-    ArtifactInfo, ScoreRow,
+    grad_rows, load_artifact, parse_rows, score, score_json, score_rows, write_artifact, Artifact,
+    ArtifactConfig, ArtifactInfo, ScoreRow,
 };
-pub use job::{load_split, run_train_job, score_steps, step_inputs, SplitData, TrainJobSpec};
 pub use data::{build_samples, Episode, ExtraInputSpec, InputSpec, ObsKey, ObsSeries, Samples};
-pub use verifier::{ActionSpace, Verifier};
+pub use job::{load_split, run_train_job, score_steps, step_inputs, SplitData, TrainJobSpec};
 pub use model::{Architecture, Kind, ModelSpec, Variant};
-pub use train::{train, train_samples, train_with, Backend, Cancelled, EpochReport, Metrics, RecipeInput, TrainConfig, Trained};
+pub use train::{
+    train, train_samples, train_with, Backend, Cancelled, EpochReport, Metrics, RecipeInput, TrainConfig,
+    Trained,
+};
+pub use verifier::{ActionSpace, Verifier};

@@ -104,11 +104,18 @@ pub fn calibration(probs: &[f64], labels: &[f32], n_bins: usize) -> Option<Calib
     let bins = (0..n_bins)
         .map(|b| {
             let c = count[b];
-            let (mp, fp) = if c > 0 { (Some(sum_p[b] / c as f64), Some(sum_y[b] / c as f64)) } else { (None, None) };
+            let (mp, fp) =
+                if c > 0 { (Some(sum_p[b] / c as f64), Some(sum_y[b] / c as f64)) } else { (None, None) };
             if let (Some(mp), Some(fp)) = (mp, fp) {
                 ece += c as f64 / n as f64 * (mp - fp).abs();
             }
-            ReliabilityBin { lo: b as f64 / n_bins as f64, hi: (b + 1) as f64 / n_bins as f64, count: c, mean_predicted: mp, fraction_positive: fp }
+            ReliabilityBin {
+                lo: b as f64 / n_bins as f64,
+                hi: (b + 1) as f64 / n_bins as f64,
+                count: c,
+                mean_predicted: mp,
+                fraction_positive: fp,
+            }
         })
         .collect();
     Some(Calibration { samples: n, accuracy: correct as f64 / n as f64, brier: brier / n as f64, ece, bins })

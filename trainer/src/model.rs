@@ -95,7 +95,13 @@ impl ModelSpec {
         ensure!(want.len() == p.len(), "expected {} tensors, found {} ({:?})", want.len(), p.len(), p.names);
         for (i, t) in want.iter().enumerate() {
             ensure!(p.names[i] == t.name, "tensor {i} is {}, expected {}", p.names[i], t.name);
-            ensure!(p.shapes[i] == t.shape, "tensor {}: shape {:?}, expected {:?}", t.name, p.shapes[i], t.shape);
+            ensure!(
+                p.shapes[i] == t.shape,
+                "tensor {}: shape {:?}, expected {:?}",
+                t.name,
+                p.shapes[i],
+                t.shape
+            );
         }
         Ok(())
     }
@@ -147,8 +153,7 @@ impl CandleModel {
         let device = Device::Cpu;
         let mut vars = Vec::with_capacity(params.len());
         let mut index = HashMap::new();
-        for (i, ((n, s), v)) in params.names.iter().zip(&params.shapes).zip(&params.values).enumerate()
-        {
+        for (i, ((n, s), v)) in params.names.iter().zip(&params.shapes).zip(&params.values).enumerate() {
             vars.push(Var::from_tensor(&Tensor::from_slice(v, s.as_slice(), &device)?)?);
             index.insert(n.clone(), i);
         }
@@ -393,7 +398,8 @@ pub fn power_iterate(w: &[f32], m: usize, n: usize, u: &mut [f32], v: &mut [f32]
         }
         normalize(v);
         for i in 0..m {
-            u[i] = w[i * n..(i + 1) * n].iter().zip(v.iter()).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>() as f32;
+            u[i] = w[i * n..(i + 1) * n].iter().zip(v.iter()).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>()
+                as f32;
         }
         normalize(u);
     }

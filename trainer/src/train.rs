@@ -180,7 +180,8 @@ impl TrainConfig {
         }
         let input: RecipeInput = serde_json::from_value(serde_json::Value::Object(input))
             .with_context(|| format!("parsing the input spec of {}", path.display()))?;
-        let c: TrainConfig = serde_json::from_value(v).with_context(|| format!("parsing {}", path.display()))?;
+        let c: TrainConfig =
+            serde_json::from_value(v).with_context(|| format!("parsing {}", path.display()))?;
         c.validate()?;
         Ok((c, input))
     }
@@ -201,11 +202,24 @@ impl TrainConfig {
         // verifier of the paper (widths 256-1024, batches 256-4096) and below what takes a
         // worker down.
         ensure!(self.batch_size <= MAX_BATCH, "batch_size {} is more than {MAX_BATCH}", self.batch_size);
-        ensure!((1..=MAX_EPOCHS).contains(&self.epochs), "epochs must be in 1..={MAX_EPOCHS}, got {}", self.epochs);
-        ensure!((1..=MAX_THREADS).contains(&self.threads), "threads must be in 1..={MAX_THREADS}, got {}", self.threads);
+        ensure!(
+            (1..=MAX_EPOCHS).contains(&self.epochs),
+            "epochs must be in 1..={MAX_EPOCHS}, got {}",
+            self.epochs
+        );
+        ensure!(
+            (1..=MAX_THREADS).contains(&self.threads),
+            "threads must be in 1..={MAX_THREADS}, got {}",
+            self.threads
+        );
         let a = &self.architecture;
-        ensure!(a.trunk_dims.len() <= MAX_LAYERS, "{} trunk layers: at most {MAX_LAYERS}", a.trunk_dims.len());
-        let widths = std::iter::once(a.encoder_width).chain([a.t_embed_dim]).chain(a.trunk_dims.iter().copied());
+        ensure!(
+            a.trunk_dims.len() <= MAX_LAYERS,
+            "{} trunk layers: at most {MAX_LAYERS}",
+            a.trunk_dims.len()
+        );
+        let widths =
+            std::iter::once(a.encoder_width).chain([a.t_embed_dim]).chain(a.trunk_dims.iter().copied());
         for w in widths.clone() {
             ensure!(w <= MAX_WIDTH, "layer width {w} is more than {MAX_WIDTH}");
         }
@@ -342,7 +356,10 @@ pub fn train_samples(
     let spec = model_spec(input, cfg);
     spec.arch.validate()?;
     ensure!(!tr.is_empty(), "no training samples");
-    ensure!(tr.obs_dim == spec.obs_dim && tr.act_dim == spec.act_dim, "sample dims do not match the input spec");
+    ensure!(
+        tr.obs_dim == spec.obs_dim && tr.act_dim == spec.act_dim,
+        "sample dims do not match the input spec"
+    );
     cfg.action_space.validate(input.action_dim)?;
     let start = Instant::now();
     // Actions: into the policy's space (the paper), or standardised raw chunks (older recipe).
@@ -437,17 +454,29 @@ pub fn train_samples(
                 None
             };
             // Drawn in the same order for both backends, so they train the same model.
-            let obs_noise = noise.map(|d| (0..b * spec.obs_dim).map(|_| d.sample(&mut rng) as f32).collect::<Vec<_>>());
+            let obs_noise =
+                noise.map(|d| (0..b * spec.obs_dim).map(|_| d.sample(&mut rng) as f32).collect::<Vec<_>>());
             let loss = match &mut engine {
                 Engine::Fast(f) => {
                     let src = BatchSource { obs: &tr.obs, act: &tr.act, t: &tr.t, temb: &temb };
-                    let l = f.loss_and_grads(&params, &src, rows, &tgt[..b], m, obs_noise.as_deref(), cfg.kind, &cfg.loss());
+                    let l = f.loss_and_grads(
+                        &params,
+                        &src,
+                        rows,
+                        &tgt[..b],
+                        m,
+                        obs_noise.as_deref(),
+                        cfg.kind,
+                        &cfg.loss(),
+                    );
                     for (g, s) in grads.iter_mut().zip(&f.grads) {
                         g.copy_from_slice(s);
                     }
                     l
                 }
-                Engine::Candle(model) => candle_step(model, &tr, &temb, rows, &tgt[..b], m, obs_noise, cfg, &mut grads)?,
+                Engine::Candle(model) => {
+                    candle_step(model, &tr, &temb, rows, &tgt[..b], m, obs_noise, cfg, &mut grads)?
+                }
             };
             ensure!(loss.is_finite(), "training loss is not finite (epoch {epoch})");
             loss_sum += loss * b as f64;

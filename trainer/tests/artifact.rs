@@ -29,8 +29,18 @@ fn write_load_score_roundtrip() {
         assert_eq!(a.config.lineage, lineage);
         assert_eq!(a.params, t.params);
         assert_eq!(a.config.gamma.is_some(), kind == Kind::Q);
-        let cfg: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("config.json")).unwrap()).unwrap();
-        for k in ["schema_version", "kind", "architecture", "input", "gamma", "hyperparameters", "metrics", "lineage"] {
+        let cfg: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.path().join("config.json")).unwrap()).unwrap();
+        for k in [
+            "schema_version",
+            "kind",
+            "architecture",
+            "input",
+            "gamma",
+            "hyperparameters",
+            "metrics",
+            "lineage",
+        ] {
             assert!(cfg.get(k).is_some(), "config.json lacks {k}");
         }
         assert_eq!(cfg["input"]["obs_dim"], 8);
@@ -58,7 +68,13 @@ fn write_load_score_roundtrip() {
         table.ensure(100);
         let mut f = FastModel::new(&t.spec, &t.params, s.len(), 1).unwrap();
         let idx: Vec<u32> = (0..s.len() as u32).collect();
-        f.forward(&t.params, &BatchSource { obs: &sn.obs, act: &sn.act, t: &sn.t, temb: &table }, &idx, None, None);
+        f.forward(
+            &t.params,
+            &BatchSource { obs: &sn.obs, act: &sn.act, t: &sn.t, temb: &table },
+            &idx,
+            None,
+            None,
+        );
         for (sc, y) in scores.iter().zip(f.y()) {
             let want = match kind {
                 Kind::Classifier => trainer::loss::sigmoid(*y),
@@ -152,7 +168,8 @@ fn features_artifact_scores_match_model_with_spectral_norm() {
     t.params = model.inference_params().unwrap();
     let dir = tempfile::tempdir().unwrap();
     write_artifact(dir.path(), &t, serde_json::json!({})).unwrap();
-    let cfg_json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("config.json")).unwrap()).unwrap();
+    let cfg_json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("config.json")).unwrap()).unwrap();
     assert_eq!(cfg_json["architecture"]["spectral_norm"], true);
     assert_eq!(cfg_json["architecture"]["activation"], "gelu");
     let a = load_artifact(dir.path()).unwrap();

@@ -22,10 +22,13 @@ fn sizes_beyond_the_bounds_are_refused() {
     refused(|c| c.architecture.encoder_width = 1 << 20, "width");
     refused(|c| c.architecture.trunk_dims = vec![256; 1000], "trunk layers");
     refused(|c| c.architecture.trunk_dims = vec![usize::MAX / 2], "width");
-    refused(|c| {
-        c.batch_size = 65_536;
-        c.architecture.trunk_dims = vec![16_384];
-    }, "too large");
+    refused(
+        |c| {
+            c.batch_size = 65_536;
+            c.architecture.trunk_dims = vec![16_384];
+        },
+        "too large",
+    );
     refused(|c| c.optimizer.lr = f64::INFINITY, "lr");
     // The paper's configurations stay valid.
     let mut c = TrainConfig::default();

@@ -62,7 +62,8 @@ fn hinge_hand_computed() {
     let zv = Var::from_slice(&[0.5f32, 0.5, 0.5, 0.5], (2, 2), &Device::Cpu).unwrap();
     let h = contrastive_hinge(zv.as_tensor(), &[1.0, 0.0], &cfg).unwrap().unwrap();
     assert!((h.to_scalar::<f32>().unwrap() - 1.0).abs() < 1e-3);
-    let g = h.backward().unwrap().get(zv.as_tensor()).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let g =
+        h.backward().unwrap().get(zv.as_tensor()).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
     assert!(g.iter().all(|v| v.is_finite()));
 }
 
@@ -128,7 +129,13 @@ fn adamw_matches_candle_nn() {
     let var = Var::from_slice(&p0, 3, &Device::Cpu).unwrap();
     let mut copt = candle_nn::AdamW::new(
         vec![var.clone()],
-        candle_nn::ParamsAdamW { lr: cfg.lr, beta1: cfg.beta1, beta2: cfg.beta2, eps: cfg.eps, weight_decay: cfg.weight_decay },
+        candle_nn::ParamsAdamW {
+            lr: cfg.lr,
+            beta1: cfg.beta1,
+            beta2: cfg.beta2,
+            eps: cfg.eps,
+            weight_decay: cfg.weight_decay,
+        },
     )
     .unwrap();
     let mut mine = AdamW::new(cfg, [3]);
@@ -155,7 +162,13 @@ fn brute_auc(s: &[f32], l: &[f32]) -> f64 {
         for j in 0..s.len() {
             if l[i] > 0.5 && l[j] <= 0.5 {
                 den += 1.0;
-                num += if s[i] > s[j] { 1.0 } else if s[i] == s[j] { 0.5 } else { 0.0 };
+                num += if s[i] > s[j] {
+                    1.0
+                } else if s[i] == s[j] {
+                    0.5
+                } else {
+                    0.0
+                };
             }
         }
     }

@@ -10,8 +10,8 @@ use trainer::data::TimeEmbedTable;
 use trainer::fast::{BatchSource, FastModel};
 use trainer::loss::{objective, LossConfig};
 use trainer::model::{
-    layer_norm, power_iterate, sigma_uv, spectral_norm_estimate, Architecture, CandleModel, ExtraInput,
-    Kind, ModelSpec, TrainNoise,
+    layer_norm, power_iterate, sigma_uv, spectral_norm_estimate, Architecture, CandleModel, ExtraInput, Kind,
+    ModelSpec, TrainNoise,
 };
 
 fn rand_vec(rng: &mut ChaCha8Rng, n: usize) -> Vec<f32> {
@@ -24,7 +24,10 @@ fn batch(model: &CandleModel, b: usize, rng: &mut ChaCha8Rng) -> (trainer::model
     let act = rand_vec(rng, b * s.act_dim);
     let mut temb = vec![0f32; b * s.arch.t_embed_dim];
     for i in 0..b {
-        trainer::data::time_embedding_into(i as f64 * 3.0, &mut temb[i * s.arch.t_embed_dim..(i + 1) * s.arch.t_embed_dim]);
+        trainer::data::time_embedding_into(
+            i as f64 * 3.0,
+            &mut temb[i * s.arch.t_embed_dim..(i + 1) * s.arch.t_embed_dim],
+        );
     }
     let extras: Vec<Vec<f32>> = s.arch.extra_inputs.iter().map(|e| rand_vec(rng, b * e.dim)).collect();
     let ex: Vec<&[f32]> = extras.iter().map(|v| v.as_slice()).collect();
@@ -115,7 +118,13 @@ fn layer_norm_values_and_gradients() {
     let loss = y.mul(&c).unwrap().sum_all().unwrap();
     let g = loss.backward().unwrap();
     for var in [&x, &w, &b] {
-        let gv = g.get(var.as_tensor()).expect("LayerNorm gradient missing").flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let gv = g
+            .get(var.as_tensor())
+            .expect("LayerNorm gradient missing")
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
         assert!(gv.iter().any(|v| v.abs() > 1e-4));
         let base = var.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
         let shape = var.as_tensor().dims().to_vec();
@@ -131,7 +140,14 @@ fn layer_norm_values_and_gradients() {
                 } else {
                     (x.as_tensor().clone(), w.as_tensor().clone(), t)
                 };
-                layer_norm(&xx, &ww, &bb, eps).unwrap().mul(&c).unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap()
+                layer_norm(&xx, &ww, &bb, eps)
+                    .unwrap()
+                    .mul(&c)
+                    .unwrap()
+                    .sum_all()
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap()
             };
             let fd = (eval(1e-2) - eval(-1e-2)) / 2e-2;
             assert!((fd - gv[i]).abs() < 2e-2, "grad {i}: fd {fd} vs autograd {}", gv[i]);
@@ -207,8 +223,15 @@ fn fast_vs_candle(kind: Kind, threads: usize, portable: bool) {
     let zdim = 64;
     let mask: Vec<f32> = (0..b * zdim).map(|i| if (i * 7919) % 5 < 2 { 0.0 } else { 2.0 }).collect();
     let cfg = LossConfig { contrastive_margin: 4.0, ..Default::default() }; // make the hinge active
-    // Candle reference.
-    let s = trainer::Samples { obs_dim: 46, act_dim: 40, obs: obs.clone(), act: act.clone(), t: t.clone(), ..Default::default() };
+                                                                            // Candle reference.
+    let s = trainer::Samples {
+        obs_dim: 46,
+        act_dim: 40,
+        obs: obs.clone(),
+        act: act.clone(),
+        t: t.clone(),
+        ..Default::default()
+    };
     let bt = trainer::train::gather_tensors(&model, &s, &table, &rows).unwrap();
     // Observation noise (obs_noise_std > 0): the fast path must honour it like the candle graph.
     let obs_noise: Vec<f32> = rand_vec(&mut rng, b * spec.obs_dim).iter().map(|v| 0.05 * v).collect();
@@ -240,7 +263,10 @@ fn fast_vs_candle(kind: Kind, threads: usize, portable: bool) {
         let g = grads.get(var.as_tensor()).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
         let scale = g.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-3);
         for (k, (a, c)) in f.grads[i].iter().zip(&g).enumerate() {
-            assert!((a - c).abs() < 1e-5 * scale * 10.0 + 1e-6, "{name}[{k}]: fast {a} vs candle {c} (scale {scale})");
+            assert!(
+                (a - c).abs() < 1e-5 * scale * 10.0 + 1e-6,
+                "{name}[{k}]: fast {a} vs candle {c} (scale {scale})"
+            );
         }
     }
     // Eval-mode forward without mask.

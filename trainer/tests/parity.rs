@@ -31,7 +31,8 @@ fn numpy_reference_reproduces_the_core_scores_and_gradients() {
     if !python_ready() {
         return;
     }
-    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../clients/python/reference/ufops_reference.py");
+    let script =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../clients/python/reference/ufops_reference.py");
     let eps = common::action_task(8, 15, 1);
     let val = common::action_task(4, 15, 2);
     let small = |c: &mut TrainConfig| {
@@ -40,7 +41,11 @@ fn numpy_reference_reproduces_the_core_scores_and_gradients() {
     };
     let mut cases = vec![];
     // Lowdim classifier in the policy's space with a non-trivial normaliser.
-    let mut c = TrainConfig { kind: Kind::Classifier, action_space: ActionSpace::policy(vec![0.5, 2.0], vec![0.1, -0.3]), ..Default::default() };
+    let mut c = TrainConfig {
+        kind: Kind::Classifier,
+        action_space: ActionSpace::policy(vec![0.5, 2.0], vec![0.1, -0.3]),
+        ..Default::default()
+    };
     small(&mut c);
     cases.push((c, common::action_spec()));
     // Lowdim Q on standardised raw chunks (the older recipe).
@@ -55,7 +60,8 @@ fn numpy_reference_reproduces_the_core_scores_and_gradients() {
         small(&mut f);
         let mut fspec = common::action_spec();
         fspec.t_embed_dim = 8;
-        fspec.extra_inputs = vec![ExtraInputSpec { name: "lang".into(), key: "vel".into(), dim: 1, width: 4 }];
+        fspec.extra_inputs =
+            vec![ExtraInputSpec { name: "lang".into(), key: "vel".into(), dim: 1, width: 4 }];
         cases.push((f, fspec));
     }
 
@@ -85,7 +91,11 @@ fn numpy_reference_reproduces_the_core_scores_and_gradients() {
         let rows_path = dir.path().join("rows.json");
         std::fs::write(&rows_path, &input).unwrap();
         let out = Command::new("python3").arg(&script).arg(dir.path()).arg(&rows_path).output().unwrap();
-        assert!(out.status.success(), "{what}: numpy reference failed:\n{}", String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "{what}: numpy reference failed:\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         let py: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
         assert_eq!(py["artifact_id"], info.id.as_str(), "{what}: artifact id");
         let (mut worst_s, mut worst_g) = (0f64, 0f64);
@@ -103,6 +113,9 @@ fn numpy_reference_reproduces_the_core_scores_and_gradients() {
             }
         }
         assert!(grads.iter().flatten().any(|g| g.abs() > 1e-4), "{what}: gradient is trivially zero");
-        eprintln!("{what}: {} rows, max |core - numpy|: scores {worst_s:.2e}, gradients {worst_g:.2e}", rows.len());
+        eprintln!(
+            "{what}: {} rows, max |core - numpy|: scores {worst_s:.2e}, gradients {worst_g:.2e}",
+            rows.len()
+        );
     }
 }

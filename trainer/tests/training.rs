@@ -66,7 +66,15 @@ fn classifier_separates_action_dependent_success() {
     let eps = common::action_task(40, 30, 1);
     let val = common::action_task(12, 30, 2);
     let mut seen = Vec::new();
-    let r = trainer::train_with(&eps, &val, &common::action_spec(), &small_cfg(Kind::Classifier), &mut |e| seen.push(e.clone()), None).unwrap();
+    let r = trainer::train_with(
+        &eps,
+        &val,
+        &common::action_spec(),
+        &small_cfg(Kind::Classifier),
+        &mut |e| seen.push(e.clone()),
+        None,
+    )
+    .unwrap();
     assert_eq!(seen.len(), 12);
     assert_eq!(r.metrics.backend, "fast");
     let auc = r.metrics.val_auc.unwrap();
@@ -95,7 +103,10 @@ fn same_seed_same_weights_different_seed_different() {
         let a = trainer::train(&eps, &val, &common::action_spec(), &cfg).unwrap();
         let b = trainer::train(&eps, &val, &common::action_spec(), &cfg).unwrap();
         assert_eq!(a.params, b.params, "{backend:?}: not reproducible");
-        assert_eq!(a.history.iter().map(|h| h.train_loss).collect::<Vec<_>>(), b.history.iter().map(|h| h.train_loss).collect::<Vec<_>>());
+        assert_eq!(
+            a.history.iter().map(|h| h.train_loss).collect::<Vec<_>>(),
+            b.history.iter().map(|h| h.train_loss).collect::<Vec<_>>()
+        );
         let c = trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { seed: 43, ..cfg }).unwrap();
         assert_ne!(a.params, c.params);
     }
@@ -107,12 +118,27 @@ fn fast_and_candle_backends_train_alike() {
     let eps = common::action_task(10, 20, 1);
     let val = common::action_task(4, 20, 2);
     let cfg = TrainConfig { epochs: 2, batch_size: 64, seed: 5, ..Default::default() };
-    let a = trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { backend: Backend::Fast, ..cfg.clone() }).unwrap();
-    let b = trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { backend: Backend::Candle, ..cfg }).unwrap();
+    let a = trainer::train(
+        &eps,
+        &val,
+        &common::action_spec(),
+        &TrainConfig { backend: Backend::Fast, ..cfg.clone() },
+    )
+    .unwrap();
+    let b =
+        trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { backend: Backend::Candle, ..cfg })
+            .unwrap();
     for (x, y) in a.history.iter().zip(&b.history) {
         assert!((x.train_loss - y.train_loss).abs() < 1e-3, "{} vs {}", x.train_loss, y.train_loss);
     }
-    let max_diff = a.params.values.iter().flatten().zip(b.params.values.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+    let max_diff = a
+        .params
+        .values
+        .iter()
+        .flatten()
+        .zip(b.params.values.iter().flatten())
+        .map(|(x, y)| (x - y).abs())
+        .fold(0f32, f32::max);
     assert!(max_diff < 1e-3, "weights diverged by {max_diff}");
 }
 
@@ -120,7 +146,15 @@ fn fast_and_candle_backends_train_alike() {
 fn cancel_flag_stops_training() {
     let eps = common::action_task(6, 20, 1);
     let flag = AtomicBool::new(true);
-    let err = trainer::train_with(&eps, &[], &common::action_spec(), &small_cfg(Kind::Classifier), &mut |_| {}, Some(&flag)).unwrap_err();
+    let err = trainer::train_with(
+        &eps,
+        &[],
+        &common::action_spec(),
+        &small_cfg(Kind::Classifier),
+        &mut |_| {},
+        Some(&flag),
+    )
+    .unwrap_err();
     assert!(err.downcast_ref::<trainer::Cancelled>().is_some());
 }
 
@@ -156,10 +190,20 @@ fn early_stopping_and_no_validation_set() {
     };
     let mut runs = Vec::new();
     for p in [2, 3] {
-        let r = trainer::train(&eps, &val, &spec, &TrainConfig { early_stopping_patience: Some(p), ..cfg.clone() }).unwrap();
+        let r = trainer::train(
+            &eps,
+            &val,
+            &spec,
+            &TrainConfig { early_stopping_patience: Some(p), ..cfg.clone() },
+        )
+        .unwrap();
         let (best, last) = expected_stop(p);
         assert!(r.metrics.early_stopped && last < cfg.epochs, "patience {p}: ran every epoch");
-        assert_eq!((r.metrics.best_epoch, r.metrics.epochs_run), (best, last), "patience {p}, val losses {losses:?}");
+        assert_eq!(
+            (r.metrics.best_epoch, r.metrics.epochs_run),
+            (best, last),
+            "patience {p}, val losses {losses:?}"
+        );
         assert_eq!(last - best, p, "patience {p}: stops exactly {p} epochs after the best");
         let seen: Vec<f64> = r.history.iter().map(|h| h.val_loss.unwrap()).collect();
         assert_eq!(seen.as_slice(), &losses[..last], "patience {p}: another trajectory");
@@ -173,7 +217,11 @@ fn early_stopping_and_no_validation_set() {
     // The best epoch's weights are kept, not the last ones: the patience-3 run (stopped at its
     // best + 3) and the full run (30 epochs) share only their best epoch.
     assert_eq!(full.metrics.best_epoch, runs[1].metrics.best_epoch, "{losses:?}");
-    assert!(runs[1].params == full.params, "patience 3 did not keep epoch {}'s weights", full.metrics.best_epoch);
+    assert!(
+        runs[1].params == full.params,
+        "patience 3 did not keep epoch {}'s weights",
+        full.metrics.best_epoch
+    );
     assert!(runs[0].params != full.params, "patience 2 kept weights it never reached");
 
     // No validation set: the best epoch is chosen by the training loss.
@@ -196,7 +244,10 @@ fn config_from_json_and_toml_files() {
     let t = dir.path().join("c.toml");
     std::fs::write(&t, "epochs = 3\nseed = 9\nearly_stopping_patience = 5\n[architecture]\nvariant = \"lowdim\"\nactivation = \"relu\"\nencoder_width = 32\nt_embed_dim = 16\ntrunk_dims = [64, 32]\ninput_layernorm = false\nencoder_layernorm = false\nspectral_norm = false\ndropout = 0.5\nlayernorm_eps = 1e-5\n").unwrap();
     let c = TrainConfig::from_file(&t).unwrap();
-    assert_eq!((c.epochs, c.seed, c.early_stopping_patience, c.architecture.encoder_width), (3, 9, Some(5), 32));
+    assert_eq!(
+        (c.epochs, c.seed, c.early_stopping_patience, c.architecture.encoder_width),
+        (3, 9, Some(5), 32)
+    );
     std::fs::write(&j, r#"{"epoch": 3}"#).unwrap();
     assert!(TrainConfig::from_file(&j).is_err(), "unknown fields are rejected");
     // Round trip of the defaults.
@@ -231,14 +282,34 @@ fn fast_path_honours_observation_noise() {
     let eps = common::action_task(10, 20, 1);
     let val = common::action_task(4, 20, 2);
     let cfg = TrainConfig { epochs: 2, batch_size: 64, seed: 5, obs_noise_std: 0.3, ..Default::default() };
-    let fast = trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { backend: Backend::Fast, ..cfg.clone() }).unwrap();
-    let candle = trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { backend: Backend::Candle, ..cfg.clone() }).unwrap();
+    let fast = trainer::train(
+        &eps,
+        &val,
+        &common::action_spec(),
+        &TrainConfig { backend: Backend::Fast, ..cfg.clone() },
+    )
+    .unwrap();
+    let candle = trainer::train(
+        &eps,
+        &val,
+        &common::action_spec(),
+        &TrainConfig { backend: Backend::Candle, ..cfg.clone() },
+    )
+    .unwrap();
     assert_eq!(fast.metrics.backend, "fast");
     let diff = |a: &trainer::Trained, b: &trainer::Trained| {
-        a.params.values.iter().flatten().zip(b.params.values.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max)
+        a.params
+            .values
+            .iter()
+            .flatten()
+            .zip(b.params.values.iter().flatten())
+            .map(|(x, y)| (x - y).abs())
+            .fold(0f32, f32::max)
     };
     assert!(diff(&fast, &candle) < 1e-3, "fast and candle diverge with noise: {}", diff(&fast, &candle));
-    let quiet = trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { obs_noise_std: 0.0, ..cfg }).unwrap();
+    let quiet =
+        trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { obs_noise_std: 0.0, ..cfg })
+            .unwrap();
     assert!(diff(&fast, &quiet) > 1e-3, "the noise changed nothing: it was ignored");
 }
 
@@ -272,10 +343,16 @@ fn constant_dimensions_are_clamped_to_the_floor_and_named() {
     }
     let w = &t.metrics.warnings;
     assert_eq!(w.len(), 2, "{w:?}");
-    assert!(w[0].contains("obs[3]") && w[0].contains("\"vel\"") && w[0].contains("history step 0"), "{}", w[0]);
+    assert!(
+        w[0].contains("obs[3]") && w[0].contains("\"vel\"") && w[0].contains("history step 0"),
+        "{}",
+        w[0]
+    );
     assert!(w[1].contains("obs[7]") && w[1].contains("history step 1"), "{}", w[1]);
     // A bad floor is a config error.
-    assert!(trainer::train(&eps, &[], &common::action_spec(), &TrainConfig { std_floor: 0.0, ..cfg }).is_err());
+    assert!(
+        trainer::train(&eps, &[], &common::action_spec(), &TrainConfig { std_floor: 0.0, ..cfg }).is_err()
+    );
 }
 
 #[test]
@@ -292,21 +369,42 @@ fn actions_are_fed_in_the_policy_space_by_default() {
     }
     let cfg = TrainConfig { epochs: 2, batch_size: 64, seed: 2, ..Default::default() };
     assert_eq!(cfg.action_space, trainer::ActionSpace::default());
-    let with_norm = TrainConfig { action_space: trainer::ActionSpace::policy(scale.clone(), offset.clone()), ..cfg.clone() };
+    let with_norm = TrainConfig {
+        action_space: trainer::ActionSpace::policy(scale.clone(), offset.clone()),
+        ..cfg.clone()
+    };
     let a = trainer::train(&raw, &[], &common::action_spec(), &with_norm).unwrap();
     let b = trainer::train(&policy, &[], &common::action_spec(), &cfg).unwrap();
     assert!(a.norm.act_mean.iter().all(|m| *m == 0.0) && a.norm.act_std.iter().all(|s| *s == 1.0));
-    let d = a.params.values.iter().flatten().zip(b.params.values.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+    let d = a
+        .params
+        .values
+        .iter()
+        .flatten()
+        .zip(b.params.values.iter().flatten())
+        .map(|(x, y)| (x - y).abs())
+        .fold(0f32, f32::max);
     assert!(d < 1e-5, "policy-space training differs by {d}");
     // The artifact records the normaliser; the older recipe records train-set statistics.
     let dir = tempfile::tempdir().unwrap();
     trainer::write_artifact(dir.path(), &a, serde_json::Value::Null).unwrap();
-    let c: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("config.json")).unwrap()).unwrap();
-    assert_eq!(c["input"]["action_space"], serde_json::json!({"space": "policy", "scale": [2.0, 0.5], "offset": [1.0, -0.25]}));
-    let s = trainer::train(&raw, &[], &common::action_spec(), &TrainConfig { action_space: trainer::ActionSpace::Standardized, ..cfg }).unwrap();
+    let c: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("config.json")).unwrap()).unwrap();
+    assert_eq!(
+        c["input"]["action_space"],
+        serde_json::json!({"space": "policy", "scale": [2.0, 0.5], "offset": [1.0, -0.25]})
+    );
+    let s = trainer::train(
+        &raw,
+        &[],
+        &common::action_spec(),
+        &TrainConfig { action_space: trainer::ActionSpace::Standardized, ..cfg },
+    )
+    .unwrap();
     assert!(s.norm.act_mean[0] > 0.5 || s.norm.act_mean[0] < -0.5 || s.norm.act_std[0] != 1.0);
     let dir = tempfile::tempdir().unwrap();
     trainer::write_artifact(dir.path(), &s, serde_json::Value::Null).unwrap();
-    let c: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("config.json")).unwrap()).unwrap();
+    let c: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("config.json")).unwrap()).unwrap();
     assert_eq!(c["input"]["action_space"], serde_json::json!({"space": "standardized"}));
 }

@@ -154,7 +154,10 @@ impl Architecture {
             return bad("encoder_width and trunk_dims must be non-empty and positive".into());
         }
         if self.t_embed_dim == 0 || !self.t_embed_dim.is_multiple_of(2) {
-            return bad(format!("t_embed_dim must be a positive even number (sin/cos pairs), got {}", self.t_embed_dim));
+            return bad(format!(
+                "t_embed_dim must be a positive even number (sin/cos pairs), got {}",
+                self.t_embed_dim
+            ));
         }
         if !(self.layernorm_eps > 0.0 && self.layernorm_eps.is_finite()) {
             return bad(format!("layernorm_eps must be a positive number, got {}", self.layernorm_eps));
@@ -170,7 +173,10 @@ impl Architecture {
         let mut names = std::collections::BTreeSet::new();
         for e in &self.extra_inputs {
             if !is_plain_name(&e.name) || e.name.contains('.') {
-                return bad(format!("extra input name {:?} must be a plain name (letters, digits, - and _)", e.name));
+                return bad(format!(
+                    "extra input name {:?} must be a plain name (letters, digits, - and _)",
+                    e.name
+                ));
             }
             if !names.insert(e.name.as_str()) {
                 return bad(format!("extra input {:?} is listed twice", e.name));
@@ -187,12 +193,8 @@ impl Architecture {
     pub fn linears(&self, obs_dim: usize, act_dim: usize) -> Vec<LinearSpec> {
         let w = self.encoder_width;
         let (enc_ln, sn) = (self.encoder_layernorm, self.spectral_norm);
-        let lin = |name: String, input: usize, output: usize, layernorm: bool, spectral_norm: bool| LinearSpec {
-            name,
-            input,
-            output,
-            layernorm,
-            spectral_norm,
+        let lin = |name: String, input: usize, output: usize, layernorm: bool, spectral_norm: bool| {
+            LinearSpec { name, input, output, layernorm, spectral_norm }
         };
         let mut v = vec![
             lin("obs_enc.0".into(), obs_dim, w, enc_ln, sn),
@@ -218,16 +220,40 @@ impl Architecture {
     pub fn tensors(&self, obs_dim: usize, act_dim: usize) -> Vec<TensorSpec> {
         let mut v = Vec::new();
         if self.input_layernorm {
-            v.push(TensorSpec { name: "obs_in_ln.weight".into(), shape: vec![obs_dim], role: TensorRole::NormWeight });
-            v.push(TensorSpec { name: "obs_in_ln.bias".into(), shape: vec![obs_dim], role: TensorRole::NormBias });
+            v.push(TensorSpec {
+                name: "obs_in_ln.weight".into(),
+                shape: vec![obs_dim],
+                role: TensorRole::NormWeight,
+            });
+            v.push(TensorSpec {
+                name: "obs_in_ln.bias".into(),
+                shape: vec![obs_dim],
+                role: TensorRole::NormBias,
+            });
         }
         for l in self.linears(obs_dim, act_dim) {
             let fan_in = l.input;
-            v.push(TensorSpec { name: format!("{}.weight", l.name), shape: vec![l.output, l.input], role: TensorRole::Weight { fan_in } });
-            v.push(TensorSpec { name: format!("{}.bias", l.name), shape: vec![l.output], role: TensorRole::Bias { fan_in } });
+            v.push(TensorSpec {
+                name: format!("{}.weight", l.name),
+                shape: vec![l.output, l.input],
+                role: TensorRole::Weight { fan_in },
+            });
+            v.push(TensorSpec {
+                name: format!("{}.bias", l.name),
+                shape: vec![l.output],
+                role: TensorRole::Bias { fan_in },
+            });
             if l.layernorm {
-                v.push(TensorSpec { name: format!("{}.ln.weight", l.name), shape: vec![l.output], role: TensorRole::NormWeight });
-                v.push(TensorSpec { name: format!("{}.ln.bias", l.name), shape: vec![l.output], role: TensorRole::NormBias });
+                v.push(TensorSpec {
+                    name: format!("{}.ln.weight", l.name),
+                    shape: vec![l.output],
+                    role: TensorRole::NormWeight,
+                });
+                v.push(TensorSpec {
+                    name: format!("{}.ln.bias", l.name),
+                    shape: vec![l.output],
+                    role: TensorRole::NormBias,
+                });
             }
         }
         v
@@ -323,7 +349,10 @@ impl InputLayout {
     /// producer (sha256) of the values about to be scored. Every layer key of this verifier must
     /// be provided with its own producer; a key the verifier takes as a plain observation may
     /// not claim one.
-    pub fn check_producers<'a>(&self, provided: impl IntoIterator<Item = (&'a str, &'a str)>) -> crate::Result<()> {
+    pub fn check_producers<'a>(
+        &self,
+        provided: impl IntoIterator<Item = (&'a str, &'a str)>,
+    ) -> crate::Result<()> {
         let provided: Vec<(&str, &str)> = provided.into_iter().collect();
         for k in &self.obs_keys {
             let given = provided.iter().find(|(key, _)| *key == k.key).map(|(_, p)| *p);
@@ -415,7 +444,9 @@ impl ActionSpace {
                     )));
                 }
                 if v.iter().any(|x| !x.is_finite()) {
-                    return Err(VerifierError::Config(format!("action_space.{name} contains a non-finite value")));
+                    return Err(VerifierError::Config(format!(
+                        "action_space.{name} contains a non-finite value"
+                    )));
                 }
             }
             if scale.contains(&0.0) {
@@ -493,8 +524,8 @@ impl ArtifactConfig {
     /// are checked first so an unknown one gets its own error even when the rest no longer
     /// parses as schema 1.
     pub fn from_json(bytes: &[u8]) -> Result<Self> {
-        let raw: serde_json::Value =
-            serde_json::from_slice(bytes).map_err(|e| VerifierError::Config(format!("not valid JSON: {e}")))?;
+        let raw: serde_json::Value = serde_json::from_slice(bytes)
+            .map_err(|e| VerifierError::Config(format!("not valid JSON: {e}")))?;
         match raw.get("schema_version").and_then(|v| v.as_u64()) {
             Some(1) => {}
             Some(v) => return Err(VerifierError::UnknownSchema(v)),
@@ -515,7 +546,8 @@ impl ArtifactConfig {
                 return Err(VerifierError::UnknownActivation(a.into()));
             }
         }
-        let cfg: ArtifactConfig = serde_json::from_value(raw).map_err(|e| VerifierError::Config(e.to_string()))?;
+        let cfg: ArtifactConfig =
+            serde_json::from_value(raw).map_err(|e| VerifierError::Config(e.to_string()))?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -563,7 +595,10 @@ impl ArtifactConfig {
             ));
         }
         if l.chunk_len.checked_mul(l.action_dim) != Some(i.act_dim) {
-            return bad(format!("act_dim {} != chunk_len {} * action_dim {}", i.act_dim, l.chunk_len, l.action_dim));
+            return bad(format!(
+                "act_dim {} != chunk_len {} * action_dim {}",
+                i.act_dim, l.chunk_len, l.action_dim
+            ));
         }
         if l.t_embed_dim != 0 && l.t_embed_dim != a.t_embed_dim {
             return bad(format!(
@@ -573,9 +608,15 @@ impl ArtifactConfig {
         }
         if !l.extra_inputs.is_empty() {
             let same = l.extra_inputs.len() == a.extra_inputs.len()
-                && l.extra_inputs.iter().zip(&a.extra_inputs).all(|(s, m)| s.name == m.name && s.dim == m.dim && s.width == m.width);
+                && l.extra_inputs
+                    .iter()
+                    .zip(&a.extra_inputs)
+                    .all(|(s, m)| s.name == m.name && s.dim == m.dim && s.width == m.width);
             if !same {
-                return bad("input.extra_inputs does not match architecture.extra_inputs (name, dim, width, order)".into());
+                return bad(
+                    "input.extra_inputs does not match architecture.extra_inputs (name, dim, width, order)"
+                        .into(),
+                );
             }
         }
         for (name, v, n) in [
@@ -625,8 +666,8 @@ impl Manifest {
 
     /// Parse: known schema version, lists `config.json` and `model.safetensors`, plain names only.
     pub fn parse(bytes: &[u8]) -> Result<Self> {
-        let raw: serde_json::Value =
-            serde_json::from_slice(bytes).map_err(|e| VerifierError::Manifest(format!("not valid JSON: {e}")))?;
+        let raw: serde_json::Value = serde_json::from_slice(bytes)
+            .map_err(|e| VerifierError::Manifest(format!("not valid JSON: {e}")))?;
         match raw.get("schema_version").and_then(|v| v.as_u64()) {
             Some(1) => {}
             Some(v) => return Err(VerifierError::UnknownSchema(v)),
@@ -646,11 +687,17 @@ impl Manifest {
 
     /// Check `bytes` against the manifest's sha256 for `file`.
     pub fn check(&self, file: &str, bytes: &[u8]) -> Result<()> {
-        let expected =
-            self.files.get(file).ok_or_else(|| VerifierError::Manifest(format!("files does not list {file}")))?;
+        let expected = self
+            .files
+            .get(file)
+            .ok_or_else(|| VerifierError::Manifest(format!("files does not list {file}")))?;
         let actual = sha256_hex(bytes);
         if !actual.eq_ignore_ascii_case(expected.trim()) {
-            return Err(VerifierError::HashMismatch { file: file.into(), expected: expected.clone(), actual });
+            return Err(VerifierError::HashMismatch {
+                file: file.into(),
+                expected: expected.clone(),
+                actual,
+            });
         }
         Ok(())
     }
@@ -705,7 +752,10 @@ mod producer_tests {
         assert_eq!(l.required_producers(), vec![("features.cnn", right.as_str())]);
         assert!(l.check_producers([("features.cnn", right.as_str())]).is_ok());
         let err = l.check_producers([("features.cnn", wrong.as_str())]).unwrap_err().to_string();
-        assert!(err.contains("bbbbbbbbbbbb") && err.contains("aaaaaaaaaaaa") && err.contains("features.cnn"), "{err}");
+        assert!(
+            err.contains("bbbbbbbbbbbb") && err.contains("aaaaaaaaaaaa") && err.contains("features.cnn"),
+            "{err}"
+        );
         let err = l.check_producers([]).unwrap_err().to_string();
         assert!(err.contains("say which producer"), "{err}");
         // A plain key may be given any producer (it is not a layer), and old artifacts' JSON

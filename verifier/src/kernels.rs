@@ -87,7 +87,16 @@ impl Packed {
 /// `out (n rows x p.mp) = init (row stride init_stride; 0 broadcasts one row) + x (n rows, stride
 /// xs, first p.k columns) @ p`.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn gemm(isa: Isa, x: &[f32], xs: usize, n: usize, p: &Packed, init: &[f32], init_stride: usize, out: &mut [f32]) {
+pub(crate) fn gemm(
+    isa: Isa,
+    x: &[f32],
+    xs: usize,
+    n: usize,
+    p: &Packed,
+    init: &[f32],
+    init_stride: usize,
+    out: &mut [f32],
+) {
     if n == 0 {
         return;
     }
@@ -98,7 +107,19 @@ pub(crate) fn gemm(isa: Isa, x: &[f32], xs: usize, n: usize, p: &Packed, init: &
     #[cfg(target_arch = "x86_64")]
     if isa == Isa::Avx2Fma {
         // SAFETY: the CPU has AVX2 + FMA (Isa::checked at construction); sizes asserted above.
-        unsafe { x86::gemm(x.as_ptr(), xs, n, p.k, p.w.as_ptr(), p.mp, init.as_ptr(), init_stride, out.as_mut_ptr()) };
+        unsafe {
+            x86::gemm(
+                x.as_ptr(),
+                xs,
+                n,
+                p.k,
+                p.w.as_ptr(),
+                p.mp,
+                init.as_ptr(),
+                init_stride,
+                out.as_mut_ptr(),
+            )
+        };
         return;
     }
     let _ = isa;
@@ -151,8 +172,18 @@ fn check_rows(what: &str, len: usize, rows: usize, rs: usize, n: usize) {
 /// `out = act(xhat * g + beta)`; `rstd[r]` and `xhat` are kept for [`ln_backward`].
 #[allow(clippy::too_many_arguments)]
 pub fn ln_forward(
-    isa: Isa, pre: &mut [f32], bias: Option<&[f32]>, xhat: &mut [f32], rstd: &mut [f32], out: &mut [f32],
-    g: &[f32], beta: &[f32], eps: f32, rows: usize, rs: usize, relu: bool,
+    isa: Isa,
+    pre: &mut [f32],
+    bias: Option<&[f32]>,
+    xhat: &mut [f32],
+    rstd: &mut [f32],
+    out: &mut [f32],
+    g: &[f32],
+    beta: &[f32],
+    eps: f32,
+    rows: usize,
+    rs: usize,
+    relu: bool,
 ) {
     let n = g.len();
     assert!(rs >= n && beta.len() >= n && bias.is_none_or(|b| b.len() >= n) && rstd.len() >= rows);
@@ -174,7 +205,16 @@ pub fn ln_forward(
 
 /// [`ln_forward`] in place, keeping no statistics (scoring).
 #[allow(clippy::too_many_arguments)]
-pub fn ln_inplace(isa: Isa, x: &mut [f32], g: &[f32], beta: &[f32], eps: f32, rows: usize, rs: usize, relu: bool) {
+pub fn ln_inplace(
+    isa: Isa,
+    x: &mut [f32],
+    g: &[f32],
+    beta: &[f32],
+    eps: f32,
+    rows: usize,
+    rs: usize,
+    relu: bool,
+) {
     let n = g.len();
     assert!(rs >= n && beta.len() >= n);
     check_rows("ln_inplace", x.len(), rows, rs, n);
@@ -197,7 +237,14 @@ pub fn ln_inplace(isa: Isa, x: &mut [f32], g: &[f32], beta: &[f32], eps: f32, ro
 /// parameter gradients (training); inference passes `None`.
 #[allow(clippy::too_many_arguments)]
 pub fn ln_backward(
-    isa: Isa, d: &mut [f32], relu_out: Option<&[f32]>, xhat: &[f32], rstd: &[f32], g: &[f32], rows: usize, rs: usize,
+    isa: Isa,
+    d: &mut [f32],
+    relu_out: Option<&[f32]>,
+    xhat: &[f32],
+    rstd: &[f32],
+    g: &[f32],
+    rows: usize,
+    rs: usize,
     grads: Option<LnGrads<'_>>,
 ) {
     let n = g.len();
@@ -324,7 +371,12 @@ unsafe fn portable_ln_forward<const RELU: bool>(a: LnPtrs, eps: f32, n: usize, r
     }
 }
 
-unsafe fn portable_ln_backward<const RELU: bool, const ACC: bool>(a: LnBackPtrs, n: usize, rows: usize, rs: usize) {
+unsafe fn portable_ln_backward<const RELU: bool, const ACC: bool>(
+    a: LnBackPtrs,
+    n: usize,
+    rows: usize,
+    rs: usize,
+) {
     let inv_n = 1.0 / n as f32;
     for r in 0..rows {
         let d = a.d.add(r * rs);
@@ -377,7 +429,15 @@ mod x86 {
     #[inline]
     #[allow(clippy::too_many_arguments)]
     unsafe fn tile<const R: usize, const B: usize>(
-        x: *const f32, xs: usize, k: usize, w: *const f32, mp: usize, init: *const f32, is: usize, out: *mut f32, c: usize,
+        x: *const f32,
+        xs: usize,
+        k: usize,
+        w: *const f32,
+        mp: usize,
+        init: *const f32,
+        is: usize,
+        out: *mut f32,
+        c: usize,
     ) {
         let mut acc = [[_mm256_setzero_ps(); B]; R];
         for r in 0..R {
@@ -410,7 +470,14 @@ mod x86 {
     #[inline]
     #[allow(clippy::too_many_arguments)]
     unsafe fn rows<const R: usize, const B: usize>(
-        x: *const f32, xs: usize, k: usize, w: *const f32, mp: usize, init: *const f32, is: usize, out: *mut f32,
+        x: *const f32,
+        xs: usize,
+        k: usize,
+        w: *const f32,
+        mp: usize,
+        init: *const f32,
+        is: usize,
+        out: *mut f32,
     ) {
         let mut c = 0;
         while c + 8 * B <= mp {
@@ -427,7 +494,15 @@ mod x86 {
     #[target_feature(enable = "avx2,fma")]
     #[allow(clippy::too_many_arguments)]
     pub unsafe fn gemm(
-        x: *const f32, xs: usize, n: usize, k: usize, w: *const f32, mp: usize, init: *const f32, is: usize, out: *mut f32,
+        x: *const f32,
+        xs: usize,
+        n: usize,
+        k: usize,
+        w: *const f32,
+        mp: usize,
+        init: *const f32,
+        is: usize,
+        out: *mut f32,
     ) {
         let mut r = 0;
         while r + 4 <= n {
@@ -518,7 +593,12 @@ mod x86 {
 
     /// See `super::ln_backward`.
     #[target_feature(enable = "avx2,fma")]
-    pub unsafe fn ln_backward<const RELU: bool, const ACC: bool>(a: LnBackPtrs, n: usize, rows: usize, rs: usize) {
+    pub unsafe fn ln_backward<const RELU: bool, const ACC: bool>(
+        a: LnBackPtrs,
+        n: usize,
+        rows: usize,
+        rs: usize,
+    ) {
         let n8 = n - n % 8;
         let inv_n = 1.0 / n as f32;
         let zero = _mm256_setzero_ps();
@@ -592,7 +672,9 @@ mod tests {
     use super::*;
 
     fn data(n: usize, seed: u32) -> Vec<f32> {
-        (0..n).map(|i| (((i as u32).wrapping_mul(2654435761).wrapping_add(seed)) % 1000) as f32 / 250.0 - 2.0).collect()
+        (0..n)
+            .map(|i| (((i as u32).wrapping_mul(2654435761).wrapping_add(seed)) % 1000) as f32 / 250.0 - 2.0)
+            .collect()
     }
 
     #[test]
@@ -605,8 +687,22 @@ mod tests {
             let mut res = Vec::new();
             for isa in [Isa::Portable, Isa::detect()] {
                 let mut pre = data(rows * rs, 4);
-                let (mut xhat, mut out, mut rstd) = (vec![0.0; rows * rs], vec![0.0; rows * rs], vec![0.0; rows]);
-                ln_forward(isa, &mut pre, Some(bias.as_slice()), &mut xhat, &mut rstd, &mut out, &g, &beta, 1e-5, rows, rs, true);
+                let (mut xhat, mut out, mut rstd) =
+                    (vec![0.0; rows * rs], vec![0.0; rows * rs], vec![0.0; rows]);
+                ln_forward(
+                    isa,
+                    &mut pre,
+                    Some(bias.as_slice()),
+                    &mut xhat,
+                    &mut rstd,
+                    &mut out,
+                    &g,
+                    &beta,
+                    1e-5,
+                    rows,
+                    rs,
+                    true,
+                );
                 let mut d = data(rows * rs, 5);
                 let (mut dg, mut dbeta, mut db) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
                 let grads = LnGrads { dg: &mut dg, dbeta: &mut dbeta, db: &mut db };
@@ -620,7 +716,8 @@ mod tests {
                 ln_inplace(isa, &mut inplace, &g, &beta, 1e-5, rows, rs, true);
                 res.push((out, d, dg, dbeta, db, inplace));
             }
-            let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-5 * (1.0 + y.abs()));
+            let close =
+                |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-5 * (1.0 + y.abs()));
             let (p, s) = (&res[0], &res[1]);
             for r in 0..rows {
                 let row = r * rs..r * rs + n;

@@ -33,9 +33,9 @@ pub mod weights;
 pub use artifact::{Artifact, ArtifactFiles};
 pub use error::{Result, VerifierError};
 pub use format::{
-    is_plain_name, ActionSpace, Activation, Architecture, ArtifactConfig, ExtraInput, ExtraInputSpec, InputConfig,
-    InputLayout, Kind, LinearSpec, Manifest, ObsKey, TensorRole, TensorSpec, Variant, CONFIG_FILE, MANIFEST_FILE,
-    MODEL_FILE, SCHEMA_VERSION, short_hash,
+    is_plain_name, short_hash, ActionSpace, Activation, Architecture, ArtifactConfig, ExtraInput,
+    ExtraInputSpec, InputConfig, InputLayout, Kind, LinearSpec, Manifest, ObsKey, TensorRole, TensorSpec,
+    Variant, CONFIG_FILE, MANIFEST_FILE, MODEL_FILE, SCHEMA_VERSION,
 };
 pub use math::{sigmoid, time_embedding_into};
 pub use net::Verifier;

@@ -53,7 +53,12 @@ mod tests {
     #[test]
     fn gelu_and_its_derivative() {
         // Reference values of x * Phi(x) (scipy.stats.norm.cdf).
-        for (x, want) in [(0.0f32, 0.0f64), (1.0, 0.8413447460685429), (-1.0, -0.15865525393145707), (2.5, 2.4844758366855597)] {
+        for (x, want) in [
+            (0.0f32, 0.0f64),
+            (1.0, 0.8413447460685429),
+            (-1.0, -0.15865525393145707),
+            (2.5, 2.4844758366855597),
+        ] {
             assert!((gelu(x) as f64 - want).abs() < 1e-6, "gelu({x})");
         }
         for x in [-3.0f32, -0.7, 0.0, 0.4, 2.0] {

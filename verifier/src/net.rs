@@ -133,7 +133,8 @@ impl Verifier {
         // Every tensor exists with its shape (validated above).
         let t = |n: &str| weights.get(n).expect("validated").data.as_slice();
         let range = |a: usize, b: usize| (a..b).collect::<Vec<usize>>();
-        let norm = |p: &str| Norm { g: t(&format!("{p}.weight")).to_vec(), b: t(&format!("{p}.bias")).to_vec() };
+        let norm =
+            |p: &str| Norm { g: t(&format!("{p}.weight")).to_vec(), b: t(&format!("{p}.bias")).to_vec() };
         let enc = |p: &str, inp: usize, backward: bool| -> [EncLayer; 2] {
             let layer = |l: usize, inp: usize| {
                 let name = format!("{p}.{l}");
@@ -181,7 +182,8 @@ impl Verifier {
             })
             .collect();
         let trivial = i.act_mean.iter().all(|&m| m == 0.0) && i.act_std.iter().all(|&s| s == 1.0);
-        let widest = [od, ad, ew, trunk_in].into_iter().chain(a.trunk_dims.iter().copied()).max().unwrap_or(0);
+        let widest =
+            [od, ad, ew, trunk_in].into_iter().chain(a.trunk_dims.iter().copied()).max().unwrap_or(0);
         let mut first = vec![TrunkLayer {
             d: t0,
             fwd: Packed::forward(&[], 0, 0, &[]),
@@ -234,7 +236,10 @@ impl Verifier {
     /// on: `provided` names the producer (sha256) of each layer observation key about to be
     /// scored (see [`crate::InputLayout::check_producers`]). Call it once when the robot's
     /// encoder is set up, before the first score.
-    pub fn check_producers<'a>(&self, provided: impl IntoIterator<Item = (&'a str, &'a str)>) -> crate::Result<()> {
+    pub fn check_producers<'a>(
+        &self,
+        provided: impl IntoIterator<Item = (&'a str, &'a str)>,
+    ) -> crate::Result<()> {
         self.config.input.layout.check_producers(provided)
     }
     pub fn kind(&self) -> Kind {
@@ -270,7 +275,14 @@ impl Verifier {
     }
 
     /// [`Self::score`] with extra inputs: `extras[i]` is `B * dim_i`, in [`Self::extra_inputs`] order.
-    pub fn score_ext(&self, obs: &[f32], extras: &[&[f32]], t: &[u32], candidates: &[f32], n: usize) -> Result<Vec<f32>> {
+    pub fn score_ext(
+        &self,
+        obs: &[f32],
+        extras: &[&[f32]],
+        t: &[u32],
+        candidates: &[f32],
+        n: usize,
+    ) -> Result<Vec<f32>> {
         let m = t.len().checked_mul(n).ok_or_else(|| VerifierError::Input("batch size overflows".into()))?;
         let mut out = vec![0f32; m];
         self.score_into(obs, extras, t, candidates, n, &mut out)?;
@@ -278,7 +290,15 @@ impl Verifier {
     }
 
     /// [`Self::score_ext`] into a caller's buffer of `B * n` (no allocation for the result).
-    pub fn score_into(&self, obs: &[f32], extras: &[&[f32]], t: &[u32], candidates: &[f32], n: usize, out: &mut [f32]) -> Result<()> {
+    pub fn score_into(
+        &self,
+        obs: &[f32],
+        extras: &[&[f32]],
+        t: &[u32],
+        candidates: &[f32],
+        n: usize,
+        out: &mut [f32],
+    ) -> Result<()> {
         self.check(obs, extras, t, candidates, n, out.len())?;
         if out.is_empty() {
             return Ok(());
@@ -304,7 +324,14 @@ impl Verifier {
     }
 
     /// [`Self::grad_ext`] into a caller's buffer of `B * act_dim`.
-    pub fn grad_into(&self, obs: &[f32], extras: &[&[f32]], t: &[u32], chunks: &[f32], out: &mut [f32]) -> Result<()> {
+    pub fn grad_into(
+        &self,
+        obs: &[f32],
+        extras: &[&[f32]],
+        t: &[u32],
+        chunks: &[f32],
+        out: &mut [f32],
+    ) -> Result<()> {
         let b = t.len();
         self.check(obs, extras, t, chunks, 1, b)?;
         if out.len() != chunks.len() {
@@ -322,7 +349,15 @@ impl Verifier {
         Ok(())
     }
 
-    fn check(&self, obs: &[f32], extras: &[&[f32]], t: &[u32], chunks: &[f32], n: usize, out_len: usize) -> Result<()> {
+    fn check(
+        &self,
+        obs: &[f32],
+        extras: &[&[f32]],
+        t: &[u32],
+        chunks: &[f32],
+        n: usize,
+        out_len: usize,
+    ) -> Result<()> {
         let b = t.len();
         let bad = |m: String| Err(VerifierError::Input(m));
         if Some(obs.len()) != b.checked_mul(self.od) {
@@ -350,13 +385,27 @@ impl Verifier {
         }
         for (e, (x, spec)) in ex.iter().zip(extras.iter().zip(&self.config.architecture.extra_inputs)) {
             if Some(x.len()) != b.checked_mul(e.dim) {
-                return bad(format!("extra input {:?} has length {}, expected batch {b} * dim {}", spec.name, x.len(), e.dim));
+                return bad(format!(
+                    "extra input {:?} has length {}, expected batch {b} * dim {}",
+                    spec.name,
+                    x.len(),
+                    e.dim
+                ));
             }
         }
         Ok(())
     }
 
-    fn gemm(&self, x: &[f32], xs: usize, n: usize, p: &Packed, init: &[f32], init_stride: usize, out: &mut [f32]) {
+    fn gemm(
+        &self,
+        x: &[f32],
+        xs: usize,
+        n: usize,
+        p: &Packed,
+        init: &[f32],
+        init_stride: usize,
+        out: &mut [f32],
+    ) {
         gemm(self.isa, x, xs, n, p, init, init_stride, out)
     }
 
@@ -500,7 +549,20 @@ impl Verifier {
                 xhat = vec![0f32; m * ewp];
                 rstd = vec![0f32; m];
                 let mut normed = vec![0f32; m * ewp];
-                ln_forward(isa, &mut h, None, &mut xhat, &mut rstd, &mut normed, &nm.g, &nm.b, eps, m, ewp, false);
+                ln_forward(
+                    isa,
+                    &mut h,
+                    None,
+                    &mut xhat,
+                    &mut rstd,
+                    &mut normed,
+                    &nm.g,
+                    &nm.b,
+                    eps,
+                    m,
+                    ewp,
+                    false,
+                );
                 h = normed;
             }
             let next = if l.act && relu {
@@ -534,7 +596,20 @@ impl Verifier {
                 self.gemm(prev, pad8(self.trunk[l - 1].d), m, &layer.fwd, &layer.bias, 0, &mut pre);
             }
             let (mut xhat, mut rstd, mut o) = (vec![0f32; m * dp], vec![0f32; m], vec![0f32; m * dp]);
-            ln_forward(isa, &mut pre, None, &mut xhat, &mut rstd, &mut o, &layer.norm.g, &layer.norm.b, eps, m, dp, true);
+            ln_forward(
+                isa,
+                &mut pre,
+                None,
+                &mut xhat,
+                &mut rstd,
+                &mut o,
+                &layer.norm.g,
+                &layer.norm.b,
+                eps,
+                m,
+                dp,
+                true,
+            );
             outs.push(o);
             xhats.push(xhat);
             rstds.push(rstd);
@@ -559,7 +634,17 @@ impl Verifier {
         for l in (0..nl).rev() {
             let layer = &self.trunk[l];
             let dp = pad8(layer.d);
-            ln_backward(isa, &mut d, Some(outs[l].as_slice()), &xhats[l], &rstds[l], &layer.norm.g, m, dp, None);
+            ln_backward(
+                isa,
+                &mut d,
+                Some(outs[l].as_slice()),
+                &xhats[l],
+                &rstds[l],
+                &layer.norm.g,
+                m,
+                dp,
+                None,
+            );
             if l > 0 {
                 let p = &layer.bwd;
                 let mut nd = vec![0f32; m * p.mp];

@@ -1,8 +1,8 @@
 //! Verifiers with random weights for tests, benchmarks and examples (not a trainer).
 
 use crate::format::{
-    ActionSpace, Activation, Architecture, ArtifactConfig, ExtraInput, InputConfig, InputLayout, Kind, ObsKey,
-    TensorRole, Variant, SCHEMA_VERSION,
+    ActionSpace, Activation, Architecture, ArtifactConfig, ExtraInput, InputConfig, InputLayout, Kind,
+    ObsKey, TensorRole, Variant, SCHEMA_VERSION,
 };
 use crate::weights::Weights;
 
@@ -50,12 +50,23 @@ impl RandomSpec {
 
     /// The 2-D navigation task: pos (2) x 2 steps, chunk 8 x 2.
     pub fn nav() -> Self {
-        RandomSpec { obs_keys: vec![("pos".into(), 2)], obs_history: 2, chunk_len: 8, action_dim: 2, ..Self::square() }
+        RandomSpec {
+            obs_keys: vec![("pos".into(), 2)],
+            obs_history: 2,
+            chunk_len: 8,
+            action_dim: 2,
+            ..Self::square()
+        }
     }
 
     /// The features variant (GELU, every LayerNorm) at the nav dimensions.
     pub fn nav_features() -> Self {
-        RandomSpec { variant: Variant::Features, input_layernorm: true, encoder_layernorm: true, ..Self::nav() }
+        RandomSpec {
+            variant: Variant::Features,
+            input_layernorm: true,
+            encoder_layernorm: true,
+            ..Self::nav()
+        }
     }
 
     /// A random configuration and weights (PyTorch-like `U(-1/sqrt(in), 1/sqrt(in))` linears,
@@ -75,7 +86,11 @@ impl RandomSpec {
             spectral_norm: false,
             dropout: 0.5,
             layernorm_eps: 1e-5,
-            extra_inputs: self.extra_inputs.iter().map(|(n, d, w)| ExtraInput { name: n.clone(), dim: *d, width: *w }).collect(),
+            extra_inputs: self
+                .extra_inputs
+                .iter()
+                .map(|(n, d, w)| ExtraInput { name: n.clone(), dim: *d, width: *w })
+                .collect(),
         };
         let mut v = |n: usize, lo: f32, hi: f32| (0..n).map(|_| rng.uniform(lo, hi)).collect::<Vec<f32>>();
         let obs_mean = v(obs_dim, -0.5, 0.5);

@@ -22,20 +22,29 @@ pub struct Weights {
 impl Weights {
     /// Parse safetensors bytes: every tensor F32 little-endian with finite values.
     pub fn from_safetensors(bytes: &[u8]) -> Result<Self> {
-        let st = safetensors::SafeTensors::deserialize(bytes).map_err(|e| VerifierError::Safetensors(e.to_string()))?;
+        let st = safetensors::SafeTensors::deserialize(bytes)
+            .map_err(|e| VerifierError::Safetensors(e.to_string()))?;
         let mut tensors = BTreeMap::new();
         for (name, view) in st.iter() {
             if view.dtype() != safetensors::Dtype::F32 {
-                return Err(VerifierError::TensorDtype { name: name.into(), dtype: format!("{:?}", view.dtype()) });
+                return Err(VerifierError::TensorDtype {
+                    name: name.into(),
+                    dtype: format!("{:?}", view.dtype()),
+                });
             }
             let raw = view.data();
             let n = view.shape().iter().try_fold(1usize, |a, &d| a.checked_mul(d));
             if n.and_then(|n| n.checked_mul(4)) != Some(raw.len()) {
-                return Err(VerifierError::Safetensors(format!("tensor {name:?}: data length does not match its shape")));
+                return Err(VerifierError::Safetensors(format!(
+                    "tensor {name:?}: data length does not match its shape"
+                )));
             }
-            let data: Vec<f32> = raw.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+            let data: Vec<f32> =
+                raw.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
             if data.iter().any(|x| !x.is_finite()) {
-                return Err(VerifierError::Safetensors(format!("tensor {name:?} contains non-finite values")));
+                return Err(VerifierError::Safetensors(format!(
+                    "tensor {name:?} contains non-finite values"
+                )));
             }
             tensors.insert(name.to_string(), Tensor { shape: view.shape().to_vec(), data });
         }
@@ -63,7 +72,11 @@ impl Weights {
     /// Add or replace a tensor; its data length must match its shape.
     pub fn insert(&mut self, name: &str, shape: Vec<usize>, data: Vec<f32>) -> Result<()> {
         if shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)) != Some(data.len()) {
-            return Err(VerifierError::TensorShape { name: name.into(), expected: shape, actual: vec![data.len()] });
+            return Err(VerifierError::TensorShape {
+                name: name.into(),
+                expected: shape,
+                actual: vec![data.len()],
+            });
         }
         self.tensors.insert(name.to_string(), Tensor { shape, data });
         Ok(())
@@ -93,7 +106,11 @@ impl Weights {
     pub fn tensor(&self, name: &str, shape: &[usize]) -> Result<&Tensor> {
         let t = self.tensors.get(name).ok_or_else(|| VerifierError::MissingTensor { name: name.into() })?;
         if t.shape != shape {
-            return Err(VerifierError::TensorShape { name: name.into(), expected: shape.to_vec(), actual: t.shape.clone() });
+            return Err(VerifierError::TensorShape {
+                name: name.into(),
+                expected: shape.to_vec(),
+                actual: t.shape.clone(),
+            });
         }
         Ok(t)
     }

@@ -4,7 +4,9 @@
 use std::path::Path;
 
 use verifier::testutil::RandomSpec;
-use verifier::{sha256_hex, ActionSpace, Artifact, ArtifactConfig, ArtifactFiles, Verifier, VerifierError, Weights};
+use verifier::{
+    sha256_hex, ActionSpace, Artifact, ArtifactConfig, ArtifactFiles, Verifier, VerifierError, Weights,
+};
 
 fn write(dir: &Path, cfg: &ArtifactConfig, w: &Weights) -> String {
     let f = ArtifactFiles::build(cfg, w).unwrap();
@@ -40,7 +42,8 @@ fn load_dir_roundtrip_and_id() {
     // The same weights and config give the same bytes, hence the same id.
     assert_eq!(ArtifactFiles::build(&cfg, &w).unwrap().id, id);
     // Through a getter (the store / HTTP path) with the same checks and the same id.
-    let got = Verifier::load_with(&manifest, |name| Ok(std::fs::read(dir.path().join(name)).unwrap())).unwrap();
+    let got =
+        Verifier::load_with(&manifest, |name| Ok(std::fs::read(dir.path().join(name)).unwrap())).unwrap();
     assert_eq!(got.id(), Some(id.as_str()));
     let obs = vec![0.1; v.obs_dim()];
     let c = vec![0.2; 3 * v.act_dim()];
@@ -158,7 +161,10 @@ fn bad_artifacts_are_clear_errors() {
     let mut head = w5.get("head.bias").unwrap().clone();
     head.data[0] = f32::INFINITY;
     w5.insert("head.bias", head.shape, head.data).unwrap();
-    assert!(matches!(Verifier::from_bytes(&cfg_bytes, &w5.to_safetensors().unwrap()), Err(VerifierError::Safetensors(_))));
+    assert!(matches!(
+        Verifier::from_bytes(&cfg_bytes, &w5.to_safetensors().unwrap()),
+        Err(VerifierError::Safetensors(_))
+    ));
 }
 
 #[test]

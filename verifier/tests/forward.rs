@@ -47,12 +47,24 @@ fn specs() -> Vec<(&'static str, RandomSpec)> {
         ("standardized", RandomSpec { standardized: true, ..RandomSpec::nav() }),
         (
             "features + extras",
-            RandomSpec { extra_inputs: vec![("lang".into(), 5, 4), ("proprio".into(), 3, 6)], ..RandomSpec::nav_features() },
+            RandomSpec {
+                extra_inputs: vec![("lang".into(), 5, 4), ("proprio".into(), 3, 6)],
+                ..RandomSpec::nav_features()
+            },
         ),
-        ("features q, input LN only", RandomSpec { kind: Kind::Q, encoder_layernorm: false, ..RandomSpec::nav_features() }),
+        (
+            "features q, input LN only",
+            RandomSpec { kind: Kind::Q, encoder_layernorm: false, ..RandomSpec::nav_features() },
+        ),
         (
             "features, no LN, odd widths",
-            RandomSpec { input_layernorm: false, encoder_layernorm: false, encoder_width: 13, trunk_dims: vec![19, 11], ..RandomSpec::nav_features() },
+            RandomSpec {
+                input_layernorm: false,
+                encoder_layernorm: false,
+                encoder_width: 13,
+                trunk_dims: vec![19, 11],
+                ..RandomSpec::nav_features()
+            },
         ),
     ]
 }
@@ -78,7 +90,11 @@ fn gradients_match_finite_differences_for_every_variant() {
             // Objective of row 1 alone: log C (classifier) or Q.
             let f = |c: &[f32]| -> f64 {
                 let s = v.score_ext(&obs, &exr, &t, c, 1).unwrap()[1] as f64;
-                if spec.kind == Kind::Q { s } else { s.ln() }
+                if spec.kind == Kind::Q {
+                    s
+                } else {
+                    s.ln()
+                }
             };
             let ad = v.act_dim();
             for j in 0..ad {
@@ -144,9 +160,19 @@ fn a_batch_gives_what_each_row_gives_alone() {
             let row_ex: Vec<Vec<f32>> =
                 ex.iter().zip(v.extra_inputs()).map(|(e, (_, d))| e[g * d..(g + 1) * d].to_vec()).collect();
             let rr: Vec<&[f32]> = row_ex.iter().map(|e| e.as_slice()).collect();
-            let one = v.score_ext(&obs[g * od..(g + 1) * od], &rr, &t[g..g + 1], &cands[g * n * ad..(g + 1) * n * ad], n).unwrap();
+            let one = v
+                .score_ext(
+                    &obs[g * od..(g + 1) * od],
+                    &rr,
+                    &t[g..g + 1],
+                    &cands[g * n * ad..(g + 1) * n * ad],
+                    n,
+                )
+                .unwrap();
             close(&all[g * n..(g + 1) * n], &one, 1e-6, &format!("{name} group {g}"));
-            let gone = v.grad_ext(&obs[g * od..(g + 1) * od], &rr, &t[g..g + 1], &cands[g * ad..(g + 1) * ad]).unwrap();
+            let gone = v
+                .grad_ext(&obs[g * od..(g + 1) * od], &rr, &t[g..g + 1], &cands[g * ad..(g + 1) * ad])
+                .unwrap();
             close(&grads[g * ad..(g + 1) * ad], &gone, 1e-6, &format!("{name} grad row {g}"));
         }
         // The classifier's score is a probability; the gradient of log C is finite.
@@ -159,7 +185,8 @@ fn a_batch_gives_what_each_row_gives_alone() {
 
 #[test]
 fn caller_mistakes_are_errors_not_panics() {
-    let (cfg, w) = RandomSpec { extra_inputs: vec![("lang".into(), 5, 4)], ..RandomSpec::nav_features() }.build(9);
+    let (cfg, w) =
+        RandomSpec { extra_inputs: vec![("lang".into(), 5, 4)], ..RandomSpec::nav_features() }.build(9);
     let v = Verifier::new(cfg, &w).unwrap();
     let (od, ad) = (v.obs_dim(), v.act_dim());
     let obs = vec![0.1; 2 * od];
@@ -176,7 +203,10 @@ fn caller_mistakes_are_errors_not_panics() {
     assert!(input_err(v.grad_ext(&obs, &ex, &[1, 2], &c)), "grad takes one chunk per row");
     let mut small = vec![0.0; 5];
     assert!(matches!(v.score_into(&obs, &ex, &[1, 2], &c, 3, &mut small), Err(VerifierError::Input(_))));
-    assert!(matches!(v.grad_into(&obs, &ex, &[1, 2], &c[..2 * ad], &mut small), Err(VerifierError::Input(_))));
+    assert!(matches!(
+        v.grad_into(&obs, &ex, &[1, 2], &c[..2 * ad], &mut small),
+        Err(VerifierError::Input(_))
+    ));
     // n = 0 and an empty batch are fine: nothing to score.
     assert_eq!(v.score_ext(&obs, &ex, &[1, 2], &[], 0).unwrap(), Vec::<f32>::new());
     assert_eq!(v.score_ext(&[], &[&[]], &[], &[], 10).unwrap(), Vec::<f32>::new());
@@ -222,7 +252,12 @@ fn standardized_artifacts_standardize_and_policy_space_ones_do_not() {
     let raw: Vec<f32> = (0..std_v.act_dim()).map(|i| (i as f32 * 0.7).sin()).collect();
     let standardized: Vec<f32> =
         raw.iter().enumerate().map(|(i, r)| (r - cfg.input.act_mean[i]) / cfg.input.act_std[i]).collect();
-    close(&std_v.score(&obs, &[2], &raw, 1).unwrap(), &pol_v.score(&obs, &[2], &standardized, 1).unwrap(), 1e-5, "score");
+    close(
+        &std_v.score(&obs, &[2], &raw, 1).unwrap(),
+        &pol_v.score(&obs, &[2], &standardized, 1).unwrap(),
+        1e-5,
+        "score",
+    );
     // Chain rule: d/d raw = d/d standardized / std.
     let g_raw = std_v.grad(&obs, &[2], &raw).unwrap();
     let g_std: Vec<f32> = pol_v

@@ -286,10 +286,15 @@ fn resolve_positions(keys: &[String], obs: &[(String, usize)]) -> Result<Option<
         let raw = raw.trim();
         let (key, idx) = match raw.split_once('[') {
             Some((k, rest)) => {
-                let inner = rest.strip_suffix(']').ok_or_else(|| format!("position key {raw:?}: missing ']'"))?;
+                let inner =
+                    rest.strip_suffix(']').ok_or_else(|| format!("position key {raw:?}: missing ']'"))?;
                 let idx = inner
                     .split(',')
-                    .map(|s| s.trim().parse::<usize>().map_err(|_| format!("position key {raw:?}: bad index {s:?}")))
+                    .map(|s| {
+                        s.trim()
+                            .parse::<usize>()
+                            .map_err(|_| format!("position key {raw:?}: bad index {s:?}"))
+                    })
                     .collect::<Result<Vec<_>, _>>()?;
                 (k.trim(), Some(idx))
             }
@@ -450,10 +455,11 @@ async fn record(
         let label = ep.label;
         let color = label_color(label);
         let base = episode_path(label, &ep.id);
-        let t: Vec<i64> = match batch.column_by_name("t").and_then(|c| c.as_any().downcast_ref::<Int32Array>()) {
-            Some(a) => a.values().iter().map(|&v| v as i64).collect(),
-            None => (0..n as i64).collect(),
-        };
+        let t: Vec<i64> =
+            match batch.column_by_name("t").and_then(|c| c.as_any().downcast_ref::<Int32Array>()) {
+                Some(a) => a.values().iter().map(|&v| v as i64).collect(),
+                None => (0..n as i64).collect(),
+            };
         let ts: Vec<f64> = f64_col(&batch, "timestamp")?.values().to_vec();
         let idx = indexes(&t, &ts);
         let obs = store::steps::observation_keys(batch.schema().as_ref());
@@ -471,7 +477,10 @@ async fn record(
             Some(spec) => {
                 let mut cols: Vec<(usize, Vec<f32>)> = Vec::new();
                 for (key, _) in &spec {
-                    cols.push(store::steps::vector_column(&batch, &format!("{}{key}", store::steps::OBS_PREFIX))?);
+                    cols.push(store::steps::vector_column(
+                        &batch,
+                        &format!("{}{key}", store::steps::OBS_PREFIX),
+                    )?);
                 }
                 let pts: Vec<Vec<f32>> = (0..n)
                     .map(|row| {
@@ -528,12 +537,16 @@ async fn record(
             if *dim > MAX_STATE_DIMS {
                 continue;
             }
-            let (dim, values) = store::steps::vector_column(&batch, &format!("{}{key}", store::steps::OBS_PREFIX))?;
+            let (dim, values) =
+                store::steps::vector_column(&batch, &format!("{}{key}", store::steps::OBS_PREFIX))?;
             let names = (0..dim).map(|i| format!("{key}[{i}]")).collect();
             let part = re_sdk::EntityPathPart::from(key.as_str()).escaped_string();
             out.series(&idx, color, format!("{base}/state/{part}"), names, dim, values)?;
         }
-        if let Some(r) = batch.column_by_name("reward").and_then(|c| c.as_any().downcast_ref::<arrow::array::Float32Array>()) {
+        if let Some(r) = batch
+            .column_by_name("reward")
+            .and_then(|c| c.as_any().downcast_ref::<arrow::array::Float32Array>())
+        {
             let vals: Vec<f32> = (0..n).map(|i| if r.is_valid(i) { r.value(i) } else { f32::NAN }).collect();
             out.series(&idx, color, format!("{base}/reward"), vec!["reward".into()], 1, vals)?;
         }
@@ -563,7 +576,10 @@ async fn record(
                 .fields()
                 .iter()
                 .filter_map(|f| {
-                    f.name().strip_prefix(store::steps::MEDIA_PREFIX)?.strip_suffix(".path").map(str::to_string)
+                    f.name()
+                        .strip_prefix(store::steps::MEDIA_PREFIX)?
+                        .strip_suffix(".path")
+                        .map(str::to_string)
                 })
                 .collect();
             for key in media_keys {
@@ -585,9 +601,13 @@ async fn record(
                             let file = obj.rsplit('/').next().unwrap_or(&obj);
                             let file = re_sdk::EntityPathPart::from(file).escaped_string();
                             let vpath = format!("media/{part}/{file}");
-                            let media = MediaType::guess_from_path(&obj).or_else(|| MediaType::guess_from_data(&data));
-                            rec.log_static(vpath.as_str(), &AssetVideo::from_file_contents(data.to_vec(), media))
-                                .map_err(rr)?;
+                            let media = MediaType::guess_from_path(&obj)
+                                .or_else(|| MediaType::guess_from_data(&data));
+                            rec.log_static(
+                                vpath.as_str(),
+                                &AssetVideo::from_file_contents(data.to_vec(), media),
+                            )
+                            .map_err(rr)?;
                             out.entities.insert(vpath.clone());
                             videos_logged.insert(obj.clone(), vpath.clone());
                             report.videos += 1;
@@ -667,7 +687,10 @@ async fn record(
             let path = format!("summary/score/{name}");
             rec.log_static(
                 path.as_str(),
-                &SeriesLines::new().with_colors([color]).with_names([format!("mean score ({name})")]).with_widths([3.0f32]),
+                &SeriesLines::new()
+                    .with_colors([color])
+                    .with_names([format!("mean score ({name})")])
+                    .with_widths([3.0f32]),
             )
             .map_err(rr)?;
             let cols = Scalars::new(vals).columns_of_unit_batches().map_err(rr)?.collect::<Vec<_>>();
@@ -684,10 +707,16 @@ async fn record(
             let path = "summary/score/gap";
             rec.log_static(
                 path,
-                &SeriesLines::new().with_colors([BLUE]).with_names(["success − failure"]).with_widths([2.0f32]),
+                &SeriesLines::new()
+                    .with_colors([BLUE])
+                    .with_names(["success − failure"])
+                    .with_widths([2.0f32]),
             )
             .map_err(rr)?;
-            let cols = Scalars::new(gap.iter().map(|g| g.1)).columns_of_unit_batches().map_err(rr)?.collect::<Vec<_>>();
+            let cols = Scalars::new(gap.iter().map(|g| g.1))
+                .columns_of_unit_batches()
+                .map_err(rr)?
+                .collect::<Vec<_>>();
             out.send(path.to_string(), &[TimeColumn::new_sequence("step", gap.iter().map(|g| g.0))], cols)?;
             let (best_step, best) =
                 gap.iter().copied().fold((0, f64::NEG_INFINITY), |acc, g| if g.1 > acc.1 { g } else { acc });
@@ -706,8 +735,11 @@ async fn record(
             }
         }
     }
-    rec.log_static("summary/info", &TextDocument::new(summary_markdown(opts, &report, &lengths)).with_media_type(MediaType::markdown()))
-        .map_err(rr)?;
+    rec.log_static(
+        "summary/info",
+        &TextDocument::new(summary_markdown(opts, &report, &lengths)).with_media_type(MediaType::markdown()),
+    )
+    .map_err(rr)?;
     out.entities.insert("summary/info".into());
 
     let bp = blueprint(&logged, pos_dims, scorer.is_some());
@@ -771,7 +803,9 @@ fn blueprint(eps: &[EpisodeEntities], pos_dims: Option<usize>, scored: bool) -> 
         c.extend(per_ep("score", &|e| e.has_score));
         plots.push(TimeSeriesView::new("verifier score").with_origin("/").with_contents(c).into());
     }
-    plots.push(TimeSeriesView::new("actions").with_origin("/").with_contents(per_ep("action", &|_| true)).into());
+    plots.push(
+        TimeSeriesView::new("actions").with_origin("/").with_contents(per_ep("action", &|_| true)).into(),
+    );
     let mut state = per_ep("state/**", &|_| true);
     state.extend(per_ep("reward", &|_| true));
     plots.push(TimeSeriesView::new("state & reward").with_origin("/").with_contents(state).into());
@@ -812,7 +846,10 @@ mod tests {
     fn position_keys_resolve() {
         let obs = vec![("agent".to_string(), 5), ("pos".to_string(), 2), ("eef".to_string(), 3)];
         assert_eq!(resolve_positions(&[], &obs).unwrap(), Some(vec![("pos".into(), vec![0, 1])]));
-        assert_eq!(resolve_positions(&["eef".into()], &obs).unwrap(), Some(vec![("eef".into(), vec![0, 1, 2])]));
+        assert_eq!(
+            resolve_positions(&["eef".into()], &obs).unwrap(),
+            Some(vec![("eef".into(), vec![0, 1, 2])])
+        );
         assert_eq!(
             resolve_positions(&["obs.agent[3, 4]".into()], &obs).unwrap(),
             Some(vec![("agent".into(), vec![3, 4])])

@@ -12,9 +12,9 @@ use viewer::*;
 
 /// A 2x2 RGB PNG.
 const PNG: [u8; 74] = [
-    137, 80, 78, 71, 13, 10, 26, 10, 0, 0, 0, 13, 73, 72, 68, 82, 0, 0, 0, 2, 0, 0, 0, 2, 8, 2, 0, 0, 0, 253, 212,
-    154, 115, 0, 0, 0, 17, 73, 68, 65, 84, 120, 156, 99, 248, 207, 192, 0, 68, 96, 226, 63, 3, 0, 29, 240, 3, 253,
-    160, 51, 9, 137, 0, 0, 0, 0, 73, 69, 78, 68, 174, 66, 96, 130,
+    137, 80, 78, 71, 13, 10, 26, 10, 0, 0, 0, 13, 73, 72, 68, 82, 0, 0, 0, 2, 0, 0, 0, 2, 8, 2, 0, 0, 0, 253,
+    212, 154, 115, 0, 0, 0, 17, 73, 68, 65, 84, 120, 156, 99, 248, 207, 192, 0, 68, 96, 226, 63, 3, 0, 29,
+    240, 3, 253, 160, 51, 9, 137, 0, 0, 0, 0, 73, 69, 78, 68, 174, 66, 96, 130,
 ];
 
 struct Opts {
@@ -49,8 +49,14 @@ fn episode(i: u32, steps: usize, label: Label, o: &Opts) -> EpisodeInput {
             VectorColumn { name: "eef".into(), dim: 3, values: eef },
             VectorColumn { name: "features".into(), dim: 80, values: vec![0.0; steps * 80] },
         ],
-        action: VectorColumn { name: "action".into(), dim: 2, values: (0..steps * 2).map(|k| k as f32).collect() },
-        reward: (0..steps).map(|t| if label == Label::Success && t + 1 == steps { 1.0 } else { 0.0 }).collect(),
+        action: VectorColumn {
+            name: "action".into(),
+            dim: 2,
+            values: (0..steps * 2).map(|k| k as f32).collect(),
+        },
+        reward: (0..steps)
+            .map(|t| if label == Label::Success && t + 1 == steps { 1.0 } else { 0.0 })
+            .collect(),
         done: (0..steps).map(|t| t + 1 == steps).collect(),
         action_chunk: None,
         images: if o.images {
@@ -70,7 +76,8 @@ fn episode(i: u32, steps: usize, label: Label, o: &Opts) -> EpisodeInput {
 }
 
 /// Labels of the synthetic episodes, by index: 3 successes, 2 failures, 1 unknown.
-const LABELS: [Label; 6] = [Label::Success, Label::Failure, Label::Success, Label::Failure, Label::Success, Label::Unknown];
+const LABELS: [Label; 6] =
+    [Label::Success, Label::Failure, Label::Success, Label::Failure, Label::Success, Label::Unknown];
 
 fn steps_of(i: usize) -> usize {
     8 + 3 * i
@@ -89,9 +96,14 @@ async fn make_store(dir: &Path, o: &Opts) -> Store {
     if let Some(sha) = &o.video {
         let path = dir.join("front.mp4");
         std::fs::write(&path, fake_mp4()).unwrap();
-        w.add_media(&MediaFile { sha256: sha.clone(), local_path: path, content_type: "video/mp4".into(), size_bytes: 64 })
-            .await
-            .unwrap();
+        w.add_media(&MediaFile {
+            sha256: sha.clone(),
+            local_path: path,
+            content_type: "video/mp4".into(),
+            size_bytes: 64,
+        })
+        .await
+        .unwrap();
     }
     for (i, l) in LABELS.iter().enumerate() {
         w.add_episode(episode(i as u32, steps_of(i), *l, o)).await.unwrap();
@@ -145,7 +157,8 @@ struct Decoded {
 
 fn decode(bytes: &[u8]) -> Decoded {
     let mut d = Decoded::default();
-    let it = re_log_encoding::DecoderApp::decode_eager(std::io::BufReader::new(bytes)).expect("an rrd stream");
+    let it =
+        re_log_encoding::DecoderApp::decode_eager(std::io::BufReader::new(bytes)).expect("an rrd stream");
     for msg in it {
         let msg = msg.expect("decodes");
         let LogMsg::ArrowMsg(store_id, arrow_msg) = &msg else { continue };
@@ -213,7 +226,15 @@ async fn recording_has_episodes_timelines_scores_and_blueprint() {
         let base = episode_path(label, &ep.id);
         let n = steps_of(ep.source_index as usize);
         assert_eq!(ep.length as usize, n);
-        for e in ["position", "action", "state/pos", "state/eef", "reward", "score", "camera/observation.images.front"] {
+        for e in [
+            "position",
+            "action",
+            "state/pos",
+            "state/eef",
+            "reward",
+            "score",
+            "camera/observation.images.front",
+        ] {
             let path = format!("{base}/{e}");
             assert_eq!(d.rows.get(&path).copied(), Some(n), "rows of {path} (episode {i})");
             let tl: Vec<&str> = d.timelines[&path].iter().map(String::as_str).collect();
@@ -221,14 +242,26 @@ async fn recording_has_episodes_timelines_scores_and_blueprint() {
         }
         // Images sampled every 2nd step.
         assert_eq!(d.rows.get(&format!("{base}/image/top")).copied(), Some(n.div_ceil(2)));
-        assert!(has(&d, &format!("{base}/image/top"), "blob"), "{:?}", d.components.get(&format!("{base}/image/top")));
+        assert!(
+            has(&d, &format!("{base}/image/top"), "blob"),
+            "{:?}",
+            d.components.get(&format!("{base}/image/top"))
+        );
         assert_eq!(d.statics.get(&format!("{base}/trajectory")).copied(), Some(1), "one static strip");
-        assert!(has(&d, &format!("{base}/trajectory"), "strips"), "{:?}", d.components.get(&format!("{base}/trajectory")));
+        assert!(
+            has(&d, &format!("{base}/trajectory"), "strips"),
+            "{:?}",
+            d.components.get(&format!("{base}/trajectory"))
+        );
         assert!(has(&d, &format!("{base}/action"), "scalars"));
         assert!(has(&d, &format!("{base}/camera/observation.images.front"), "timestamp"));
         assert!(!d.rows.contains_key(&format!("{base}/state/features")), "80-dim key is not plotted");
     }
-    assert!(d.statics.keys().any(|k| k.starts_with("media/observation.images.front/")), "{:?}", d.statics.keys());
+    assert!(
+        d.statics.keys().any(|k| k.starts_with("media/observation.images.front/")),
+        "{:?}",
+        d.statics.keys()
+    );
     // Summary: mean score of successes vs failures per step; failures are shorter than the
     // longest success, so the success curve is longer.
     let longest = |l: Label| (0..6).filter(|&i| LABELS[i] == l).map(steps_of).max().unwrap();
@@ -326,13 +359,21 @@ async fn check_rrd_with_official_rerun_sdk() {
     let stderr = String::from_utf8_lossy(&res.stderr);
     if res.status.code() == Some(3) {
         // No python3 venv, or PyPI unreachable: a failure under UFOPS_REQUIRE_PYTHON, else a skip.
-        let missing = format!("rerun-sdk=={RERUN_SDK_VERSION} from PyPI in a python3 venv (check_rrd.sh:\n{stderr})");
+        let missing =
+            format!("rerun-sdk=={RERUN_SDK_VERSION} from PyPI in a python3 venv (check_rrd.sh:\n{stderr})");
         if !store::test_support::require(store::test_support::Tool::Python, Err(missing)) {
             return;
         }
     }
-    assert!(res.status.success(), "check_rrd.sh failed ({:?}):\nstdout:\n{stdout}\nstderr:\n{stderr}", res.status);
-    assert!(stdout.contains(&format!("rerun-cli {RERUN_SDK_VERSION}")) || stdout.contains(RERUN_SDK_VERSION), "{stdout}");
+    assert!(
+        res.status.success(),
+        "check_rrd.sh failed ({:?}):\nstdout:\n{stdout}\nstderr:\n{stderr}",
+        res.status
+    );
+    assert!(
+        stdout.contains(&format!("rerun-cli {RERUN_SDK_VERSION}")) || stdout.contains(RERUN_SDK_VERSION),
+        "{stdout}"
+    );
     assert!(stdout.contains("episodes/success"), "rrd print lists the episodes:\n{stdout}");
     assert!(stderr.contains("verified without error"), "rrd verify:\n{stderr}");
     assert!(stdout.contains("summary/score/gap") && stdout.contains("Blueprint"), "{stdout}");

@@ -162,7 +162,11 @@ mod tests {
         for a in ASSETS.iter().filter(|a| !a.name.starts_with("vendor/")) {
             // The SVG namespace is a name, not a URL anything fetches.
             let text = std::str::from_utf8(a.body).expect("utf-8").replace("http://www.w3.org/2000/svg", "");
-            assert!(!text.contains("http://") && !text.contains("https://"), "{} references a remote URL", a.name);
+            assert!(
+                !text.contains("http://") && !text.contains("https://"),
+                "{} references a remote URL",
+                a.name
+            );
         }
     }
 }

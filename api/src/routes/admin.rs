@@ -6,7 +6,10 @@ use super::*;
 pub(crate) fn router() -> Router<AppState> {
     Router::new()
         .route("/v1/gc", post(gc.layer(need!(Role::Admin))))
-        .route("/v1/tokens", get(list_tokens.layer(need!(Role::Admin))).post(create_token.layer(need!(Role::Admin))))
+        .route(
+            "/v1/tokens",
+            get(list_tokens.layer(need!(Role::Admin))).post(create_token.layer(need!(Role::Admin))),
+        )
         .route("/v1/tokens/{id}", axum::routing::delete(revoke_token.layer(need!(Role::Admin))))
 }
 
@@ -63,7 +66,10 @@ pub struct TokenCreated {
 /// Tokens (never their secrets) (admin).
 #[utoipa::path(get, path = "/v1/tokens", tag = "admin",
     responses((status = 200, body = Vec<store::TokenRecord>), (status = 403, description = "the token's role is below admin")))]
-pub async fn list_tokens(State(s): State<AppState>, Extension(caller): Extension<Caller>) -> ApiResult<Json<Vec<store::TokenRecord>>> {
+pub async fn list_tokens(
+    State(s): State<AppState>,
+    Extension(caller): Extension<Caller>,
+) -> ApiResult<Json<Vec<store::TokenRecord>>> {
     caller.require(Role::Admin)?;
     Ok(Json(s.store().tokens().await?))
 }
@@ -81,7 +87,11 @@ pub async fn revoke_token(
     caller.require(Role::Admin)?;
     check_id("token id", &id)?;
     if id == caller.token_id {
-        return Err(ApiError::new(StatusCode::CONFLICT, "conflict", "a token cannot revoke itself: use another admin token or `ufops token revoke`"));
+        return Err(ApiError::new(
+            StatusCode::CONFLICT,
+            "conflict",
+            "a token cannot revoke itself: use another admin token or `ufops token revoke`",
+        ));
     }
     s.store().revoke_token(&id).await?;
     s.inner.tokens.clear();

@@ -10,7 +10,10 @@ pub(crate) fn router() -> Router<AppState> {
         .route("/v1/artifacts/{id}", get(get_artifact))
         .route("/v1/artifacts/{id}/files/{name}", get(artifact_file))
         .route("/v1/artifacts/{id}/aliases/{alias}", put(set_alias.layer(need!(Role::Trainer))))
-        .route("/v1/policies/{policy}/checkpoints/{checkpoint}/verifiers/{kind_at_alias}", get(resolve_verifier))
+        .route(
+            "/v1/policies/{policy}/checkpoints/{checkpoint}/verifiers/{kind_at_alias}",
+            get(resolve_verifier),
+        )
         .route(
             "/v1/policies/{policy}/checkpoints/{checkpoint}/verifiers/{kind_at_alias}/files/{name}",
             get(resolve_verifier_file),
@@ -38,7 +41,10 @@ pub async fn list_artifacts(
 /// An artifact by id.
 #[utoipa::path(get, path = "/v1/artifacts/{id}", tag = "artifacts", params(("id" = String, Path)),
     responses((status = 200, body = store::ArtifactRecord), (status = 404, description = "no such artifact")))]
-pub async fn get_artifact(State(s): State<AppState>, ApiPath(id): ApiPath<String>) -> ApiResult<Json<store::ArtifactRecord>> {
+pub async fn get_artifact(
+    State(s): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> ApiResult<Json<store::ArtifactRecord>> {
     check_id("artifact id", &id)?;
     Ok(Json(s.store().artifact(&id).await?))
 }
@@ -49,7 +55,10 @@ pub async fn get_artifact(State(s): State<AppState>, ApiPath(id): ApiPath<String
     responses((status = 200, description = "the file (`application/json` for a .json file)", headers(("X-Checksum-Sha256" = String)),
                content((Object = "application/json"), (FileBytes = "application/octet-stream"))),
               (status = 404, description = "no such artifact or file")))]
-pub async fn artifact_file(State(s): State<AppState>, ApiPath((id, name)): ApiPath<(String, String)>) -> ApiResult<Response> {
+pub async fn artifact_file(
+    State(s): State<AppState>,
+    ApiPath((id, name)): ApiPath<(String, String)>,
+) -> ApiResult<Response> {
     check_id("artifact id", &id)?;
     check_id("file name", &name)?;
     let a = s.store().artifact(&id).await?;
@@ -64,23 +73,31 @@ async fn send_artifact_file(s: &AppState, a: &store::ArtifactRecord, name: &str)
         .ok_or_else(|| ApiError::not_found(format!("artifact {} has no file {name:?}", a.id)))?;
     let data = s.store().get_object(&format!("{}/{}", a.prefix, f.name)).await?;
     if store::sha256_hex(&data) != f.sha256 {
-        return Err(ApiError::internal_public(format!("artifact {} file {} fails its sha256 check", a.id, f.name)));
+        return Err(ApiError::internal_public(format!(
+            "artifact {} file {} fails its sha256 check",
+            a.id, f.name
+        )));
     }
     let ctype = if name.ends_with(".json") { "application/json" } else { "application/octet-stream" };
     let mut resp = Response::new(Body::from(data));
     let h = resp.headers_mut();
     h.insert(header::CONTENT_TYPE, HeaderValue::from_static(ctype));
-    h.insert("x-checksum-sha256", HeaderValue::from_str(&f.sha256).map_err(|e| ApiError::internal(e.to_string()))?);
-    h.insert(header::ETAG, HeaderValue::from_str(&format!("\"{}\"", f.sha256)).map_err(|e| ApiError::internal(e.to_string()))?);
+    h.insert(
+        "x-checksum-sha256",
+        HeaderValue::from_str(&f.sha256).map_err(|e| ApiError::internal(e.to_string()))?,
+    );
+    h.insert(
+        header::ETAG,
+        HeaderValue::from_str(&format!("\"{}\"", f.sha256)).map_err(|e| ApiError::internal(e.to_string()))?,
+    );
     h.insert("x-artifact-id", HeaderValue::from_str(&a.id).map_err(|e| ApiError::internal(e.to_string()))?);
     h.insert(header::CACHE_CONTROL, HeaderValue::from_static("private, max-age=31536000, immutable"));
     Ok(resp)
 }
 
 fn split_kind_alias(s: &str) -> ApiResult<(&str, &str)> {
-    let (kind, alias) = s
-        .split_once('@')
-        .ok_or_else(|| ApiError::bad_request(format!("expected KIND@ALIAS, got {s:?}")))?;
+    let (kind, alias) =
+        s.split_once('@').ok_or_else(|| ApiError::bad_request(format!("expected KIND@ALIAS, got {s:?}")))?;
     check_id("verifier kind", kind)?;
     check_id("alias", alias)?;
     Ok((kind, alias))

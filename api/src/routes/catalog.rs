@@ -62,7 +62,10 @@ pub async fn list_versions(State(s): State<AppState>) -> ApiResult<Json<Vec<stor
 #[utoipa::path(get, path = "/v1/versions/{version}", tag = "versions",
     params(("version" = i64, Path)),
     responses((status = 200, body = store::VersionInfo), (status = 404, description = "no such version")))]
-pub async fn get_version(State(s): State<AppState>, ApiPath(v): ApiPath<i64>) -> ApiResult<Json<store::VersionInfo>> {
+pub async fn get_version(
+    State(s): State<AppState>,
+    ApiPath(v): ApiPath<i64>,
+) -> ApiResult<Json<store::VersionInfo>> {
     Ok(Json(s.store().version(v).await?))
 }
 
@@ -70,14 +73,21 @@ pub async fn get_version(State(s): State<AppState>, ApiPath(v): ApiPath<i64>) ->
 #[utoipa::path(get, path = "/v1/versions/{from}/diff/{to}", tag = "versions",
     params(("from" = i64, Path), ("to" = i64, Path)),
     responses((status = 200, body = VersionDiffBody), (status = 404, description = "no such version")))]
-pub async fn diff_versions(State(s): State<AppState>, ApiPath((from, to)): ApiPath<(i64, i64)>) -> ApiResult<Json<VersionDiffBody>> {
+pub async fn diff_versions(
+    State(s): State<AppState>,
+    ApiPath((from, to)): ApiPath<(i64, i64)>,
+) -> ApiResult<Json<VersionDiffBody>> {
     let d = s.store().diff(from, to).await?;
     Ok(Json(VersionDiffBody {
         from: d.from,
         to: d.to,
         episodes_added: d.episodes_added,
         episodes_removed: d.episodes_removed,
-        labels_changed: d.labels_changed.into_iter().map(|(episode_id, from, to)| LabelDiff { episode_id, from, to }).collect(),
+        labels_changed: d
+            .labels_changed
+            .into_iter()
+            .map(|(episode_id, from, to)| LabelDiff { episode_id, from, to })
+            .collect(),
     }))
 }
 

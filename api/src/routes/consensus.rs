@@ -9,7 +9,10 @@ use store::{Agreement, Campaign, Dispute, EpisodeVotes, NewVote, Span, VerdictDa
 pub(crate) fn router() -> Router<AppState> {
     Router::new()
         .route("/v1/campaigns/{policy}", get(get_campaign).put(put_campaign.layer(need!(Role::Admin))))
-        .route("/v1/tasks/{task}/failure-causes", get(get_failure_causes).put(put_failure_causes.layer(need!(Role::Admin))))
+        .route(
+            "/v1/tasks/{task}/failure-causes",
+            get(get_failure_causes).put(put_failure_causes.layer(need!(Role::Admin))),
+        )
         .route("/v1/episodes/{id}/votes", get(get_votes).post(post_vote.layer(need!(Role::Labeler))))
         .route("/v1/episodes/{id}/adjudication", post(adjudicate.layer(need!(Role::Admin))))
         .route("/v1/adjudication", get(adjudication_queue.layer(need!(Role::Admin))))
@@ -21,7 +24,10 @@ pub(crate) fn router() -> Router<AppState> {
     responses((status = 200, description = "the settings (defaults: 1 labeler, not blind)", body = Campaign),
               (status = 400, body = Problem, content_type = "application/problem+json"),
               (status = 401, body = Problem, content_type = "application/problem+json")))]
-pub async fn get_campaign(State(s): State<AppState>, ApiPath(policy): ApiPath<String>) -> ApiResult<Json<Campaign>> {
+pub async fn get_campaign(
+    State(s): State<AppState>,
+    ApiPath(policy): ApiPath<String>,
+) -> ApiResult<Json<Campaign>> {
     check_name("policy", &policy)?;
     Ok(Json(s.store().campaign(&policy).await?))
 }
@@ -66,7 +72,10 @@ pub struct FailureCauses {
 #[utoipa::path(get, path = "/v1/tasks/{task}/failure-causes", tag = "labels", params(("task" = String, Path)),
     responses((status = 200, description = "the causes, empty when none are set", body = FailureCauses),
               (status = 400, body = Problem, content_type = "application/problem+json")))]
-pub async fn get_failure_causes(State(s): State<AppState>, ApiPath(task): ApiPath<String>) -> ApiResult<Json<FailureCauses>> {
+pub async fn get_failure_causes(
+    State(s): State<AppState>,
+    ApiPath(task): ApiPath<String>,
+) -> ApiResult<Json<FailureCauses>> {
     check_name("task", &task)?;
     Ok(Json(FailureCauses { causes: s.store().failure_causes(&task).await? }))
 }
@@ -129,7 +138,10 @@ pub async fn post_vote(
     let vote = NewVote {
         episode_id: id,
         label: parse_label(&b.label)?,
-        data: VerdictData { failure_cause: cause_of(&b.label, b.failure_cause), spans: b.spans.into_iter().map(Span::ordered).collect() },
+        data: VerdictData {
+            failure_cause: cause_of(&b.label, b.failure_cause),
+            spans: b.spans.into_iter().map(Span::ordered).collect(),
+        },
         note: b.note,
         expect_revision: b.expect_revision,
     };
@@ -196,7 +208,10 @@ pub struct AdjudicationQuery {
     responses((status = 200, description = "the disputes, by episode id", body = Vec<Dispute>),
               (status = 400, body = Problem, content_type = "application/problem+json"),
               (status = 403, body = Problem, content_type = "application/problem+json")))]
-pub async fn adjudication_queue(State(s): State<AppState>, ApiQuery(q): ApiQuery<AdjudicationQuery>) -> ApiResult<Json<Vec<Dispute>>> {
+pub async fn adjudication_queue(
+    State(s): State<AppState>,
+    ApiQuery(q): ApiQuery<AdjudicationQuery>,
+) -> ApiResult<Json<Vec<Dispute>>> {
     if let Some(p) = &q.policy {
         check_name("policy", p)?;
     }
@@ -235,7 +250,10 @@ pub async fn adjudicate(
 ) -> ApiResult<Json<store::LabelChange>> {
     check_id("episode id", &id)?;
     let label = parse_label(&b.label)?;
-    let data = VerdictData { failure_cause: cause_of(&b.label, b.failure_cause), spans: b.spans.into_iter().map(Span::ordered).collect() };
+    let data = VerdictData {
+        failure_cause: cause_of(&b.label, b.failure_cause),
+        spans: b.spans.into_iter().map(Span::ordered).collect(),
+    };
     let change = {
         let _gate = s.write_gate().await;
         s.store().adjudicate(&id, label, data, b.note, &caller.name).await
@@ -255,7 +273,10 @@ pub struct AgreementQuery {
 #[utoipa::path(get, path = "/v1/agreement", tag = "labels", params(AgreementQuery),
     responses((status = 200, description = "the agreement", body = Agreement),
               (status = 400, body = Problem, content_type = "application/problem+json")))]
-pub async fn get_agreement(State(s): State<AppState>, ApiQuery(q): ApiQuery<AgreementQuery>) -> ApiResult<Json<Agreement>> {
+pub async fn get_agreement(
+    State(s): State<AppState>,
+    ApiQuery(q): ApiQuery<AgreementQuery>,
+) -> ApiResult<Json<Agreement>> {
     check_name("policy", &q.policy)?;
     Ok(Json(s.store().agreement(&q.policy).await?))
 }

@@ -104,14 +104,19 @@ pub struct EpisodePage {
 /// labels change, never repeat an episode nor skip one that still matches the filters.
 #[utoipa::path(get, path = "/v1/episodes", tag = "episodes", params(EpisodeQuery),
     responses((status = 200, body = EpisodePage)))]
-pub async fn list_episodes(State(s): State<AppState>, ApiQuery(q): ApiQuery<EpisodeQuery>) -> ApiResult<Json<EpisodePage>> {
+pub async fn list_episodes(
+    State(s): State<AppState>,
+    ApiQuery(q): ApiQuery<EpisodeQuery>,
+) -> ApiResult<Json<EpisodePage>> {
     if let Some(order) = q.order.clone().filter(|o| o != "id") {
         return super::review::list_review_queue(&s, &order, q).await.map(Json);
     }
     match q.sort.as_deref() {
         None | Some("id") => {}
         Some(other) => {
-            return Err(ApiError::bad_request(format!("unsupported sort {other:?}: only \"id\" (the cursor order)")))
+            return Err(ApiError::bad_request(format!(
+                "unsupported sort {other:?}: only \"id\" (the cursor order)"
+            )))
         }
     }
     let limit = q.page_limit()?;
@@ -121,7 +126,8 @@ pub async fn list_episodes(State(s): State<AppState>, ApiQuery(q): ApiQuery<Epis
             return Err(ApiError::bad_request("cursor: 1-400 printable characters"));
         }
     }
-    let filter = EpisodeFilter { version: q.version, after: q.after.clone(), limit: Some(limit + 1), ..q.filters()? };
+    let filter =
+        EpisodeFilter { version: q.version, after: q.after.clone(), limit: Some(limit + 1), ..q.filters()? };
     let mut episodes = s.store().episodes(&filter).await?;
     let next_cursor = if episodes.len() as i64 > limit {
         episodes.truncate(limit as usize);
@@ -156,8 +162,12 @@ pub struct EpisodeCounts {
 /// reads a few rows whatever the catalog's size.
 #[utoipa::path(get, path = "/v1/episodes/counts", tag = "episodes", params(CountsQuery),
     responses((status = 200, body = EpisodeCounts), (status = 404, description = "no such version")))]
-pub async fn episode_counts(State(s): State<AppState>, ApiQuery(q): ApiQuery<CountsQuery>) -> ApiResult<Json<EpisodeCounts>> {
-    let filter = store::CountFilter { version: q.version, policy: q.policy, checkpoint: q.checkpoint, task: q.task };
+pub async fn episode_counts(
+    State(s): State<AppState>,
+    ApiQuery(q): ApiQuery<CountsQuery>,
+) -> ApiResult<Json<EpisodeCounts>> {
+    let filter =
+        store::CountFilter { version: q.version, policy: q.policy, checkpoint: q.checkpoint, task: q.task };
     let c = s.store().episode_counts(&filter).await?;
     Ok(Json(EpisodeCounts { total: c.total, success: c.success, failure: c.failure, unknown: c.unknown }))
 }

@@ -99,7 +99,9 @@ pub async fn create_export(
     ApiJson(b): ApiJson<ExportCreate>,
 ) -> ApiResult<(StatusCode, Json<store::JobRecord>)> {
     caller.require(Role::Trainer)?;
-    for (what, v) in [("policy", &b.policy), ("checkpoint", &b.checkpoint), ("task", &b.task), ("tag", &b.tag)] {
+    for (what, v) in
+        [("policy", &b.policy), ("checkpoint", &b.checkpoint), ("task", &b.task), ("tag", &b.tag)]
+    {
         if let Some(v) = v {
             check_name(what, v)?;
         }
@@ -152,7 +154,8 @@ pub async fn create_export(
 #[utoipa::path(get, path = "/v1/exports", tag = "exports",
     responses((status = 200, body = Vec<store::JobRecord>)))]
 pub async fn list_exports(State(s): State<AppState>) -> ApiResult<Json<Vec<store::JobRecord>>> {
-    let mut jobs: Vec<store::JobRecord> = s.store().jobs(None).await?.into_iter().filter(|j| j.kind == "export").collect();
+    let mut jobs: Vec<store::JobRecord> =
+        s.store().jobs(None).await?.into_iter().filter(|j| j.kind == "export").collect();
     jobs.sort_by(|a, b| b.created_at.cmp(&a.created_at));
     Ok(Json(jobs))
 }
@@ -160,9 +163,13 @@ pub async fn list_exports(State(s): State<AppState>) -> ApiResult<Json<Vec<store
 /// An export: its job (state, progress, result) and, once it succeeded, its files.
 #[utoipa::path(get, path = "/v1/exports/{id}", tag = "exports", params(("id" = String, Path)),
     responses((status = 200, body = ExportStatus), (status = 404, description = "no such export")))]
-pub async fn get_export(State(s): State<AppState>, ApiPath(id): ApiPath<String>) -> ApiResult<Json<ExportStatus>> {
+pub async fn get_export(
+    State(s): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> ApiResult<Json<ExportStatus>> {
     let job = export_job(&s, &id).await?;
-    let files = if job.state == store::JobState::Succeeded { s.store().export_files(&id).await? } else { Vec::new() };
+    let files =
+        if job.state == store::JobState::Succeeded { s.store().export_files(&id).await? } else { Vec::new() };
     Ok(Json(ExportStatus { job, files }))
 }
 
@@ -197,7 +204,11 @@ pub async fn delete_export(
     caller.require(Role::Trainer)?;
     let job = export_job(&s, &id).await?;
     if matches!(job.state, store::JobState::Queued | store::JobState::Running) {
-        return Err(ApiError::new(StatusCode::CONFLICT, "conflict", format!("export {id} is {}: cancel it first", job.state.as_str())));
+        return Err(ApiError::new(
+            StatusCode::CONFLICT,
+            "conflict",
+            format!("export {id} is {}: cancel it first", job.state.as_str()),
+        ));
     }
     let n = s.store().delete_export_files(&id).await?;
     Ok(Json(ExportDeleted { export_id: id, files_deleted: n as u64 }))

@@ -4,8 +4,7 @@ use super::*;
 
 /// The routes of this resource (behind the token check).
 pub(crate) fn router() -> Router<AppState> {
-    Router::new()
-        .route("/metrics", get(metrics))
+    Router::new().route("/metrics", get(metrics))
 }
 
 /// Liveness (no token needed).

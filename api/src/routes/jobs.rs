@@ -81,7 +81,10 @@ fn parse_state(s: &str) -> ApiResult<store::JobState> {
 /// Jobs, optionally by state.
 #[utoipa::path(get, path = "/v1/jobs", tag = "jobs", params(JobQuery),
     responses((status = 200, body = Vec<store::JobRecord>)))]
-pub async fn list_jobs(State(s): State<AppState>, ApiQuery(q): ApiQuery<JobQuery>) -> ApiResult<Json<Vec<store::JobRecord>>> {
+pub async fn list_jobs(
+    State(s): State<AppState>,
+    ApiQuery(q): ApiQuery<JobQuery>,
+) -> ApiResult<Json<Vec<store::JobRecord>>> {
     let state = q.state.as_deref().map(parse_state).transpose()?;
     Ok(Json(s.store().jobs(state).await?))
 }
@@ -89,7 +92,10 @@ pub async fn list_jobs(State(s): State<AppState>, ApiQuery(q): ApiQuery<JobQuery
 /// A job: state, progress (epoch, losses), result (metrics, artifact), error.
 #[utoipa::path(get, path = "/v1/jobs/{id}", tag = "jobs", params(("id" = String, Path)),
     responses((status = 200, body = store::JobRecord), (status = 404, description = "no such job")))]
-pub async fn get_job(State(s): State<AppState>, ApiPath(id): ApiPath<String>) -> ApiResult<Json<store::JobRecord>> {
+pub async fn get_job(
+    State(s): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> ApiResult<Json<store::JobRecord>> {
     check_id("job id", &id)?;
     Ok(Json(s.store().job(&id).await?))
 }

@@ -30,10 +30,9 @@ fn if_match(headers: &HeaderMap) -> ApiResult<i64> {
     let s = raw.strip_prefix("W/").unwrap_or(raw);
     let s = s.strip_prefix('"').and_then(|x| x.strip_suffix('"')).unwrap_or(s);
     let digits = (1..=18).contains(&s.len()) && s.bytes().all(|b| b.is_ascii_digit());
-    digits
-        .then(|| s.parse::<i64>().ok())
-        .flatten()
-        .ok_or_else(|| ApiError::bad_request(format!("If-Match {raw:?} is not a label revision (an integer)")))
+    digits.then(|| s.parse::<i64>().ok()).flatten().ok_or_else(|| {
+        ApiError::bad_request(format!("If-Match {raw:?} is not a label revision (an integer)"))
+    })
 }
 
 /// Sets an episode's label; `If-Match: <revision>` is required, a stale revision gets 409 with
@@ -60,8 +59,12 @@ pub async fn put_label(
     if caller.role < Role::Admin && s.store().votes_required(&id).await? {
         return Err(super::consensus::votes_required(&id));
     }
-    let update =
-        LabelUpdate { episode_id: id, label: parse_label(&body.label)?, expect_revision: Some(expect), note: body.note };
+    let update = LabelUpdate {
+        episode_id: id,
+        label: parse_label(&body.label)?,
+        expect_revision: Some(expect),
+        note: body.note,
+    };
     // SQLite: group-committed with concurrent PUTs (one transaction per batch, one outcome each).
     let change = crate::label_writer::set_label(&s, update, &caller.name).await;
     let change = s.count_label_result(change)?;
@@ -155,7 +158,10 @@ pub async fn create_snapshot(
 }
 
 impl AppState {
-    pub(super) fn count_label_result(&self, r: Result<store::LabelChange, store::StoreError>) -> ApiResult<store::LabelChange> {
+    pub(super) fn count_label_result(
+        &self,
+        r: Result<store::LabelChange, store::StoreError>,
+    ) -> ApiResult<store::LabelChange> {
         self.count_labels_result(r.map(|c| vec![c])).map(|mut v| v.remove(0))
     }
     fn count_labels_result(

@@ -16,7 +16,8 @@ pub(crate) fn router() -> Router<AppState> {
         .route("/v1/layers", get(list_layers))
         .route(
             "/v1/layers/{name}",
-            post(write_layer.layer(need!(Role::Trainer))).layer(DefaultBodyLimit::max(MAX_LAYER_UPLOAD_BYTES)),
+            post(write_layer.layer(need!(Role::Trainer)))
+                .layer(DefaultBodyLimit::max(MAX_LAYER_UPLOAD_BYTES)),
         )
         .route("/v1/layers/{name}/episodes", get(layer_episodes))
         .route("/v1/episodes/{id}/layers", get(episode_layers))
@@ -47,7 +48,9 @@ pub async fn layer_episodes(
     ApiQuery(q): ApiQuery<ProducerQuery>,
 ) -> ApiResult<Json<Vec<String>>> {
     store::check_layer_name(&name)?;
-    if q.producer_hash.len() != 64 || !q.producer_hash.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)) {
+    if q.producer_hash.len() != 64
+        || !q.producer_hash.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+    {
         return Err(ApiError::bad_request("producer_hash: 64 lower-case hex digits"));
     }
     Ok(Json(s.store().layer_episodes(&name, &q.producer_hash).await?))
@@ -100,8 +103,8 @@ pub async fn write_layer(
 ) -> ApiResult<Response> {
     caller.require(Role::Trainer)?;
     store::check_layer_name(&name)?;
-    let producer: Value =
-        serde_json::from_str(&q.producer).map_err(|e| ApiError::bad_request(format!("producer is not JSON: {e}")))?;
+    let producer: Value = serde_json::from_str(&q.producer)
+        .map_err(|e| ApiError::bad_request(format!("producer is not JSON: {e}")))?;
     store::producer_hash(&producer)?;
     // Decoding untrusted IPC on a blocking thread: a reader bug is a 400, never a dead server.
     let decoded = tokio::task::spawn_blocking(move || decode_layer_stream(&body)).await;

@@ -39,24 +39,23 @@ pub use splits::*;
 
 use crate::auth::Caller;
 use crate::error::{ApiError, ApiResult, Problem};
-use crate::openapi::FileBytes;
 use crate::extract::{check_id, check_name, ApiJson, ApiPath, ApiQuery};
+use crate::openapi::FileBytes;
 use crate::AppState;
 use axum::body::Body;
 use axum::extract::State;
+use axum::handler::Handler;
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::middleware::from_fn_with_state;
 use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post, put};
+use axum::Router;
 use axum::{Extension, Json};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use std::sync::atomic::Ordering;
 use store::{EpisodeFilter, Label, LabelUpdate, Role};
 use utoipa::{IntoParams, ToSchema};
-use axum::handler::Handler;
-use axum::middleware::from_fn_with_state;
-use axum::routing::{get, post, put};
-use axum::Router;
-
 
 pub const ARROW_STREAM: &str = "application/vnd.apache.arrow.stream";
 

@@ -50,9 +50,17 @@ pub(crate) async fn list_review_queue(s: &AppState, order: &str, q: EpisodeQuery
     };
     let review = entries
         .iter()
-        .map(|e| ReviewScoreRef { episode_id: e.episode.id.clone(), artifact_id: e.artifact_id.clone(), score: e.score })
+        .map(|e| ReviewScoreRef {
+            episode_id: e.episode.id.clone(),
+            artifact_id: e.artifact_id.clone(),
+            score: e.score,
+        })
         .collect();
-    Ok(EpisodePage { episodes: entries.into_iter().map(|e| e.episode).collect(), next_cursor, review: Some(review) })
+    Ok(EpisodePage {
+        episodes: entries.into_iter().map(|e| e.episode).collect(),
+        next_cursor,
+        review: Some(review),
+    })
 }
 
 #[derive(Deserialize, IntoParams)]
@@ -154,8 +162,15 @@ pub async fn get_review_artifact(
         return Err(ApiError::not_found(format!("policy {policy:?} has no review artifact setting")));
     };
     check_name("checkpoint", &c)?;
-    let a = s.store().resolve_alias(&policy, &c, store::DEFAULT_REVIEW_KIND, store::DEFAULT_REVIEW_ALIAS).await?;
-    Ok(Json(ReviewArtifactSetting { policy, artifact_id: a.id, source: "default".into(), updated_by: None, updated_at: None }))
+    let a =
+        s.store().resolve_alias(&policy, &c, store::DEFAULT_REVIEW_KIND, store::DEFAULT_REVIEW_ALIAS).await?;
+    Ok(Json(ReviewArtifactSetting {
+        policy,
+        artifact_id: a.id,
+        source: "default".into(),
+        updated_by: None,
+        updated_at: None,
+    }))
 }
 
 #[derive(Deserialize, ToSchema)]
@@ -242,11 +257,15 @@ pub async fn create_score_job(
     if b.artifact.as_ref().is_some_and(|r| r.is_empty() || r.len() > 600) {
         return Err(ApiError::bad_request("artifact: an id or POLICY/CHECKPOINT/KIND@ALIAS"));
     }
-    let found = s.store().artifact_to_score(&b.policy, b.checkpoint.as_deref(), b.artifact.as_deref()).await?;
+    let found =
+        s.store().artifact_to_score(&b.policy, b.checkpoint.as_deref(), b.artifact.as_deref()).await?;
     let artifact_id = match (found, &b.checkpoint) {
         (Some(a), _) => a,
         (None, Some(c)) => {
-            return Err(ApiError::not_found(format!("no review artifact for {}/{c}: set one or alias classifier@latest", b.policy)))
+            return Err(ApiError::not_found(format!(
+                "no review artifact for {}/{c}: set one or alias classifier@latest",
+                b.policy
+            )))
         }
         // The policy's setting is state: without one, this request conflicts with it.
         (None, None) => {

@@ -41,9 +41,14 @@ pub struct ScoreboardQuery {
     responses((status = 200, description = "the scoreboard (JSON) or its rows as CSV",
                content((store::Scoreboard = "application/json"), (String = "text/csv"))),
               (status = 404, description = "no such policy or version")))]
-pub async fn get_scoreboard(State(s): State<AppState>, ApiQuery(q): ApiQuery<ScoreboardQuery>) -> ApiResult<Response> {
+pub async fn get_scoreboard(
+    State(s): State<AppState>,
+    ApiQuery(q): ApiQuery<ScoreboardQuery>,
+) -> ApiResult<Response> {
     check_name("policy", &q.policy)?;
-    for (what, v) in [("checkpoint", &q.checkpoint), ("task", &q.task), ("baseline_checkpoint", &q.baseline_checkpoint)] {
+    for (what, v) in
+        [("checkpoint", &q.checkpoint), ("task", &q.task), ("baseline_checkpoint", &q.baseline_checkpoint)]
+    {
         if let Some(v) = v {
             check_name(what, v)?;
         }
@@ -70,7 +75,10 @@ pub async fn get_scoreboard(State(s): State<AppState>, ApiQuery(q): ApiQuery<Sco
         let h = resp.headers_mut();
         h.insert(header::CONTENT_TYPE, HeaderValue::from_static("text/csv; charset=utf-8"));
         let name = format!("attachment; filename=\"scoreboard-v{}.csv\"", sb.version);
-        h.insert(header::CONTENT_DISPOSITION, HeaderValue::from_str(&name).map_err(|e| ApiError::internal(e.to_string()))?);
+        h.insert(
+            header::CONTENT_DISPOSITION,
+            HeaderValue::from_str(&name).map_err(|e| ApiError::internal(e.to_string()))?,
+        );
         return Ok(resp);
     }
     Ok(Json(sb).into_response())
@@ -86,7 +94,10 @@ pub struct RunQuery {
 /// The evaluation runs ingests have named.
 #[utoipa::path(get, path = "/v1/runs", tag = "scoreboard", params(RunQuery),
     responses((status = 200, body = Vec<store::RunRecord>)))]
-pub async fn list_runs(State(s): State<AppState>, ApiQuery(q): ApiQuery<RunQuery>) -> ApiResult<Json<Vec<store::RunRecord>>> {
+pub async fn list_runs(
+    State(s): State<AppState>,
+    ApiQuery(q): ApiQuery<RunQuery>,
+) -> ApiResult<Json<Vec<store::RunRecord>>> {
     if let Some(n) = &q.name {
         check_name("run", n)?;
     }

@@ -74,7 +74,10 @@ pub async fn list_splits(State(s): State<AppState>) -> ApiResult<Json<Vec<store:
 /// A split and its episodes (train/val, label).
 #[utoipa::path(get, path = "/v1/splits/{id}", tag = "splits", params(("id" = String, Path)),
     responses((status = 200, body = SplitDetail), (status = 404, description = "no such split")))]
-pub async fn get_split(State(s): State<AppState>, ApiPath(id): ApiPath<String>) -> ApiResult<Json<SplitDetail>> {
+pub async fn get_split(
+    State(s): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> ApiResult<Json<SplitDetail>> {
     check_id("split id", &id)?;
     let split = s.store().split(&id).await?;
     let episodes = s.store().split_episodes(&id).await?;

@@ -73,26 +73,43 @@ impl LoadServer {
         match at {
             ServerAt::InProcess => {
                 let srv = TestServer::start(db, false).await;
-                LoadServer { base: srv.base.clone(), store: srv.store.clone(), in_process: Some(srv), child: None, _dir: None }
+                LoadServer {
+                    base: srv.base.clone(),
+                    store: srv.store.clone(),
+                    in_process: Some(srv),
+                    child: None,
+                    _dir: None,
+                }
             }
             ServerAt::Child(exe) => {
                 use std::io::BufRead;
                 let dir = tempfile::tempdir().unwrap();
                 let url = match db {
                     Db::Sqlite => None,
-                    Db::Postgres => Some(store::create_test_schema("load").await.expect("the Postgres server")),
+                    Db::Postgres => {
+                        Some(store::create_test_schema("load").await.expect("the Postgres server"))
+                    }
                 };
-                let cfg = store::StoreConfig { data_dir: dir.path().into(), database_url: url.clone(), object_store_url: None };
+                let cfg = store::StoreConfig {
+                    data_dir: dir.path().into(),
+                    database_url: url.clone(),
+                    object_store_url: None,
+                };
                 let store = store::Store::open(&cfg).await.unwrap();
                 let mut cmd = std::process::Command::new(exe);
                 cmd.arg("--serve-child").arg(dir.path());
                 if let Some(u) = &url {
                     cmd.arg(u);
                 }
-                let mut child = cmd.stdout(std::process::Stdio::piped()).spawn().expect("start the server process");
+                let mut child =
+                    cmd.stdout(std::process::Stdio::piped()).spawn().expect("start the server process");
                 let mut line = String::new();
                 std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-                let base = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("server said {line:?}")).to_string();
+                let base = line
+                    .trim()
+                    .strip_prefix("listening on ")
+                    .unwrap_or_else(|| panic!("server said {line:?}"))
+                    .to_string();
                 LoadServer { base, store, in_process: None, child: Some(child), _dir: Some(dir) }
             }
         }
@@ -113,7 +130,13 @@ pub async fn run_label_load(db: Db, labelers: usize, n_episodes: usize, duration
     run_label_load_at(db, &ServerAt::InProcess, labelers, n_episodes, duration).await
 }
 
-pub async fn run_label_load_at(db: Db, at: &ServerAt, labelers: usize, n_episodes: usize, duration: Duration) -> LoadReport {
+pub async fn run_label_load_at(
+    db: Db,
+    at: &ServerAt,
+    labelers: usize,
+    n_episodes: usize,
+    duration: Duration,
+) -> LoadReport {
     let srv = LoadServer::start(db, at).await;
     // Episodes: several ingests so the pool has enough of them.
     let mut ids = Vec::new();
@@ -159,7 +182,8 @@ pub async fn run_label_load_at(db: Db, at: &ServerAt, labelers: usize, n_episode
                 let rev = match known.get(&e) {
                     Some(r) => *r,
                     None => {
-                        let r = http.get(format!("{base}/v1/episodes/{id}")).bearer_auth(&secret).send().await;
+                        let r =
+                            http.get(format!("{base}/v1/episodes/{id}")).bearer_auth(&secret).send().await;
                         match r {
                             Ok(r) if r.status() == 200 => {
                                 let v: Value = r.json().await.unwrap();
@@ -251,7 +275,13 @@ pub async fn run_label_load_at(db: Db, at: &ServerAt, labelers: usize, n_episode
             None => assert_eq!(ev.revision, 1, "first event of {} is not revision 1", ev.episode_id),
             Some((rev, label)) => {
                 assert_eq!(ev.revision, rev + 1, "revision gap on {}", ev.episode_id);
-                assert_eq!(ev.old_label, Some(label), "event {} of {} does not start from the previous label", ev.revision, ev.episode_id);
+                assert_eq!(
+                    ev.old_label,
+                    Some(label),
+                    "event {} of {} does not start from the previous label",
+                    ev.revision,
+                    ev.episode_id
+                );
             }
         }
         replay.insert(ev.episode_id.clone(), (ev.revision, ev.new_label));
@@ -259,13 +289,23 @@ pub async fn run_label_load_at(db: Db, at: &ServerAt, labelers: usize, n_episode
     let eps = srv.store.episodes(&EpisodeFilter::default()).await.unwrap();
     assert_eq!(eps.len(), ids.len());
     for e in &eps {
-        assert_eq!(replay.get(&e.id), Some(&(e.label_revision, e.label)), "replay of {} disagrees with the catalog", e.id);
+        assert_eq!(
+            replay.get(&e.id),
+            Some(&(e.label_revision, e.label)),
+            "replay of {} disagrees with the catalog",
+            e.id
+        );
     }
     let human: Vec<_> = events.iter().filter(|e| e.actor.starts_with("labeler-")).collect();
     assert_eq!(human.len(), acked.len(), "audit events by labelers != writes acknowledged to clients");
-    let by_key: HashMap<(&str, i64), Label> = human.iter().map(|e| ((e.episode_id.as_str(), e.revision), e.new_label)).collect();
+    let by_key: HashMap<(&str, i64), Label> =
+        human.iter().map(|e| ((e.episode_id.as_str(), e.revision), e.new_label)).collect();
     for (id, rev, label) in &acked {
-        assert_eq!(by_key.get(&(id.as_str(), *rev)), Some(label), "acknowledged write {id}@{rev} missing from the log");
+        assert_eq!(
+            by_key.get(&(id.as_str(), *rev)),
+            Some(label),
+            "acknowledged write {id}@{rev} missing from the log"
+        );
     }
     let report = LoadReport {
         db,

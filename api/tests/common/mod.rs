@@ -22,10 +22,16 @@ pub async fn open_store(db: Db, dir: &Path) -> Store {
     match db {
         Db::Sqlite => Store::open(&StoreConfig::local(dir)).await.unwrap(),
         Db::Postgres => {
-            let url = create_test_schema("api").await.expect("the Postgres tests need a server (UFOPS_TEST_POSTGRES)");
-            Store::open(&StoreConfig { data_dir: dir.into(), database_url: Some(url), object_store_url: None })
+            let url = create_test_schema("api")
                 .await
-                .unwrap()
+                .expect("the Postgres tests need a server (UFOPS_TEST_POSTGRES)");
+            Store::open(&StoreConfig {
+                data_dir: dir.into(),
+                database_url: Some(url),
+                object_store_url: None,
+            })
+            .await
+            .unwrap()
         }
     }
 }
@@ -78,7 +84,13 @@ pub async fn ingest(store: &Store, tag: &str, ckpt: &str, n: u32) -> Vec<String>
 
 /// Ingests `n` episodes that all reference one fake video (`media.front`); returns
 /// `(episode ids, video bytes)`.
-pub async fn ingest_with_video(store: &Store, dir: &Path, tag: &str, ckpt: &str, n: u32) -> (Vec<String>, Vec<u8>) {
+pub async fn ingest_with_video(
+    store: &Store,
+    dir: &Path,
+    tag: &str,
+    ckpt: &str,
+    n: u32,
+) -> (Vec<String>, Vec<u8>) {
     let video: Vec<u8> = (0..100_000u32).map(|i| (i.wrapping_mul(2654435761) >> 13) as u8).collect();
     let vpath = dir.join(format!("{tag}.mp4"));
     std::fs::write(&vpath, &video).unwrap();
@@ -96,7 +108,11 @@ pub async fn ingest_with_video(store: &Store, dir: &Path, tag: &str, ckpt: &str,
     for i in 0..n {
         let label = if i % 2 == 0 { Label::Success } else { Label::Failure };
         let mut ep = episode(i, 6, label);
-        ep.media = vec![MediaColumn { name: "front".into(), sha256: sha.clone(), timestamps: ep.timestamps.clone() }];
+        ep.media = vec![MediaColumn {
+            name: "front".into(),
+            sha256: sha.clone(),
+            timestamps: ep.timestamps.clone(),
+        }];
         ids.push(w.add_episode(ep).await.unwrap());
     }
     w.commit("video ingest").await.unwrap();
@@ -153,7 +169,12 @@ impl TestRunner {
     async fn run_job(&self, store: &Store, job: &JobRecord, ctx: JobContext) -> Result<Value, String> {
         let idx = {
             let mut runs = self.runs.lock().unwrap();
-            runs.push(Run { job_id: job.id.clone(), worker: ctx.worker_id.clone(), start: Instant::now(), end: None });
+            runs.push(Run {
+                job_id: job.id.clone(),
+                worker: ctx.worker_id.clone(),
+                start: Instant::now(),
+                end: None,
+            });
             runs.len() - 1
         };
         let steps = 5u64;
@@ -170,7 +191,11 @@ impl TestRunner {
                 let kind = job.spec["kind"].as_str().ok_or("no kind")?;
                 let split = store.split(split_id).await.map_err(|e| e.to_string())?;
                 let dir = self.tmp.path().join(&job.id).join(job.attempts.to_string());
-                write_fake_artifact(&dir, kind, json!({"split_id": split.id, "version": split.version, "job": job.id}));
+                write_fake_artifact(
+                    &dir,
+                    kind,
+                    json!({"split_id": split.id, "version": split.version, "job": job.id}),
+                );
                 let a = store
                     .publish_artifact(NewArtifact {
                         dir: &dir,
@@ -199,7 +224,11 @@ impl TestRunner {
                 let ckpt = job.spec["checkpoint"].as_str().ok_or("no checkpoint")?;
                 let mut w = store.begin_ingest(src, policy, ckpt).await.map_err(|e| e.to_string())?;
                 for (i, e) in doc["episodes"].as_array().ok_or("no episodes")?.iter().enumerate() {
-                    let label: Label = e["label"].as_str().unwrap_or("unknown").parse().map_err(|e: StoreError| e.to_string())?;
+                    let label: Label = e["label"]
+                        .as_str()
+                        .unwrap_or("unknown")
+                        .parse()
+                        .map_err(|e: StoreError| e.to_string())?;
                     let steps = e["steps"].as_u64().unwrap_or(5) as usize;
                     w.add_episode(episode(i as u32, steps, label)).await.map_err(|e| e.to_string())?;
                 }
@@ -214,7 +243,12 @@ impl TestRunner {
 }
 
 impl JobRunner for TestRunner {
-    fn run<'a>(&'a self, store: &'a Store, job: &'a JobRecord, ctx: JobContext) -> BoxFuture<'a, Result<Value, String>> {
+    fn run<'a>(
+        &'a self,
+        store: &'a Store,
+        job: &'a JobRecord,
+        ctx: JobContext,
+    ) -> BoxFuture<'a, Result<Value, String>> {
         Box::pin(self.run_job(store, job, ctx))
     }
 }
@@ -247,9 +281,12 @@ impl TestServer {
         adjust(&mut cfg);
         let server = api::spawn(store.clone(), cfg, runner.clone()).await.unwrap();
         let mut tokens = std::collections::BTreeMap::new();
-        for (name, role) in
-            [("viewer", Role::Viewer), ("labeler", Role::Labeler), ("trainer", Role::Trainer), ("admin", Role::Admin)]
-        {
+        for (name, role) in [
+            ("viewer", Role::Viewer),
+            ("labeler", Role::Labeler),
+            ("trainer", Role::Trainer),
+            ("admin", Role::Admin),
+        ] {
             let (secret, _) = store.create_token(&format!("{name}-user"), role).await.unwrap();
             tokens.insert(name, secret);
         }

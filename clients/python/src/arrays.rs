@@ -5,7 +5,10 @@
 
 use std::borrow::Cow;
 
-use numpy::{PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArray, PyUntypedArrayMethods};
+use numpy::{
+    PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArray,
+    PyUntypedArrayMethods,
+};
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
@@ -16,7 +19,9 @@ fn as_ndarray<'py>(x: &Bound<'py, PyAny>, dtype: &str) -> PyResult<Bound<'py, Py
         return Ok(a.clone());
     }
     let converted = x.py().import("ufops._arrays")?.getattr("as_numpy")?.call1((x, dtype))?;
-    converted.cast_into::<PyUntypedArray>().map_err(|_| PyTypeError::new_err("ufops._arrays.as_numpy did not return an ndarray"))
+    converted
+        .cast_into::<PyUntypedArray>()
+        .map_err(|_| PyTypeError::new_err("ufops._arrays.as_numpy did not return an ndarray"))
 }
 
 pub fn shape_str(shape: &[usize]) -> String {
@@ -28,7 +33,11 @@ pub fn shape_str(shape: &[usize]) -> String {
 
 /// A float32 array argument, borrowed read-only.
 /// `expected` (the accepted shapes, for the error message) is only called on a failure.
-pub fn f32_array<'py>(x: &Bound<'py, PyAny>, name: &str, expected: impl FnOnce() -> String) -> PyResult<PyReadonlyArrayDyn<'py, f32>> {
+pub fn f32_array<'py>(
+    x: &Bound<'py, PyAny>,
+    name: &str,
+    expected: impl FnOnce() -> String,
+) -> PyResult<PyReadonlyArrayDyn<'py, f32>> {
     let a = as_ndarray(x, "float32")?;
     match a.cast::<PyArrayDyn<f32>>() {
         Ok(f) => Ok(f.readonly()),
@@ -52,7 +61,8 @@ pub fn values<'a>(a: &'a PyReadonlyArrayDyn<'_, f32>) -> Cow<'a, [f32]> {
 /// The diffusion step(s): an int (the same step for every row) or `b` non-negative integers.
 pub fn steps(t: &Bound<'_, PyAny>, b: usize) -> PyResult<Vec<u32>> {
     let check = |v: i64| -> PyResult<u32> {
-        u32::try_from(v).map_err(|_| PyValueError::new_err(format!("t must be a non-negative step below 2^32; got {v}")))
+        u32::try_from(v)
+            .map_err(|_| PyValueError::new_err(format!("t must be a non-negative step below 2^32; got {v}")))
     };
     if let Ok(v) = t.extract::<i64>() {
         return Ok(vec![check(v)?; b]);
@@ -72,7 +82,8 @@ pub fn steps(t: &Bound<'_, PyAny>, b: usize) -> PyResult<Vec<u32>> {
         )));
     }
     let as_i64 = a.call_method1("astype", ("int64",))?;
-    let arr = as_i64.cast::<PyArrayDyn<i64>>().map_err(|_| PyTypeError::new_err("t: astype(int64) failed"))?;
+    let arr =
+        as_i64.cast::<PyArrayDyn<i64>>().map_err(|_| PyTypeError::new_err("t: astype(int64) failed"))?;
     let ro = arr.readonly();
     ro.as_array().iter().map(|&v| check(v)).collect()
 }

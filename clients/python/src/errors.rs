@@ -17,9 +17,24 @@ use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyValueError};
 use pyo3::prelude::*;
 
-create_exception!(ufops, UfopsError, PyException, "Base class of every error ufops raises (bad inputs are TypeError / ValueError).");
-create_exception!(ufops, ArtifactError, UfopsError, "A verifier artifact is malformed or not one this client can run.");
-create_exception!(ufops, IntegrityError, ArtifactError, "A file does not hash to the sha256 its manifest (or the catalog) records.");
+create_exception!(
+    ufops,
+    UfopsError,
+    PyException,
+    "Base class of every error ufops raises (bad inputs are TypeError / ValueError)."
+);
+create_exception!(
+    ufops,
+    ArtifactError,
+    UfopsError,
+    "A verifier artifact is malformed or not one this client can run."
+);
+create_exception!(
+    ufops,
+    IntegrityError,
+    ArtifactError,
+    "A file does not hash to the sha256 its manifest (or the catalog) records."
+);
 create_exception!(ufops, FetchError, UfopsError, "Fetching from a `ufops serve` API failed.");
 create_exception!(ufops, AuthError, FetchError, "The API refused the token (HTTP 401 or 403).");
 create_exception!(ufops, NotFoundError, UfopsError, "No such artifact, alias, episode, split or version.");
@@ -55,7 +70,8 @@ pub fn from_steer(e: steer::SteerError) -> PyErr {
         steer::SteerError::Input(_) => PyValueError::new_err(e.to_string()),
         steer::SteerError::Http(ref m) => {
             // steer's HTTP errors read "GET URL: status NNN: detail" (the API's problem+json detail).
-            let status = m.split("status ").nth(1).and_then(|s| s.get(..3)).and_then(|s| s.parse::<u16>().ok());
+            let status =
+                m.split("status ").nth(1).and_then(|s| s.get(..3)).and_then(|s| s.parse::<u16>().ok());
             let msg = e.to_string();
             match status {
                 Some(401 | 403) => AuthError::new_err(msg),

@@ -23,7 +23,9 @@ fn write_random_artifact(py: Python<'_>, dir: std::path::PathBuf, dims: &str, se
         "square" => RandomSpec::square(),
         "nav" => RandomSpec::nav(),
         "nav_features" => RandomSpec::nav_features(),
-        other => return Err(PyValueError::new_err(format!("unknown dims {other:?}: square, nav or nav_features"))),
+        other => {
+            return Err(PyValueError::new_err(format!("unknown dims {other:?}: square, nav or nav_features")))
+        }
     };
     py.detach(|| {
         let (config, weights) = spec.build(seed);

@@ -52,7 +52,12 @@ impl PyStore {
     /// (a path or `s3://bucket/prefix`). Nothing is created: a missing store is NotFoundError.
     #[new]
     #[pyo3(signature = (data_dir=None, *, database_url=None, object_store=None))]
-    fn new(py: Python<'_>, data_dir: Option<PathBuf>, database_url: Option<String>, object_store: Option<String>) -> PyResult<Self> {
+    fn new(
+        py: Python<'_>,
+        data_dir: Option<PathBuf>,
+        database_url: Option<String>,
+        object_store: Option<String>,
+    ) -> PyResult<Self> {
         if data_dir.is_none() && database_url.is_none() {
             return Err(PyValueError::new_err("pass a data directory or database_url"));
         }
@@ -101,7 +106,17 @@ impl PyStore {
         limit: Option<i64>,
     ) -> PyResult<String> {
         let label = label.as_deref().map(str::parse::<store::Label>).transpose().map_err(from_store)?;
-        let filter = store::EpisodeFilter { version, policy, checkpoint, task, label, tag, after, limit, ..Default::default() };
+        let filter = store::EpisodeFilter {
+            version,
+            policy,
+            checkpoint,
+            task,
+            label,
+            tag,
+            after,
+            limit,
+            ..Default::default()
+        };
         let eps = py.detach(|| runtime()?.block_on(self.store.episodes(&filter)).map_err(from_store))?;
         json(&eps)
     }
@@ -135,16 +150,20 @@ impl PyStore {
                 Ok::<_, store::StoreError>(batches)
             });
             let batches = batches.map_err(from_store)?;
-            let ipc_err = |e: arrow::error::ArrowError| PyRuntimeError::new_err(format!("writing Arrow IPC: {e}"));
+            let ipc_err =
+                |e: arrow::error::ArrowError| PyRuntimeError::new_err(format!("writing Arrow IPC: {e}"));
             let mut streams = Vec::new();
             let mut writer: Option<(StreamWriter<Vec<u8>>, arrow::datatypes::SchemaRef)> = None;
             for (id, b) in ids.iter().zip(batches) {
-                let b = b.ok_or_else(|| NotFoundError::new_err(format!("episode {id}: the read returned nothing")))?;
+                let b = b.ok_or_else(|| {
+                    NotFoundError::new_err(format!("episode {id}: the read returned nothing"))
+                })?;
                 if writer.as_ref().is_some_and(|(_, s)| *s != b.schema()) {
                     streams.push(writer.take().expect("checked").0.into_inner().map_err(ipc_err)?);
                 }
                 if writer.is_none() {
-                    writer = Some((StreamWriter::try_new(Vec::new(), &b.schema()).map_err(ipc_err)?, b.schema()));
+                    writer =
+                        Some((StreamWriter::try_new(Vec::new(), &b.schema()).map_err(ipc_err)?, b.schema()));
                 }
                 writer.as_mut().expect("set above").0.write(&b).map_err(ipc_err)?;
             }
@@ -164,8 +183,15 @@ impl PyStore {
 
     /// The layers an episode holds, now or at `version`, as a JSON list.
     #[pyo3(signature = (episode_id, version=None))]
-    fn episode_layers_json(&self, py: Python<'_>, episode_id: &str, version: Option<i64>) -> PyResult<String> {
-        let v = py.detach(|| runtime()?.block_on(self.store.episode_layers(episode_id, version)).map_err(from_store))?;
+    fn episode_layers_json(
+        &self,
+        py: Python<'_>,
+        episode_id: &str,
+        version: Option<i64>,
+    ) -> PyResult<String> {
+        let v = py.detach(|| {
+            runtime()?.block_on(self.store.episode_layers(episode_id, version)).map_err(from_store)
+        })?;
         json(&v)
     }
 
@@ -177,8 +203,8 @@ impl PyStore {
     /// The sha256 of a producer (a JSON object) as the store computes it.
     #[staticmethod]
     fn producer_hash(producer_json: &str) -> PyResult<String> {
-        let p: serde_json::Value =
-            serde_json::from_str(producer_json).map_err(|e| PyValueError::new_err(format!("producer: {e}")))?;
+        let p: serde_json::Value = serde_json::from_str(producer_json)
+            .map_err(|e| PyValueError::new_err(format!("producer: {e}")))?;
         store::producer_hash(&p).map_err(from_store)
     }
 
@@ -203,8 +229,8 @@ impl PyStore {
                 values.len()
             )));
         }
-        let producer: serde_json::Value =
-            serde_json::from_str(producer_json).map_err(|e| PyValueError::new_err(format!("producer: {e}")))?;
+        let producer: serde_json::Value = serde_json::from_str(producer_json)
+            .map_err(|e| PyValueError::new_err(format!("producer: {e}")))?;
         let mut eps = Vec::with_capacity(values.len());
         for (id, a) in episode_ids.into_iter().zip(&values) {
             let dim = a.shape()[1];
@@ -214,7 +240,9 @@ impl PyStore {
             };
             eps.push(store::LayerValues { episode_id: id, dim, values: flat });
         }
-        let done = py.detach(|| runtime()?.block_on(self.store.write_layer(name, &producer, eps, actor)).map_err(from_store))?;
+        let done = py.detach(|| {
+            runtime()?.block_on(self.store.write_layer(name, &producer, eps, actor)).map_err(from_store)
+        })?;
         json(&done)
     }
 
@@ -224,11 +252,21 @@ impl PyStore {
     }
 
     /// Bytes `start..end` of a store object (one ranged read; on S3 a ranged GET).
-    fn read_object_range<'py>(&self, py: Python<'py>, path: &str, start: u64, end: u64) -> PyResult<Bound<'py, PyBytes>> {
+    fn read_object_range<'py>(
+        &self,
+        py: Python<'py>,
+        path: &str,
+        start: u64,
+        end: u64,
+    ) -> PyResult<Bound<'py, PyBytes>> {
         if end < start || end - start > (256 << 20) {
-            return Err(PyValueError::new_err(format!("range {start}..{end}: at most 256 MiB, end >= start")));
+            return Err(PyValueError::new_err(format!(
+                "range {start}..{end}: at most 256 MiB, end >= start"
+            )));
         }
-        let b = py.detach(|| runtime()?.block_on(self.store.get_object_range(path, start..end)).map_err(from_store))?;
+        let b = py.detach(|| {
+            runtime()?.block_on(self.store.get_object_range(path, start..end)).map_err(from_store)
+        })?;
         Ok(PyBytes::new(py, &b))
     }
 
@@ -246,8 +284,16 @@ impl PyStore {
 
     /// The artifacts as a JSON list of records (with their aliases).
     #[pyo3(signature = (policy=None, checkpoint=None, kind=None))]
-    fn artifacts_json(&self, py: Python<'_>, policy: Option<&str>, checkpoint: Option<&str>, kind: Option<&str>) -> PyResult<String> {
-        let v = py.detach(|| runtime()?.block_on(self.store.artifacts(policy, checkpoint, kind)).map_err(from_store))?;
+    fn artifacts_json(
+        &self,
+        py: Python<'_>,
+        policy: Option<&str>,
+        checkpoint: Option<&str>,
+        kind: Option<&str>,
+    ) -> PyResult<String> {
+        let v = py.detach(|| {
+            runtime()?.block_on(self.store.artifacts(policy, checkpoint, kind)).map_err(from_store)
+        })?;
         json(&v)
     }
 

@@ -30,7 +30,11 @@ impl PyVerifier {
     /// The accepted shapes of chunks with leading dims `lead` ("" or "N, " ...).
     fn chunk_shapes(&self, lead: &str) -> String {
         let l = &self.v.config().input.layout;
-        let flat = if lead.is_empty() { format!("({},)", self.v.act_dim()) } else { format!("({lead}{})", self.v.act_dim()) };
+        let flat = if lead.is_empty() {
+            format!("({},)", self.v.act_dim())
+        } else {
+            format!("({lead}{})", self.v.act_dim())
+        };
         if l.chunk_len > 1 {
             format!("{flat} or ({lead}{}, {})", l.chunk_len, l.action_dim)
         } else {
@@ -125,9 +129,14 @@ impl PyVerifier {
     #[pyo3(signature = (url, reference, token, timeout=60.0))]
     fn from_server(py: Python<'_>, url: &str, reference: &str, token: &str, timeout: f64) -> PyResult<Self> {
         if !(timeout.is_finite() && timeout > 0.0) {
-            return Err(PyValueError::new_err(format!("timeout must be a positive number of seconds; got {timeout}")));
+            return Err(PyValueError::new_err(format!(
+                "timeout must be a positive number of seconds; got {timeout}"
+            )));
         }
-        let src = steer::http::ApiSource { timeout: Duration::from_secs_f64(timeout), ..steer::http::ApiSource::new(url, token) };
+        let src = steer::http::ApiSource {
+            timeout: Duration::from_secs_f64(timeout),
+            ..steer::http::ApiSource::new(url, token)
+        };
         let v = py.detach(|| steer::http::load_verifier(&src, reference)).map_err(from_steer)?;
         Ok(PyVerifier { v })
     }
@@ -141,7 +150,9 @@ impl PyVerifier {
             return s.get().verifier(py, reference);
         }
         let dir: std::path::PathBuf = store.extract().map_err(|_| {
-            pyo3::exceptions::PyTypeError::new_err("store must be a ufops.Store or the path of a data directory")
+            pyo3::exceptions::PyTypeError::new_err(
+                "store must be a ufops.Store or the path of a data directory",
+            )
         })?;
         crate::store::PyStore::open_dir(py, dir)?.verifier(py, reference)
     }
@@ -235,7 +246,11 @@ impl PyVerifier {
         let batch = self.obs_rows(&obs)?;
         let expected = || match batch {
             None => format!("{} for obs of shape ({od},)", self.chunk_shapes("N, ")),
-            Some(b) => format!("{} or {} for obs of shape ({b}, {od})", self.chunk_shapes(&format!("{b}, N, ")), self.chunk_shapes(&format!("{b}, "))),
+            Some(b) => format!(
+                "{} or {} for obs of shape ({b}, {od})",
+                self.chunk_shapes(&format!("{b}, N, ")),
+                self.chunk_shapes(&format!("{b}, "))
+            ),
         };
         let act = f32_array(act, "act", expected)?;
         let lead = self.chunks(act.shape()).map(|c| c.lead);
@@ -245,7 +260,11 @@ impl PyVerifier {
             (Some(b), Some([b2, n])) if *b2 == b => (b, *n, vec![b, *n]),
             (Some(b), Some([b2])) if *b2 == b => (b, 1, vec![b]),
             _ => {
-                return Err(PyValueError::new_err(format!("act must have shape {}; got {}", expected(), shape_str(act.shape()))));
+                return Err(PyValueError::new_err(format!(
+                    "act must have shape {}; got {}",
+                    expected(),
+                    shape_str(act.shape())
+                )));
             }
         };
         let t = steps(t, b)?;
@@ -288,7 +307,11 @@ impl PyVerifier {
             (None, Some([])) => 1,
             (Some(b), Some([b2])) if *b2 == b => b,
             _ => {
-                return Err(PyValueError::new_err(format!("act must have shape {}; got {}", expected(), shape_str(act.shape()))));
+                return Err(PyValueError::new_err(format!(
+                    "act must have shape {}; got {}",
+                    expected(),
+                    shape_str(act.shape())
+                )));
             }
         };
         let t = steps(t, b)?;

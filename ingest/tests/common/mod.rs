@@ -11,5 +11,6 @@ pub fn fixtures() -> PathBuf {
 
 pub fn expected(rel: &str) -> serde_json::Value {
     let p = fixtures().join(rel);
-    serde_json::from_str(&std::fs::read_to_string(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))).unwrap()
+    serde_json::from_str(&std::fs::read_to_string(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display())))
+        .unwrap()
 }

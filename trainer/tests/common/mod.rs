@@ -65,7 +65,8 @@ pub fn q_task(n_eps: usize, seed: u64) -> Vec<Episode> {
                 obs.push(remaining / 20.0 + 0.02 * normal(&mut rng));
                 obs.push(normal(&mut rng));
             }
-            let actions: Vec<f32> = (0..steps).map(|_| if success { 1.0 } else { -1.0 } + 0.3 * normal(&mut rng)).collect();
+            let actions: Vec<f32> =
+                (0..steps).map(|_| if success { 1.0 } else { -1.0 } + 0.3 * normal(&mut rng)).collect();
             Episode {
                 id: format!("q{e}"),
                 success,
