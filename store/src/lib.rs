@@ -11,6 +11,7 @@ mod consensus;
 mod counts;
 mod error;
 mod exports;
+mod frames;
 mod gc;
 mod jobs;
 mod labels;
@@ -39,6 +40,7 @@ pub use consensus::{
 pub use counts::{CountFilter, LabelCounts};
 pub use error::StoreError;
 pub use exports::{check_export_path, ExportFile, EXPORTS_PREFIX};
+pub use frames::{cameras_of, Camera, CameraKind, FrameLocation};
 pub use gc::{GcReport, MAX_GRACE_SECONDS};
 pub use jobs::{JobRecord, JobState};
 pub use labels::{LabelChange, LabelEvent, LabelUpdate, PreparedLabelSnapshot};

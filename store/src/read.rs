@@ -184,7 +184,7 @@ impl FileMeta {
     }
 
     /// The ranges' bytes: from the tail when it holds them, else fetched (coalesced).
-    async fn fetch(
+    pub(crate) async fn fetch(
         &self,
         store: &Store,
         path: &str,

@@ -1,0 +1,277 @@
+//! One frame of an episode's image column (`image.<camera>`: one PNG per step), read alone: the
+//! footer of the steps file comes from the cache, and parquet's push decoder, given a selection
+//! of one row and a projection of one column, asks for the one page (at most
+//! [`crate::steps::PAGE_MAX_BYTES`] of PNGs, cut between episodes) that holds the frame. The
+//! labeling page loads frames this way as the timeline moves (`GET /v1/episodes/{id}/frames/…`).
+
+use crate::steps::{IMAGE_PREFIX, MEDIA_PREFIX};
+use crate::{Store, StoreError};
+use arrow::array::{Array, BinaryArray, LargeBinaryArray};
+use arrow::datatypes::Schema;
+use parquet::arrow::arrow_reader::{RowSelection, RowSelectionPolicy, RowSelector};
+use parquet::arrow::push_decoder::ParquetPushDecoderBuilder;
+use parquet::arrow::ProjectionMask;
+use parquet::DecodeResult;
+
+/// How a camera's frames are stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[serde(rename_all = "lowercase")]
+pub enum CameraKind {
+    /// A video object (`media.<name>.path` / `.timestamp` columns; served with range requests).
+    Video,
+    /// An image column (`image.<name>`): one PNG per step, served frame by frame.
+    Image,
+}
+
+/// One camera of an episode, as its steps file's schema declares it.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+pub struct Camera {
+    /// The camera's key (`agentview_image`, `observation.images.front`).
+    pub name: String,
+    pub kind: CameraKind,
+    /// `[H, W, C]` of an image column (its `ufops.shape` metadata), when recorded.
+    pub shape: Option<[usize; 3]>,
+}
+
+/// The cameras a steps schema declares, images and videos, in column order.
+pub fn cameras_of(schema: &Schema) -> Vec<Camera> {
+    let mut out = Vec::new();
+    for f in schema.fields() {
+        if let Some(name) = f.name().strip_prefix(IMAGE_PREFIX) {
+            let shape = f.metadata().get("ufops.shape").and_then(|s| parse_shape(s));
+            out.push(Camera { name: name.to_string(), kind: CameraKind::Image, shape });
+        } else if let Some(name) = f.name().strip_prefix(MEDIA_PREFIX).and_then(|n| n.strip_suffix(".path")) {
+            out.push(Camera { name: name.to_string(), kind: CameraKind::Video, shape: None });
+        }
+    }
+    out
+}
+
+fn parse_shape(s: &str) -> Option<[usize; 3]> {
+    let dims: Vec<usize> = s
+        .trim()
+        .strip_prefix('[')?
+        .strip_suffix(']')?
+        .split(',')
+        .map(|d| d.trim().parse().ok())
+        .collect::<Option<_>>()?;
+    <[usize; 3]>::try_from(dims).ok()
+}
+
+/// Where a frame is: the steps file, the row group and the row in it (for validators such as an
+/// `ETag`: the object is immutable, so the triple names the bytes).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FrameLocation {
+    pub data_file: String,
+    pub row_group: usize,
+    pub row: usize,
+}
+
+impl Store {
+    /// The cameras of an episode visible now (or in `version`): its image columns and videos.
+    pub async fn episode_cameras(&self, id: &str, version: Option<i64>) -> Result<Vec<Camera>, StoreError> {
+        let loc = self.locate_episodes(&[id.to_string()], version).await?.remove(0);
+        let schema = self.steps_schema(&loc.data_file).await?;
+        Ok(cameras_of(&schema))
+    }
+
+    /// Where step `t` of an episode's image column `camera` is, checking that the episode is
+    /// visible (now, or in `version`), that it has that image column and that step: each missing
+    /// one is [`StoreError::NotFound`] naming it. Reads the footer (cached), no data.
+    pub async fn locate_frame(
+        &self,
+        id: &str,
+        version: Option<i64>,
+        camera: &str,
+        t: u64,
+    ) -> Result<FrameLocation, StoreError> {
+        let loc = self.locate_episodes(&[id.to_string()], version).await?.remove(0);
+        let schema = self.steps_schema(&loc.data_file).await?;
+        if schema.field_with_name(&format!("{IMAGE_PREFIX}{camera}")).is_err() {
+            return Err(StoreError::not_found(
+                "camera",
+                format!("{camera:?} (an image column) of episode {id}"),
+            ));
+        }
+        if t >= loc.row_count as u64 {
+            return Err(StoreError::not_found(
+                "step",
+                format!("{t} of episode {id} (it has {} steps, 0..{})", loc.row_count, loc.row_count),
+            ));
+        }
+        Ok(FrameLocation {
+            data_file: loc.data_file,
+            row_group: loc.row_group,
+            row: loc.row_offset + t as usize,
+        })
+    }
+
+    /// The PNG of step `t` of an episode's image column `camera` (see [`Self::locate_frame`]):
+    /// only that column's page holding the row is fetched.
+    pub async fn read_frame(
+        &self,
+        id: &str,
+        version: Option<i64>,
+        camera: &str,
+        t: u64,
+    ) -> Result<bytes::Bytes, StoreError> {
+        let at = self.locate_frame(id, version, camera, t).await?;
+        self.read_frame_at(&at, camera).await
+    }
+
+    /// The PNG at a located frame.
+    pub async fn read_frame_at(&self, at: &FrameLocation, camera: &str) -> Result<bytes::Bytes, StoreError> {
+        let fm = self.file_meta(&at.data_file).await?;
+        let corrupt = |why: String| StoreError::Corrupt(format!("steps file {}: {why}", at.data_file));
+        let md = fm.meta.metadata();
+        if at.row_group >= md.num_row_groups() {
+            return Err(corrupt(format!("no row group {}", at.row_group)));
+        }
+        let rg_rows = md.row_group(at.row_group).num_rows().max(0) as usize;
+        if at.row >= rg_rows {
+            return Err(corrupt(format!(
+                "row group {} has {rg_rows} rows, not {}",
+                at.row_group,
+                at.row + 1
+            )));
+        }
+        let column = format!("{IMAGE_PREFIX}{camera}");
+        let root = fm
+            .meta
+            .schema()
+            .index_of(&column)
+            .map_err(|_| StoreError::not_found("camera", format!("{camera:?} (an image column)")))?;
+        let mut selectors = Vec::with_capacity(3);
+        if at.row > 0 {
+            selectors.push(RowSelector::skip(at.row));
+        }
+        selectors.push(RowSelector::select(1));
+        if at.row + 1 < rg_rows {
+            selectors.push(RowSelector::skip(rg_rows - at.row - 1));
+        }
+        let mut decoder = ParquetPushDecoderBuilder::new_with_metadata(fm.meta.clone())
+            .with_row_groups(vec![at.row_group])
+            .with_projection(ProjectionMask::roots(fm.meta.parquet_schema(), [root]))
+            .with_row_selection(RowSelection::from(selectors))
+            .with_row_selection_policy(RowSelectionPolicy::Selectors)
+            .with_batch_size(1)
+            .build()?;
+        loop {
+            match decoder.try_decode()? {
+                DecodeResult::NeedsData(ranges) => {
+                    let data = fm.fetch(self, &at.data_file, &ranges).await?;
+                    decoder.push_ranges(ranges, data)?;
+                }
+                DecodeResult::Data(batch) => {
+                    let col = batch.column(0);
+                    let value = if let Some(a) = col.as_any().downcast_ref::<BinaryArray>() {
+                        (!a.is_empty() && a.is_valid(0)).then(|| bytes::Bytes::copy_from_slice(a.value(0)))
+                    } else if let Some(a) = col.as_any().downcast_ref::<LargeBinaryArray>() {
+                        (!a.is_empty() && a.is_valid(0)).then(|| bytes::Bytes::copy_from_slice(a.value(0)))
+                    } else {
+                        return Err(corrupt(format!("{column} is {}, not binary", col.data_type())));
+                    };
+                    return value.ok_or_else(|| corrupt(format!("{column} has no frame at row {}", at.row)));
+                }
+                DecodeResult::Finished => {
+                    return Err(corrupt(format!("{column}: row {} not decoded", at.row)))
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::*;
+
+    fn png_of(i: u32, t: usize) -> Vec<u8> {
+        // Not a real PNG: the store keeps the bytes as they are. Large enough that an episode's
+        // frames fill several pages.
+        let mut b = format!("\u{89}PNG frame {i}/{t} ").into_bytes();
+        b.resize(50_000 + t * 13, (t % 251) as u8);
+        b
+    }
+
+    /// A frame is the bytes written, read from its own page: far fewer bytes than the episode's
+    /// image column; a missing episode, camera or step is NotFound naming it.
+    #[tokio::test]
+    async fn one_frame_reads_one_page() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(&StoreConfig::local(dir.path())).await.unwrap();
+        let src = SourceInput {
+            path: "img".into(),
+            sha256: sha256_hex(b"img"),
+            format: "test".into(),
+            size_bytes: 1,
+            metadata: serde_json::json!({}),
+        };
+        let mut w = store.begin_ingest(src, "pol", "c").await.unwrap();
+        for i in 0..3u32 {
+            let mut ep = crate::read::tests::episode(i, 120);
+            for cam in ["agentview_image", "eye_in_hand_image"] {
+                ep.images.push(ImageColumn {
+                    name: cam.into(),
+                    shape: [84, 84, 3],
+                    png_frames: (0..120)
+                        .map(|t| png_of(i + if cam.starts_with('e') { 100 } else { 0 }, t))
+                        .collect(),
+                });
+            }
+            w.add_episode(ep).await.unwrap();
+        }
+        w.commit("t").await.unwrap();
+        let eps = store.episodes(&EpisodeFilter::default()).await.unwrap();
+        let e = &eps[1];
+        let cams = store.episode_cameras(&e.id, None).await.unwrap();
+        let names: Vec<(&str, CameraKind, Option<[usize; 3]>)> =
+            cams.iter().map(|c| (c.name.as_str(), c.kind, c.shape)).collect();
+        assert_eq!(
+            names,
+            [
+                ("agentview_image", CameraKind::Image, Some([84, 84, 3])),
+                ("eye_in_hand_image", CameraKind::Image, Some([84, 84, 3]))
+            ]
+        );
+        let i = e.source_index as u32;
+        store.read_frame(&e.id, None, "agentview_image", 0).await.unwrap(); // footer cached
+        let before = store.fetch_counts();
+        assert_eq!(store.read_frame(&e.id, None, "agentview_image", 77).await.unwrap(), png_of(i, 77));
+        let fetched = store.fetch_counts().since(before).bytes_fetched;
+        let column: u64 = (0..120).map(|t| png_of(i, t).len() as u64).sum();
+        assert!(fetched < column / 3, "one frame fetched {fetched} bytes of a {column}-byte column");
+        assert_eq!(
+            store.read_frame(&e.id, None, "eye_in_hand_image", 119).await.unwrap(),
+            png_of(i + 100, 119)
+        );
+        let v = Some(eps[2].version_added);
+        assert_eq!(
+            store.read_frame(&eps[2].id, v, "agentview_image", 0).await.unwrap(),
+            png_of(eps[2].source_index as u32, 0)
+        );
+        for (id, cam, t, what) in [
+            ("nope-1", "agentview_image", 0, "episode"),
+            (e.id.as_str(), "wrist", 0, "camera"),
+            (e.id.as_str(), "agentview_image", 120, "step"),
+        ] {
+            match store.read_frame(id, None, cam, t).await {
+                Err(StoreError::NotFound { what: w, .. }) => assert_eq!(w, what),
+                other => panic!("{id} {cam} {t}: {other:?}"),
+            }
+        }
+        // A vector column is no camera.
+        assert!(matches!(
+            store.read_frame(&e.id, None, "obs.pos", 0).await,
+            Err(StoreError::NotFound { .. })
+        ));
+    }
+
+    #[test]
+    fn shapes() {
+        assert_eq!(super::parse_shape("[84, 84, 3]"), Some([84, 84, 3]));
+        assert_eq!(super::parse_shape("[84, 84]"), None);
+        assert_eq!(super::parse_shape("84,84,3"), None);
+    }
+}
