@@ -25,6 +25,7 @@ use utoipa::{Modify, OpenApi, ToSchema};
         routes::list_policies, routes::list_checkpoints, routes::list_tasks,
         routes::list_versions, routes::get_version, routes::diff_versions,
         routes::list_episodes, routes::episode_counts, routes::get_episode, routes::get_steps, routes::get_media,
+        routes::get_frame,
         routes::put_label, routes::bulk_labels, routes::create_snapshot,
         routes::get_campaign, routes::put_campaign, routes::get_failure_causes, routes::put_failure_causes,
         routes::post_vote, routes::get_votes, routes::adjudication_queue, routes::adjudicate, routes::get_agreement,
@@ -213,7 +214,7 @@ impl Contract {
                         ID_PATTERN.trim_end_matches('$'),
                         ID_PATTERN.trim_start_matches('^')
                     )),
-                    "id" | "key" | "alias" | "name" => Some(ID_PATTERN.to_string()),
+                    "id" | "key" | "alias" | "name" | "camera" => Some(ID_PATTERN.to_string()),
                     _ => None,
                 };
                 if let Some(pattern) = pattern {

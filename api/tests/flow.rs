@@ -443,3 +443,80 @@ async fn oversized_json_body_is_refused() {
     assert_eq!(r.status(), 413);
     srv.stop().await;
 }
+
+/// Image cameras: an episode's detail lists its cameras (image columns and videos), and
+/// `/v1/episodes/{id}/frames/{camera}/{t}` serves one step's PNG with a strong ETag and
+/// immutable caching; a missing episode, camera, step or version is a 404 naming it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn image_camera_frames() {
+    let srv = TestServer::start(Db::Sqlite, false).await;
+    let frame = |cam: &str, i: u32, t: usize| format!("\u{89}PNG {cam} {i} {t}").into_bytes();
+    let mut w = srv.store.begin_ingest(common::source("img"), "pol", "c1").await.unwrap();
+    let mut ids = Vec::new();
+    for i in 0..2u32 {
+        let mut ep = common::episode(i, 7, store::Label::Success);
+        for cam in ["agentview_image", "robot0_eye_in_hand_image"] {
+            ep.images.push(store::ImageColumn {
+                name: cam.into(),
+                shape: [8, 8, 3],
+                png_frames: (0..7).map(|t| frame(cam, i, t)).collect(),
+            });
+        }
+        ids.push(w.add_episode(ep).await.unwrap());
+    }
+    let v = w.commit("images").await.unwrap().version;
+    let (video_ids, _) = common::ingest_with_video(&srv.store, srv.dir.path(), "vid", "c1", 1).await;
+
+    let d = srv.get_json(&format!("/v1/episodes/{}", ids[1]), "viewer").await;
+    assert_eq!(
+        d["cameras"],
+        json!([
+            {"name": "agentview_image", "kind": "image", "shape": [8, 8, 3], "encoding": "png"},
+            {"name": "robot0_eye_in_hand_image", "kind": "image", "shape": [8, 8, 3], "encoding": "png"}
+        ])
+    );
+    let d = srv.get_json(&format!("/v1/episodes/{}", video_ids[0]), "viewer").await;
+    assert_eq!(d["cameras"], json!([{"name": "front", "kind": "video", "shape": null, "encoding": null}]));
+
+    let url = format!("/v1/episodes/{}/frames/robot0_eye_in_hand_image/5", ids[1]);
+    let r = srv.req(Method::GET, &url, "viewer").send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.headers()["content-type"], "image/png");
+    assert_eq!(r.headers()["cache-control"], "private, max-age=31536000, immutable");
+    let etag = r.headers()["etag"].to_str().unwrap().to_string();
+    assert!(etag.starts_with('"') && etag.ends_with('"'), "a strong ETag: {etag}");
+    assert_eq!(r.bytes().await.unwrap().as_ref(), frame("robot0_eye_in_hand_image", 1, 5).as_slice());
+    let r = srv.req(Method::GET, &url, "viewer").header("If-None-Match", &etag).send().await.unwrap();
+    assert_eq!(r.status(), 304);
+    assert_eq!(r.headers()["etag"], etag.as_str());
+    // Another step is another ETag; the version the episode came in serves the same bytes.
+    let r = srv
+        .req(Method::GET, &format!("/v1/episodes/{}/frames/agentview_image/0?version={v}", ids[1]), "viewer")
+        .header("If-None-Match", &etag)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.bytes().await.unwrap().as_ref(), frame("agentview_image", 1, 0).as_slice());
+
+    for (path, names) in [
+        (format!("/v1/episodes/nope-1/frames/agentview_image/0"), "episode"),
+        (format!("/v1/episodes/{}/frames/wrist/0", ids[0]), "camera"),
+        (format!("/v1/episodes/{}/frames/agentview_image/7", ids[0]), "step"),
+        (format!("/v1/episodes/{}/frames/agentview_image/99999999999999999999999", ids[0]), "step"),
+        (format!("/v1/episodes/{}/frames/front/0", video_ids[0]), "camera"),
+        (format!("/v1/episodes/{}/frames/agentview_image/0?version=999", ids[0]), "version"),
+    ] {
+        let r = srv.req(Method::GET, &path, "viewer").send().await.unwrap();
+        assert_eq!(r.status(), 404, "{path}");
+        let p: Value = r.json().await.unwrap();
+        assert!(p["detail"].as_str().unwrap().contains(names), "{path}: {p}");
+    }
+    let r = srv
+        .req(Method::GET, &format!("/v1/episodes/{}/frames/agentview_image/-1", ids[0]), "viewer")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 400);
+    srv.stop().await;
+}

@@ -33,6 +33,8 @@ pub struct Camera {
     pub kind: CameraKind,
     /// `[H, W, C]` of an image column (its `ufops.shape` metadata), when recorded.
     pub shape: Option<[usize; 3]>,
+    /// An image column's frame encoding (`ufops.encoding`: `png`, or `jpeg` kept as recorded).
+    pub encoding: Option<String>,
 }
 
 /// The cameras a steps schema declares, images and videos, in column order.
@@ -41,12 +43,22 @@ pub fn cameras_of(schema: &Schema) -> Vec<Camera> {
     for f in schema.fields() {
         if let Some(name) = f.name().strip_prefix(IMAGE_PREFIX) {
             let shape = f.metadata().get("ufops.shape").and_then(|s| parse_shape(s));
-            out.push(Camera { name: name.to_string(), kind: CameraKind::Image, shape });
+            let encoding = Some(image_encoding(f.metadata()).to_string());
+            out.push(Camera { name: name.to_string(), kind: CameraKind::Image, shape, encoding });
         } else if let Some(name) = f.name().strip_prefix(MEDIA_PREFIX).and_then(|n| n.strip_suffix(".path")) {
-            out.push(Camera { name: name.to_string(), kind: CameraKind::Video, shape: None });
+            out.push(Camera { name: name.to_string(), kind: CameraKind::Video, shape: None, encoding: None });
         }
     }
     out
+}
+
+/// An image column's encoding from its field metadata (`png` when unrecorded, as written before
+/// the key existed).
+fn image_encoding(meta: &std::collections::HashMap<String, String>) -> &'static str {
+    match meta.get("ufops.encoding").map(|e| e.to_ascii_lowercase()).as_deref() {
+        Some("jpeg") | Some("jpg") => "jpeg",
+        _ => "png",
+    }
 }
 
 fn parse_shape(s: &str) -> Option<[usize; 3]> {
@@ -67,6 +79,8 @@ pub struct FrameLocation {
     pub data_file: String,
     pub row_group: usize,
     pub row: usize,
+    /// The frame's encoding: `png` or `jpeg` (its MIME type is `image/<encoding>`).
+    pub encoding: &'static str,
 }
 
 impl Store {
@@ -89,22 +103,24 @@ impl Store {
     ) -> Result<FrameLocation, StoreError> {
         let loc = self.locate_episodes(&[id.to_string()], version).await?.remove(0);
         let schema = self.steps_schema(&loc.data_file).await?;
-        if schema.field_with_name(&format!("{IMAGE_PREFIX}{camera}")).is_err() {
+        let Ok(field) = schema.field_with_name(&format!("{IMAGE_PREFIX}{camera}")) else {
             return Err(StoreError::not_found(
                 "camera",
                 format!("{camera:?} (an image column) of episode {id}"),
             ));
-        }
+        };
+        let encoding = image_encoding(field.metadata());
         if t >= loc.row_count as u64 {
             return Err(StoreError::not_found(
                 "step",
-                format!("{t} of episode {id} (it has {} steps, 0..{})", loc.row_count, loc.row_count),
+                format!("{t} of episode {id} (its steps are 0 to {})", loc.row_count.saturating_sub(1)),
             ));
         }
         Ok(FrameLocation {
             data_file: loc.data_file,
             row_group: loc.row_group,
             row: loc.row_offset + t as usize,
+            encoding,
         })
     }
 
@@ -226,15 +242,16 @@ mod tests {
         let eps = store.episodes(&EpisodeFilter::default()).await.unwrap();
         let e = &eps[1];
         let cams = store.episode_cameras(&e.id, None).await.unwrap();
-        let names: Vec<(&str, CameraKind, Option<[usize; 3]>)> =
-            cams.iter().map(|c| (c.name.as_str(), c.kind, c.shape)).collect();
+        let names: Vec<(&str, CameraKind, Option<[usize; 3]>, Option<&str>)> =
+            cams.iter().map(|c| (c.name.as_str(), c.kind, c.shape, c.encoding.as_deref())).collect();
         assert_eq!(
             names,
             [
-                ("agentview_image", CameraKind::Image, Some([84, 84, 3])),
-                ("eye_in_hand_image", CameraKind::Image, Some([84, 84, 3]))
+                ("agentview_image", CameraKind::Image, Some([84, 84, 3]), Some("png")),
+                ("eye_in_hand_image", CameraKind::Image, Some([84, 84, 3]), Some("png"))
             ]
         );
+        assert_eq!(store.locate_frame(&e.id, None, "agentview_image", 5).await.unwrap().encoding, "png");
         let i = e.source_index as u32;
         store.read_frame(&e.id, None, "agentview_image", 0).await.unwrap(); // footer cached
         let before = store.fetch_counts();

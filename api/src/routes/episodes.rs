@@ -189,11 +189,15 @@ pub struct StepsQuery {
     pub(crate) layers: Option<String>,
 }
 
-/// An episode and its label history, oldest first.
+/// An episode, its label history (oldest first) and its cameras.
 #[derive(Serialize, ToSchema)]
 pub struct EpisodeDetail {
     episode: store::EpisodeRecord,
     history: Vec<store::LabelEvent>,
+    /// Every camera of the episode, in column order: videos (`kind: video`, served by
+    /// `/v1/episodes/{id}/media/{name}`) and image columns (`kind: image`, one frame per step
+    /// from `/v1/episodes/{id}/frames/{name}/{t}`).
+    cameras: Vec<store::Camera>,
 }
 
 /// An episode's step table as columns.
@@ -208,7 +212,8 @@ pub struct StepColumns {
     omitted: Vec<String>,
 }
 
-/// An episode: metadata, current label (its revision is also the `ETag`) and label history.
+/// An episode: metadata, current label (its revision is also the `ETag`), label history and
+/// cameras (videos and image columns, from its steps file's footer).
 #[utoipa::path(get, path = "/v1/episodes/{id}", tag = "episodes",
     params(("id" = String, Path), VersionQuery),
     responses((status = 200, body = EpisodeDetail, headers(("ETag" = String, description = "the label revision"))),
@@ -221,8 +226,16 @@ pub async fn get_episode(
     check_id("episode id", &id)?;
     let ep = s.store().episode(&id, q.version).await?;
     let history = s.store().label_history(&id).await?;
+    let cameras = match s.store().steps_schema(&ep.data_file).await {
+        Ok(schema) => store::cameras_of(&schema),
+        Err(e) => {
+            // The label and history stay readable; the steps route reports the file's fault.
+            tracing::warn!(episode = %id, error = %e, "cannot read the steps file's schema: no cameras listed");
+            Vec::new()
+        }
+    };
     let rev = ep.label_revision;
-    let mut resp = Json(EpisodeDetail { episode: ep, history }).into_response();
+    let mut resp = Json(EpisodeDetail { episode: ep, history, cameras }).into_response();
     resp.headers_mut().insert(header::ETAG, etag(rev));
     Ok(resp)
 }

@@ -15,6 +15,7 @@ mod catalog;
 mod consensus;
 mod episodes;
 mod exports;
+mod frames;
 mod infra;
 mod jobs;
 mod labels;
@@ -29,6 +30,7 @@ pub use catalog::*;
 pub use consensus::*;
 pub use episodes::*;
 pub use exports::*;
+pub use frames::*;
 pub use infra::*;
 pub use jobs::*;
 pub use labels::*;
@@ -77,6 +79,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
         .merge(catalog::router())
         .merge(consensus::router())
         .merge(episodes::router())
+        .merge(frames::router())
         .merge(infra::router())
         .merge(jobs::router())
         .merge(labels::router())
