@@ -1,8 +1,8 @@
-//! ufops ingest: turns a policy's evaluation rollouts (robomimic HDF5, LeRobot v2.1/v3.0 datasets,
-//! MCAP recordings) into one new store version. See `README.md` in this crate.
+//! ufops ingest: turns a policy's evaluation rollouts (robomimic HDF5, ALOHA/ACT HDF5 episodes,
+//! LeRobot v2.1/v3.0 datasets, MCAP recordings) into one new store version. See `README.md` in this crate.
 //!
 //! Layers:
-//! * format readers ([`robomimic`], [`lerobot`], [`mcapfmt`]) are plain synchronous Rust that push
+//! * format readers ([`robomimic`], [`aloha`], [`lerobot`], [`mcapfmt`]) are plain synchronous Rust that push
 //!   a [`sink::SourceMeta`], media files and [`model::EpisodeInput`]s into an [`sink::EpisodeSink`];
 //! * [`read_path`] picks the reader (format detection);
 //! * the async glue ([`ingest`]) runs a reader on a blocking thread, hashes the source on another,
@@ -14,6 +14,7 @@
 //! (see the README, *Sources are untrusted*); [`hostile`] generates the corpus of hostile sources
 //! the tests run.
 
+pub mod aloha;
 pub mod confine;
 pub mod dvalue;
 pub mod error;
@@ -44,16 +45,21 @@ use sink::EpisodeSink;
 const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
 const HDF5_MAGIC: &[u8] = b"\x89HDF\r\n\x1a\n";
 
-/// Decides the format of `path` (a LeRobot folder, an HDF5 file, an MCAP file).
+/// Decides the format of `path` (a LeRobot folder, an ALOHA folder of `episode_<i>.hdf5`, an
+/// HDF5 file — ALOHA when it has `/observations/qpos` and `/action` and no `/data`, else
+/// robomimic — or an MCAP file).
 pub fn detect(path: &Path) -> Result<Format> {
     let md = std::fs::metadata(path).map_err(|e| IngestError::io(path, e))?;
     if md.is_dir() {
         if path.join("meta/info.json").is_file() {
             return Ok(Format::Lerobot);
         }
+        if aloha::looks_like_dir(path) {
+            return Ok(Format::Aloha);
+        }
         return Err(IngestError::invalid(
             path.join("meta/info.json"),
-            "missing: a folder is ingested as a LeRobot dataset, which needs meta/info.json",
+            "missing: a folder is ingested as a LeRobot dataset, which needs meta/info.json (or as an ALOHA folder of episode_<i>.hdf5 files)",
         ));
     }
     let mut head = [0u8; 8];
@@ -65,6 +71,9 @@ pub fn detect(path: &Path) -> Result<Format> {
         return Ok(Format::Mcap);
     }
     if head.starts_with(HDF5_MAGIC) || hdf5_pure::is_hdf5(path).unwrap_or(false) {
+        if aloha::looks_like_file(path) {
+            return Ok(Format::Aloha);
+        }
         return Ok(Format::Robomimic);
     }
     let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
@@ -137,6 +146,7 @@ fn read_path_inner(
     let mut notes = Vec::new();
     match format {
         Format::Robomimic => notes.extend(robomimic::read_file_notes(path, opts, sink)?),
+        Format::Aloha => notes.extend(aloha::read_path(path, opts, sink)?),
         Format::Lerobot => lerobot::read_dir(path, opts, sink)?,
         Format::Mcap => {
             let r = mcapfmt::read_file(path, opts, sink)?;

@@ -10,10 +10,13 @@ use crate::model::Label;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Format {
     /// Decide from the path: a folder with `meta/info.json` is LeRobot, a file starting with the
-    /// HDF5 signature is robomimic, one starting with the MCAP magic is MCAP.
+    /// HDF5 signature is robomimic (ALOHA when it has `/observations/qpos` and `/action` and no
+    /// `/data`; a folder of `episode_<i>.hdf5` too), one starting with the MCAP magic is MCAP.
     #[default]
     Auto,
     Robomimic,
+    /// ALOHA / ACT: one HDF5 file per episode (a folder of `episode_<i>.hdf5`, or one of them).
+    Aloha,
     Lerobot,
     Mcap,
 }
@@ -23,6 +26,7 @@ impl Format {
         match self {
             Format::Auto => "auto",
             Format::Robomimic => "robomimic",
+            Format::Aloha => "aloha",
             Format::Lerobot => "lerobot",
             Format::Mcap => "mcap",
         }
@@ -35,10 +39,11 @@ impl std::str::FromStr for Format {
         match s.to_ascii_lowercase().as_str() {
             "auto" => Ok(Format::Auto),
             "robomimic" | "hdf5" | "h5" => Ok(Format::Robomimic),
+            "aloha" | "act" => Ok(Format::Aloha),
             "lerobot" => Ok(Format::Lerobot),
             "mcap" => Ok(Format::Mcap),
             other => Err(IngestError::Usage(format!(
-                "unknown format {other:?}: expected auto, robomimic, lerobot or mcap"
+                "unknown format {other:?}: expected auto, robomimic, aloha, lerobot or mcap"
             ))),
         }
     }

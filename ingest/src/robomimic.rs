@@ -28,7 +28,7 @@ use std::sync::Arc;
 
 /// Budget of the metadata cache of the streaming reader (object headers, B-tree and heap blocks
 /// of the demo groups are read once each; a few MB keeps the ones still in use).
-const METADATA_CACHE_BYTES: usize = 8 << 20;
+pub(crate) const METADATA_CACHE_BYTES: usize = 8 << 20;
 
 /// Attribute values larger than this (e.g. the ~38 KB MuJoCo `model_file` per demo) are not
 /// copied into episode metadata; their sha256 and length are kept instead.
@@ -48,19 +48,19 @@ pub const MAX_DATASET_BYTES: u64 = 2 << 30;
 
 /// The file being read: its path (errors name it) and how many decoded bytes one of its
 /// datasets may declare. Derefs to the path.
-struct Src<'a> {
-    path: &'a Path,
-    file_len: u64,
+pub(crate) struct Src<'a> {
+    pub(crate) path: &'a Path,
+    pub(crate) file_len: u64,
 }
 
 impl Src<'_> {
-    fn new(path: &Path, file_len: u64) -> Src<'_> {
+    pub(crate) fn new(path: &Path, file_len: u64) -> Src<'_> {
         Src { path, file_len }
     }
 
     /// What one dataset may declare: the file's size times [`MAX_DECLARED_RATIO`] (at least
     /// [`DECLARED_BYTES_FLOOR`]), never more than [`MAX_DATASET_BYTES`].
-    fn max_dataset_bytes(&self) -> u64 {
+    pub(crate) fn max_dataset_bytes(&self) -> u64 {
         self.file_len.saturating_mul(MAX_DECLARED_RATIO).max(DECLARED_BYTES_FLOOR).min(MAX_DATASET_BYTES)
     }
 }
@@ -82,7 +82,7 @@ impl AsRef<Path> for Src<'_> {
 /// is more than the file can hold: a chunked dataset whose chunks were never written, or a
 /// corrupt dataspace, would otherwise make a read allocate and fill that many bytes (a 12 kB file
 /// declaring 10 GB). Called before every read of a dataset.
-fn check_declared(ds: &Dataset, path: &Src, what: &str, shape: &[u64]) -> Result<u64> {
+pub(crate) fn check_declared(ds: &Dataset, path: &Src, what: &str, shape: &[u64]) -> Result<u64> {
     let elem = ds.element_size().map_err(h5err(path, format!("cannot read the datatype of {what}")))?;
     let impossible = || {
         IngestError::invalid(
@@ -110,9 +110,9 @@ fn check_declared(ds: &Dataset, path: &Src, what: &str, shape: &[u64]) -> Result
 }
 
 /// The file read with positioned reads (`pread`): no shared cursor, no lock, no whole-file copy.
-struct PositionedFile {
-    file: std::fs::File,
-    len: u64,
+pub(crate) struct PositionedFile {
+    pub(crate) file: std::fs::File,
+    pub(crate) len: u64,
 }
 
 impl hdf5_pure::Source for PositionedFile {
@@ -161,7 +161,7 @@ pub fn read_bytes(name: &Path, bytes: Vec<u8>, opts: &ReadOptions, sink: &mut dy
     read_h5(&file, name, opts, sink).map(|_| ())
 }
 
-fn check_signature_file(path: &Path) -> Result<()> {
+pub(crate) fn check_signature_file(path: &Path) -> Result<()> {
     match hdf5_pure::is_hdf5(path) {
         Ok(true) => Ok(()),
         Ok(false) => Err(IngestError::invalid(path, "not an HDF5 file (no HDF5 signature)")),
@@ -169,14 +169,17 @@ fn check_signature_file(path: &Path) -> Result<()> {
     }
 }
 
-fn h5err(path: &Path, what: impl std::fmt::Display) -> impl FnOnce(hdf5_pure::Error) -> IngestError {
+pub(crate) fn h5err(
+    path: &Path,
+    what: impl std::fmt::Display,
+) -> impl FnOnce(hdf5_pure::Error) -> IngestError {
     let what = what.to_string();
     let path = path.to_path_buf();
     move |e| IngestError::invalid(path, format!("{what}: {e}"))
 }
 
 /// Converts an attribute value to JSON.
-fn attr_json(v: &AttrValue) -> Value {
+pub(crate) fn attr_json(v: &AttrValue) -> Value {
     if let Some(s) = v.as_str() {
         return Value::String(s.to_string());
     }
@@ -212,7 +215,7 @@ fn attr_json(v: &AttrValue) -> Value {
 
 /// Reads the attributes of a group and fails when one cannot be represented (hdf5-pure skips
 /// those silently in `attrs()`) and `required` names it.
-fn group_attrs(
+pub(crate) fn group_attrs(
     g: &Group,
     path: &Path,
     where_: &str,
@@ -238,19 +241,19 @@ fn demo_index(name: &str) -> Option<u64> {
     name.rsplit('_').next().and_then(|s| s.parse().ok())
 }
 
-struct DatasetInfo {
-    shape: Vec<u64>,
-    dtype: DType,
+pub(crate) struct DatasetInfo {
+    pub(crate) shape: Vec<u64>,
+    pub(crate) dtype: DType,
 }
 
-fn info(ds: &Dataset, path: &Src, what: &str) -> Result<DatasetInfo> {
+pub(crate) fn info(ds: &Dataset, path: &Src, what: &str) -> Result<DatasetInfo> {
     let shape = ds.shape().map_err(h5err(path, format!("cannot read the shape of {what}")))?;
     let dtype = ds.dtype().map_err(h5err(path, format!("cannot read the datatype of {what}")))?;
     check_declared(ds, path, what, &shape)?;
     Ok(DatasetInfo { shape, dtype })
 }
 
-fn is_numeric(d: &DType) -> bool {
+pub(crate) fn is_numeric(d: &DType) -> bool {
     matches!(
         d,
         DType::F32
@@ -267,7 +270,7 @@ fn is_numeric(d: &DType) -> bool {
 }
 
 /// Rows x columns of a (T, ...) numeric dataset, read as f32.
-fn read_matrix(
+pub(crate) fn read_matrix(
     ds: &Dataset,
     path: &Src,
     what: &str,
@@ -405,7 +408,7 @@ fn read_h5(file: &File, path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeS
 
 /// A `(T, ...)` array as a fixed-size-list column (`dim` values per row); rows where `valid` is
 /// false are null.
-fn fsl_column<T: ArrowPrimitiveType>(
+pub(crate) fn fsl_column<T: ArrowPrimitiveType>(
     dim: usize,
     values: Vec<T::Native>,
     valid: Option<Vec<bool>>,
@@ -418,7 +421,7 @@ fn fsl_column<T: ArrowPrimitiveType>(
         .map_err(|e| e.to_string())
 }
 
-fn dtype_name(d: &DType) -> String {
+pub(crate) fn dtype_name(d: &DType) -> String {
     match d {
         DType::F32 => "float32".into(),
         DType::F64 => "float64".into(),

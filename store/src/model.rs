@@ -74,12 +74,28 @@ pub struct ChunkColumn {
     pub values: Vec<f32>,
 }
 
-/// Per-step images, each stored losslessly as PNG bytes; `shape` is `[H, W, C]`.
+/// Per-step images, each stored losslessly as encoded bytes: PNG, or JPEG kept exactly as the
+/// source recorded it (ALOHA's compressed cameras; never re-encoded). `shape` is `[H, W, C]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ImageColumn {
     pub name: String,
     pub shape: [usize; 3],
+    /// One encoded frame per step (PNG, or JPEG: see [`ImageColumn::encoding`]).
     pub png_frames: Vec<Vec<u8>>,
+}
+
+impl ImageColumn {
+    /// `jpeg` when every frame starts with a JPEG's start-of-image marker, else `png` (recorded
+    /// as the column's `ufops.encoding`).
+    pub fn encoding(&self) -> &'static str {
+        let jpeg =
+            !self.png_frames.is_empty() && self.png_frames.iter().all(|f| f.starts_with(&[0xFF, 0xD8, 0xFF]));
+        if jpeg {
+            "jpeg"
+        } else {
+            "png"
+        }
+    }
 }
 
 /// Per-step references into a video stored in the object store (content-addressed by sha256).

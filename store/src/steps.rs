@@ -75,7 +75,7 @@ pub fn schema_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn]) -> SchemaRe
     for im in &ep.images {
         let meta = HashMap::from([
             ("ufops.shape".to_string(), format!("[{}, {}, {}]", im.shape[0], im.shape[1], im.shape[2])),
-            ("ufops.encoding".to_string(), "png".to_string()),
+            ("ufops.encoding".to_string(), im.encoding().to_string()),
         ]);
         fields.push(
             Field::new(format!("{IMAGE_PREFIX}{}", im.name), DataType::Binary, false).with_metadata(meta),
