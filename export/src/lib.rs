@@ -1,11 +1,13 @@
 //! export: the way out of the store. A store version, a split or a filter of one (policy,
-//! checkpoint, task, label, tag, verifier-score range of an artifact) becomes a **LeRobot v3.0 dataset** ([`lerobot`]) or a
-//! **robomimic HDF5 file** ([`robomimic`]), with the version's frozen labels and a record of where
+//! checkpoint, task, label, tag, verifier-score range of an artifact) becomes a **LeRobot v3.0 dataset** ([`lerobot`]), a
+//! **robomimic HDF5 file** ([`robomimic`]) or an **ALOHA folder** of one HDF5 file per episode
+//! ([`aloha`]), with the version's frozen labels and a record of where
 //! it came from. This crate owns the selection of episodes ([`Selection`]), reading their steps
 //! in order with bounded memory ([`for_each_episode`]), the provenance record, and writing to a
 //! temporary name renamed at the end (a crash leaves no half dataset). It reads the store only
 //! through its public read path (`Store::read_episodes`).
 
+pub mod aloha;
 pub mod job;
 pub mod lerobot;
 pub mod robomimic;

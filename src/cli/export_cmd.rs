@@ -52,9 +52,9 @@ impl SelectionArgs {
 
 #[derive(clap::Args, Debug)]
 pub struct ExportArgs {
-    /// The new dataset folder (lerobot) or .hdf5 file (robomimic); must not exist.
+    /// The new dataset folder (lerobot, aloha) or .hdf5 file (robomimic); must not exist.
     pub out: PathBuf,
-    /// lerobot (v3.0) | robomimic
+    /// lerobot (v3.0) | robomimic | aloha (one episode_<i>.hdf5 per episode)
     #[arg(long)]
     pub format: String,
     #[command(flatten)]
@@ -149,7 +149,8 @@ pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
     let report = match a.format.as_str() {
         "lerobot" => ::export::lerobot::export(&store, &selected, &a.out, progress).await,
         "robomimic" => ::export::robomimic::export(&store, &selected, &a.out, progress).await,
-        other => bail!("--format {other:?}: expected lerobot or robomimic"),
+        "aloha" => ::export::aloha::export(&store, &selected, &a.out, progress).await,
+        other => bail!("--format {other:?}: expected lerobot, robomimic or aloha"),
     };
     if let Some(b) = &bar {
         b.finish_and_clear();

@@ -113,9 +113,9 @@ pub enum Command {
         #[command(subcommand)]
         command: catalog_cmds::TokenCommand,
     },
-    /// Ingest evaluation rollouts (robomimic HDF5, LeRobot v2.1/v3.0, MCAP) as one new version.
+    /// Ingest evaluation rollouts (robomimic HDF5, ALOHA HDF5, LeRobot v2.1/v3.0, MCAP) as one new version.
     Ingest(serve_cmds::IngestArgs),
-    /// Export a version, split or filter as a LeRobot v3.0 dataset or a robomimic HDF5 file.
+    /// Export a version, split or filter as a LeRobot v3.0 dataset, a robomimic HDF5 file or ALOHA episode files.
     Export(export_cmd::ExportArgs),
     /// Episodes ordered by a verifier's score, lowest first (which demonstrations or rollouts to
     /// review, relabel or leave out).

@@ -11,7 +11,8 @@ use std::sync::Arc;
 
 #[derive(clap::Args, Debug)]
 pub struct IngestArgs {
-    /// A robomimic .hdf5 file, a LeRobot dataset folder, or an .mcap recording.
+    /// A robomimic .hdf5 file, an ALOHA episode_<i>.hdf5 file or folder of them, a LeRobot
+    /// dataset folder, or an .mcap recording.
     pub path: PathBuf,
     #[arg(long)]
     pub policy: String,
@@ -19,7 +20,7 @@ pub struct IngestArgs {
     pub checkpoint: String,
     #[arg(long)]
     pub task: Option<String>,
-    /// auto | robomimic | lerobot | mcap
+    /// auto | robomimic | aloha | lerobot | mcap
     #[arg(long, default_value = "auto")]
     pub format: String,
     /// JSON {"demo_0": true, …} or CSV lines demo_0,true.

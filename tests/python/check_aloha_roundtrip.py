@@ -1,0 +1,59 @@
+"""Compares two ALOHA folders (source, ufops export) with h5py: the same episode files, and in
+each the same groups, datasets (dtype, shape, every value) and attributes (value; dtype too,
+except that a numpy-bool attribute may come back as int8 0/1, which hdf5-pure writes for it).
+An export may add the attributes ufops writes for its labels (`success`, `verifier_score`,
+`failure_cause`, `label_spans`) only where the source had none of them.
+
+    python3 check_aloha_roundtrip.py SOURCE_DIR EXPORT_DIR
+"""
+
+import os
+import sys
+
+import h5py
+import numpy as np
+
+ADDED = {"success", "verifier_score", "failure_cause", "label_spans"}
+
+
+def objects(f):
+    out = {"/": f}
+    f.visititems(lambda name, obj: out.__setitem__("/" + name, obj))
+    return out
+
+
+def same_attr(k, a, b, where):
+    a, b = np.asarray(a), np.asarray(b)
+    if a.dtype == np.bool_ and b.dtype == np.int8:
+        b = b.astype(np.bool_)
+    assert a.dtype == b.dtype or (a.dtype.kind in "OSU" and b.dtype.kind in "OSU"), (where, k, a.dtype, b.dtype)
+    assert a.shape == b.shape and np.array_equal(a, b), (where, k, a, b)
+
+
+def main():
+    src, out = sys.argv[1], sys.argv[2]
+    names = sorted(n for n in os.listdir(src) if n.endswith(".hdf5"))
+    assert names == sorted(os.listdir(out)), (names, sorted(os.listdir(out)))
+    values = 0
+    for n in names:
+        with h5py.File(os.path.join(src, n), "r") as a, h5py.File(os.path.join(out, n), "r") as b:
+            oa, ob = objects(a), objects(b)
+            assert sorted(oa) == sorted(ob), (n, sorted(oa), sorted(ob))
+            for p, x in oa.items():
+                y = ob[p]
+                assert type(x) is type(y), (n, p)
+                if isinstance(x, h5py.Dataset):
+                    assert x.dtype == y.dtype and x.shape == y.shape, (n, p, x.dtype, y.dtype, x.shape, y.shape)
+                    xa, ya = x[()], y[()]
+                    assert np.array_equal(xa, ya), (n, p)
+                    values += np.size(xa)
+                ka, kb = set(x.attrs), set(y.attrs)
+                extra = kb - ka
+                assert ka <= kb and (p == "/" and extra <= ADDED or not extra), (n, p, ka, kb)
+                for k in ka:
+                    same_attr(k, x.attrs[k], y.attrs[k], f"{n}:{p}")
+    print(f"ok: {len(names)} episode files, {values} values identical")
+
+
+if __name__ == "__main__":
+    main()
