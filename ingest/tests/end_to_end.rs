@@ -1,6 +1,8 @@
 //! Ingest into a real temporary store (SQLite + local objects): episodes listed, re-ingest is a
-//! no-op, broken inputs leave the store exactly as before with an error naming the file.
+//! no-op, broken inputs leave the store exactly as before with an error naming the file; ALOHA
+//! episodes are stored exactly (`aloha/`).
 
+mod aloha;
 mod common;
 
 use std::path::{Path, PathBuf};
