@@ -1,5 +1,6 @@
 //! Generator of the hostile-input corpus (issue 15): sources whose own metadata tries to make
-//! ingest read outside them, or whose declared sizes would drive memory. Every file is written by
+//! ingest read outside them, or whose declared sizes would drive memory (or describe frames that
+//! are not there: ALOHA's `compress_len`). Every file is written by
 //! code here into a folder the caller gives (a temp dir): nothing hand-edited is committed.
 //! `tests/hostile_corpus.rs` runs `ufops ingest` on each one and checks that it is refused with
 //! the expected message, a non-zero exit, bounded peak memory and the store unchanged.
@@ -162,7 +163,71 @@ pub fn write_corpus(dir: &Path) -> Result<Vec<Case>> {
         std::fs::write(&p, mcap_with_chunk(&frame, recs.len() as u64))?;
         Ok(p)
     })?;
+    // --- ALOHA episodes whose compress_len / frame counts describe frames that are not there --
+    add(
+        "aloha_compress_len_past_padding",
+        Attack::Size,
+        "points past the 64-byte rows of /observations/images/cam_high",
+        &|d| aloha_episode(&d.join("episode_0.hdf5"), AlohaFault::LengthPastRow),
+    )?;
+    add("aloha_compress_len_short", Attack::Size, "/compress_len declares 2 frames per camera", &|d| {
+        aloha_episode(&d.join("episode_0.hdf5"), AlohaFault::FewerLengths)
+    })?;
+    add("aloha_images_fewer_rows", Attack::Size, "/observations/images/cam_high has 2 frames", &|d| {
+        aloha_episode(&d.join("episode_0.hdf5"), AlohaFault::FewerFrames)
+    })?;
     Ok(cases)
+}
+
+// --- ALOHA episodes ----------------------------------------------------------------------------
+
+/// What is wrong with a generated ALOHA episode.
+#[derive(Clone, Copy)]
+enum AlohaFault {
+    /// `compress_len[0, 2]` is larger than the camera's padded rows.
+    LengthPastRow,
+    /// `compress_len` has 2 columns for 4 steps.
+    FewerLengths,
+    /// A raw camera holds 2 frames for 4 steps.
+    FewerFrames,
+}
+
+/// A 4-step ALOHA episode (`qpos`, `qvel`, `action`, one camera `cam_high`) with `fault`.
+fn aloha_episode(path: &Path, fault: AlohaFault) -> Result<PathBuf> {
+    use hdf5_pure::{AttrValue, FileBuilder};
+    const T: u64 = 4;
+    let mut b = FileBuilder::new();
+    let vec: Vec<f32> = (0..T * 14).map(|k| k as f32 * 0.01).collect();
+    let mut obs = b.create_group("observations");
+    obs.create_dataset("qpos").with_f32_data(&vec).with_shape(&[T, 14]);
+    obs.create_dataset("qvel").with_f32_data(&vec).with_shape(&[T, 14]);
+    let mut images = obs.create_group("images");
+    match fault {
+        AlohaFault::FewerFrames => {
+            images.create_dataset("cam_high").with_u8_data(&[7u8; 2 * 8 * 8 * 3]).with_shape(&[2, 8, 8, 3]);
+        }
+        AlohaFault::LengthPastRow | AlohaFault::FewerLengths => {
+            // rows of 64 bytes: a tiny "JPEG" (SOI ... EOI) then zeros
+            let mut rows = vec![0u8; (T * 64) as usize];
+            for r in rows.chunks_mut(64) {
+                r[..4].copy_from_slice(&[0xFF, 0xD8, 0xFF, 0xD9]);
+            }
+            images.create_dataset("cam_high").with_u8_data(&rows).with_shape(&[T, 64]);
+            let lens: Vec<f32> = match fault {
+                AlohaFault::LengthPastRow => vec![4.0, 4.0, 5000.0, 4.0],
+                _ => vec![4.0, 4.0],
+            };
+            let n = lens.len() as u64;
+            b.create_dataset("compress_len").with_f32_data(&lens).with_shape(&[1, n]);
+            b.set_attr("compress", AttrValue::I8(1));
+        }
+    }
+    obs.add_group(images.finish());
+    b.add_group(obs.finish());
+    b.create_dataset("action").with_f32_data(&vec).with_shape(&[T, 14]);
+    b.set_attr("sim", AttrValue::I8(0));
+    b.write(path)?;
+    Ok(path.to_path_buf())
 }
 
 // --- LeRobot v3.0 datasets ---------------------------------------------------------------------
