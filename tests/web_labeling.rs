@@ -3,7 +3,9 @@
 //! fixture without video, two labelers' tokens, `ufops serve` on a free loopback port, then
 //! `node tests/web/label_e2e.mjs` (playwright-core driving Debian's `chromium`): sign in, label
 //! three episodes with the keyboard only, auto-advance, a conflict from a second session resolved,
-//! bulk labels, the low-dim view. The labels are then checked through the HTTP API. The second
+//! bulk labels, the low-dim view, and a robomimic file with two image cameras (generated with
+//! h5py: both cameras shown, loaded frame by frame as the timeline moves, screenshot
+//! `robomimic_cameras.png`). The labels are then checked through the HTTP API. The second
 //! test does the same for the scoreboard page (`tests/web/scoreboard_e2e.mjs`), the third the
 //! verifier-ordered review queue and its score on the timeline (`tests/web/review_e2e.mjs`).
 //!
@@ -145,6 +147,49 @@ fn http(addr: &str, method: &str, path: &str, token: &str, body: Option<&str>) -
     (status, serde_json::from_str(&body).unwrap_or(Value::String(body)))
 }
 
+/// A robomimic rollout file with two image observations (`agentview_image`,
+/// `robot0_eye_in_hand_image`, 84×84 RGB, drawn so that every step differs), written with h5py
+/// the way robomimic writes its files: 2 demos of `steps` steps, low-dim `robot0_eef_pos`.
+fn write_robomimic_images(path: &std::path::Path, steps: usize) {
+    let code = r#"
+import json, sys
+import h5py, numpy as np
+path, T = sys.argv[1], int(sys.argv[2])
+with h5py.File(path, "w") as f:
+    data = f.create_group("data")
+    data.attrs["env_args"] = json.dumps({"env_name": "Lift", "type": 1, "env_kwargs": {"control_freq": 20}})
+    data.attrs["total"] = 2 * T
+    for d in range(2):
+        g = data.create_group(f"demo_{d}")
+        g.attrs["num_samples"] = T
+        t = np.arange(T)
+        g.create_dataset("actions", data=np.stack([np.sin(t / 9 + d), np.cos(t / 7), np.sin(t / 5) * 0.5,
+                                                   np.zeros(T), np.zeros(T), np.zeros(T), np.sign(np.sin(t / 11))], 1))
+        g.create_dataset("rewards", data=np.zeros(T))
+        g.create_dataset("dones", data=(t == T - 1).astype(np.int64))
+        o = g.create_group("obs")
+        o.create_dataset("robot0_eef_pos", data=np.stack([np.cos(t / 20), np.sin(t / 20), t / T], 1))
+        agent = np.zeros((T, 84, 84, 3), np.uint8)
+        agent[..., 2] = 90 + 40 * d
+        hand = np.full((T, 84, 84, 3), 60, np.uint8)
+        yy, xx = np.mgrid[0:84, 0:84]
+        for k in range(T):
+            x = int(4 + (k * 3) % 64)
+            agent[k, 30:50, x:x + 16] = (230, 40, 40)        # the red cube slides along
+            agent[k, 78:84, : max(1, 84 * (k + 1) // T)] = (40, 220, 80)  # time bar
+            r = 6 + (k * 2) % 30
+            hand[k][(yy - 42) ** 2 + (xx - 42) ** 2 < r * r] = (240, 210, 40)  # the gripper's view zooms
+            hand[k, : (k % 84) + 1, 0:4] = (255, 255, 255)
+        o.create_dataset("agentview_image", data=agent)
+        o.create_dataset("robot0_eye_in_hand_image", data=hand)
+"#;
+    let out = Command::new("python3")
+        .args(["-c", code, path.to_str().unwrap(), &steps.to_string()])
+        .output()
+        .expect("run python3");
+    assert!(out.status.success(), "writing the robomimic file: {}", String::from_utf8_lossy(&out.stderr));
+}
+
 fn token(t: &Target, name: &str, role: &str) -> String {
     let v = t.json(&["token", "create", "--name", name, "--role", role, "--json"]);
     v["token"].as_str().expect("token secret").to_string()
@@ -173,6 +218,22 @@ fn labeling_page_in_headless_chromium() {
         "--json",
     ]);
     t.json(&["ingest", lowdim.to_str().unwrap(), "--policy", "lowdim", "--checkpoint", "c0", "--json"]);
+    // Image cameras: a robomimic file with two image observations (PNG columns in the store).
+    let image_steps = 300;
+    let images = store::test_support::require_python(&["h5py", "numpy"]).then(|| {
+        let h5 = dir.path().join("lift_two_cameras.hdf5");
+        write_robomimic_images(&h5, image_steps);
+        t.json(&[
+            "ingest",
+            h5.to_str().unwrap(),
+            "--policy",
+            "robomimic-img",
+            "--checkpoint",
+            "c0",
+            "--json",
+        ]);
+        "robomimic-img"
+    });
     // The campaign: the video episodes' labels are reset to unknown for people to judge.
     let eps = t.json(&["episodes", "--policy", "toy-dp", "--json"]);
     let eps = eps.as_array().expect("episode list");
@@ -202,6 +263,33 @@ fn labeling_page_in_headless_chromium() {
     let (st, _) = http(&srv.addr, "GET", "/ui/nope.js", "", None);
     assert_eq!(st, 404);
 
+    if images.is_some() {
+        // The episode lists both image cameras; a frame is a PNG, cached for good.
+        let (_, page) = http(&srv.addr, "GET", "/v1/episodes?policy=robomimic-img", &admin, None);
+        let id = page["episodes"][0]["id"].as_str().expect("an image episode").to_string();
+        let (st, d) = http(&srv.addr, "GET", &format!("/v1/episodes/{id}"), &admin, None);
+        assert_eq!(st, 200, "{d}");
+        let cams: Vec<(&str, &str)> = d["cameras"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| (c["name"].as_str().unwrap(), c["kind"].as_str().unwrap()))
+            .collect();
+        assert_eq!(cams, [("agentview_image", "image"), ("robot0_eye_in_hand_image", "image")], "{d}");
+        let (st, _) =
+            http(&srv.addr, "GET", &format!("/v1/episodes/{id}/frames/agentview_image/3"), &admin, None);
+        assert_eq!(st, 200);
+        let (st, v) = http(
+            &srv.addr,
+            "GET",
+            &format!("/v1/episodes/{id}/frames/agentview_image/{image_steps}"),
+            &admin,
+            None,
+        );
+        assert_eq!(st, 404, "past the last step: {v}");
+    }
+    let _ = std::fs::remove_file(artifacts_dir().join("robomimic_cameras.png"));
+
     let artifacts = artifacts_dir();
     std::fs::create_dir_all(&artifacts).unwrap();
     let out = Command::new("node")
@@ -211,6 +299,8 @@ fn labeling_page_in_headless_chromium() {
         .env("UFOPS_TOKEN_A", &alice)
         .env("UFOPS_TOKEN_B", &bob)
         .env("UFOPS_ARTIFACTS", &artifacts)
+        .env("UFOPS_IMAGE_POLICY", images.unwrap_or(""))
+        .env("UFOPS_IMAGE_STEPS", image_steps.to_string())
         .env("CHROMIUM", chromium().unwrap())
         .stderr(Stdio::inherit())
         .output()
@@ -220,6 +310,15 @@ fn labeling_page_in_headless_chromium() {
     assert!(out.status.success(), "the browser test failed (screenshots in {})", artifacts.display());
     let line = stdout.lines().find_map(|l| l.strip_prefix("E2E_RESULT ")).expect("E2E_RESULT line");
     let result: Value = serde_json::from_str(line).expect("E2E_RESULT json");
+    if images.is_some() {
+        let c = &result["image_cameras"];
+        assert_eq!(c["cameras"], 2, "{c}");
+        // On demand: a window around the frames shown, never the episode's every frame.
+        let fetched = c["frame_requests"].as_u64().unwrap();
+        assert!(fetched > 0 && fetched < 2 * image_steps as u64 / 2, "{fetched} frame requests: {c}");
+        let shot = artifacts.join("robomimic_cameras.png");
+        assert!(std::fs::metadata(&shot).map(|m| m.len() > 10_000).unwrap_or(false), "{}", shot.display());
+    }
 
     // Every label the browser set, checked through the API.
     let labeled = result["labeled"].as_array().expect("labeled");

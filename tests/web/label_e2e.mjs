@@ -1,7 +1,9 @@
 // End-to-end test of the labeling page in real headless Chromium (Debian's `chromium`, driven by
 // playwright-core). Started by tests/web_labeling.rs against `ufops serve` on loopback with the
 // LeRobot v3.0 video fixture ingested (labels reset to unknown: a labeling campaign), and the
-// v3.0 fixture without video under policy `lowdim`.
+// v3.0 fixture without video under policy `lowdim`, and (when UFOPS_IMAGE_POLICY names it) a
+// robomimic file with two image cameras: both shown, frames loaded on demand, following the
+// timeline when stepping, scrubbing and playing (screenshot `robomimic_cameras.png`).
 //
 // Env: UFOPS_URL, UFOPS_TOKEN_A / UFOPS_TOKEN_B (two labelers), UFOPS_ARTIFACTS (screenshots),
 // CHROMIUM (default /usr/bin/chromium). Prints `E2E_RESULT <json>` for the Rust test to verify
@@ -97,10 +99,12 @@ try {
   check(stepped === '2', `two frame steps → frame 2 (scrub says ${stepped})`);
   await a.keyboard.press(',');
   await a.keyboard.press(' ');
-  await a.waitForTimeout(600);
+  // Wait for the condition rather than a fixed time (a loaded machine plays late).
+  const advanced = await a.waitForFunction(() => Number(document.getElementById('scrub').value) > 1, null, { timeout: 10000 })
+    .then(() => true, () => false);
   await a.keyboard.press(' ');
   const played = await a.evaluate(() => Number(document.getElementById('scrub').value));
-  check(played > 1, `playing advanced the frame (now ${played})`);
+  check(advanced && played > 1, `playing advanced the frame (now ${played})`);
   const vt = await a.evaluate(() => [...document.querySelectorAll('#videos video')].map((v) => v.paused));
   check(vt.every(Boolean), 'space paused every camera');
   await shot(a, '03-playing');
@@ -207,12 +211,84 @@ try {
   await a.waitForFunction(() => document.body.dataset.ready, null, { timeout: 20000 });
   const low = await a.evaluate(() => ({
     videos: document.querySelectorAll('#videos video').length,
+    images: document.querySelectorAll('#videos img.cam').length,
     traj: !document.getElementById('traj').hidden,
     plots: document.querySelectorAll('#plots .uplot').length,
   }));
   check(low.videos === 0 && low.traj && low.plots >= 1, `no-video episode shows plots and a trajectory: ${JSON.stringify(low)}`);
+  // its LeRobot `image` feature (PNGs in the data parquet) is an image camera
+  check(low.images === 1, `the no-video episode's image feature is shown as a camera: ${JSON.stringify(low)}`);
   await a.keyboard.press('.');
   await shot(a, '09-low-dim-trajectory');
+
+  // ---------------------------------------------------------------- image cameras (robomimic PNG columns)
+  const IMAGE_POLICY = process.env.UFOPS_IMAGE_POLICY;
+  if (IMAGE_POLICY) {
+    const frameReqs = [];
+    const onReq = (r) => { if (r.url().includes('/frames/')) frameReqs.push(new globalThis.URL(r.url()).pathname); };
+    a.on('request', onReq);
+    await a.goto(`${URL}/ui/#policy=${IMAGE_POLICY}`);
+    await a.reload();
+    await a.waitForFunction(() => document.body.dataset.ready, null, { timeout: 20000 });
+    const id = await a.evaluate(() => document.body.dataset.ready);
+    // Every camera's state: shown, the frame it holds, a hash of its pixels.
+    const cams = () => a.evaluate(() => [...document.querySelectorAll('#videos img.cam')].map((img) => {
+      const r = img.getBoundingClientRect();
+      let hash = 0;
+      if (img.complete && img.naturalWidth > 0) {
+        const c = document.createElement('canvas');
+        c.width = img.naturalWidth; c.height = img.naturalHeight;
+        const g = c.getContext('2d');
+        g.drawImage(img, 0, 0);
+        const px = g.getImageData(0, 0, c.width, c.height).data;
+        for (let i = 0; i < px.length; i++) hash = (hash * 31 + px[i]) >>> 0;
+      }
+      return { key: img.dataset.key, frame: img.dataset.frame, w: img.naturalWidth, shown: r.width > 0 && r.height > 0 && !document.getElementById('videos').hidden, hash };
+    }));
+    const atFrame = (f) => a.waitForFunction((f) => {
+      const imgs = [...document.querySelectorAll('#videos img.cam')];
+      return imgs.length > 0 && imgs.every((i) => i.dataset.frame === String(f) && i.complete && i.naturalWidth > 0)
+        && document.getElementById('scrub').value === String(f);
+    }, f, { timeout: 15000 });
+    await atFrame(0);
+    const c0 = await cams();
+    log('image cameras at frame 0', JSON.stringify(c0));
+    check(c0.length === 2 && c0.every((c) => c.shown && c.w > 0), `two image cameras shown with a frame: ${JSON.stringify(c0)}`);
+    check(c0.map((c) => c.key).join() === 'agentview_image,robot0_eye_in_hand_image', `camera names: ${c0.map((c) => c.key)}`);
+    check(await a.evaluate(() => document.querySelectorAll('#videos video').length === 0), 'no video element for image cameras');
+    // keyboard stepping: every camera follows
+    for (let k = 0; k < 3; k++) await a.keyboard.press('.');
+    await atFrame(3);
+    const c3 = await cams();
+    check(c3.every((c, i) => c.hash !== c0[i].hash), `stepping changed every camera's picture: ${JSON.stringify(c3)}`);
+    await a.keyboard.press(',');
+    await atFrame(2);
+    // scrubbing far: the frames there are fetched on demand
+    await a.evaluate(() => { const s = document.getElementById('scrub'); s.value = '200'; s.dispatchEvent(new Event('input')); });
+    await atFrame(200);
+    const c200 = await cams();
+    check(c200.every((c, i) => c.hash !== c3[i].hash && c.hash !== c0[i].hash), `scrubbing changed every camera: ${JSON.stringify(c200)}`);
+    // playing advances every camera together (a condition with a timeout, not a fixed sleep)
+    await a.keyboard.press(' ');
+    const playedOk = await a.waitForFunction(() => {
+      const f = Number(document.getElementById('scrub').value);
+      const imgs = [...document.querySelectorAll('#videos img.cam')];
+      return f >= 205 && imgs.every((i) => Number(i.dataset.frame) >= 203);
+    }, null, { timeout: 15000 }).then(() => true, () => false);
+    await a.keyboard.press(' ');
+    const fp = Number(await a.evaluate(() => document.getElementById('scrub').value));
+    await atFrame(fp);
+    check(playedOk && fp > 200, `playing advanced the image cameras (frame ${fp})`);
+    const shown = await cams();
+    await a.evaluate(() => window.scrollTo(0, 0));
+    const shotPath = join(OUT, 'robomimic_cameras.png');
+    await a.screenshot({ path: shotPath, fullPage: true });
+    log('screenshot', shotPath);
+    a.off('request', onReq);
+    const own = frameReqs.filter((p) => p.includes(`/episodes/${encodeURIComponent(id)}/frames/`));
+    log(`image cameras: ${own.length} frame requests for episode ${id} (${frameReqs.length} in all, prefetch included)`);
+    result.image_cameras = { episode_id: id, cameras: shown.length, frame: fp, frame_requests: own.length, all_frame_requests: frameReqs.length };
+  }
 
   // ---------------------------------------------------------------- sign out
   await a.click('#signout');

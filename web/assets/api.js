@@ -46,6 +46,9 @@ export const tasks = () => call('GET', '/v1/tasks');
 export const episode = (id) => call('GET', `/v1/episodes/${encodeURIComponent(id)}`);
 export const steps = (id) => call('GET', `/v1/episodes/${encodeURIComponent(id)}/steps`);
 export const mediaUrl = (id, key) => `/v1/episodes/${encodeURIComponent(id)}/media/${encodeURIComponent(key)}`;
+/** Step t of an image camera (a PNG; cached by the browser for good). */
+export const frameUrl = (id, camera, t) =>
+  `/v1/episodes/${encodeURIComponent(id)}/frames/${encodeURIComponent(camera)}/${t}`;
 
 /** One page of episodes matching the filters, in id order; `after` is the previous page's
  *  `next_cursor` (keyset pages: fast at any depth, no repeats while labels change). */

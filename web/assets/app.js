@@ -343,7 +343,7 @@ async function show(i, t0) {
   if (S.score) S.score.destroy();
   S.score = drawScore($('score-plot'), e.id, p.steps.num_rows || 0, (f) => player.seek(f));
   const traj = $('traj');
-  traj.hidden = p.cams.length > 0;
+  traj.hidden = player.hasVideo(); // image-only episodes (robomimic) keep the sketch under their cameras
   if (!traj.hidden) S.traj = drawTrajectory(traj, p.steps);
   S.plots.setFrame(0);
   const ok = await p.ready;
@@ -354,7 +354,7 @@ async function show(i, t0) {
     const v = metrics.advances.map((a) => a.ms).sort((a, b) => a - b);
     $('speed').textContent = `verdict → next episode playable: median ${v[v.length >> 1].toFixed(0)} ms, max ${v[v.length - 1].toFixed(0)} ms (${v.length})`;
   }
-  status($('ep-status'), ok ? '' : (p.cams.length ? 'video not playable in this browser' : ''), ok ? '' : 'error');
+  status($('ep-status'), ok ? '' : (player.hasCameras() ? 'a camera could not be loaded' : ''), ok ? '' : 'error');
   document.body.dataset.ready = e.id;
   // Prefetch: the next unlabeled episode (where a verdict goes) and the neighbours (j / k).
   const keep = new Set([e.id]);

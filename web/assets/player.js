@@ -1,12 +1,14 @@
-// Episodes made ready to show (metadata, steps and every camera's video element seeked to the
-// episode's first frame, so that switching to a prefetched episode is instant), and the player
-// that keeps all cameras in sync under one scrub bar.
+// Episodes made ready to show (metadata, steps, every camera's video element seeked to the
+// episode's first frame and every image camera's first frame loaded, so that switching to a
+// prefetched episode is instant), and the player that keeps all cameras in sync under one scrub
+// bar. Image cameras (one PNG per step, `cameras.js`) follow the frame shown.
 //
 // LeRobot v3.0 packs many episodes into one mp4 per camera: the steps' `media.<key>.timestamp`
 // column holds each frame's time inside that file (the episode's `from_timestamp` + its own
 // timestamp), so the player seeks and clamps by those times, never past the episode's frames.
 
 import * as api from './api.js';
+import { imageCameras, layoutGrid } from './cameras.js';
 
 const EPS = 1e-3; // seek a hair past the frame's timestamp so the decoder lands on that frame
 
@@ -48,7 +50,7 @@ function waitFor(el, events, ok, timeoutMs) {
 
 /** Starts loading an episode; `loaded` resolves with detail+steps, `ready` when every video can play. */
 export function prepare(id, limbo) {
-  const p = { id, detail: null, steps: null, cams: [], error: null, disposed: false };
+  const p = { id, detail: null, steps: null, cams: [], imgs: [], error: null, disposed: false };
   p.loaded = Promise.all([api.episode(id), api.steps(id)]).then(([detail, steps]) => {
     p.detail = detail;
     p.steps = steps;
@@ -63,6 +65,9 @@ export function prepare(id, limbo) {
       limbo.appendChild(el);
       p.cams.push({ key: c.key, ts: c.ts, el });
     }
+    const n = steps.num_rows || 0;
+    p.imgs = imageCameras(detail, id, n, fpsOf(steps.columns && steps.columns.timestamp, 10));
+    for (const c of p.imgs) limbo.appendChild(c.el);
     return p;
   }).catch((e) => { p.error = e; return p; });
   p.ready = p.loaded.then(async () => {
@@ -79,7 +84,8 @@ export function prepare(id, limbo) {
       return waitFor(el, ['canplay', 'canplaythrough', 'error'], () => el.readyState >= 3 || !!el.error, 15000)
         .then(() => el.readyState >= 3);
     }));
-    return oks.every(Boolean);
+    const imgs = await Promise.all(p.imgs.map((c) => c.ready()));
+    return oks.every(Boolean) && imgs.every(Boolean);
   });
   return p;
 }
@@ -94,6 +100,8 @@ export function dispose(p) {
     c.el.remove();
   }
   p.cams = [];
+  for (const c of p.imgs) c.dispose();
+  p.imgs = [];
 }
 
 /** The synchronized player: cameras in `grid`, one scrub bar, frame stepping, play/pause. */
@@ -112,27 +120,30 @@ export class Player {
   /** Shows a prepared (loaded) episode; its video elements move from the limbo into the grid. */
   attach(p, limbo) {
     this.pause();
-    if (this.p && this.p !== p) for (const c of this.p.cams) limbo.appendChild(c.el);
-    this.grid.replaceChildren();
+    if (this.p && this.p !== p) for (const c of [...this.p.cams, ...this.p.imgs]) limbo.appendChild(c.el);
     this.p = p;
     this.n = (p.steps && p.steps.num_rows) || 0;
     const ts = (p.steps && p.steps.columns && p.steps.columns.timestamp) || null;
     this.fps = fpsOf(p.cams.length ? p.cams[0].ts : ts, 10);
-    for (const c of p.cams) {
+    const figures = [...p.cams, ...p.imgs].map((c) => {
       const fig = document.createElement('figure');
+      fig.dataset.key = c.key;
       fig.appendChild(c.el);
       const cap = document.createElement('figcaption');
       cap.textContent = c.key;
       fig.appendChild(cap);
-      this.grid.appendChild(fig);
       c.el.onclick = () => this.toggle();
-    }
-    this.grid.hidden = p.cams.length === 0;
+      return fig;
+    });
+    layoutGrid(this.grid, figures, p.detail && p.detail.cameras);
     this.scrub.max = String(Math.max(0, this.n - 1));
     this.seek(0);
   }
 
   hasVideo() { return !!(this.p && this.p.cams.length); }
+
+  /** Whether the episode on screen has any camera (video or image). */
+  hasCameras() { return !!(this.p && (this.p.cams.length || this.p.imgs.length)); }
 
   /** The frame shown by a camera at its current time. */
   frameAt(c) {
@@ -166,6 +177,7 @@ export class Player {
     this.scrub.value = String(f);
     const t = (this.p.steps.columns.timestamp || [])[f];
     this.frameOut.textContent = `frame ${f + 1} / ${this.n}${typeof t === 'number' ? ` · ${t.toFixed(2)} s` : ''}`;
+    for (const c of this.p.imgs) c.show(f, this.playing);
     this.onFrame(f);
   }
 
@@ -176,9 +188,12 @@ export class Player {
     if (this.frame >= this.n - 1) this.seek(0);
     this.playing = true;
     this.playButton.textContent = '❚❚';
+    for (const c of this.p.imgs) c.show(this.frame, true); // widen the prefetch window
     if (!this.hasVideo()) {
       this.timer = setInterval(() => {
         if (this.frame >= this.n - 1) { this.pause(); return; }
+        // Image cameras move together: wait (this tick) for a frame still on its way.
+        if (this.p.imgs.some((c) => !c.loaded(this.frame + 1))) return;
         this.show(this.frame + 1);
       }, 1000 / this.fps);
       return;

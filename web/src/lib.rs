@@ -52,6 +52,7 @@ pub static ASSETS: &[Asset] = &[
     asset!("app.js", "text/javascript; charset=utf-8", false),
     asset!("api.js", "text/javascript; charset=utf-8", false),
     asset!("player.js", "text/javascript; charset=utf-8", false),
+    asset!("cameras.js", "text/javascript; charset=utf-8", false),
     asset!("plots.js", "text/javascript; charset=utf-8", false),
     asset!("consensus.js", "text/javascript; charset=utf-8", false),
     asset!("review_queue.js", "text/javascript; charset=utf-8", false),
