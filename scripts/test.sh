@@ -11,6 +11,8 @@ ensure_browser
 # Every test that needs an external tool fails when it is missing (instead of skipping):
 # store::test_support::require reads these switches.
 export UFOPS_REQUIRE_PYTHON=1 UFOPS_REQUIRE_S3=1 UFOPS_REQUIRE_POSTGRES=1 UFOPS_REQUIRE_BROWSER=1
+# Guard rails first: cheap next to the tests, and a red one stops before them (scripts/check.sh).
+bash scripts/check.sh
 cargo test --workspace --locked "$@"
 # The Python package `ufops` (clients/python): built, installed and tested (pytest).
 test_python_package

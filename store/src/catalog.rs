@@ -74,8 +74,11 @@ fn migrator_of(list: &[(i64, &'static str, &'static str)]) -> Migrator {
     Migrator { migrations: Cow::Owned(migrations), ignore_missing: false, locking: true, no_tx: false }
 }
 
+/// A migration's number and name.
+pub type MigrationName = (i64, &'static str);
+
 /// The names of the embedded migrations per backend (for the in-step check).
-pub fn migration_names() -> (Vec<(i64, &'static str)>, Vec<(i64, &'static str)>) {
+pub fn migration_names() -> (Vec<MigrationName>, Vec<MigrationName>) {
     (
         SQLITE_MIGRATIONS.iter().map(|(v, n, _)| (*v, *n)).collect(),
         POSTGRES_MIGRATIONS.iter().map(|(v, n, _)| (*v, *n)).collect(),

@@ -658,8 +658,8 @@ async fn join_group(
     tx: &mpsc::Sender<Result<EpisodeSteps, StepsReadError>>,
 ) -> bool {
     // values[layer][position in group] = the value column and its producer.
-    let mut values: Vec<Vec<Option<(ArrayRef, Arc<Int32Array>)>>> =
-        vec![vec![None; group.len()]; layers.len()];
+    type Column = Option<(ArrayRef, Arc<Int32Array>)>;
+    let mut values: Vec<Vec<Column>> = vec![vec![None; group.len()]; layers.len()];
     let mut failed: HashMap<usize, StepsReadError> = HashMap::new();
     for (li, locs) in layer_locations.iter().enumerate() {
         let wanted: Vec<EpisodeLocation> = group.iter().map(|&i| locs[i].0.clone()).collect();

@@ -209,7 +209,7 @@ pub fn square_rollout(i: u32) -> crate::EpisodeInput {
             })
             .collect(),
     };
-    let success = i % 3 != 0;
+    let success = !i.is_multiple_of(3);
     crate::EpisodeInput {
         source_name: format!("demo_{i}"),
         source_index: i,
