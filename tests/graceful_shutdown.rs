@@ -42,8 +42,7 @@ fn sigterm_stops_gracefully_and_releases_the_running_job() {
     let mut server = t.serve(&["--no-worker"]);
     let url = server.url.clone();
     // A job long enough to be running when the worker is stopped.
-    let body =
-        serde_json::json!({"split_id": split["id"], "kind": "classifier", "config": {"epochs": 100000}});
+    let body = serde_json::json!({"split_id": split["id"], "kind": "classifier", "chunk_len": 16, "config": {"epochs": 100000}});
     let r = http(&url, "POST", "/v1/jobs", &[("Authorization", &auth)], Some(&body));
     assert_eq!(r.status, 201, "{}", String::from_utf8_lossy(&r.body));
     let id = r.json()["id"].as_str().unwrap().to_string();

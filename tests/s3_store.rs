@@ -61,7 +61,7 @@ fn postgres_and_s3_store_end_to_end() {
     let split = t.json(&["split", "create", "--policy", "arm", "--checkpoint", "c1", "--json"]);
     let split_id = split["id"].as_str().unwrap();
     let cfg = dir.path().join("train.json");
-    std::fs::write(&cfg, r#"{"epochs": 2, "batch_size": 64}"#).unwrap();
+    std::fs::write(&cfg, r#"{"epochs": 2, "batch_size": 64, "chunk_len": 16}"#).unwrap();
     let job = t.json(&[
         "train",
         "--split",

@@ -52,6 +52,8 @@ fn verifier_loads_over_http_like_from_the_store() {
         split["id"].as_str().unwrap(),
         "--kind",
         "classifier",
+        "--chunk-len",
+        "16",
         "--config",
         cfg.to_str().unwrap(),
     ]);

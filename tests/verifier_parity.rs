@@ -72,6 +72,8 @@ fn every_client_gives_the_same_scores_and_gradients() {
         &split,
         "--kind",
         "classifier",
+        "--chunk-len",
+        "16",
         "--config",
         lowdim.to_str().unwrap(),
         "--action-scale",
@@ -89,7 +91,17 @@ fn every_client_gives_the_same_scores_and_gradients() {
     f.batch_size = 256;
     let features = dir.path().join("features.json");
     std::fs::write(&features, serde_json::to_string(&f).unwrap()).unwrap();
-    t.ok(&["train", "--split", &split, "--kind", "q", "--config", features.to_str().unwrap()]);
+    t.ok(&[
+        "train",
+        "--split",
+        &split,
+        "--kind",
+        "q",
+        "--chunk-len",
+        "16",
+        "--config",
+        features.to_str().unwrap(),
+    ]);
 
     // A verifier that sees through a layer: every episode gets a per-step "encoder feature"
     // (a fixed nonlinear projection of its observation, standing in for a policy's image
@@ -144,6 +156,8 @@ fn every_client_gives_the_same_scores_and_gradients() {
         &layer_split,
         "--kind",
         "classifier",
+        "--chunk-len",
+        "16",
         "--config",
         features_c.to_str().unwrap(),
         "--obs-keys",

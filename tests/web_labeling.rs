@@ -411,7 +411,7 @@ fn scoreboard_page_in_headless_chromium() {
     // the page's verifier column and calibration plot show.
     let split = t.json(&["split", "create", "--policy", "synth", "--checkpoint", "c1", "--json"]);
     let cfg = dir.path().join("train.json");
-    std::fs::write(&cfg, r#"{"epochs": 3}"#).unwrap();
+    std::fs::write(&cfg, r#"{"epochs": 3, "chunk_len": 16}"#).unwrap();
     t.ok(&[
         "train",
         "--split",

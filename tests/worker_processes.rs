@@ -119,7 +119,7 @@ fn two_worker_processes_on_postgres_run_each_job_once_and_retry_a_killed_workers
     let mut job_ids = Vec::new();
     for i in 0..JOBS {
         let spec = json!({
-            "split_id": split_id, "kind": "classifier", "policy": "pol", "checkpoint": "c1",
+            "split_id": split_id, "kind": "classifier", "policy": "pol", "checkpoint": "c1", "chunk_len": 16,
             "config": {"epochs": EPOCHS, "batch_size": 64, "seed": i},
         });
         job_ids.push(rt.block_on(store.create_job("train", &spec, "test")).unwrap().id);

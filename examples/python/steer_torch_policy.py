@@ -114,7 +114,8 @@ class Api:
             return json.loads(r.read())
 
 
-def train_verifier_through_the_api(bin_: Path, data_dir: Path, epochs: int, max_speed: float) -> ufops.Verifier:
+def train_verifier_through_the_api(bin_: Path, data_dir: Path, epochs: int, max_speed: float,
+                                   chunk_len: int) -> ufops.Verifier:
     run = lambda *a: subprocess.run([str(bin_), "--data-dir", str(data_dir), *a], check=True,  # noqa: E731
                                     capture_output=True, text=True).stdout
     token = json.loads(run("token", "create", "--name", "example", "--role", "trainer", "--json"))["token"]
@@ -135,7 +136,8 @@ def train_verifier_through_the_api(bin_: Path, data_dir: Path, epochs: int, max_
         split = api.call("POST", "/v1/splits", {"policy": POLICY, "checkpoint": CHECKPOINT, "seed": 0})
         log(f"split {split['id']}: {split['train_episodes']} train / {split['val_episodes']} val episodes")
         config = {"epochs": epochs, "action_space": {"space": "policy", "scale": [max_speed] * 2, "offset": [0.0, 0.0]}}
-        job = api.call("POST", "/v1/jobs", {"split_id": split["id"], "kind": "classifier", "config": config})
+        job = api.call("POST", "/v1/jobs", {"split_id": split["id"], "kind": "classifier", "chunk_len": chunk_len,
+                                        "config": config})
         log(f"job {job['id']} queued; `ufops worker` trains it")
         t0 = time.time()
         while job["state"] in ("queued", "running"):
@@ -190,7 +192,7 @@ def main() -> int:
     log(f"2. {len(train_eps)} rollouts ({sum(e.success for e in train_eps)} successes) ingested: "
         f"{out.stdout.strip().splitlines()[-1] if out.stdout.strip() else 'ok'}")
 
-    v = train_verifier_through_the_api(bin_, data_dir, 40 if a.quick else 200, cfg.max_speed)
+    v = train_verifier_through_the_api(bin_, data_dir, 40 if a.quick else 200, cfg.max_speed, policy.horizon)
     log(f"3. verifier {v.id} ({v.kind}, obs {v.obs_dim}, chunk {v.chunk_len} x {v.action_dim}) pulled from the API")
     assert v.chunk_len == policy.horizon and v.takes_policy_space
 

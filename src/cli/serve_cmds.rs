@@ -87,7 +87,7 @@ pub fn ingest_options(a: &IngestArgs) -> Result<ingest::IngestOptions> {
 }
 
 pub async fn ingest(args: &StoreArgs, a: IngestArgs) -> Result<()> {
-    let store = args.open().await?;
+    let store = args.open_or_create().await?;
     let opts = ingest_options(&a)?;
     let r = ingest::ingest(&store, &a.path, &opts).await?;
     if a.json {
@@ -127,13 +127,27 @@ pub struct Runner;
 
 fn train_spec(spec: &serde_json::Value) -> Result<trainer::TrainJobSpec, String> {
     let mut v = spec.clone();
+    let mut recipe = None;
     if let Some(o) = v.as_object_mut() {
         // The API records the split's policy/checkpoint for display; the split decides them.
         o.remove("policy");
         o.remove("checkpoint");
         o.retain(|_, x| !x.is_null());
+        // `config` is a recipe like a `--config` file: it may carry the input spec too.
+        recipe = o.remove("config");
     }
-    serde_json::from_value(v).map_err(|e| format!("bad training job spec: {e}"))
+    let mut spec: trainer::TrainJobSpec =
+        serde_json::from_value(v).map_err(|e| format!("bad training job spec: {e}"))?;
+    if let Some(recipe) = recipe {
+        let (config, input) = trainer::TrainConfig::from_recipe(recipe)
+            .map_err(|e| format!("bad training job config: {e:#}"))?;
+        spec.config = Some(config);
+        spec.obs_keys = spec.obs_keys.or(input.obs_keys);
+        spec.obs_history = spec.obs_history.or(input.obs_history);
+        spec.chunk_len = spec.chunk_len.or(input.chunk_len);
+        spec.step_stride = spec.step_stride.or(input.step_stride);
+    }
+    Ok(spec)
 }
 
 impl api::JobRunner for Runner {
@@ -302,7 +316,7 @@ async fn shutdown_signal() {
 }
 
 pub async fn serve(args: &StoreArgs, a: ServeArgs) -> Result<()> {
-    let store = args.open().await?;
+    let store = args.open_or_create().await?;
     let mut cfg = api::ServeConfig::new(&args.data_dir);
     cfg.addr = a.addr;
     cfg.run_worker_in_process = !a.no_worker;
@@ -318,7 +332,7 @@ pub async fn serve(args: &StoreArgs, a: ServeArgs) -> Result<()> {
 }
 
 pub async fn worker(args: &StoreArgs, id: Option<String>, lease_ms: i64) -> Result<()> {
-    let store = args.open().await?;
+    let store = args.open_or_create().await?;
     let id = id.unwrap_or_else(|| api::worker_identity("worker"));
     eprintln!("worker {id}: claiming jobs from {}", store.describe());
     api::run_worker(store, Arc::new(Runner), id, lease_ms, shutdown_signal()).await;

@@ -282,6 +282,8 @@ pub fn lift_with_classifier(t: &Target) -> (&'static str, usize) {
         split["id"].as_str().unwrap(),
         "--kind",
         "classifier",
+        "--chunk-len",
+        "16",
         "--config",
         cfg.to_str().unwrap(),
     ]);

@@ -179,14 +179,14 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
         ),
         (Some(stored), _) => stored,
         (None, Some(given)) => given,
-        (None, None) => {
-            tracing::warn!(
-                "the episodes of split {} store no action chunks and no chunk length was given: using the paper's 16; \
-                 give the policy's chunk length (--chunk-len, or chunk_len in the recipe)",
-                split.id
-            );
-            16
-        }
+        // A guess here (the paper's 16) trained verifiers over chunks straddling the policy's own,
+        // found only when scoring: the policy's chunk length is asked for instead.
+        (None, None) => bail!(
+            "the episodes of split {} store no action chunks, so the verifier's chunk length is unknown: give the \
+             policy's chunk length, the number of actions it executes per prediction (--chunk-len N, or chunk_len \
+             in the recipe file; 1 for a policy that acts one step at a time)",
+            split.id
+        ),
     };
     if let Some(stride) = spec.step_stride.filter(|s| *s > 1 && *s != chunk_len) {
         tracing::warn!("step_stride {stride} differs from the chunk length {chunk_len}: a chunking policy re-plans every chunk");

@@ -165,11 +165,17 @@ impl TrainConfig {
     pub fn from_recipe_file(path: &Path) -> Result<(Self, RecipeInput)> {
         let s = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
         let is_toml = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("toml"));
-        let mut v: serde_json::Value = if is_toml {
+        let v: serde_json::Value = if is_toml {
             toml::from_str(&s).with_context(|| format!("parsing {}", path.display()))?
         } else {
             serde_json::from_str(&s).with_context(|| format!("parsing {}", path.display()))?
         };
+        Self::from_recipe(v).with_context(|| format!("in {}", path.display()))
+    }
+
+    /// A recipe as a JSON value (a file's contents, or a training job's `config`): the training
+    /// config plus the input spec keys at its top level.
+    pub fn from_recipe(mut v: serde_json::Value) -> Result<(Self, RecipeInput)> {
         let mut input = serde_json::Map::new();
         if let Some(obj) = v.as_object_mut() {
             for key in RecipeInput::KEYS {
@@ -178,10 +184,9 @@ impl TrainConfig {
                 }
             }
         }
-        let input: RecipeInput = serde_json::from_value(serde_json::Value::Object(input))
-            .with_context(|| format!("parsing the input spec of {}", path.display()))?;
-        let c: TrainConfig =
-            serde_json::from_value(v).with_context(|| format!("parsing {}", path.display()))?;
+        let input: RecipeInput =
+            serde_json::from_value(serde_json::Value::Object(input)).context("parsing the input spec")?;
+        let c: TrainConfig = serde_json::from_value(v).context("parsing the training config")?;
         c.validate()?;
         Ok((c, input))
     }

@@ -25,13 +25,31 @@ pub struct JobCreate {
     /// Verifier kind.
     #[schema(value_type = VerifierKind)]
     kind: String,
-    /// Training configuration (hyper-parameters), passed to the trainer.
+    /// Training recipe (hyper-parameters; missing ones take the paper's), passed to the trainer. It
+    /// may also carry the input spec below, as a `--config` file does; the fields below win.
     #[serde(default)]
     #[schema(value_type = Object)]
     config: Value,
+    /// Observation keys in order: observation columns and layers (default: every observation
+    /// column of the split's first episode, in the source's order).
+    #[serde(default)]
+    obs_keys: Option<Vec<String>>,
+    /// Observation history `T_o` (default 2).
+    #[serde(default)]
+    #[schema(minimum = 1)]
+    obs_history: Option<u32>,
+    /// The policy's action chunk length `H`: required unless the episodes store action chunks.
+    #[serde(default)]
+    #[schema(minimum = 1)]
+    chunk_len: Option<u32>,
+    /// Train on steps `t % step_stride == 0` (default 1).
+    #[serde(default)]
+    #[schema(minimum = 1)]
+    step_stride: Option<u32>,
 }
 
-/// Queues a training job; the job's spec is `{split_id, kind, config, policy, checkpoint}`.
+/// Queues a training job; the job's spec is `{split_id, kind, config, obs_keys, obs_history,
+/// chunk_len, step_stride, policy, checkpoint}` (the input spec fields only when given).
 #[utoipa::path(post, path = "/v1/jobs", tag = "jobs", request_body = JobCreate,
     responses((status = 201, description = "the queued job", body = store::JobRecord),
               (status = 403, description = "the token's role is below trainer"), (status = 404, description = "no such split")))]
@@ -51,10 +69,21 @@ pub async fn create_job(
         _ => return Err(ApiError::bad_request("config must be a JSON object")),
     };
     let split = s.store().split(&b.split_id).await?;
-    let spec = json!({
+    let mut spec = json!({
         "split_id": split.id, "kind": b.kind, "config": config,
         "policy": split.policy, "checkpoint": split.checkpoint,
     });
+    let input = [
+        ("obs_keys", b.obs_keys.map(|k| json!(k))),
+        ("obs_history", b.obs_history.map(|n| json!(n))),
+        ("chunk_len", b.chunk_len.map(|n| json!(n))),
+        ("step_stride", b.step_stride.map(|n| json!(n))),
+    ];
+    for (key, value) in input {
+        if let Some(v) = value {
+            spec[key] = v;
+        }
+    }
     let job = s.store().create_job("train", &spec, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(job)))
 }

@@ -80,7 +80,8 @@ def test_write_read_train_and_refuse(layered: Ufops, tmp_path: Path) -> None:
     config = tmp_path / "features.json"
     config.write_text(json.dumps(FEATURES_CONFIG))
     art = layered.json(
-        "train", "--split", split, "--kind", "classifier", "--config", str(config), "--obs-keys", LAYER, "--json"
+        "train", "--split", split, "--kind", "classifier", "--chunk-len", "16", "--config", str(config), "--obs-keys", LAYER,
+        "--json"
     )
     v = ufops.Verifier.from_store(s, art["id"])
     assert v.required_producers == {LAYER: first["producer_hash"]}
@@ -106,7 +107,8 @@ def test_camera_observation_encodes_once_and_refuses_another_encoder(layered: Uf
     config = tmp_path / "features.json"
     config.write_text(json.dumps({**FEATURES_CONFIG, "obs_history": 2}))
     art = layered.json(
-        "train", "--split", split, "--kind", "classifier", "--config", str(config), "--obs-keys", LAYER, "--json"
+        "train", "--split", split, "--kind", "classifier", "--chunk-len", "16", "--config", str(config), "--obs-keys", LAYER,
+        "--json"
     )
     v = ufops.Verifier.from_store(s, art["id"])
     right = s.producer_hash(PRODUCER)
