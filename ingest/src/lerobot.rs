@@ -28,7 +28,6 @@ use crate::options::ReadOptions;
 use crate::sink::{EpisodeSink, SourceMeta};
 
 const LABEL_SOURCE: &str = "lerobot:next.success";
-const DEFAULT_FEATURES: &[&str] = &["timestamp", "frame_index", "episode_index", "index", "task_index"];
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct Feature {
@@ -61,6 +60,39 @@ impl Info {
     fn video_keys(&self) -> Vec<&Feature> {
         self.features.iter().filter(|f| f.dtype == "video").collect()
     }
+}
+
+/// The keys of info.json's `features` object in the order the file lists them (empty when the
+/// file does not parse; [`parse_info`] reports that).
+fn feature_order(bytes: &[u8]) -> Vec<String> {
+    struct Keys(Vec<String>);
+    impl<'de> serde::Deserialize<'de> for Keys {
+        fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+            struct Visit;
+            impl<'de> serde::de::Visitor<'de> for Visit {
+                type Value = Keys;
+                fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                    f.write_str("a JSON object")
+                }
+                fn visit_map<A: serde::de::MapAccess<'de>>(
+                    self,
+                    mut map: A,
+                ) -> std::result::Result<Keys, A::Error> {
+                    let mut keys = Vec::new();
+                    while let Some((k, _)) = map.next_entry::<String, serde::de::IgnoredAny>()? {
+                        keys.push(k);
+                    }
+                    Ok(Keys(keys))
+                }
+            }
+            d.deserialize_map(Visit)
+        }
+    }
+    #[derive(serde::Deserialize)]
+    struct Info {
+        features: Keys,
+    }
+    serde_json::from_slice::<Info>(bytes).map(|i| i.features.0).unwrap_or_default()
 }
 
 /// Parses `meta/info.json`.
@@ -110,6 +142,10 @@ pub fn parse_info(path: &Path, bytes: &[u8]) -> Result<Info> {
             names: f.get("names").cloned().unwrap_or(Value::Null),
         });
     }
+    // serde_json's map sorts keys; the file's order is the dataset's own (state before
+    // environment state, say), which the store keeps and default verifier inputs follow.
+    let order = feature_order(bytes);
+    features.sort_by_key(|f| order.iter().position(|k| *k == f.key).unwrap_or(usize::MAX));
     let v3 = codebase_version.starts_with("v3");
     let data_path = obj.get("data_path").and_then(|v| v.as_str()).map(str::to_string).unwrap_or_else(|| {
         if v3 {
@@ -1167,7 +1203,20 @@ const DEFAULT_INFO: &str = r#"{"codebase_version":"v3.0","fps":10,"features":{
  "next.reward":{"dtype":"float32","shape":[1]},"next.success":{"dtype":"bool","shape":[1]},
  "next.done":{"dtype":"bool","shape":[1]},"timestamp":{"dtype":"float32","shape":[1]}}}"#;
 
-#[allow(dead_code)]
-fn _unused() -> &'static [&'static str] {
-    DEFAULT_FEATURES
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn observations_keep_the_order_info_json_lists_them_in() {
+        let info = br#"{"codebase_version":"v3.0","fps":10,"features":{
+            "observation.state":{"dtype":"float32","shape":[7]},
+            "observation.environment_state":{"dtype":"float32","shape":[3]},
+            "action":{"dtype":"float32","shape":[7]},
+            "observation.arm_effort":{"dtype":"float32","shape":[7]}}}"#;
+        let info = parse_info(Path::new("meta/info.json"), info).unwrap();
+        let plan = plan(&info);
+        let names: Vec<&str> = plan.observations.iter().map(|(_, n)| n.as_str()).collect();
+        assert_eq!(names, ["state", "environment_state", "arm_effort"]);
+    }
 }
