@@ -20,11 +20,26 @@ fn main() {
         }
     };
     if let Err(e) = rt.block_on(cli::run(args)) {
-        // One clear line: the chain of causes, outermost first.
-        let msg = e.chain().map(|c| c.to_string()).collect::<Vec<_>>().join(": ");
-        eprintln!("error: {msg}");
+        eprintln!("error: {}", one_line(&e));
         std::process::exit(1);
     }
+}
+
+/// An error as one clear line: its chain of causes, outermost first, leaving out a cause whose
+/// text the line already holds (an error that prints its source, such as an I/O error naming its
+/// file, would otherwise repeat `No such file or directory (os error 2)`).
+fn one_line(e: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in e.chain().map(|c| c.to_string()) {
+        if line.contains(&cause) {
+            continue;
+        }
+        if !line.is_empty() {
+            line.push_str(": ");
+        }
+        line.push_str(&cause);
+    }
+    line
 }
 
 /// Rust ignores SIGPIPE, so printing to a closed pipe (`ufops episodes | head`) panics. A

@@ -1,5 +1,6 @@
 //! The command line behaves in a pipeline: a listing whose reader has gone (`ufops episodes | head`)
-//! ends quietly instead of panicking on the broken pipe.
+//! ends quietly instead of panicking on the broken pipe. And a newcomer's first mistakes get one
+//! clear line each: no store where a read command looks, a missing file, an empty store.
 
 mod common;
 use common::*;
@@ -29,3 +30,44 @@ fn listing_into_a_closed_pipe_ends_quietly() {
 
 /// SIGPIPE's number on Linux.
 const SIGPIPE: i32 = 13;
+
+fn failure(t: &Target, args: &[&str]) -> String {
+    let out = t.run(args);
+    assert!(!out.status.success(), "ufops {args:?} should fail");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+#[test]
+fn a_read_command_without_a_store_says_how_to_make_one_and_creates_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = Target::sqlite(&dir.path().join("ufops-data"));
+    for args in [&["episodes"][..], &["versions"], &["scoreboard", "--policy", "p"], &["layers"]] {
+        let err = failure(&t, args);
+        assert!(err.contains("no store at") && err.contains("ufops init"), "{args:?}: {err}");
+    }
+    assert!(!t.data_dir.exists(), "a read command created {}", t.data_dir.display());
+    t.ok(&["init"]);
+    assert!(t.ok(&["episodes", "--json"]).trim().starts_with('['));
+}
+
+#[test]
+fn a_missing_file_is_named_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = Target::sqlite(dir.path());
+    t.ok(&["init"]);
+    let missing = dir.path().join("nope.hdf5");
+    let err = failure(&t, &["ingest", missing.to_str().unwrap(), "--policy", "p", "--checkpoint", "c"]);
+    assert!(err.contains("nope.hdf5"), "{err}");
+    assert_eq!(err.matches("os error 2").count(), 1, "the OS error is said once: {err}");
+    assert_eq!(err.lines().count(), 1, "{err}");
+}
+
+#[test]
+fn a_split_of_an_empty_store_says_what_is_missing() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = Target::sqlite(dir.path());
+    t.ok(&["init"]);
+    let err = failure(&t, &["split", "create", "--policy", "nope", "--checkpoint", "c1"]);
+    assert!(err.contains("the store is empty") && err.contains("ufops ingest"), "{err}");
+    assert!(!err.contains("version not found"), "{err}");
+}

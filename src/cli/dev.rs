@@ -51,7 +51,7 @@ pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
             steering,
             run_artifact,
         } => {
-            let store = args.open().await?;
+            let store = args.open_or_create().await?;
             let run = super::serve_cmds::run_input(
                 run.as_deref(),
                 steering.as_deref(),

@@ -48,7 +48,23 @@ impl StoreArgs {
             object_store_url: self.object_store.clone(),
         }
     }
+    /// Opens the store, which must exist: a command run in the wrong directory says so instead of
+    /// creating an empty store there.
     pub async fn open(&self) -> Result<store::Store> {
+        if self.database_url.is_none() && !self.data_dir.join("catalog.sqlite").is_file() {
+            anyhow::bail!(
+                "no store at {} (it has no catalog.sqlite): create one with `ufops init`, or point to yours with \
+                 --data-dir DIR (or UFOPS_DATA_DIR; --database-url for Postgres)",
+                self.data_dir.display()
+            );
+        }
+        self.open_or_create().await
+    }
+
+    /// Opens the store, creating it (and applying migrations) when there is none: `init`, `demo`
+    /// and the commands that write what a new store starts with (`ingest`, `dev synth`) or wait
+    /// for it (`serve`, `worker`).
+    pub async fn open_or_create(&self) -> Result<store::Store> {
         Ok(store::Store::open(&self.config()).await?)
     }
 }

@@ -26,8 +26,9 @@ pub struct TrainArgs {
     /// Observation history T_o (default 2, the paper's).
     #[arg(long)]
     pub obs_history: Option<usize>,
-    /// The policy's action chunk length H. Default: the length of the chunks the episodes store
-    /// (`action_chunk`; giving another length is an error), else 16 (the paper's) with a warning.
+    /// The policy's action chunk length H (actions executed per prediction; 1 for a policy that
+    /// acts step by step). Default: the length of the chunks the episodes store (`action_chunk`;
+    /// giving another length is an error); required when they store none.
     #[arg(long)]
     pub chunk_len: Option<usize>,
     /// Train only on steps t with t % STRIDE == 0 (where a chunking policy re-planned; usually
@@ -198,7 +199,7 @@ pub async fn demo(
     lambdas: Option<Vec<f32>>,
     ablation: Option<Vec<usize>>,
 ) -> Result<()> {
-    let store = args.open().await?;
+    let store = args.open_or_create().await?;
     let out = args.data_dir.join("demo");
     let mut cfg = if quick { demo::DemoConfig::quick(&out) } else { demo::DemoConfig::full(&out) };
     if let Some(l) = lambdas {

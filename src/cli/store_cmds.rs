@@ -5,7 +5,7 @@ use anyhow::{Context, Result};
 use store::{EpisodeFilter, Label, LabelUpdate};
 
 pub async fn init(args: &StoreArgs) -> Result<()> {
-    let store = args.open().await?;
+    let store = args.open_or_create().await?;
     println!("store ready ({}), head version {}", store.describe(), store.head_version().await?);
     Ok(())
 }

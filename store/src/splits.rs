@@ -106,6 +106,14 @@ impl Store {
                 }
             }
         };
+        if version == 0 {
+            // Version 0 is the empty store before its first write: nothing to split yet.
+            return Err(StoreError::Conflict(format!(
+                "the store is empty (no version yet), so {}/{} has no episodes to split: ingest its rollouts first \
+                 (`ufops ingest PATH --policy {} --checkpoint {}`)",
+                req.policy, req.checkpoint, req.policy, req.checkpoint
+            )));
+        }
         let (mode, sources) = if req.off_policy_from.is_empty() {
             ("on_policy", vec![(req.policy.clone(), req.checkpoint.clone())])
         } else {
