@@ -6,12 +6,14 @@
 
 use crate::steps::{IMAGE_PREFIX, MEDIA_PREFIX};
 use crate::{Store, StoreError};
-use arrow::array::{Array, BinaryArray, LargeBinaryArray};
+use arrow::array::{Array, ArrayRef, BinaryArray, LargeBinaryArray};
 use arrow::datatypes::Schema;
 use parquet::arrow::arrow_reader::{RowSelection, RowSelectionPolicy, RowSelector};
 use parquet::arrow::push_decoder::ParquetPushDecoderBuilder;
 use parquet::arrow::ProjectionMask;
 use parquet::DecodeResult;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
 
 /// How a camera's frames are stored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -137,7 +139,9 @@ impl Store {
         self.read_frame_at(&at, camera).await
     }
 
-    /// The PNG at a located frame.
+    /// The PNG at a located frame. The page holding it is decoded once and kept in a small cache
+    /// (the labeling page asks for neighbouring steps one after the other: a page of 84×84 PNGs
+    /// holds dozens of them).
     pub async fn read_frame_at(&self, at: &FrameLocation, camera: &str) -> Result<bytes::Bytes, StoreError> {
         let fm = self.file_meta(&at.data_file).await?;
         let corrupt = |why: String| StoreError::Corrupt(format!("steps file {}: {why}", at.data_file));
@@ -159,41 +163,163 @@ impl Store {
             .schema()
             .index_of(&column)
             .map_err(|_| StoreError::not_found("camera", format!("{camera:?} (an image column)")))?;
-        let mut selectors = Vec::with_capacity(3);
-        if at.row > 0 {
-            selectors.push(RowSelector::skip(at.row));
+        // The rows of the page holding the frame (its leaf column's offset index), else the row alone.
+        let parquet = fm.meta.parquet_schema();
+        let leaf = (0..parquet.num_columns()).find(|&c| parquet.get_column_root_idx(c) == root);
+        let pages = leaf.and_then(|c| Some(md.offset_index()?.get(at.row_group)?.get(c)?.page_locations()));
+        let (first, end) = match pages {
+            Some(pages) if !pages.is_empty() => {
+                let k = pages.partition_point(|p| p.first_row_index as usize <= at.row).max(1) - 1;
+                let first = (pages[k].first_row_index.max(0) as usize).min(at.row);
+                let end =
+                    pages.get(k + 1).map_or(rg_rows, |p| (p.first_row_index.max(0) as usize).min(rg_rows));
+                (first, end.max(at.row + 1))
+            }
+            _ => (at.row, at.row + 1),
+        };
+        let key = (at.data_file.clone(), at.row_group, root, first);
+        let cell = self.inner.frame_pages.cell(&key);
+        let mut fresh = false;
+        let rows = cell
+            .get_or_try_init(|| async {
+                fresh = true;
+                self.decode_rows(&fm, &at.data_file, at.row_group, root, first, end - first).await
+            })
+            .await?
+            .clone();
+        if fresh {
+            self.inner.frame_pages.loaded(&key, rows.get_array_memory_size());
         }
-        selectors.push(RowSelector::select(1));
-        if at.row + 1 < rg_rows {
-            selectors.push(RowSelector::skip(rg_rows - at.row - 1));
+        let i = at.row - first;
+        let value = if let Some(a) = rows.as_any().downcast_ref::<BinaryArray>() {
+            (i < a.len() && a.is_valid(i)).then(|| bytes::Bytes::copy_from_slice(a.value(i)))
+        } else if let Some(a) = rows.as_any().downcast_ref::<LargeBinaryArray>() {
+            (i < a.len() && a.is_valid(i)).then(|| bytes::Bytes::copy_from_slice(a.value(i)))
+        } else {
+            return Err(corrupt(format!("{column} is {}, not binary", rows.data_type())));
+        };
+        value.ok_or_else(|| corrupt(format!("{column} has no frame at row {}", at.row)))
+    }
+
+    /// Rows `first..first + count` of one root column of a row group.
+    async fn decode_rows(
+        &self,
+        fm: &crate::read::FileMeta,
+        file: &str,
+        row_group: usize,
+        root: usize,
+        first: usize,
+        count: usize,
+    ) -> Result<ArrayRef, StoreError> {
+        let rg_rows = fm.meta.metadata().row_group(row_group).num_rows().max(0) as usize;
+        let mut selectors = Vec::with_capacity(3);
+        if first > 0 {
+            selectors.push(RowSelector::skip(first));
+        }
+        selectors.push(RowSelector::select(count));
+        if first + count < rg_rows {
+            selectors.push(RowSelector::skip(rg_rows - first - count));
         }
         let mut decoder = ParquetPushDecoderBuilder::new_with_metadata(fm.meta.clone())
-            .with_row_groups(vec![at.row_group])
+            .with_row_groups(vec![row_group])
             .with_projection(ProjectionMask::roots(fm.meta.parquet_schema(), [root]))
             .with_row_selection(RowSelection::from(selectors))
             .with_row_selection_policy(RowSelectionPolicy::Selectors)
-            .with_batch_size(1)
+            .with_batch_size(count.max(1))
             .build()?;
+        let mut parts: Vec<ArrayRef> = Vec::new();
         loop {
             match decoder.try_decode()? {
                 DecodeResult::NeedsData(ranges) => {
-                    let data = fm.fetch(self, &at.data_file, &ranges).await?;
+                    let data = fm.fetch(self, file, &ranges).await?;
                     decoder.push_ranges(ranges, data)?;
                 }
-                DecodeResult::Data(batch) => {
-                    let col = batch.column(0);
-                    let value = if let Some(a) = col.as_any().downcast_ref::<BinaryArray>() {
-                        (!a.is_empty() && a.is_valid(0)).then(|| bytes::Bytes::copy_from_slice(a.value(0)))
-                    } else if let Some(a) = col.as_any().downcast_ref::<LargeBinaryArray>() {
-                        (!a.is_empty() && a.is_valid(0)).then(|| bytes::Bytes::copy_from_slice(a.value(0)))
-                    } else {
-                        return Err(corrupt(format!("{column} is {}, not binary", col.data_type())));
-                    };
-                    return value.ok_or_else(|| corrupt(format!("{column} has no frame at row {}", at.row)));
-                }
-                DecodeResult::Finished => {
-                    return Err(corrupt(format!("{column}: row {} not decoded", at.row)))
-                }
+                DecodeResult::Data(batch) => parts.push(batch.column(0).clone()),
+                DecodeResult::Finished => break,
+            }
+        }
+        let refs: Vec<&dyn Array> = parts.iter().map(|a| a.as_ref()).collect();
+        let rows = match refs.len() {
+            1 => parts.pop().expect("one part"),
+            _ => arrow::compute::concat(&refs)?,
+        };
+        if rows.len() != count {
+            return Err(StoreError::Corrupt(format!(
+                "steps file {file}: read {} rows of row group {row_group}, expected {count}",
+                rows.len()
+            )));
+        }
+        Ok(rows)
+    }
+}
+
+/// Decoded pages of image columns, by `(steps file, row group, column, first row)`: objects are
+/// immutable, so an entry never goes stale; least recently used dropped first past a byte budget.
+/// Concurrent readers of one page share one fetch.
+pub(crate) struct PageCache {
+    state: Mutex<PageState>,
+    budget: usize,
+}
+
+type PageKey = (String, usize, usize, usize);
+
+#[derive(Default)]
+struct PageState {
+    entries: HashMap<PageKey, PageEntry>,
+    tick: u64,
+    bytes: usize,
+}
+
+struct PageEntry {
+    cell: Arc<tokio::sync::OnceCell<ArrayRef>>,
+    last_used: u64,
+    size: usize,
+}
+
+/// Bytes of decoded pages kept (a page holds at most [`crate::steps::PAGE_MAX_BYTES`] of
+/// frames, so this is a few dozen pages: every camera of the episodes being labeled).
+const PAGE_CACHE_BYTES: usize = 64 << 20;
+
+impl Default for PageCache {
+    fn default() -> Self {
+        PageCache { state: Mutex::new(PageState::default()), budget: PAGE_CACHE_BYTES }
+    }
+}
+
+impl PageCache {
+    fn cell(&self, key: &PageKey) -> Arc<tokio::sync::OnceCell<ArrayRef>> {
+        let mut st = self.state.lock().unwrap_or_else(|p| p.into_inner());
+        st.tick += 1;
+        let tick = st.tick;
+        let e = st.entries.entry(key.clone()).or_insert_with(|| PageEntry {
+            cell: Arc::new(tokio::sync::OnceCell::new()),
+            last_used: tick,
+            size: 0,
+        });
+        e.last_used = tick;
+        e.cell.clone()
+    }
+
+    /// Records a freshly decoded page's size and evicts the least recently used ones.
+    fn loaded(&self, key: &PageKey, size: usize) {
+        let mut st = self.state.lock().unwrap_or_else(|p| p.into_inner());
+        match st.entries.get_mut(key) {
+            Some(e) if e.size == 0 => e.size = size,
+            _ => return,
+        }
+        st.bytes += size;
+        while st.bytes > self.budget && st.entries.len() > 1 {
+            let Some(victim) = st
+                .entries
+                .iter()
+                .filter(|(k, e)| *k != key && e.size > 0)
+                .min_by_key(|(_, e)| e.last_used)
+                .map(|(k, _)| k.clone())
+            else {
+                break;
+            };
+            if let Some(e) = st.entries.remove(&victim) {
+                st.bytes -= e.size;
             }
         }
     }
@@ -204,10 +330,16 @@ mod tests {
     use crate::*;
 
     fn png_of(i: u32, t: usize) -> Vec<u8> {
-        // Not a real PNG: the store keeps the bytes as they are. Large enough that an episode's
-        // frames fill several pages.
+        // Not a real PNG: the store keeps the bytes as they are. Incompressible, and large enough
+        // that an episode's frames fill several pages (about 20 frames a page).
         let mut b = format!("\u{89}PNG frame {i}/{t} ").into_bytes();
-        b.resize(50_000 + t * 13, (t % 251) as u8);
+        let mut x = (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ t as u64;
+        while b.len() < 50_000 + t * 13 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            b.push(x as u8);
+        }
         b
     }
 
@@ -257,6 +389,17 @@ mod tests {
             store.read_frame(&e.id, None, "eye_in_hand_image", 119).await.unwrap(),
             png_of(i + 100, 119)
         );
+        // Neighbouring steps come from the page already decoded: 31 frames, a few pages fetched.
+        let before = store.fetch_counts();
+        for t in 60..=90usize {
+            assert_eq!(
+                store.read_frame(&e.id, None, "agentview_image", t as u64).await.unwrap(),
+                png_of(i, t)
+            );
+        }
+        let run = store.fetch_counts().since(before);
+        assert!(run.get_requests <= 3, "31 neighbouring frames: {run:?}");
+        assert!(run.bytes_fetched < 4 * crate::steps::PAGE_MAX_BYTES as u64, "{run:?}");
         let v = Some(eps[2].version_added);
         assert_eq!(
             store.read_frame(&eps[2].id, v, "agentview_image", 0).await.unwrap(),

@@ -93,6 +93,8 @@ struct Inner {
     data_dir: PathBuf,
     /// Steps files' footers and offset indexes, fetched once per file.
     meta_cache: read::MetaCache,
+    /// Decoded pages of image columns (frames served one at a time).
+    frame_pages: frames::PageCache,
 }
 
 impl Store {
@@ -110,7 +112,16 @@ impl Store {
         let db = catalog::Catalog::connect(&url).await?;
         let objects = objects::Objects::open(config)?;
         let meta_cache = read::MetaCache::default();
-        Ok(Store { inner: Arc::new(Inner { db, objects, data_dir: config.data_dir.clone(), meta_cache }) })
+        let frame_pages = frames::PageCache::default();
+        Ok(Store {
+            inner: Arc::new(Inner {
+                db,
+                objects,
+                data_dir: config.data_dir.clone(),
+                meta_cache,
+                frame_pages,
+            }),
+        })
     }
 
     pub fn backend(&self) -> Backend {
