@@ -118,12 +118,12 @@ fn verifier_loads_over_http_like_from_the_store() {
         (
             "ufops score",
             floats(&a["scores"]),
-            a["grads"].as_array().unwrap().iter().flat_map(|g| floats(g)).collect::<Vec<_>>(),
+            a["grads"].as_array().unwrap().iter().flat_map(&floats).collect::<Vec<_>>(),
         ),
         (
             "ufops score --api",
             floats(&b["scores"]),
-            b["grads"].as_array().unwrap().iter().flat_map(|g| floats(g)).collect(),
+            b["grads"].as_array().unwrap().iter().flat_map(floats).collect(),
         ),
         ("candle", candle.clone(), candle_grad.iter().flatten().copied().collect()),
     ] {

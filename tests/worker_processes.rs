@@ -24,9 +24,32 @@ fn now_ms() -> i64 {
     SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_millis() as i64).unwrap_or(0)
 }
 
-fn spawn_worker(target: &Target, id: &str, log: &Path) -> Child {
+/// A worker process, killed and reaped when dropped (a failing assertion leaves no process behind).
+struct Worker(Child);
+
+impl std::ops::Deref for Worker {
+    type Target = Child;
+    fn deref(&self) -> &Child {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for Worker {
+    fn deref_mut(&mut self) -> &mut Child {
+        &mut self.0
+    }
+}
+
+impl Drop for Worker {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn spawn_worker(target: &Target, id: &str, log: &Path) -> Worker {
     let file = std::fs::File::create(log).unwrap();
-    target
+    let child = target
         .command()
         .args(["worker", "--id", id, "--lease-ms", &LEASE_MS.to_string()])
         .env("UFOPS_LOG", "warn,api=info")
@@ -34,7 +57,8 @@ fn spawn_worker(target: &Target, id: &str, log: &Path) -> Child {
         .stdout(Stdio::null())
         .stderr(file)
         .spawn()
-        .expect("start ufops worker")
+        .expect("start ufops worker");
+    Worker(child)
 }
 
 /// `(event, job id, attempt)` of each `job started` / `job finished` line of a worker's log.
@@ -145,7 +169,7 @@ fn two_worker_processes_on_postgres_run_each_job_once_and_retry_a_killed_workers
             all.iter().find(|j| j.state == JobState::Running && j.worker.as_deref() == Some("worker-a"));
         if let (Some(j), true) = (held, a_done >= 1) {
             let since = *seen_running.entry(j.id.clone()).or_insert_with(Instant::now);
-            let early = epoch_of(j).map_or(true, |e| e < EPOCHS / 2);
+            let early = epoch_of(j).is_none_or(|e| e < EPOCHS / 2);
             if since.elapsed() > Duration::from_millis(300) && early {
                 a.kill().unwrap(); // SIGKILL: no cleanup, no more heartbeats
                 a.wait().unwrap();

@@ -27,7 +27,8 @@ pub struct Problem {
 #[derive(Debug)]
 pub struct ApiError {
     pub status: StatusCode,
-    pub problem: Problem,
+    /// Boxed: every handler's `Result` carries an `ApiError`, which stays one pointer wide.
+    pub problem: Box<Problem>,
     pub headers: Vec<(header::HeaderName, HeaderValue)>,
 }
 
@@ -35,13 +36,13 @@ impl ApiError {
     pub fn new(status: StatusCode, kind: &str, detail: impl Into<String>) -> Self {
         ApiError {
             status,
-            problem: Problem {
+            problem: Box::new(Problem {
                 kind: format!("urn:ufops:problem:{kind}"),
                 title: status.canonical_reason().unwrap_or("error").to_string(),
                 status: status.as_u16(),
                 detail: detail.into(),
                 extra: Default::default(),
-            },
+            }),
             headers: Vec::new(),
         }
     }

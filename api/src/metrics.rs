@@ -12,10 +12,12 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
 
+/// A request class: (method, route, status); the metrics keep (count, total seconds) per class.
+type RequestKey = (String, String, u16);
+
 #[derive(Default)]
 pub(crate) struct Metrics {
-    /// (method, route, status) → (count, total seconds)
-    requests: Mutex<BTreeMap<(String, String, u16), (u64, f64)>>,
+    requests: Mutex<BTreeMap<RequestKey, (u64, f64)>>,
     pub label_writes: AtomicU64,
     pub label_conflicts: AtomicU64,
     pub uploads_bytes: AtomicU64,

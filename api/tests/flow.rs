@@ -500,7 +500,7 @@ async fn image_camera_frames() {
     assert_eq!(r.bytes().await.unwrap().as_ref(), frame("agentview_image", 1, 0).as_slice());
 
     for (path, names) in [
-        (format!("/v1/episodes/nope-1/frames/agentview_image/0"), "episode"),
+        ("/v1/episodes/nope-1/frames/agentview_image/0".to_string(), "episode"),
         (format!("/v1/episodes/{}/frames/wrist/0", ids[0]), "camera"),
         (format!("/v1/episodes/{}/frames/agentview_image/7", ids[0]), "step"),
         (format!("/v1/episodes/{}/frames/agentview_image/99999999999999999999999", ids[0]), "step"),

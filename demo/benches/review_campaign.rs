@@ -101,7 +101,7 @@ fn main() -> Result<()> {
                 tr.push(pool[i].clone())
             }
         }
-        let keep = |t: u32| t % stride == 0;
+        let keep = |t: u32| t.is_multiple_of(stride);
         let trs = trainer::build_samples(&tr, &input, cfg.gamma)?.filter_steps(keep);
         let vas = trainer::build_samples(&va, &input, cfg.gamma)?.filter_steps(keep);
         let trained =

@@ -76,10 +76,10 @@ mod tests {
     #[test]
     fn kappa_matches_the_worked_example() {
         let mut pairs = Vec::new();
-        pairs.extend(std::iter::repeat(("yes", "yes")).take(20));
-        pairs.extend(std::iter::repeat(("yes", "no")).take(5));
-        pairs.extend(std::iter::repeat(("no", "yes")).take(10));
-        pairs.extend(std::iter::repeat(("no", "no")).take(15));
+        pairs.extend(std::iter::repeat_n(("yes", "yes"), 20));
+        pairs.extend(std::iter::repeat_n(("yes", "no"), 5));
+        pairs.extend(std::iter::repeat_n(("no", "yes"), 10));
+        pairs.extend(std::iter::repeat_n(("no", "no"), 15));
         assert_eq!(r3(cohen_kappa(&pairs).unwrap()), 0.4);
     }
 

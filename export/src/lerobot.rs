@@ -111,14 +111,12 @@ impl Stats {
             self.sum = vec![0.0; dim];
             self.sumsq = vec![0.0; dim];
         }
-        let mut k = 0;
-        for v in values {
+        for (k, v) in values.into_iter().enumerate() {
             let d = k % dim;
             self.min[d] = self.min[d].min(v);
             self.max[d] = self.max[d].max(v);
             self.sum[d] += v;
             self.sumsq[d] += v * v;
-            k += 1;
             if d + 1 == dim {
                 self.count += 1;
             }

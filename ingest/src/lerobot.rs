@@ -1009,7 +1009,7 @@ impl Ctx<'_> {
             Some(l) => l,
             // An episode whose `next.success` is null throughout is unlabeled.
             None if self.plan.has_success && b.success.iter().any(|s| s.is_some()) => {
-                (Label::from_bool(Some(b.success.iter().any(|&s| s == Some(true)))), LABEL_SOURCE.to_string())
+                (Label::from_bool(Some(b.success.contains(&Some(true)))), LABEL_SOURCE.to_string())
             }
             None => (Label::Unknown, String::new()),
         };

@@ -61,7 +61,7 @@ impl Src<'_> {
     /// What one dataset may declare: the file's size times [`MAX_DECLARED_RATIO`] (at least
     /// [`DECLARED_BYTES_FLOOR`]), never more than [`MAX_DATASET_BYTES`].
     pub(crate) fn max_dataset_bytes(&self) -> u64 {
-        self.file_len.saturating_mul(MAX_DECLARED_RATIO).max(DECLARED_BYTES_FLOOR).min(MAX_DATASET_BYTES)
+        self.file_len.saturating_mul(MAX_DECLARED_RATIO).clamp(DECLARED_BYTES_FLOOR, MAX_DATASET_BYTES)
     }
 }
 

@@ -1,6 +1,6 @@
 //! The 2-D navigation environment, vectorised over many episodes (struct of arrays).
 //!
-//! Unit box [0,1]^2. Start around `start` on the left, goal circle on the right, a vertical wall
+//! Unit box `[0,1]^2`. Start around `start` on the left, goal circle on the right, a vertical wall
 //! at `wall_x` (thickness 2 * `wall_half`) with a wide gap and a narrow gap. The action is a
 //! velocity (displacement per step), clipped to `max_speed` in norm. Touching the wall (the swept
 //! segment of a step intersects it) is a failure, entering the goal circle a success, and running

@@ -89,7 +89,7 @@ struct Mlp {
 impl Mlp {
     fn new(cfg: &PolicyConfig, rng: &mut ChaCha8Rng) -> Result<Self> {
         let mut dims = vec![cfg.obs_dim() + cfg.act_dim() + cfg.t_embed];
-        dims.extend(std::iter::repeat(cfg.hidden).take(cfg.depth));
+        dims.extend(std::iter::repeat_n(cfg.hidden, cfg.depth));
         dims.push(cfg.act_dim());
         let mut names = Vec::new();
         let mut vars = Vec::new();

@@ -83,7 +83,7 @@ pub fn rollout(
 ) -> Result<Vec<Episode>> {
     let pc = policy.config().clone();
     let mut env_rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut pol_rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0f_90_1c7);
+    let mut pol_rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed0f901c7);
     let mut env = NavEnv::new(env_cfg.clone(), n_episodes, true, &mut env_rng);
     let mut eps: Vec<Episode> = (0..n_episodes)
         .map(|i| Episode {

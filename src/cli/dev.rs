@@ -140,7 +140,7 @@ async fn verify(args: &StoreArgs) -> Result<()> {
             ));
         }
         let labels = store.get_object(&v.labels_path).await;
-        match labels.map(|b| parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(b)) {
+        match labels.map(parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new) {
             Ok(Ok(b)) if b.metadata().file_metadata().num_rows() == v.episode_count => {}
             _ => problems.push(format!(
                 "version {}: label snapshot {} unreadable or wrong size",

@@ -54,7 +54,7 @@ impl SelectionArgs {
 pub struct ExportArgs {
     /// The new dataset folder (lerobot, aloha) or .hdf5 file (robomimic); must not exist.
     pub out: PathBuf,
-    /// lerobot (v3.0) | robomimic | aloha (one episode_<i>.hdf5 per episode)
+    /// lerobot (v3.0) | robomimic | aloha (one `episode_<i>.hdf5` per episode)
     #[arg(long)]
     pub format: String,
     #[command(flatten)]

@@ -11,7 +11,7 @@ use std::sync::Arc;
 
 #[derive(clap::Args, Debug)]
 pub struct IngestArgs {
-    /// A robomimic .hdf5 file, an ALOHA episode_<i>.hdf5 file or folder of them, a LeRobot
+    /// A robomimic .hdf5 file, an ALOHA `episode_<i>.hdf5` file or folder of them, a LeRobot
     /// dataset folder, or an .mcap recording.
     pub path: PathBuf,
     #[arg(long)]
@@ -267,7 +267,7 @@ pub struct ServeArgs {
     /// Do not run jobs in this process (leave them to `ufops worker`).
     #[arg(long)]
     pub no_worker: bool,
-    /// The URL browsers use when the server runs behind a TLS proxy (https://HOST[:PORT]):
+    /// The URL browsers use when the server runs behind a TLS proxy (`https://HOST[:PORT]`):
     /// session cookies get `Secure` and the CSRF origin check compares with it.
     #[arg(long, env = "UFOPS_PUBLIC_URL")]
     pub public_url: Option<String>,

@@ -20,7 +20,7 @@ pub struct ViewArgs {
     /// At most this many episodes (successes and failures alternately).
     #[arg(long)]
     pub episodes: Option<usize>,
-    /// Observation dims drawn as the trajectory (e.g. pos, robot0_eef_pos, state[0,1]).
+    /// Observation dims drawn as the trajectory (e.g. pos, robot0_eef_pos, `state[0,1]`).
     #[arg(long, num_args = 1..)]
     pub position_keys: Vec<String>,
     /// Log stored image frames.

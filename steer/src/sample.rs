@@ -23,7 +23,7 @@ fn randn<R: Rng + ?Sized>(rng: &mut R, n: usize) -> Vec<f32> {
 }
 
 fn batch_of(obs: &[f32], od: usize) -> Result<usize> {
-    if od == 0 || obs.len() % od != 0 {
+    if od == 0 || !obs.len().is_multiple_of(od) {
         return Err(SteerError::Input(format!("obs length {} is not a multiple of obs_dim {od}", obs.len())));
     }
     Ok(obs.len() / od)

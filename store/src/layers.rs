@@ -608,7 +608,7 @@ impl Store {
     /// `obs.<layer>` per layer (field metadata [`LAYER_META_KEY`], [`PRODUCER_META_KEY`] and
     /// `ufops.observation_key`), checked step by step (`t`) against the steps. `layer_locations`
     /// come from [`Store::locate_layers`] for the same episodes. Episodes are read in groups of
-    /// about [`JOIN_GROUP_ROWS`] rows: a group's layer values first (each layer file's pages
+    /// about `JOIN_GROUP_ROWS` rows: a group's layer values first (each layer file's pages
     /// once), then its steps, joined as they arrive; memory is one group's layer values plus
     /// the steps reads in flight.
     pub fn read_episodes_with_layers(

@@ -214,7 +214,7 @@ mod tests {
         store.episode_media(&eps[10].id, "front").await.unwrap();
         assert_eq!(store.fetch_counts().since(before), FetchCounts::default());
 
-        store.delete_episodes(&[with.id.clone()], "t", "gone").await.unwrap();
+        store.delete_episodes(std::slice::from_ref(&with.id), "t", "gone").await.unwrap();
         assert!(matches!(store.episode_media(&with.id, "front").await, Err(StoreError::NotFound { .. })));
     }
 }

@@ -38,7 +38,7 @@ pub(crate) const COALESCE_GAP: u64 = 4 << 10;
 
 /// Read requests made to the object store and the bytes they returned, since the store was
 /// opened. One `get_ranges` call counts once per request it turns into (ranges closer than
-/// [`COALESCE_GAP`] are merged into one).
+/// `COALESCE_GAP` are merged into one).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
 pub struct FetchCounts {
     /// GET requests (whole objects and byte ranges).

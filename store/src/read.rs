@@ -663,7 +663,7 @@ pub(crate) mod tests {
             source_name: format!("demo_{i}"),
             source_index: i,
             task: Some("reach".into()),
-            label: if i % 3 == 0 { Label::Failure } else { Label::Success },
+            label: if i.is_multiple_of(3) { Label::Failure } else { Label::Success },
             label_source: "test".into(),
             tags: vec![],
             metadata: serde_json::json!({}),

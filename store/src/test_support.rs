@@ -146,33 +146,6 @@ fn host_port(url: &str) -> String {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn postgres_host_and_port() {
-        assert_eq!(host_port("postgres://postgres@127.0.0.1:5432/test"), "127.0.0.1:5432");
-        assert_eq!(host_port("postgres://u:p%40w@db.example/x?sslmode=disable"), "db.example:5432");
-        assert_eq!(host_port("postgresql://[::1]:5433/test"), "[::1]:5433");
-        assert_eq!(host_port("postgres:///test"), "localhost:5432");
-    }
-
-    #[test]
-    fn missing_tool_skips_or_fails_by_its_switch() {
-        assert_eq!(verdict(Tool::S3, true, Ok(())), Verdict::Run);
-        let Verdict::Skip(msg) = verdict(Tool::S3, false, Err("the weed binary".into())) else { panic!() };
-        assert!(msg.contains("needs the weed binary") && msg.contains("UFOPS_REQUIRE_S3=1"), "{msg}");
-        let Verdict::Fail(msg) = verdict(Tool::S3, true, Err("the weed binary".into())) else { panic!() };
-        assert!(msg.contains("needs the weed binary") && msg.contains("requirements.txt"), "{msg}");
-        // libtest names each test's thread after the test
-        assert!(
-            msg.contains("missing_tool_skips_or_fails_by_its_switch") || msg.starts_with("this test"),
-            "{msg}"
-        );
-    }
-}
-
 /// Observation keys and widths of the synthetic Square-sized rollouts (robomimic's low-dim Square).
 pub const SQUARE_OBS: [(&str, usize); 4] =
     [("object", 14), ("robot0_eef_pos", 3), ("robot0_eef_quat", 4), ("robot0_gripper_qpos", 2)];
@@ -248,5 +221,32 @@ pub fn two_step_episode(i: u32, task: Option<&str>, label: crate::Label) -> crat
         action_chunk: None,
         images: vec![],
         media: vec![],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn postgres_host_and_port() {
+        assert_eq!(host_port("postgres://postgres@127.0.0.1:5432/test"), "127.0.0.1:5432");
+        assert_eq!(host_port("postgres://u:p%40w@db.example/x?sslmode=disable"), "db.example:5432");
+        assert_eq!(host_port("postgresql://[::1]:5433/test"), "[::1]:5433");
+        assert_eq!(host_port("postgres:///test"), "localhost:5432");
+    }
+
+    #[test]
+    fn missing_tool_skips_or_fails_by_its_switch() {
+        assert_eq!(verdict(Tool::S3, true, Ok(())), Verdict::Run);
+        let Verdict::Skip(msg) = verdict(Tool::S3, false, Err("the weed binary".into())) else { panic!() };
+        assert!(msg.contains("needs the weed binary") && msg.contains("UFOPS_REQUIRE_S3=1"), "{msg}");
+        let Verdict::Fail(msg) = verdict(Tool::S3, true, Err("the weed binary".into())) else { panic!() };
+        assert!(msg.contains("needs the weed binary") && msg.contains("requirements.txt"), "{msg}");
+        // libtest names each test's thread after the test
+        assert!(
+            msg.contains("missing_tool_skips_or_fails_by_its_switch") || msg.starts_with("this test"),
+            "{msg}"
+        );
     }
 }

@@ -881,7 +881,7 @@ mod tests {
             source_name: format!("demo_{i}"),
             source_index: i,
             task: Some("reach".into()),
-            label: if i % 2 == 0 { Label::Success } else { Label::Failure },
+            label: if i.is_multiple_of(2) { Label::Success } else { Label::Failure },
             label_source: "test".into(),
             tags: vec![],
             metadata: serde_json::json!({}),

@@ -31,7 +31,7 @@ fn video(dir: &std::path::Path) -> MediaFile {
 #[tokio::test]
 async fn gc_with_grace_zero_during_an_ingest_keeps_the_writers_objects() {
     let dir = tempfile::tempdir().unwrap();
-    let store = Store::open(&StoreConfig::local(&dir.path().join("store"))).await.unwrap();
+    let store = Store::open(&StoreConfig::local(dir.path().join("store"))).await.unwrap();
     let media = video(dir.path());
 
     // An earlier ingest uploaded the video, then gave up: its objects are garbage now...

@@ -199,7 +199,9 @@ pub fn parse_rows(input_json: &str) -> Result<Vec<ScoreRow>> {
 }
 
 /// Rows as the core's batch: obs, extras (in the verifier's order), t, chunks.
-fn batch(v: &Verifier, rows: &[ScoreRow]) -> Result<(Vec<f32>, Vec<Vec<f32>>, Vec<u32>, Vec<f32>)> {
+type Batch = (Vec<f32>, Vec<Vec<f32>>, Vec<u32>, Vec<f32>);
+
+fn batch(v: &Verifier, rows: &[ScoreRow]) -> Result<Batch> {
     let (od, ad) = (v.obs_dim(), v.act_dim());
     let names = v.extra_inputs();
     let mut obs = Vec::with_capacity(rows.len() * od);

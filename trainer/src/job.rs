@@ -254,7 +254,7 @@ pub async fn run_train_job(
     let stride = spec.step_stride.unwrap_or(1).max(1) as u32;
     let trained = tokio::task::spawn_blocking(move || -> Result<()> {
         let mut observer = observer;
-        let keep = |t: u32| t % stride == 0;
+        let keep = |t: u32| t.is_multiple_of(stride);
         let tr = build_samples(&data.train, &data.input, cfg.gamma)
             .context("building train samples")?
             .filter_steps(keep);

@@ -31,8 +31,7 @@ fn sizes_beyond_the_bounds_are_refused() {
     );
     refused(|c| c.optimizer.lr = f64::INFINITY, "lr");
     // The paper's configurations stay valid.
-    let mut c = TrainConfig::default();
-    c.batch_size = 4096;
+    let mut c = TrainConfig { batch_size: 4096, ..TrainConfig::default() };
     c.architecture.trunk_dims = vec![1024, 1024];
     c.validate().unwrap();
 }

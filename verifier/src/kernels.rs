@@ -410,6 +410,9 @@ unsafe fn portable_ln_backward<const RELU: bool, const ACC: bool>(
 }
 
 #[cfg(target_arch = "x86_64")]
+// The register tiles (`acc[r][b]`) are indexed by position on purpose: the loops unroll into
+// fixed registers.
+#[allow(clippy::needless_range_loop)]
 mod x86 {
     use super::{LnBackPtrs, LnPtrs};
     use std::arch::x86_64::*;

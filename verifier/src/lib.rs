@@ -1,6 +1,6 @@
 //! `verifier`: the ufops verifier core — the inference contract of a verifier artifact, once.
 //!
-//! It owns the artifact format (`config.json` and `manifest.json` types, [`format`]; the
+//! It owns the artifact format (`config.json` and `manifest.json` types, [`format`](mod@format); the
 //! contract is trainer/ARTIFACT.md), loading with every file checked against its sha256 (from a
 //! directory, from bytes, or through any getter so the store and HTTP plug in: [`Artifact`]),
 //! the artifact id, the weights and the one list of tensor names and shapes ([`Weights`],

@@ -396,6 +396,7 @@ impl Verifier {
         Ok(())
     }
 
+    #[allow(clippy::too_many_arguments)] // a kernel's operands: raw pointers and their strides
     fn gemm(
         &self,
         x: &[f32],

@@ -93,7 +93,7 @@ fn bad_artifacts_are_clear_errors() {
             _ => c[field] = val,
         }
         rewrite(d.path(), "config.json", &serde_json::to_vec(&c).unwrap(), true);
-        let e = Verifier::load_dir(d.path()).err().expect("must fail");
+        let e = Verifier::load_dir(d.path()).expect_err("must fail");
         let ok = match field {
             "schema_version" => matches!(e, VerifierError::UnknownSchema(2)),
             "variant" => matches!(e, VerifierError::UnknownVariant(_)),

@@ -72,7 +72,7 @@ async fn aloha_raw_and_compressed_ingest_exactly() {
         panic!("this test needs {missing}: python3 -m pip install h5py numpy pillow");
     }
     let tmp = tempfile::tempdir().unwrap();
-    let store = Store::open(&StoreConfig::local(&tmp.path().join("store"))).await.unwrap();
+    let store = Store::open(&StoreConfig::local(tmp.path().join("store"))).await.unwrap();
     for (name, flags) in [("raw", &["--float64"][..]), ("jpeg", &["--compress", "--success"][..])] {
         let src = tmp.path().join(name);
         generate(&src, flags);
