@@ -141,7 +141,8 @@ export function imageCameras(detail, id, steps, fps) {
 }
 
 /** Lays out `figures` (one per camera, in the detail's camera order) in a responsive grid:
- *  one camera large, two side by side, three or four in two columns, more in three. */
+ *  one camera large, two side by side, three or four in two columns, more in three; each smaller
+ *  as there are more, so that the controls under them stay in view. */
 export function layoutGrid(grid, figures, order) {
   const rank = new Map((order || []).map((c, i) => [c.name, i]));
   const key = (f) => (rank.has(f.dataset.key) ? rank.get(f.dataset.key) : 1e9);
@@ -149,6 +150,7 @@ export function layoutGrid(grid, figures, order) {
   grid.replaceChildren(...figures);
   const n = figures.length;
   grid.style.setProperty('--cols', String(n <= 1 ? 1 : n <= 4 ? 2 : 3));
+  grid.style.setProperty('--cam-h', `${n <= 1 ? 340 : n <= 2 ? 300 : n <= 4 ? 210 : 170}px`);
   grid.dataset.cameras = String(n);
   grid.hidden = n === 0;
 }
