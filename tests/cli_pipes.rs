@@ -2,7 +2,7 @@
 //! ends quietly instead of panicking on the broken pipe. And a newcomer's first mistakes get one
 //! clear line each: no store where a read command looks, a missing file, an empty store.
 
-mod common;
+use crate::common;
 use common::*;
 use std::os::unix::process::ExitStatusExt;
 use std::process::Stdio;

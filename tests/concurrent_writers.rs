@@ -1,6 +1,6 @@
 //! Two writer processes at once: both succeed, version numbers stay dense, nothing is lost.
 
-mod common;
+use crate::common;
 use common::*;
 
 fn two_writers(target: Target) {

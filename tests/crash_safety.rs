@@ -1,7 +1,7 @@
 //! A writer killed with SIGKILL at random points never leaves a visible partial version, and
 //! `gc` then removes exactly the orphans it left.
 
-mod common;
+use crate::common;
 use common::*;
 use rand::{Rng, SeedableRng};
 use std::time::{Duration, Instant};

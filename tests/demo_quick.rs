@@ -5,7 +5,7 @@
 //! an off-policy classifier hurts. "Goes that way" is the Newcombe 95% interval of Δ excluding 0.
 //! Every row's rollouts are in the store as a run, and `ufops scoreboard` gives the table back.
 
-mod common;
+use crate::common;
 use common::*;
 
 #[test]

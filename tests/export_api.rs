@@ -4,7 +4,7 @@
 //! survive gc while the job stands, and are deleted on request; bad requests are 4xx and queue
 //! nothing.
 
-mod common;
+use crate::common;
 use common::*;
 use std::time::{Duration, Instant};
 

@@ -2,7 +2,7 @@
 //! `ufops export` writes LeRobot v3.0 / robomimic exports, refuses what it cannot write with one
 //! clear line and a non-zero exit, and leaves nothing behind then.
 
-mod common;
+use crate::common;
 use common::*;
 
 fn text(b: &[u8]) -> String {

@@ -2,7 +2,7 @@
 //! gracefully: exit status 0, and a job in the middle of running is given back at once (queued
 //! again, the attempt not counted) instead of looking "running" until its lease runs out.
 
-mod common;
+use crate::common;
 use common::*;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};

@@ -16,7 +16,7 @@
 //! metadata). On the main branch before this corpus, the first copied a file from outside the
 //! dataset into the store and the second used 1-2 GB per file.
 
-mod common;
+use crate::common;
 use common::*;
 
 use std::os::unix::process::ExitStatusExt;

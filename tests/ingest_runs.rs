@@ -3,7 +3,7 @@
 //! the base run; hostile run options fail with a message naming the problem and leave the store
 //! unchanged.
 
-mod common;
+use crate::common;
 use common::*;
 
 fn runs_through_the_cli(t: &Target) {

@@ -3,7 +3,7 @@
 //! that breaks it on a server with real data (the Lift rollouts and a classifier trained on
 //! them); and pydantic models generated from it parse every response of the end-to-end flow.
 
-mod common;
+use crate::common;
 use common::*;
 use std::path::Path;
 

@@ -1,7 +1,7 @@
 //! A version written by ufops reads back in pyarrow (and duckdb/polars when installed) with the
 //! same rows and labels, using nothing but the files.
 
-mod common;
+use crate::common;
 use common::*;
 
 #[test]

@@ -3,7 +3,7 @@
 //! in |score − 0.5| order, and a policy without a verifier fails with a message naming the fix;
 //! `ufops review campaign` and `agreement` read and set what the labeling page's votes use.
 
-mod common;
+use crate::common;
 use common::*;
 
 /// Every page of `ufops review queue --json` with `args`: (episode id, score) in queue order.

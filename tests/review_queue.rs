@@ -3,7 +3,7 @@
 //! `GET /v1/episodes?order=uncertain` lists them nearest 0.5 first, a keyset page at a time;
 //! the per-step series is served for the timeline; hostile queries are 4xx.
 
-mod common;
+use crate::common;
 use common::*;
 use std::time::{Duration, Instant};
 

@@ -2,7 +2,7 @@
 //! through the `ufops` binary: ingest with videos, dedup, read back, train, download an artifact
 //! with checked sha256s, gc.
 
-mod common;
+use crate::common;
 use common::*;
 
 fn s3_target(dir: &std::path::Path, s3: &seaweedfs::SeaweedFs, prefix: &str) -> Option<Target> {

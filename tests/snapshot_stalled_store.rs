@@ -4,7 +4,7 @@
 //! uploads: label writes go on; once it resumes, the snapshot commits with the labels as of its
 //! lock, the label written meanwhile included.
 
-mod common;
+use crate::common;
 use common::*;
 use std::sync::mpsc;
 use std::time::Duration;

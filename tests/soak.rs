@@ -5,7 +5,7 @@
 //! stable (the last third's peak within 1.5x + 32 MB of the first third's), and nothing is lost:
 //! the audit log replays to every episode's final label and holds every acknowledged write.
 
-mod common;
+use crate::common;
 use common::*;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -4,7 +4,7 @@
 //! and the trainer's candle graph (an independent implementation); bad tokens and unknown
 //! aliases are clear errors.
 
-mod common;
+use crate::common;
 use common::*;
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Stdio};

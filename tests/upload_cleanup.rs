@@ -2,7 +2,7 @@
 //! job has finished, whether the ingest succeeded or failed, and the server sweeps at start the
 //! folders nobody will ingest (no job names them and they are old), keeping a young one.
 
-mod common;
+use crate::common;
 use common::*;
 use std::process::Command;
 use std::time::{Duration, Instant};

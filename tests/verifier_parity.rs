@@ -8,7 +8,7 @@
 //! when `UFOPS_REQUIRE_PYTHON=1` (scripts/test.sh sets it), and is skipped with a message
 //! otherwise.
 
-mod common;
+use crate::common;
 use common::*;
 
 use std::path::Path;

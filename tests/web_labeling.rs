@@ -14,7 +14,7 @@
 //! turns a missing browser into a failure instead of a skip. Screenshots land in
 //! `<target dir>/web-artifacts/`.
 
-mod common;
+use crate::common;
 
 use common::Target;
 use serde_json::Value;

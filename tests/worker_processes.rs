@@ -5,7 +5,7 @@
 //! catalog (jobs: state, attempts, worker, lease; artifacts: one per job, naming it) and from the
 //! workers' own `job started` / `job finished` log lines.
 
-mod common;
+use crate::common;
 use common::*;
 use serde_json::json;
 use std::collections::HashMap;

@@ -1,7 +1,7 @@
 //! Authorization matrix: every route × {no token, wrong token, each role} → 401 / 403 / allowed.
 //! "Allowed" means any status other than 401 and 403 (a 404 for a made-up id is fine).
 
-mod common;
+use crate::common;
 
 use common::{Db, TestServer};
 use reqwest::Method;

@@ -3,7 +3,7 @@
 //! label through the ordinary label events, a dispute settled by an admin, κ and α against an
 //! independent computation, hostile input answered with 4xx.
 
-mod common;
+use crate::common;
 
 use common::{Db, TestServer};
 use reqwest::Method;

@@ -3,7 +3,7 @@
 //! artifact download by alias with a matching sha256; plus steps (JSON and Arrow), media ranges,
 //! metrics and the OpenAPI document.
 
-mod common;
+use crate::common;
 
 use common::{Db, TestServer};
 use reqwest::Method;

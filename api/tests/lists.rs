@@ -2,7 +2,7 @@
 //! while labels change between pages, and `GET /v1/episodes/counts` equals a recount of the rows
 //! after label writes, now and at a past version.
 
-mod common;
+use crate::common;
 
 use common::{Db, TestServer};
 use reqwest::Method;

@@ -1,6 +1,6 @@
 //! A short version of the label load test (the full one: `cargo bench -p api --bench label_load`).
 
-mod common;
+use crate::common;
 
 use common::load::run_label_load;
 use common::Db;

@@ -2,7 +2,7 @@
 //! client invents, and server-side failures are logged in full but answered without paths,
 //! bucket names or SQL (an incident id instead).
 
-mod common;
+use crate::common;
 use common::*;
 use reqwest::Method;
 

@@ -7,7 +7,7 @@
 //! longer than the limit (a connection still open after 15 s is held forever on a server without
 //! the limit).
 
-mod common;
+use crate::common;
 use common::*;
 use reqwest::Method;
 use std::time::Duration;

@@ -2,7 +2,7 @@
 //! SameSite=Strict cookie; a cookie-authenticated write needs `X-Ufops-UI: 1` and, when the
 //! browser sends `Origin`, our own origin (CSRF); sign-out and token revocation end the session.
 
-mod common;
+use crate::common;
 
 use common::{Db, TestServer};
 use reqwest::{Method, StatusCode};

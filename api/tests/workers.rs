@@ -2,7 +2,7 @@
 //! twice at the same time; a worker killed mid-job (its task aborted: no more heartbeats) gets
 //! its job retried by the other after the lease expires. Also: cancel and progress reporting.
 
-mod common;
+use crate::common;
 
 use common::{Db, TestRunner};
 use serde_json::json;

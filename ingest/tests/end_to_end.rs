@@ -2,8 +2,7 @@
 //! no-op, broken inputs leave the store exactly as before with an error naming the file; ALOHA
 //! episodes are stored exactly (`aloha/`).
 
-mod aloha;
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 

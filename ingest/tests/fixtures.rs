@@ -1,6 +1,6 @@
 //! Every fixture in the repository's fixtures/ against its expected.json (readers only, no store).
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

@@ -1,7 +1,7 @@
 //! The fuzz target bodies (`ingest::fuzzing`) over a few thousand deterministic mutations of the
 //! fixtures: none may panic. Bounded in time (each format stops after its budget).
 
-mod common;
+use crate::common;
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::time::{Duration, Instant};

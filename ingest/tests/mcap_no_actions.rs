@@ -7,7 +7,7 @@
 //! copied as they are). `no_actions_fixture_is_reproducible` checks that the committed file is
 //! exactly what it writes; `UFOPS_WRITE_FIXTURES=1` rewrites it.
 
-mod common;
+use crate::common;
 
 use std::collections::{BTreeMap, HashMap};
 

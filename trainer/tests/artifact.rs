@@ -1,6 +1,6 @@
 //! Artifact writing, verified loading, content addressing and reference scoring.
 
-mod common;
+use crate::common;
 
 use trainer::artifact::{load_artifact, score_json, write_artifact, ScoreRow};
 use trainer::data::build_samples;

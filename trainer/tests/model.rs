@@ -1,7 +1,7 @@
 //! Model tests: gradients reach every parameter, the explicit LayerNorm, spectral norm, and the
 //! fused fast path against the candle graph (values and gradients).
 
-mod common;
+use crate::common;
 
 use candle_core::{Device, Tensor, Var};
 use rand::SeedableRng;

@@ -3,7 +3,7 @@
 //! the trainer wrote for every variant. Without python3 + numpy + safetensors the test is skipped
 //! with a message, and FAILS when `UFOPS_REQUIRE_PYTHON=1` (as `scripts/test.sh` sets).
 
-mod common;
+use crate::common;
 
 use std::path::PathBuf;
 use std::process::Command;

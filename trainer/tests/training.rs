@@ -1,7 +1,7 @@
 //! Training behaviour: sample construction, separation of a synthetic task, Q correlation,
 //! reproducibility, cancellation, config files, and the candle backend on the features variant.
 
-mod common;
+use crate::common;
 
 use std::sync::atomic::AtomicBool;
 

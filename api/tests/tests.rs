@@ -1,0 +1,15 @@
+//! The integration tests of this crate, one binary: each file of `tests/` is a module here
+//! (one link of the whole dependency tree instead of one per file). A file that installs a
+//! global allocator to measure memory stays a binary of its own (see Cargo.toml).
+
+mod auth;
+mod common;
+mod consensus;
+mod flow;
+mod lists;
+mod load;
+mod scoreboard;
+mod server_limits;
+mod server_timeouts;
+mod session;
+mod workers;

@@ -1,0 +1,6 @@
+//! The integration tests of this crate, one binary: each file of `tests/` is a module here
+//! (one link of the whole dependency tree instead of one per file). A file that installs a
+//! global allocator to measure memory stays a binary of its own (see Cargo.toml).
+
+mod caller_mistakes;
+mod sampling;
