@@ -86,7 +86,7 @@ fn export_writes_lerobot_and_robomimic_and_refuses_clearly() {
         (vec!["export", ds.to_str().unwrap(), "--format", "lerobot"], "already exists"),
         (
             vec!["export", dir.path().join("x").to_str().unwrap(), "--format", "csv"],
-            "expected lerobot or robomimic",
+            "expected lerobot, robomimic or aloha",
         ),
         (
             vec![
