@@ -1178,7 +1178,8 @@ fn stream_data<R: ChunkReader + 'static>(
 }
 
 /// Fuzzing entry: parse `info.json` bytes, then stream `parquet` bytes as a data file of that
-/// dataset (episodes are only counted).
+/// dataset (episodes are only counted). Feature `testing` (the fuzz targets and the tests).
+#[cfg(any(test, feature = "testing"))]
 pub fn fuzz_entry(info_json: &[u8], parquet: &[u8]) -> Result<usize> {
     let p = Path::new("fuzz/meta/info.json");
     let info = match parse_info(p, info_json) {
@@ -1198,6 +1199,7 @@ pub fn fuzz_entry(info_json: &[u8], parquet: &[u8]) -> Result<usize> {
     Ok(n)
 }
 
+#[cfg(any(test, feature = "testing"))]
 const DEFAULT_INFO: &str = r#"{"codebase_version":"v3.0","fps":10,"features":{
  "observation.state":{"dtype":"float32","shape":[6]},"action":{"dtype":"float32","shape":[6]},
  "next.reward":{"dtype":"float32","shape":[1]},"next.success":{"dtype":"bool","shape":[1]},

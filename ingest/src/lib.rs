@@ -11,15 +11,19 @@
 //!
 //! Sources are untrusted: [`confine`] keeps every path a source's metadata names inside it, and
 //! the readers check every declared size against the file's size and a cap before allocating
-//! (see the README, *Sources are untrusted*); [`hostile`] generates the corpus of hostile sources
-//! the tests run.
+//! (see the README, *Sources are untrusted*); `hostile` (feature `testing`, for tests only)
+//! generates the corpus of hostile sources the tests run.
 
 pub mod aloha;
 pub mod confine;
 pub mod dvalue;
 pub mod error;
+/// Fuzz target bodies for `cargo fuzz` (ingest/fuzz) and the mutation tests (feature `testing`).
+#[cfg(any(test, feature = "testing"))]
 pub mod fuzzing;
 pub mod hashing;
+/// The hostile-input corpus of the tests (feature `testing`).
+#[cfg(any(test, feature = "testing"))]
 pub mod hostile;
 pub mod lerobot;
 pub mod mapping;

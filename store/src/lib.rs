@@ -26,7 +26,8 @@ mod runs;
 mod scoreboard;
 mod splits;
 pub mod steps;
-#[doc(hidden)]
+/// Test support for every crate's tests (feature `testing`, enabled by the dev-dependencies).
+#[cfg(any(test, feature = "testing"))]
 pub mod test_support;
 mod tokens;
 mod writer;
@@ -185,14 +186,14 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
 
 /// Test support: the Postgres server the tests use (`UFOPS_TEST_POSTGRES`, default the local
 /// `test` database with trust auth, as on our machines).
-#[doc(hidden)]
+#[cfg(any(test, feature = "testing"))]
 pub fn test_postgres_base() -> String {
     std::env::var("UFOPS_TEST_POSTGRES").unwrap_or_else(|_| "postgres://postgres@127.0.0.1:5432/test".into())
 }
 
 /// Test support: creates a fresh schema on the test Postgres server and returns a database URL
 /// whose connections use it, so tests never see each other's rows.
-#[doc(hidden)]
+#[cfg(any(test, feature = "testing"))]
 pub async fn create_test_schema(prefix: &str) -> Result<String, StoreError> {
     use sqlx::{Connection, Executor};
     sqlx::any::install_default_drivers();

@@ -27,6 +27,8 @@ pub mod format;
 pub mod kernels;
 mod math;
 mod net;
+/// Random artifacts for tests and benchmarks (feature `testing`).
+#[cfg(any(test, feature = "testing"))]
 pub mod testutil;
 pub mod weights;
 
