@@ -48,6 +48,13 @@ fn a_read_command_without_a_store_says_how_to_make_one_and_creates_nothing() {
     assert!(!t.data_dir.exists(), "a read command created {}", t.data_dir.display());
     t.ok(&["init"]);
     assert!(t.ok(&["episodes", "--json"]).trim().starts_with('['));
+    // One name for the label filter across commands (`export --label`); the older one still works.
+    t.ok(&["dev", "synth", "--episodes", "6", "--steps", "3", "--seed", "1"]);
+    let all = t.json(&["episodes", "--json"]);
+    let successes = t.json(&["episodes", "--label", "success", "--json"]);
+    let n = all.as_array().unwrap().iter().filter(|e| e["label"] == "success").count();
+    assert_eq!(successes.as_array().unwrap().len(), n);
+    assert_eq!(t.json(&["episodes", "--success", "success", "--json"]), successes);
 }
 
 #[test]

@@ -58,7 +58,7 @@ fn bad_input_gets_one_clear_line_and_nonzero_exit() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.starts_with("error: episode not found: no-such-episode"), "{err}");
     assert_eq!(err.lines().count(), 1, "{err}");
-    let out = t.run(&["episodes", "--success", "maybe"]);
+    let out = t.run(&["episodes", "--label", "maybe"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("unknown label"));
     let out = t.run(&["--database-url", "mysql://x", "versions"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("unsupported database URL"));

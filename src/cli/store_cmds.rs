@@ -40,9 +40,10 @@ pub struct EpisodesArgs {
     pub checkpoint: Option<String>,
     #[arg(long)]
     pub task: Option<String>,
-    /// success | failure | unknown (true/false also accepted)
-    #[arg(long)]
-    pub success: Option<String>,
+    /// success | failure | unknown (true/false also accepted); the same filter as `export --label`
+    /// (`--success` is the older name).
+    #[arg(long, alias = "success")]
+    pub label: Option<String>,
     #[arg(long)]
     pub tag: Option<String>,
     /// Only episodes whose id sorts after this one (the next page: pass the last id shown).
@@ -57,7 +58,7 @@ pub struct EpisodesArgs {
 
 pub async fn episodes(args: &StoreArgs, a: EpisodesArgs) -> Result<()> {
     let store = args.open().await?;
-    let label = a.success.as_deref().map(str::parse::<Label>).transpose()?;
+    let label = a.label.as_deref().map(str::parse::<Label>).transpose()?;
     let filter = EpisodeFilter {
         version: a.version,
         policy: a.policy,
