@@ -29,7 +29,9 @@ test_python_package() {
   # only a changed crate), installs it, type-checks it and runs its tests against the `ufops`
   # binary of the same target dir. Any failure fails the caller (set -e).
   cargo build --locked --bin ufops
-  python3 -m pip install -q --disable-pip-version-check --force-reinstall --no-deps ./clients/python
+  # The `testing` feature: the tests' `write_random_artifact` (verifier::testutil).
+  MATURIN_PEP517_ARGS="--features testing" \
+    python3 -m pip install -q --disable-pip-version-check --force-reinstall --no-deps ./clients/python
   python3 -m mypy --strict --config-file clients/python/pyproject.toml clients/python/python/ufops
   python3 -m pytest -q clients/python/tests
 }

@@ -10,6 +10,9 @@ Times include the Python call overhead (array checks, GIL release, the result ar
 BoN(10) p50 <= 20 us, CG gradient p50 <= 15 us.
 
     python3 clients/python/bench/bench_steer.py [--iters 20000] [--no-torch]
+
+It needs the package built with its ``testing`` feature (``write_random_artifact``):
+``MATURIN_PEP517_ARGS="--features testing" pip install ./clients/python``.
 """
 from __future__ import annotations
 

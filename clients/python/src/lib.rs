@@ -10,15 +10,16 @@ mod errors;
 mod store;
 mod verifier;
 
-use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 /// Writes an artifact with random weights (`verifier::testutil`) of the given dimensions
 /// ("square": the paper's Square task; "nav", "nav_features": the 2-D task) into `dir` and
-/// returns its id. For benchmarks and examples: it is not a trained verifier.
+/// returns its id. For the tests and the benchmark (feature `testing`): it is not a trained verifier.
+#[cfg(feature = "testing")]
 #[pyfunction]
 fn write_random_artifact(py: Python<'_>, dir: std::path::PathBuf, dims: &str, seed: u64) -> PyResult<String> {
     use ::verifier::testutil::RandomSpec;
+    use pyo3::exceptions::PyValueError;
     let spec = match dims {
         "square" => RandomSpec::square(),
         "nav" => RandomSpec::nav(),
@@ -41,6 +42,7 @@ fn _ufops(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
     m.add_class::<verifier::PyVerifier>()?;
     m.add_class::<store::PyStore>()?;
+    #[cfg(feature = "testing")]
     m.add_function(wrap_pyfunction!(write_random_artifact, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
