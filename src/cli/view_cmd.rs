@@ -23,8 +23,18 @@ pub struct ViewArgs {
     /// Observation dims drawn as the trajectory (e.g. pos, robot0_eef_pos, `state[0,1]`).
     #[arg(long, num_args = 1..)]
     pub position_keys: Vec<String>,
-    /// Log stored image frames.
+    /// Leave out the image-column cameras (by default every camera is logged: image columns as
+    /// one EncodedImage per step, videos as frame references into the embedded mp4).
     #[arg(long)]
+    pub no_images: bool,
+    /// Keep every N-th frame of image-column cameras (1: every frame).
+    #[arg(long, default_value_t = 1)]
+    pub image_stride: usize,
+    /// Leave out the video cameras (no mp4 embedded).
+    #[arg(long)]
+    pub no_videos: bool,
+    /// Image cameras are logged by default now; kept so older command lines still run.
+    #[arg(long, hide = true)]
     pub images: bool,
     #[arg(long)]
     pub out: PathBuf,
@@ -45,7 +55,9 @@ pub async fn view(args: &StoreArgs, a: ViewArgs) -> Result<()> {
     opts.version = a.version;
     opts.max_episodes = a.episodes;
     opts.position_keys = a.position_keys;
-    opts.images = a.images;
+    opts.no_images = a.no_images;
+    opts.image_stride = a.image_stride;
+    opts.no_videos = a.no_videos;
     let scorer = match &a.artifact {
         Some(r) => Some(viewer::VerifierScorer(load_verifier(&store, r).await?)),
         None => None,
@@ -66,6 +78,15 @@ pub async fn view(args: &StoreArgs, a: ViewArgs) -> Result<()> {
         report.unknown,
         report.steps
     );
+    if !report.cameras.is_empty() {
+        println!(
+            "cameras {}: {} image frames, {} video frame references into {} videos",
+            report.cameras.join(", "),
+            report.images,
+            report.video_frames,
+            report.videos
+        );
+    }
     if let (Some(s), Some(f)) = (report.mean_score_success, report.mean_score_failure) {
         println!(
             "mean verifier score: successes {s:.3}, failures {f:.3}; largest gap at {:?}",

@@ -17,8 +17,8 @@
 //! | `episodes/L/ID/state/KEY` | Scalars, one series per dim of observation `KEY` (≤ 64 dims) |
 //! | `episodes/L/ID/reward` | Scalars |
 //! | `episodes/L/ID/score` | Scalars: the verifier's score per step (with a scorer) |
-//! | `episodes/L/ID/camera/KEY` | VideoFrameReference into `media/KEY/FILE` (LeRobot videos) |
-//! | `episodes/L/ID/image/KEY` | EncodedImage (PNG), sampled frames (`images: true`) |
+//! | `episodes/L/ID/camera/KEY` | VideoFrameReference per step into `media/KEY/FILE` (LeRobot videos) |
+//! | `episodes/L/ID/image/KEY` | EncodedImage per step: the stored PNG or JPEG bytes (image columns) |
 //! | `media/KEY/FILE` | static AssetVideo, one per referenced video object |
 //! | `summary/score/{success,failure,gap}` | mean score per step of successes / failures, and their difference |
 //! | `summary/info` | static markdown: counts, lengths, mean scores, where the verifier separates |
@@ -26,7 +26,9 @@
 //! All time-varying data is sent column-wise with `send_columns` (one chunk per entity and
 //! episode), never row by row.
 
-use arrow::array::{Array, BinaryArray, Float64Array, Int32Array, RecordBatch, StringArray};
+use arrow::array::{
+    Array, BinaryArray, Float64Array, Int32Array, LargeBinaryArray, RecordBatch, StringArray,
+};
 use re_sdk::blueprint::{
     Blueprint, BlueprintActivation, ContainerLike, Grid, Horizontal, Spatial2DView, Spatial3DView,
     TimeSeriesView, Vertical,
@@ -38,7 +40,7 @@ use re_sdk_types::archetypes::{
     TextDocument, VideoFrameReference,
 };
 use re_sdk_types::components::{Color, MediaType, VideoTimestamp};
-use std::collections::{BTreeMap, HashMap, HashSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::path::Path;
 use store::{EpisodeFilter, EpisodeRecord, Label, Store, StoreError};
 
@@ -71,9 +73,10 @@ pub struct ViewOptions {
     /// indices (`state[0,1]`), concatenated; 2 dims → 2-D, 3 dims → 3-D. Empty: the first
     /// observation key with 2 or 3 dims.
     pub position_keys: Vec<String>,
-    /// Log `image.<key>` PNG frames as EncodedImage (every `image_stride`-th step).
-    pub images: bool,
-    /// Keep every n-th frame when `images` is set (0 or 1: every frame).
+    /// Do not log image-column cameras (`image.<key>`: one EncodedImage per step, PNG or JPEG
+    /// as stored); off by default, so every camera is in the recording.
+    pub no_images: bool,
+    /// Keep every n-th frame of image-column cameras (0 or 1: every frame).
     pub image_stride: usize,
     /// Do not embed referenced videos (AssetVideo + VideoFrameReference); on by default.
     pub no_videos: bool,
@@ -118,6 +121,8 @@ pub struct ViewReport {
     pub videos: usize,
     pub video_frames: usize,
     pub images: usize,
+    /// The cameras logged (image columns and videos), by key, sorted.
+    pub cameras: Vec<String>,
     pub scored: bool,
     /// Mean score over all steps of successes / failures.
     pub mean_score_success: Option<f32>,
@@ -354,10 +359,13 @@ impl ScoreAcc {
 }
 
 struct EpisodeEntities {
+    /// Position in the episode listing (episodes are logged as they arrive from the store).
+    index: usize,
     base: String,
     label: Label,
     has_score: bool,
-    has_camera: bool,
+    /// `(camera key, entity path)` of each camera logged, in the steps' column order.
+    cameras: Vec<(String, String)>,
 }
 
 fn indexes(t: &[i64], ts: &[f64]) -> [TimeColumn; 2] {
@@ -378,6 +386,35 @@ fn f64_col<'a>(batch: &'a RecordBatch, name: &str) -> Result<&'a Float64Array, V
 struct Out<'a> {
     rec: &'a RecordingStream,
     entities: HashSet<String>,
+    /// Video object (store key) → its AssetVideo entity: each video is embedded once, however
+    /// many episodes share it (LeRobot v3.0 keeps a camera's episodes in one mp4).
+    videos: HashMap<String, String>,
+}
+
+/// One episode's step indexes: `t` and its `timestamp` (seconds since the episode start).
+#[derive(Clone, Copy)]
+struct StepIndex<'a> {
+    t: &'a [i64],
+    ts: &'a [f64],
+}
+
+impl StepIndex<'_> {
+    /// The `step` and `time` columns of the rows `rows`.
+    fn of(&self, rows: impl Iterator<Item = usize> + Clone) -> [TimeColumn; 2] {
+        indexes(
+            &rows.clone().map(|i| self.t[i]).collect::<Vec<_>>(),
+            &rows.map(|i| self.ts[i]).collect::<Vec<_>>(),
+        )
+    }
+}
+
+/// An image column's frames as byte slices (Binary or LargeBinary), `None` where null.
+fn binary_frames(col: &dyn Array) -> Option<Vec<Option<&[u8]>>> {
+    if let Some(a) = col.as_any().downcast_ref::<BinaryArray>() {
+        return Some((0..a.len()).map(|i| a.is_valid(i).then(|| a.value(i))).collect());
+    }
+    let a = col.as_any().downcast_ref::<LargeBinaryArray>()?;
+    Some((0..a.len()).map(|i| a.is_valid(i).then(|| a.value(i))).collect())
 }
 
 impl Out<'_> {
@@ -390,6 +427,96 @@ impl Out<'_> {
         self.rec.send_columns(path.as_str(), idx.iter().cloned(), cols).map_err(rr)?;
         self.entities.insert(path);
         Ok(())
+    }
+
+    /// An image-column camera: one EncodedImage per kept step (every `stride`-th, non-null),
+    /// the stored bytes as they are with their media type. Returns the frames logged.
+    fn image_camera(
+        &mut self,
+        batch: &RecordBatch,
+        key: &str,
+        media: MediaType,
+        stride: usize,
+        path: &str,
+        at: StepIndex<'_>,
+    ) -> Result<usize, ViewError> {
+        let Some(frames) = batch
+            .column_by_name(&format!("{}{key}", store::steps::IMAGE_PREFIX))
+            .and_then(|c| binary_frames(c))
+        else {
+            return Err(ViewError::Invalid(format!("image column {key:?} is not binary")));
+        };
+        let rows: Vec<usize> =
+            (0..frames.len()).step_by(stride.max(1)).filter(|&i| frames[i].is_some()).collect();
+        if rows.is_empty() {
+            return Ok(0);
+        }
+        let arch = EncodedImage::update_fields()
+            .with_many_blob(rows.iter().map(|&i| frames[i].unwrap_or_default().to_vec()))
+            .with_many_media_type(vec![media; rows.len()]);
+        let cols = arch.columns_of_unit_batches().map_err(rr)?.collect::<Vec<_>>();
+        self.send(path.to_string(), &at.of(rows.iter().copied()), cols)?;
+        Ok(rows.len())
+    }
+
+    /// A video camera (`media.<key>.path` / `.timestamp`): each video object it references is
+    /// logged once, static, as an AssetVideo at `media/<key>/<file>`; every step becomes a
+    /// VideoFrameReference to it at the step's frame time inside the video (in a v3.0 file
+    /// shared by many episodes, the episode's own span of it). Returns (videos embedded now,
+    /// frame references).
+    async fn video_camera(
+        &mut self,
+        store: &Store,
+        batch: &RecordBatch,
+        key: &str,
+        path: &str,
+        at: StepIndex<'_>,
+    ) -> Result<(usize, usize), ViewError> {
+        let n = batch.num_rows();
+        let paths = batch
+            .column_by_name(&format!("{}{key}.path", store::steps::MEDIA_PREFIX))
+            .and_then(|c| c.as_any().downcast_ref::<StringArray>())
+            .ok_or_else(|| ViewError::Invalid(format!("media column {key:?} is not utf8")))?;
+        let times = f64_col(batch, &format!("{}{key}.timestamp", store::steps::MEDIA_PREFIX))?;
+        let part = re_sdk::EntityPathPart::from(key).escaped_string();
+        let (mut videos, mut frames) = (0, 0);
+        // Consecutive runs of the same video object (usually one per episode).
+        let mut row = 0;
+        while row < n {
+            if !paths.is_valid(row) {
+                row += 1;
+                continue;
+            }
+            let obj = paths.value(row).to_string();
+            let end = (row..n).find(|&i| !paths.is_valid(i) || paths.value(i) != obj).unwrap_or(n);
+            let video_path = match self.videos.get(&obj) {
+                Some(p) => p.clone(),
+                None => {
+                    let data = store.get_object(&obj).await?;
+                    let file = obj.rsplit('/').next().unwrap_or(&obj);
+                    let file = re_sdk::EntityPathPart::from(file).escaped_string();
+                    let vpath = format!("media/{part}/{file}");
+                    let media =
+                        MediaType::guess_from_path(&obj).or_else(|| MediaType::guess_from_data(&data));
+                    self.rec
+                        .log_static(vpath.as_str(), &AssetVideo::from_file_contents(data.to_vec(), media))
+                        .map_err(rr)?;
+                    self.entities.insert(vpath.clone());
+                    self.videos.insert(obj.clone(), vpath.clone());
+                    videos += 1;
+                    vpath
+                }
+            };
+            let k = end - row;
+            let arch = VideoFrameReference::update_fields()
+                .with_many_timestamp((row..end).map(|i| VideoTimestamp::from_secs(times.value(i))))
+                .with_many_video_reference(vec![video_path; k]);
+            let cols = arch.columns_of_unit_batches().map_err(rr)?.collect::<Vec<_>>();
+            self.send(path.to_string(), &at.of(row..end), cols)?;
+            frames += k;
+            row = end;
+        }
+        Ok((videos, frames))
     }
 
     /// A scalar series entity of `dim` series (named `names`), `values` row-major over the steps.
@@ -421,33 +548,30 @@ async fn record(
 ) -> Result<ViewReport, ViewError> {
     let episodes = select_episodes(store, opts).await?;
     let mut report = ViewReport { scored: scorer.is_some(), ..Default::default() };
-    let mut out = Out { rec, entities: HashSet::new() };
+    let mut out = Out { rec, entities: HashSet::new(), videos: HashMap::new() };
     let mut logged: Vec<EpisodeEntities> = Vec::new();
     let mut acc: HashMap<Label, ScoreAcc> = HashMap::new();
-    let mut videos_logged: HashMap<String, String> = HashMap::new();
     let mut lengths: HashMap<Label, Vec<usize>> = HashMap::new();
     let mut pos_dims: Option<usize> = None;
     let stride = opts.image_stride.max(1);
 
-    // The episodes' steps are read in one pass grouped by steps file (each row group once); they
-    // are logged in the listing's order, so arrivals from later files wait in `arrived`.
+    // The episodes' steps are read in one pass grouped by steps file (each row group once) and
+    // logged as they arrive, one episode (its frames included) in memory at a time; the
+    // blueprint orders them back by the listing.
     let locations =
         episodes.iter().map(store::EpisodeLocation::try_from).collect::<Result<Vec<_>, StoreError>>()?;
     let mut steps = store.read_episodes(locations);
-    let mut arrived: HashMap<usize, arrow::array::RecordBatch> = HashMap::new();
-    for (i, ep) in episodes.iter().enumerate() {
-        let batch = loop {
-            if let Some(b) = arrived.remove(&i) {
-                break b;
-            }
-            match steps.next().await {
-                Some(item) => {
-                    let item = item.map_err(StoreError::from)?;
-                    arrived.insert(item.index, item.steps);
-                }
-                None => return Err(StoreError::Corrupt(format!("episode {} was not read", ep.id)).into()),
-            }
+    let mut seen = vec![false; episodes.len()];
+    let mut cameras_seen: BTreeSet<String> = BTreeSet::new();
+    while let Some(item) = steps.next().await {
+        let item = item.map_err(StoreError::from)?;
+        let i = item.index;
+        let (Some(ep), batch) = (episodes.get(i), item.steps) else {
+            return Err(
+                StoreError::Corrupt(format!("the read returned episode #{i} of {}", episodes.len())).into()
+            );
         };
+        seen[i] = true;
         let n = batch.num_rows();
         if n == 0 {
             continue;
@@ -568,100 +692,47 @@ async fn record(
             has_score = true;
         }
 
-        // Cameras: LeRobot videos referenced by timestamp, and/or sampled PNG frames.
-        let mut has_camera = false;
-        if !opts.no_videos {
-            let media_keys: Vec<String> = batch
-                .schema()
-                .fields()
-                .iter()
-                .filter_map(|f| {
-                    f.name()
-                        .strip_prefix(store::steps::MEDIA_PREFIX)?
-                        .strip_suffix(".path")
-                        .map(str::to_string)
-                })
-                .collect();
-            for key in media_keys {
-                let paths = batch
-                    .column_by_name(&format!("{}{key}.path", store::steps::MEDIA_PREFIX))
-                    .and_then(|c| c.as_any().downcast_ref::<StringArray>())
-                    .ok_or_else(|| ViewError::Invalid(format!("media column {key:?} is not utf8")))?;
-                let times = f64_col(&batch, &format!("{}{key}.timestamp", store::steps::MEDIA_PREFIX))?;
-                let part = re_sdk::EntityPathPart::from(key.as_str()).escaped_string();
-                // Consecutive runs of the same video object (usually one per episode).
-                let mut row = 0;
-                while row < n {
-                    let obj = paths.value(row).to_string();
-                    let end = (row..n).find(|&i| paths.value(i) != obj).unwrap_or(n);
-                    let video_path = match videos_logged.get(&obj) {
-                        Some(p) => p.clone(),
-                        None => {
-                            let data = store.get_object(&obj).await?;
-                            let file = obj.rsplit('/').next().unwrap_or(&obj);
-                            let file = re_sdk::EntityPathPart::from(file).escaped_string();
-                            let vpath = format!("media/{part}/{file}");
-                            let media = MediaType::guess_from_path(&obj)
-                                .or_else(|| MediaType::guess_from_data(&data));
-                            rec.log_static(
-                                vpath.as_str(),
-                                &AssetVideo::from_file_contents(data.to_vec(), media),
-                            )
-                            .map_err(rr)?;
-                            out.entities.insert(vpath.clone());
-                            videos_logged.insert(obj.clone(), vpath.clone());
-                            report.videos += 1;
-                            vpath
-                        }
-                    };
-                    let k = end - row;
-                    let arch = VideoFrameReference::update_fields()
-                        .with_many_timestamp((row..end).map(|i| VideoTimestamp::from_secs(times.value(i))))
-                        .with_many_video_reference(vec![video_path; k]);
-                    let cols = arch.columns_of_unit_batches().map_err(rr)?.collect::<Vec<_>>();
-                    let sub = indexes(&t[row..end], &ts[row..end]);
+        // Cameras, in the steps' column order: a video (LeRobot mp4) as one static AssetVideo
+        // per object plus a VideoFrameReference per step; an image column as one EncodedImage
+        // per step, the stored bytes (PNG, or JPEG as recorded) with their media type.
+        let mut cameras: Vec<(String, String)> = Vec::new();
+        for cam in store::cameras_of(batch.schema().as_ref()) {
+            let part = re_sdk::EntityPathPart::from(cam.name.as_str()).escaped_string();
+            let at = StepIndex { t: &t, ts: &ts };
+            let logged_frames = match cam.kind {
+                store::CameraKind::Video if !opts.no_videos => {
                     let cam_path = format!("{base}/camera/{part}");
-                    out.send(cam_path, &sub, cols)?;
-                    report.video_frames += k;
-                    has_camera = true;
-                    row = end;
+                    let (videos, frames) = out.video_camera(store, &batch, &cam.name, &cam_path, at).await?;
+                    report.videos += videos;
+                    report.video_frames += frames;
+                    (frames > 0).then_some(cam_path)
                 }
-            }
-        }
-        if opts.images {
-            let image_keys: Vec<String> = batch
-                .schema()
-                .fields()
-                .iter()
-                .filter_map(|f| f.name().strip_prefix(store::steps::IMAGE_PREFIX).map(str::to_string))
-                .collect();
-            for key in image_keys {
-                let Some(col) = batch
-                    .column_by_name(&format!("{}{key}", store::steps::IMAGE_PREFIX))
-                    .and_then(|c| c.as_any().downcast_ref::<BinaryArray>())
-                else {
-                    continue;
-                };
-                let rows: Vec<usize> = (0..n).step_by(stride).filter(|&i| col.is_valid(i)).collect();
-                if rows.is_empty() {
-                    continue;
+                store::CameraKind::Image if !opts.no_images => {
+                    let img_path = format!("{base}/image/{part}");
+                    let media = match cam.encoding.as_deref() {
+                        Some("jpeg") => MediaType::jpeg(),
+                        _ => MediaType::png(),
+                    };
+                    let frames = out.image_camera(&batch, &cam.name, media, stride, &img_path, at)?;
+                    report.images += frames;
+                    (frames > 0).then_some(img_path)
                 }
-                let arch = EncodedImage::update_fields()
-                    .with_many_blob(rows.iter().map(|&i| col.value(i).to_vec()))
-                    .with_many_media_type(vec![MediaType::png(); rows.len()]);
-                let cols = arch.columns_of_unit_batches().map_err(rr)?.collect::<Vec<_>>();
-                let st: Vec<i64> = rows.iter().map(|&i| t[i]).collect();
-                let sts: Vec<f64> = rows.iter().map(|&i| ts[i]).collect();
-                let part = re_sdk::EntityPathPart::from(key.as_str()).escaped_string();
-                let img_path = format!("{base}/image/{part}");
-                out.send(img_path, &indexes(&st, &sts), cols)?;
-                report.images += rows.len();
-                has_camera = true;
+                _ => None,
+            };
+            if let Some(path) = logged_frames {
+                cameras_seen.insert(cam.name.clone());
+                cameras.push((cam.name.clone(), path));
             }
         }
         tracing::debug!(episode = %ep.id, steps = n, label = %label, "recorded episode");
-        logged.push(EpisodeEntities { base, label, has_score, has_camera });
+        logged.push(EpisodeEntities { index: i, base, label, has_score, cameras });
     }
+
+    if let Some(i) = seen.iter().position(|s| !s) {
+        return Err(StoreError::Corrupt(format!("episode {} was not read", episodes[i].id)).into());
+    }
+    logged.sort_by_key(|e| e.index);
+    report.cameras = cameras_seen.into_iter().collect();
 
     if !opts.position_keys.is_empty() && report.episodes > 0 && report.without_position == report.episodes {
         return Err(ViewError::Invalid(format!(
@@ -786,7 +857,7 @@ fn summary_markdown(opts: &ViewOptions, r: &ViewReport, lengths: &HashMap<Label,
 /// Trajectories (2-D or 3-D) left; score, action and state plots right; cameras below them.
 fn blueprint(eps: &[EpisodeEntities], pos_dims: Option<usize>, scored: bool) -> Blueprint {
     let mut spatial_excl: Vec<String> = vec!["+ /episodes/**".into()];
-    for e in eps.iter().filter(|e| e.has_camera) {
+    for e in eps.iter().filter(|e| !e.cameras.is_empty()) {
         spatial_excl.push(format!("- /{}/camera/**", e.base));
         spatial_excl.push(format!("- /{}/image/**", e.base));
     }
@@ -809,30 +880,35 @@ fn blueprint(eps: &[EpisodeEntities], pos_dims: Option<usize>, scored: bool) -> 
     let mut state = per_ep("state/**", &|_| true);
     state.extend(per_ep("reward", &|_| true));
     plots.push(TimeSeriesView::new("state & reward").with_origin("/").with_contents(state).into());
-    let cams: Vec<ContainerLike> = eps
-        .iter()
-        .filter(|e| e.has_camera)
-        // One success and one failure first, then whatever comes: at most four camera views.
-        .fold(Vec::<&EpisodeEntities>::new(), |mut v, e| {
-            if v.len() < 4 && (v.iter().all(|x| x.label != e.label) || v.len() >= 2) {
+    // Camera views: a success and a failure first, then whatever comes; one row per episode
+    // with each of its cameras side by side (at most 8 views, at most 4 episodes).
+    let per_row = eps.iter().map(|e| e.cameras.len()).max().unwrap_or(0);
+    let max_eps = 8usize.checked_div(per_row).map_or(0, |k| k.clamp(1, 4));
+    let shown =
+        eps.iter().filter(|e| !e.cameras.is_empty()).fold(Vec::<&EpisodeEntities>::new(), |mut v, e| {
+            if v.len() < max_eps && (v.iter().all(|x| x.label != e.label) || v.len() >= 2) {
                 v.push(e);
             }
             v
-        })
-        .into_iter()
-        .map(|e| {
-            let name = e.base.trim_start_matches("episodes/").to_string();
-            Spatial2DView::new(name)
-                .with_origin(format!("/{}", e.base))
-                .with_contents([format!("+ /{}/camera/**", e.base), format!("+ /{}/image/**", e.base)])
-                .into()
-        })
-        .collect();
+        });
+    let mut cams: Vec<ContainerLike> = Vec::new();
+    for e in shown {
+        let name = e.base.trim_start_matches("episodes/").to_string();
+        for (key, path) in &e.cameras {
+            cams.push(
+                Spatial2DView::new(format!("{name} · {key}"))
+                    .with_origin(format!("/{path}"))
+                    .with_contents([format!("+ /{path}")])
+                    .into(),
+            );
+        }
+    }
     let right: ContainerLike = Vertical::new(plots).into();
     let root: ContainerLike = if cams.is_empty() {
         Horizontal::new([trajectories, right]).into()
     } else {
-        let left: ContainerLike = Vertical::new([trajectories, Grid::new(cams).into()]).into();
+        let grid = Grid::new(cams).with_grid_columns(per_row as u32);
+        let left: ContainerLike = Vertical::new([trajectories, grid.into()]).into();
         Horizontal::new([left, right]).into()
     };
     Blueprint::new(root).with_auto_views(false)

@@ -153,6 +153,10 @@ struct Decoded {
     timelines: BTreeMap<String, BTreeSet<String>>,
     blueprint_chunks: usize,
     recordings: BTreeSet<String>,
+    /// entity → the media types its rows carry (EncodedImage / AssetVideo)
+    media_types: BTreeMap<String, BTreeSet<String>>,
+    /// entity → every video timestamp it references, in seconds (VideoFrameReference)
+    video_times: BTreeMap<String, Vec<f64>>,
 }
 
 fn decode(bytes: &[u8]) -> Decoded {
@@ -179,9 +183,21 @@ fn decode(bytes: &[u8]) -> Decoded {
                 tl.insert(name.to_string());
             }
         }
-        let comps = d.components.entry(path).or_default();
         for desc in chunk.component_descriptors() {
-            comps.insert(desc.display_name().to_string());
+            let name = desc.display_name().to_string();
+            let values = chunk.raw_component_array(desc.component);
+            if name.ends_with("media_type") {
+                let v = values.and_then(|a| a.as_any().downcast_ref::<arrow::array::StringArray>()).unwrap();
+                let set = d.media_types.entry(path.clone()).or_default();
+                set.extend(v.iter().flatten().map(str::to_string));
+            } else if name.ends_with("VideoFrameReference:timestamp") {
+                let v = values.and_then(|a| a.as_any().downcast_ref::<arrow::array::Int64Array>()).unwrap();
+                d.video_times
+                    .entry(path.clone())
+                    .or_default()
+                    .extend(v.values().iter().map(|&ns| ns as f64 * 1e-9));
+            }
+            d.components.entry(path.clone()).or_default().insert(name);
         }
     }
     d
@@ -201,7 +217,6 @@ async fn recording_has_episodes_timelines_scores_and_blueprint() {
 
     let out = dir.path().join("out/view.rrd");
     let mut opts = ViewOptions::new("nav", "ckpt1");
-    opts.images = true;
     opts.image_stride = 2;
     let report = write_recording(&store, &opts, Some(&FakeVerifier), &out).await.unwrap();
     assert_eq!((report.episodes, report.success, report.failure, report.unknown), (6, 3, 2, 1));
@@ -349,8 +364,7 @@ async fn check_rrd_with_official_rerun_sdk() {
     let o = Opts { images: true, video: Some(sha256_hex(&fake_mp4())) };
     let store = make_store(dir.path(), &o).await;
     let out = dir.path().join("view.rrd");
-    let mut opts = ViewOptions::new("nav", "ckpt1");
-    opts.images = true;
+    let opts = ViewOptions::new("nav", "ckpt1");
     write_recording(&store, &opts, Some(&FakeVerifier), &out).await.unwrap();
 
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/check_rrd.sh");
@@ -380,4 +394,70 @@ async fn check_rrd_with_official_rerun_sdk() {
     if let Ok(keep) = std::env::var("VIEWER_KEEP_CHECK_OUTPUT") {
         std::fs::write(keep, format!("{stdout}\n--- stderr\n{stderr}")).unwrap();
     }
+}
+
+/// A JPEG's start-of-image and end-of-image markers: enough for the store to record the column
+/// as `jpeg` (the viewer passes the bytes through, it never decodes them).
+const JPEG: [u8; 6] = [0xFF, 0xD8, 0xFF, 0xE0, 0xFF, 0xD9];
+
+/// Every camera is logged by default: a robomimic-like store with two image cameras (one PNG,
+/// one JPEG as ALOHA's compressed cameras are stored) gives each episode two EncodedImage
+/// entities, one row per step on `step` and `time`, with the stored encoding's media type, and
+/// a camera view per episode and camera in the blueprint.
+#[tokio::test]
+async fn two_image_cameras_every_step_with_their_media_type() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(&StoreConfig::local(dir.path().join("data"))).await.unwrap();
+    let src = SourceInput {
+        path: "/tmp/two_cameras.hdf5".into(),
+        sha256: sha256_hex(b"two-cameras"),
+        format: "test".into(),
+        size_bytes: 1,
+        metadata: serde_json::json!({}),
+    };
+    let mut w = store.begin_ingest(src, "lift", "ckpt").await.unwrap();
+    let o = Opts { images: false, video: None };
+    for (i, label) in [Label::Success, Label::Failure, Label::Success].into_iter().enumerate() {
+        let mut ep = episode(i as u32, steps_of(i), label, &o);
+        let n = steps_of(i);
+        ep.images = vec![
+            ImageColumn {
+                name: "agentview_image".into(),
+                shape: [2, 2, 3],
+                png_frames: vec![PNG.to_vec(); n],
+            },
+            ImageColumn { name: "cam_high".into(), shape: [2, 2, 3], png_frames: vec![JPEG.to_vec(); n] },
+        ];
+        w.add_episode(ep).await.unwrap();
+    }
+    w.commit("two cameras").await.unwrap();
+    let eps = store.episodes(&EpisodeFilter::default()).await.unwrap();
+
+    let out = dir.path().join("cams.rrd");
+    let report = write_recording(&store, &ViewOptions::new("lift", "ckpt"), None, &out).await.unwrap();
+    assert_eq!(report.cameras, ["agentview_image", "cam_high"]);
+    assert_eq!(report.images, 2 * report.steps, "every step of both cameras");
+    assert_eq!((report.videos, report.video_frames), (0, 0));
+    let d = decode(&std::fs::read(&out).unwrap());
+    for ep in &eps {
+        let base = episode_path(ep.label, &ep.id);
+        for (cam, media) in [("agentview_image", "image/png"), ("cam_high", "image/jpeg")] {
+            let path = format!("{base}/image/{cam}");
+            assert_eq!(d.rows.get(&path).copied(), Some(ep.length as usize), "{path}");
+            assert_eq!(d.timelines[&path].iter().collect::<Vec<_>>(), ["step", "time"]);
+            assert!(has(&d, &path, "EncodedImage:blob"), "{:?}", d.components.get(&path));
+            assert_eq!(d.media_types[&path].iter().collect::<Vec<_>>(), [media], "{path}");
+        }
+    }
+
+    // `no_images` leaves them out; `image_stride` samples them.
+    let mut opts = ViewOptions::new("lift", "ckpt");
+    opts.no_images = true;
+    let (bytes, r) = recording_bytes(&store, &opts, None).await.unwrap();
+    assert!(r.cameras.is_empty() && r.images == 0);
+    assert!(!decode(&bytes).rows.keys().any(|k| k.contains("/image/")));
+    opts.no_images = false;
+    opts.image_stride = 3;
+    let (_, r) = recording_bytes(&store, &opts, None).await.unwrap();
+    assert_eq!(r.images, 2 * eps.iter().map(|e| (e.length as usize).div_ceil(3)).sum::<usize>());
 }
