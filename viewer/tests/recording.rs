@@ -461,3 +461,43 @@ async fn two_image_cameras_every_step_with_their_media_type() {
     let (_, r) = recording_bytes(&store, &opts, None).await.unwrap();
     assert_eq!(r.images, 2 * eps.iter().map(|e| (e.length as usize).div_ceil(3)).sum::<usize>());
 }
+
+/// The LeRobot v3.0 fixture keeps its 8 episodes in one shared mp4: the recording embeds it once
+/// (a static AssetVideo) and each episode's camera entity has one VideoFrameReference per step,
+/// at the episode's own frame times inside the file (the second episode's start at 7.8 s).
+#[tokio::test]
+async fn lerobot_v30_shared_video_embedded_once_and_referenced_per_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(&StoreConfig::local(dir.path().join("data"))).await.unwrap();
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("../fixtures/lerobot/v30_eval_video");
+    let opts = ingest::IngestOptions { policy: "p".into(), checkpoint: "c".into(), ..Default::default() };
+    ingest::ingest(&store, &fixture, &opts).await.unwrap();
+    let eps = store.episodes(&EpisodeFilter::default()).await.unwrap();
+    assert_eq!(eps.len(), 8);
+
+    let (bytes, report) = recording_bytes(&store, &ViewOptions::new("p", "c"), None).await.unwrap();
+    assert_eq!(report.cameras, ["images.front"], "the key ingest stores");
+    assert_eq!(report.videos, 1, "one shared mp4, embedded once");
+    assert_eq!(report.video_frames, report.steps);
+    assert_eq!(report.steps, 519);
+    let d = decode(&bytes);
+    let videos: Vec<&String> = d.statics.keys().filter(|k| k.starts_with("media/")).collect();
+    assert_eq!(videos.len(), 1, "{videos:?}");
+    assert!(has(&d, videos[0], "AssetVideo:blob"), "{:?}", d.components.get(videos[0]));
+    assert_eq!(d.media_types[videos[0]].iter().collect::<Vec<_>>(), ["video/mp4"]);
+    let mut firsts = Vec::new();
+    for ep in &eps {
+        let path = format!("{}/camera/images.front", episode_path(ep.label, &ep.id));
+        assert_eq!(d.rows.get(&path).copied(), Some(ep.length as usize), "{path}");
+        assert_eq!(d.timelines[&path].iter().collect::<Vec<_>>(), ["step", "time"]);
+        let times = &d.video_times[&path];
+        assert_eq!(times.len(), ep.length as usize);
+        assert!(times.windows(2).all(|w| w[1] > w[0]), "frame times grow within an episode");
+        firsts.push((ep.source_index, times[0], *times.last().unwrap()));
+    }
+    firsts.sort_by_key(|f| f.0);
+    assert!(firsts[0].1.abs() < 1e-6, "{firsts:?}");
+    assert!((firsts[1].1 - 7.8).abs() < 1e-6, "{firsts:?}");
+    // Episodes follow one another in the shared file, without overlap.
+    assert!(firsts.windows(2).all(|w| w[1].1 > w[0].2), "{firsts:?}");
+}
