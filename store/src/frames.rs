@@ -12,8 +12,6 @@ use parquet::arrow::arrow_reader::{RowSelection, RowSelectionPolicy, RowSelector
 use parquet::arrow::push_decoder::ParquetPushDecoderBuilder;
 use parquet::arrow::ProjectionMask;
 use parquet::DecodeResult;
-use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
 
 /// How a camera's frames are stored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -253,77 +251,15 @@ impl Store {
     }
 }
 
-/// Decoded pages of image columns, by `(steps file, row group, column, first row)`: objects are
-/// immutable, so an entry never goes stale; least recently used dropped first past a byte budget.
-/// Concurrent readers of one page share one fetch.
-pub(crate) struct PageCache {
-    state: Mutex<PageState>,
-    budget: usize,
-}
+/// Decoded pages of image columns, by `(steps file, row group, column, first row)`, within
+/// [`PAGE_CACHE_BYTES`].
+pub(crate) type PageCache = crate::lru::ByteLru<PageKey, ArrayRef>;
 
 type PageKey = (String, usize, usize, usize);
 
-#[derive(Default)]
-struct PageState {
-    entries: HashMap<PageKey, PageEntry>,
-    tick: u64,
-    bytes: usize,
-}
-
-struct PageEntry {
-    cell: Arc<tokio::sync::OnceCell<ArrayRef>>,
-    last_used: u64,
-    size: usize,
-}
-
 /// Bytes of decoded pages kept (a page holds at most [`crate::steps::PAGE_MAX_BYTES`] of
 /// frames, so this is a few dozen pages: every camera of the episodes being labeled).
-const PAGE_CACHE_BYTES: usize = 64 << 20;
-
-impl Default for PageCache {
-    fn default() -> Self {
-        PageCache { state: Mutex::new(PageState::default()), budget: PAGE_CACHE_BYTES }
-    }
-}
-
-impl PageCache {
-    fn cell(&self, key: &PageKey) -> Arc<tokio::sync::OnceCell<ArrayRef>> {
-        let mut st = self.state.lock().unwrap_or_else(|p| p.into_inner());
-        st.tick += 1;
-        let tick = st.tick;
-        let e = st.entries.entry(key.clone()).or_insert_with(|| PageEntry {
-            cell: Arc::new(tokio::sync::OnceCell::new()),
-            last_used: tick,
-            size: 0,
-        });
-        e.last_used = tick;
-        e.cell.clone()
-    }
-
-    /// Records a freshly decoded page's size and evicts the least recently used ones.
-    fn loaded(&self, key: &PageKey, size: usize) {
-        let mut st = self.state.lock().unwrap_or_else(|p| p.into_inner());
-        match st.entries.get_mut(key) {
-            Some(e) if e.size == 0 => e.size = size,
-            _ => return,
-        }
-        st.bytes += size;
-        while st.bytes > self.budget && st.entries.len() > 1 {
-            let Some(victim) = st
-                .entries
-                .iter()
-                .filter(|(k, e)| *k != key && e.size > 0)
-                .min_by_key(|(_, e)| e.last_used)
-                .map(|(k, _)| k.clone())
-            else {
-                break;
-            };
-            if let Some(e) = st.entries.remove(&victim) {
-                st.bytes -= e.size;
-            }
-        }
-    }
-}
+pub(crate) const PAGE_CACHE_BYTES: usize = 64 << 20;
 
 #[cfg(test)]
 mod tests {

@@ -16,6 +16,7 @@ mod gc;
 mod jobs;
 mod labels;
 mod layers;
+mod lru;
 mod media;
 pub mod model;
 mod objects;
@@ -112,8 +113,8 @@ impl Store {
         };
         let db = catalog::Catalog::connect(&url).await?;
         let objects = objects::Objects::open(config)?;
-        let meta_cache = read::MetaCache::default();
-        let frame_pages = frames::PageCache::default();
+        let meta_cache = read::MetaCache::new(read::METADATA_CACHE_BYTES);
+        let frame_pages = frames::PageCache::new(frames::PAGE_CACHE_BYTES);
         Ok(Store {
             inner: Arc::new(Inner {
                 db,

@@ -25,7 +25,7 @@ use parquet::DecodeResult;
 use std::collections::HashMap;
 use std::ops::Range;
 use std::pin::Pin;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::task::{Context, Poll};
 use tokio::sync::mpsc;
 
@@ -40,7 +40,7 @@ const BATCH_BYTES: u64 = 8 << 20;
 const BATCH_MAX_ROWS: usize = 8192;
 /// Footers kept in memory, all files together (the offset index of a 64 MB steps file of
 /// ~300-step episodes is ~0.5 MB).
-const METADATA_CACHE_BYTES: usize = 64 << 20;
+pub(crate) const METADATA_CACHE_BYTES: usize = 64 << 20;
 /// Catalog look-ups per statement.
 const IDS_PER_QUERY: usize = 500;
 
@@ -206,70 +206,9 @@ impl FileMeta {
     }
 }
 
-/// Footers by object path (objects are immutable, so a path's footer never changes), least
-/// recently used dropped first past a byte budget. Concurrent readers of one file share one fetch.
-pub(crate) struct MetaCache {
-    state: Mutex<CacheState>,
-    budget: usize,
-}
-
-#[derive(Default)]
-struct CacheState {
-    entries: HashMap<String, CacheEntry>,
-    tick: u64,
-    bytes: usize,
-}
-
-struct CacheEntry {
-    cell: Arc<tokio::sync::OnceCell<FileMeta>>,
-    last_used: u64,
-    size: usize,
-}
-
-impl Default for MetaCache {
-    fn default() -> Self {
-        MetaCache { state: Mutex::new(CacheState::default()), budget: METADATA_CACHE_BYTES }
-    }
-}
-
-impl MetaCache {
-    fn cell(&self, path: &str) -> Arc<tokio::sync::OnceCell<FileMeta>> {
-        let mut st = self.state.lock().unwrap_or_else(|p| p.into_inner());
-        st.tick += 1;
-        let tick = st.tick;
-        let e = st.entries.entry(path.to_string()).or_insert_with(|| CacheEntry {
-            cell: Arc::new(tokio::sync::OnceCell::new()),
-            last_used: tick,
-            size: 0,
-        });
-        e.last_used = tick;
-        e.cell.clone()
-    }
-
-    /// Records the size of a freshly loaded footer and evicts the least recently used ones.
-    fn loaded(&self, path: &str, size: usize) {
-        let mut st = self.state.lock().unwrap_or_else(|p| p.into_inner());
-        match st.entries.get_mut(path) {
-            Some(e) if e.size == 0 => e.size = size,
-            _ => return,
-        }
-        st.bytes += size;
-        while st.bytes > self.budget && st.entries.len() > 1 {
-            let Some(victim) = st
-                .entries
-                .iter()
-                .filter(|(p, e)| p.as_str() != path && e.size > 0)
-                .min_by_key(|(_, e)| e.last_used)
-                .map(|(p, _)| p.clone())
-            else {
-                break;
-            };
-            if let Some(e) = st.entries.remove(&victim) {
-                st.bytes -= e.size;
-            }
-        }
-    }
-}
+/// Footers by object path (objects are immutable, so a path's footer never changes), within
+/// [`METADATA_CACHE_BYTES`].
+pub(crate) type MetaCache = crate::lru::ByteLru<String, FileMeta>;
 
 impl Store {
     /// The step table of an episode (one record batch), now or as of `version`.
@@ -381,7 +320,8 @@ impl Store {
     /// then the offset index if the suffix did not hold it).
     pub(crate) async fn file_meta(&self, path: &str) -> Result<FileMeta, StoreError> {
         let cache = &self.inner.meta_cache;
-        let cell = cache.cell(path);
+        let key = path.to_string();
+        let cell = cache.cell(&key);
         let mut fresh = false;
         let fm = cell
             .get_or_try_init(|| async {
@@ -391,7 +331,7 @@ impl Store {
             .await?
             .clone();
         if fresh {
-            cache.loaded(path, fm.meta.metadata().memory_size() + fm.tail.len());
+            cache.loaded(&key, fm.meta.metadata().memory_size() + fm.tail.len());
         }
         Ok(fm)
     }
