@@ -460,30 +460,47 @@ fn raw_camera(ds: &Dataset, src: &Src, what: &str, name: &str, shape: &[u64]) ->
             format!("{what}: unsupported image shape {shape:?} (expected T x H x W x C, C in 1..=4)"),
         ));
     }
-    let frame = (h * w * c) as u64;
-    let window = (WINDOW_BYTES / frame).max(1);
     let mut png_frames = Vec::with_capacity(t);
+    read_rows_windowed(ds, src, what, t as u64, (h * w * c) as u64, |_, n, bytes| {
+        let enc = crate::robomimic::encode_png_frames(bytes, n, h, w, c)
+            .map_err(|e| IngestError::invalid(src, format!("{what}: {e}")))?;
+        png_frames.extend(enc);
+        Ok(())
+    })?;
+    Ok(ImageColumn { name: name.to_string(), shape: [h, w, c], png_frames })
+}
+
+/// Reads the `rows` rows of `row_bytes` bytes each of a uint8 dataset in windows of about
+/// [`WINDOW_BYTES`], checking each window's length, and hands each window to `f` with its first
+/// row and row count: memory is bounded by a window, not by the camera.
+fn read_rows_windowed(
+    ds: &Dataset,
+    src: &Src,
+    what: &str,
+    rows: u64,
+    row_bytes: u64,
+    mut f: impl FnMut(u64, usize, &[u8]) -> Result<()>,
+) -> Result<()> {
+    let window = (WINDOW_BYTES / row_bytes.max(1)).max(1);
     let mut start = 0u64;
-    while start < t as u64 {
-        let n = window.min(t as u64 - start);
+    while start < rows {
+        let n = window.min(rows - start);
         let bytes = ds.read_u8_rows(start, n).map_err(h5err(src, format!("cannot read {what}")))?;
-        if bytes.len() as u64 != n * frame {
+        if bytes.len() as u64 != n * row_bytes {
             return Err(IngestError::invalid(
                 src,
                 format!(
                     "{what}: read {} bytes for frames {start}..{}, expected {}",
                     bytes.len(),
                     start + n,
-                    n * frame
+                    n * row_bytes
                 ),
             ));
         }
-        let enc = crate::robomimic::encode_png_frames(&bytes, n as usize, h, w, c)
-            .map_err(|e| IngestError::invalid(src, format!("{what}: {e}")))?;
-        png_frames.extend(enc);
+        f(start, n as usize, &bytes)?;
         start += n;
     }
-    Ok(ImageColumn { name: name.to_string(), shape: [h, w, c], png_frames })
+    Ok(())
 }
 
 /// A compressed camera: each row's first `lens[t]` bytes (a JPEG, kept as it is), and the rest
@@ -498,25 +515,10 @@ fn jpeg_camera(
     row: usize,
 ) -> Result<(ImageColumn, Option<ExtraColumn>)> {
     let t = lens.len();
-    let window = (WINDOW_BYTES / padded.max(1)).max(1);
     let mut frames = Vec::with_capacity(t);
     let mut tails: Vec<Option<Vec<u8>>> = Vec::with_capacity(t);
     let mut shape = None;
-    let mut start = 0u64;
-    while start < t as u64 {
-        let n = window.min(t as u64 - start);
-        let bytes = ds.read_u8_rows(start, n).map_err(h5err(src, format!("cannot read {what}")))?;
-        if bytes.len() as u64 != n * padded {
-            return Err(IngestError::invalid(
-                src,
-                format!(
-                    "{what}: read {} bytes for frames {start}..{}, expected {}",
-                    bytes.len(),
-                    start + n,
-                    n * padded
-                ),
-            ));
-        }
+    read_rows_windowed(ds, src, what, t as u64, padded, |start, _, bytes| {
         for (k, r) in bytes.chunks_exact(padded as usize).enumerate() {
             let ti = start as usize + k;
             let len = lens[ti] as usize;
@@ -534,8 +536,8 @@ fn jpeg_camera(
             let tail = &r[len..];
             tails.push(tail.iter().any(|&b| b != 0).then(|| tail.to_vec()));
         }
-        start += n;
-    }
+        Ok(())
+    })?;
     let shape = shape.unwrap_or([0, 0, 0]);
     let pad = tails.iter().any(Option::is_some).then(|| {
         let arr: ArrayRef = Arc::new(BinaryArray::from_iter(tails.iter().map(|t| t.as_deref())));
