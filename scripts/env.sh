@@ -24,13 +24,14 @@ ensure_python_package_deps() {
 }
 
 test_python_package() {
-  # Builds the package from this checkout (maturin, the dev profile, into $CARGO_TARGET_DIR, which
-  # is kept between runs: the extension's dependencies are compiled once, ~15 min on 2 cores, then
-  # only a changed crate), installs it, type-checks it and runs its tests against the `ufops`
-  # binary of the same target dir. Any failure fails the caller (set -e).
-  cargo build --locked --bin ufops
-  # The `testing` feature: the tests' `write_random_artifact` (verifier::testutil).
-  MATURIN_PEP517_ARGS="--features testing" \
+  # Builds the package from this checkout (maturin, the dev profile, into $CARGO_TARGET_DIR),
+  # installs it, type-checks it and runs its tests against the `ufops` binary that
+  # `cargo test --workspace` built into the same target dir (run that first: test.sh does).
+  # Features: `testing` (the tests' `write_random_artifact`, verifier::testutil) and
+  # `workspace-hack` (the dependencies' features as the workspace test build has them,
+  # scripts/workspace_hack.py), so only pyo3 and the extension itself are compiled here.
+  # Any failure fails the caller (set -e).
+  MATURIN_PEP517_ARGS="--features testing,workspace-hack" \
     python3 -m pip install -q --disable-pip-version-check --force-reinstall --no-deps ./clients/python
   python3 -m mypy --strict --config-file clients/python/pyproject.toml clients/python/python/ufops
   python3 -m pytest -q clients/python/tests

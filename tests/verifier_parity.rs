@@ -15,7 +15,7 @@ use std::path::Path;
 use std::process::Command;
 
 use steer::Scorer;
-use viewer::EpisodeScorer;
+use verifier::StepScorer;
 
 fn numpy_available() -> bool {
     let importable =
@@ -223,9 +223,9 @@ fn every_client_gives_the_same_scores_and_gradients() {
                     batch.columns().to_vec(),
                 )
                 .unwrap();
-                let err = trainer::step_inputs(cfg, &forged).unwrap_err().to_string();
+                let err = verifier::steps::step_inputs(cfg, &forged).unwrap_err().to_string();
                 assert!(err.contains("ffffffffffff"), "{err}");
-                let err = trainer::step_inputs(cfg, &plain_batch).unwrap_err().to_string();
+                let err = verifier::steps::step_inputs(cfg, &plain_batch).unwrap_err().to_string();
                 assert!(err.contains("read the steps with that layer"), "{err}");
             }
             "classifier" => {
@@ -246,7 +246,7 @@ fn every_client_gives_the_same_scores_and_gradients() {
                 assert_eq!(a.activation, verifier::Activation::Gelu);
             }
         }
-        let s = trainer::step_inputs(cfg, batch).unwrap();
+        let s = verifier::steps::step_inputs(cfg, batch).unwrap();
         let (n, ad) = (s.len(), s.act_dim);
         assert!(n >= 10, "{name}: {n} steps");
 
@@ -255,10 +255,9 @@ fn every_client_gives_the_same_scores_and_gradients() {
         let grads = robot.grad_batch(&s.obs, &s.t, &s.act).unwrap();
         assert!(grads.iter().any(|g| g.abs() > 1e-4), "{name}: the gradient is trivially zero");
 
-        // The viewer's scorer, on the stored steps themselves.
-        let viewer_scores = viewer::VerifierScorer(verifier::Verifier::load_dir(&local).unwrap())
-            .score_episode(batch)
-            .unwrap();
+        // The stored-steps scorer (the viewer's, export curation's, the review queue's), on the
+        // stored steps themselves.
+        let viewer_scores = verifier::Verifier::load_dir(&local).unwrap().score_steps(batch).unwrap();
         same(&format!("{name}: viewer scores"), &viewer_scores, &scores, 1e-5);
 
         // `ufops score` from the store, with policy-space rows and with raw rows.

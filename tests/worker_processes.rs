@@ -146,7 +146,7 @@ fn two_worker_processes_on_postgres_run_each_job_once_and_retry_a_killed_workers
             "split_id": split_id, "kind": "classifier", "policy": "pol", "checkpoint": "c1", "chunk_len": 16,
             "config": {"epochs": EPOCHS, "batch_size": 64, "seed": i},
         });
-        job_ids.push(rt.block_on(store.create_job("train", &spec, "test")).unwrap().id);
+        job_ids.push(rt.block_on(store.create_job(store::JobKind::Train, &spec, "test")).unwrap().id);
         std::thread::sleep(Duration::from_millis(3)); // distinct created_at: claims follow queue order
     }
 

@@ -8,6 +8,7 @@
 //! `store` crate, which the CLI uses too; the real job runner (training, ingest) is the binary's.
 
 mod auth;
+mod body_schemas;
 mod conn;
 mod error;
 mod extract;
@@ -17,6 +18,7 @@ mod metrics;
 mod openapi;
 mod routes;
 mod session;
+mod session_routes;
 mod steps_json;
 mod upload;
 mod worker;
@@ -233,7 +235,7 @@ pub fn router(state: AppState) -> Router {
     Router::new()
         .route("/healthz", get(r::healthz))
         .merge(authed)
-        .merge(session::routes(state.clone()))
+        .merge(session_routes::routes(state.clone()))
         .merge(web::router::<AppState>())
         .fallback(r::not_found)
         .layer(DefaultBodyLimit::max(body_limit))

@@ -13,7 +13,7 @@ use utoipa::openapi::path::{Operation, ParameterIn};
 use utoipa::openapi::schema::{ObjectBuilder, Schema, Type};
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::openapi::{ContentBuilder, Ref, RefOr, ResponseBuilder};
-use utoipa::{Modify, OpenApi, ToSchema};
+use utoipa::{Modify, OpenApi};
 
 #[derive(OpenApi)]
 #[openapi(
@@ -45,19 +45,6 @@ use utoipa::{Modify, OpenApi, ToSchema};
     security(("bearer" = [])),
 )]
 struct ApiDoc;
-
-/// A file's bytes (downloads and uploads).
-#[derive(ToSchema)]
-#[schema(value_type = String, format = Binary)]
-#[allow(dead_code)]
-pub(crate) struct FileBytes(Vec<u8>);
-
-/// An uploaded file's bytes: at least one (the modifier sets `minLength`, which utoipa's
-/// attribute cannot on a `value_type`).
-#[derive(ToSchema)]
-#[schema(value_type = String, format = Binary)]
-#[allow(dead_code)]
-pub(crate) struct UploadBytes(Vec<u8>);
 
 struct Bearer;
 

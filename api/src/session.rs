@@ -1,8 +1,8 @@
-//! Browser sessions for the labeling page: `POST /ui/session {token}` checks an API token and
-//! sets an `HttpOnly; SameSite=Strict` cookie holding a random session id; the server keeps
-//! `id → token secret` in memory (never sent back to the browser), so a session stops working
-//! when its token is revoked (within the token cache's TTL). `GET /ui/session` says who is
-//! signed in, `DELETE /ui/session` signs out (forgets the id, clears the cookie).
+//! Browser sessions for the labeling page: an `HttpOnly; SameSite=Strict` cookie holds a random
+//! session id; the server keeps `id → token secret` in memory (never sent back to the browser),
+//! so a session stops working when its token is revoked (within the token cache's TTL). This
+//! module owns the sessions, the cookie and the CSRF rule; the `/ui/session` routes that sign in
+//! and out are `session_routes.rs`, and the token middleware (`auth.rs`) reads the cookie here.
 //!
 //! CSRF: the cookie is `SameSite=Strict`, and every cookie-authenticated request with an unsafe
 //! method (and the sign-in itself) must carry `X-Ufops-UI: 1` — a custom header a cross-site form
@@ -11,20 +11,11 @@
 //! (`--public-url`, for a server behind a TLS proxy; the cookie then also gets `Secure`), else
 //! `Host`. Each token holds at most [`MAX_SESSIONS_PER_TOKEN`] sessions (its least recently used
 //! one is dropped), so one token signing in in a loop cannot push other people's sessions out.
-//!
-//! These routes are the page's own, outside the bearer-token API and its OpenAPI document.
 
-use crate::auth::Caller;
 use crate::error::{ApiError, ApiResult};
-use crate::extract::ApiJson;
 use crate::AppState;
-use axum::extract::{Request, State};
-use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
-use axum::response::{IntoResponse, Response};
-use axum::routing::post;
-use axum::{Json, Router};
-use serde::Deserialize;
-use serde_json::json;
+use axum::extract::Request;
+use axum::http::{header, HeaderMap, Method};
 use std::collections::HashMap;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
@@ -36,7 +27,7 @@ pub const CSRF_HEADER: &str = "x-ufops-ui";
 /// A session ends after this long without a request…
 const IDLE: Duration = Duration::from_secs(12 * 3600);
 /// …and at the latest this long after sign-in.
-const MAX_AGE: Duration = Duration::from_secs(7 * 24 * 3600);
+pub(crate) const MAX_AGE: Duration = Duration::from_secs(7 * 24 * 3600);
 const MAX_SESSIONS: usize = 10_000;
 /// Sessions one token may hold (browsers, tabs after cookie loss, a few machines).
 pub const MAX_SESSIONS_PER_TOKEN: usize = 32;
@@ -54,7 +45,7 @@ pub(crate) struct Sessions {
 }
 
 impl Sessions {
-    fn create(&self, secret: String) -> String {
+    pub(crate) fn create(&self, secret: String) -> String {
         // Two v4 UUIDs from the OS random source: 244 random bits.
         let id = format!("{}{}", uuid::Uuid::new_v4().simple(), uuid::Uuid::new_v4().simple());
         let now = Instant::now();
@@ -99,13 +90,13 @@ impl Sessions {
         Some(s.secret.clone())
     }
 
-    fn remove(&self, id: &str) {
+    pub(crate) fn remove(&self, id: &str) {
         self.map.lock().unwrap_or_else(|e| e.into_inner()).remove(id);
     }
 }
 
 /// The value of our cookie in a `Cookie` header, if any.
-fn cookie_value(headers: &HeaderMap) -> Option<String> {
+pub(crate) fn cookie_value(headers: &HeaderMap) -> Option<String> {
     headers
         .get_all(header::COOKIE)
         .iter()
@@ -123,7 +114,7 @@ fn is_safe(m: &Method) -> bool {
 
 /// The CSRF rule for cookie-authenticated unsafe requests (see the module docs); `public_origin`
 /// is `scheme://host[:port]` of `--public-url`.
-fn check_csrf(headers: &HeaderMap, public_origin: Option<&str>) -> ApiResult<()> {
+pub(crate) fn check_csrf(headers: &HeaderMap, public_origin: Option<&str>) -> ApiResult<()> {
     let marked = headers.get(CSRF_HEADER).and_then(|v| v.to_str().ok()).is_some_and(|v| v.trim() == "1");
     if !marked {
         return Err(ApiError::forbidden(format!(
@@ -165,82 +156,10 @@ pub(crate) fn secret_from_cookie(state: &AppState, req: &Request) -> ApiResult<S
     Ok(secret)
 }
 
-fn set_cookie(value: &str, max_age: u64, secure: bool) -> HeaderValue {
-    let secure = if secure { "; Secure" } else { "" };
-    HeaderValue::from_str(&format!(
-        "{COOKIE}={value}; Path=/; HttpOnly; SameSite=Strict; Max-Age={max_age}{secure}"
-    ))
-    .unwrap_or_else(|_| {
-        HeaderValue::from_static("ufops_session=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0")
-    })
-}
-
-fn who(c: &Caller) -> serde_json::Value {
-    json!({"name": c.name, "role": c.role.as_str(), "token_id": c.token_id})
-}
-
-#[derive(Deserialize)]
-pub(crate) struct SignIn {
-    token: String,
-}
-
-/// `POST /ui/session {token}` → 200 `{name, role, token_id}` + the cookie; 401 for a bad token.
-async fn sign_in(
-    State(s): State<AppState>,
-    peer: Option<axum::Extension<axum::extract::ConnectInfo<std::net::SocketAddr>>>,
-    headers: HeaderMap,
-    ApiJson(body): ApiJson<SignIn>,
-) -> ApiResult<Response> {
-    check_csrf(&headers, s.public_origin())?;
-    let secret = body.token.trim().to_string();
-    if secret.is_empty() || secret.len() > 256 {
-        return Err(ApiError::unauthorized("unknown or revoked token"));
-    }
-    // Guessing tokens through the sign-in form is bounded like guessing them in a header.
-    crate::auth::check_unverified(&s, &store::sha256_hex(secret.as_bytes()), peer.map(|p| p.0 .0.ip()))?;
-    let rec = s
-        .store()
-        .verify_token(&secret)
-        .await?
-        .ok_or_else(|| ApiError::unauthorized("unknown or revoked token"))?;
-    let caller = Caller { token_id: rec.id, name: rec.name, role: rec.role };
-    let id = s.inner.sessions.create(secret);
-    let mut resp = Json(who(&caller)).into_response();
-    resp.headers_mut().insert(header::SET_COOKIE, set_cookie(&id, MAX_AGE.as_secs(), s.secure_cookies()));
-    resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
-    Ok(resp)
-}
-
-/// `GET /ui/session` → who is signed in (through the cookie or a bearer token), 401 otherwise.
-async fn whoami(axum::Extension(caller): axum::Extension<Caller>) -> Response {
-    let mut resp = Json(who(&caller)).into_response();
-    resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
-    resp
-}
-
-/// `DELETE /ui/session` → 204, the session forgotten and the cookie cleared (also when there
-/// was none).
-async fn sign_out(State(s): State<AppState>, headers: HeaderMap) -> ApiResult<Response> {
-    check_csrf(&headers, s.public_origin())?;
-    if let Some(id) = cookie_value(&headers) {
-        s.inner.sessions.remove(&id);
-    }
-    let mut resp = StatusCode::NO_CONTENT.into_response();
-    resp.headers_mut().insert(header::SET_COOKIE, set_cookie("", 0, s.secure_cookies()));
-    Ok(resp)
-}
-
-/// The session routes: sign-in and sign-out are open (they check the token / CSRF themselves);
-/// `GET /ui/session` sits behind the token middleware.
-pub(crate) fn routes(state: AppState) -> Router<AppState> {
-    use axum::handler::Handler;
-    let authed_whoami = whoami.layer(axum::middleware::from_fn_with_state(state, crate::auth::require_token));
-    Router::new().route("/ui/session", post(sign_in).delete(sign_out).get(authed_whoami))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use axum::http::HeaderValue;
 
     #[test]
     fn cookie_parsing() {
@@ -288,12 +207,6 @@ mod tests {
         assert_eq!(s.secret(&first), None, "its least recently used session went");
         assert_eq!(s.secret(&last).as_deref(), Some("loop"));
         assert_eq!(s.secret(&other).as_deref(), Some("other"), "another token's session is untouched");
-    }
-
-    #[test]
-    fn cookies_are_secure_behind_tls() {
-        assert!(set_cookie("abc", 10, true).to_str().unwrap().ends_with("; Secure"));
-        assert!(!set_cookie("abc", 10, false).to_str().unwrap().contains("Secure"));
     }
 
     #[test]

@@ -94,7 +94,7 @@ pub async fn sweep(
     let Ok(mut rd) = tokio::fs::read_dir(upload_dir).await else { return Ok(0) };
     let mut live = std::collections::HashSet::new();
     let mut named = std::collections::HashSet::new();
-    for j in store.jobs(None).await?.into_iter().filter(|j| j.kind == "ingest") {
+    for j in store.jobs(None).await?.into_iter().filter(|j| j.kind == store::JobKind::Ingest) {
         if let Some(d) = j.spec.get("upload_dir").and_then(|v| v.as_str()) {
             named.insert(std::path::PathBuf::from(d));
             if matches!(j.state, Queued | Running) {
@@ -141,7 +141,7 @@ pub fn sanitize_filename(name: &str) -> String {
 
 /// Uploads a rollout file (raw request body) and queues an ingest job (admin).
 #[utoipa::path(post, path = "/v1/ingest", tag = "admin", params(IngestQuery),
-    request_body(content = crate::openapi::UploadBytes, content_type = "application/octet-stream", description = "the file, raw (not empty)"),
+    request_body(content = crate::body_schemas::UploadBytes, content_type = "application/octet-stream", description = "the file, raw (not empty)"),
     responses((status = 202, description = "the queued ingest job", body = store::JobRecord),
               (status = 413, description = "larger than the server's upload limit"),
               (status = 404, description = "no such run artifact"),
@@ -224,7 +224,7 @@ pub async fn ingest(
         "run_artifact": q.run_artifact,
         "run_tags": run_tags,
     });
-    let job = s.store().create_job("ingest", &spec, &caller.name).await?;
+    let job = s.store().create_job(store::JobKind::Ingest, &spec, &caller.name).await?;
     Ok((StatusCode::ACCEPTED, Json(job)))
 }
 

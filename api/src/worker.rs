@@ -257,7 +257,7 @@ pub(crate) async fn run_one(store: &Store, runner: &dyn JobRunner, opts: &Worker
     match store.finish_job(&job.id, &opts.worker_id, job.attempts, outcome).await {
         Ok(true) => {
             tracing::info!(worker = %opts.worker_id, job = %job.id, ok, "job finished");
-            if job.kind == "ingest" {
+            if job.kind == store::JobKind::Ingest {
                 crate::upload::remove_upload(&job.spec).await; // finished: nobody will ingest it again
             }
         }

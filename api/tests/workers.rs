@@ -29,7 +29,7 @@ async fn two_workers_on_postgres_run_each_job_once_and_retry_a_killed_workers_jo
     let runner = TestRunner::new(100);
     let mut job_ids = Vec::new();
     for i in 0..10 {
-        job_ids.push(store.create_job("sleep", &json!({"i": i}), "test").await.unwrap().id);
+        job_ids.push(store.create_job(store::JobKind::Score, &json!({"i": i}), "test").await.unwrap().id);
         // distinct created_at so the claim order is the creation order
         tokio::time::sleep(Duration::from_millis(2)).await;
     }
@@ -116,7 +116,7 @@ async fn cancel_stops_a_running_job_and_progress_is_recorded() {
     let dir = tempfile::tempdir().unwrap();
     let store = common::open_store(Db::Sqlite, dir.path()).await;
     let runner = TestRunner::new(3_000);
-    let job = store.create_job("sleep", &json!({}), "test").await.unwrap();
+    let job = store.create_job(store::JobKind::Score, &json!({}), "test").await.unwrap();
     let mut o = api::WorkerOptions::new("w", 300);
     o.poll_interval = Duration::from_millis(20);
     let w = tokio::spawn(api::run_worker_with(

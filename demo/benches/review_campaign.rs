@@ -9,7 +9,7 @@
 
 use anyhow::Result;
 use demo::review_campaign::{run, table, AskOrder, Campaign, CurvePoint};
-use sim::{rollout, DiffusionPolicy, EnvConfig, PolicyConfig, Steering};
+use sim::{rollout, ChunkChoice, DiffusionPolicy, EnvConfig, PolicyConfig};
 use std::time::Instant;
 
 fn env_usize(k: &str, d: usize) -> usize {
@@ -17,9 +17,9 @@ fn env_usize(k: &str, d: usize) -> usize {
 }
 
 /// A sim rollout as the trainer reads it (the same columns `ufops demo` ingests).
-fn trainer_episode(i: usize, e: &sim::Episode, horizon: usize) -> trainer::Episode {
+fn trainer_episode(i: usize, e: &sim::Episode, horizon: usize) -> trainer::EpisodeSeries {
     let n = e.length;
-    trainer::Episode {
+    trainer::EpisodeSeries {
         id: format!("rollout_{i}"),
         success: e.success,
         obs: vec![trainer::ObsSeries {
@@ -36,7 +36,7 @@ fn trainer_episode(i: usize, e: &sim::Episode, horizon: usize) -> trainer::Episo
 /// Each episode's score: the mean of its steps' scores (what the `score` job stores).
 fn mean_scores(
     v: &trainer::Verifier,
-    eps: &[trainer::Episode],
+    eps: &[trainer::EpisodeSeries],
     input: &trainer::InputSpec,
 ) -> Result<Vec<f64>> {
     eps.iter()
@@ -58,13 +58,13 @@ fn main() -> Result<()> {
     let env = EnvConfig::default();
     let pc = PolicyConfig::default();
     let demos = sim::expert_demos(&env, 60, seed);
-    let tc = sim::TrainConfig { steps: 800, seed, ..Default::default() };
+    let tc = sim::PolicyTrainConfig { steps: 800, seed, ..Default::default() };
     let base = DiffusionPolicy::train(&pc, &tc, &demos)?;
-    let pool_eps = rollout(&base, &env, pool_n, Steering::None, seed + 100)?;
-    let held_eps = rollout(&base, &env, held_n, Steering::None, seed + 300)?;
-    let pool: Vec<trainer::Episode> =
+    let pool_eps = rollout(&base, &env, pool_n, ChunkChoice::None, seed + 100)?;
+    let held_eps = rollout(&base, &env, held_n, ChunkChoice::None, seed + 300)?;
+    let pool: Vec<trainer::EpisodeSeries> =
         pool_eps.iter().enumerate().map(|(i, e)| trainer_episode(i, e, pc.horizon)).collect();
-    let held: Vec<trainer::Episode> =
+    let held: Vec<trainer::EpisodeSeries> =
         held_eps.iter().enumerate().map(|(i, e)| trainer_episode(i, e, pc.horizon)).collect();
     let held_labels: Vec<f32> = held.iter().map(|e| e.success as u8 as f32).collect();
     println!(

@@ -14,10 +14,10 @@ pub use report::{Report, Row};
 
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use sim::{rollout, ChunkPolicy, DiffusionPolicy, EnvConfig, FlowPolicy, PolicyConfig, Steering};
+use sim::{rollout, ChunkChoice, ChunkPolicy, DiffusionPolicy, EnvConfig, FlowPolicy, PolicyConfig};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use store::{EpisodeInput, Label, RunInput, SourceInput, Steering as RunSteering, Store, VectorColumn};
+use store::{EpisodeInput, Label, RunInput, SourceInput, Steering, Store, VectorColumn};
 
 pub const POLICY: &str = "nav-dp";
 pub const BASE: &str = "base";
@@ -27,7 +27,7 @@ pub const ALT: &str = "alt";
 pub const FLOW: &str = "flow-twin";
 
 /// A run of the demo: its name, steering and artifact, and tags.
-fn demo_run(name: &str, steering: RunSteering, artifact: Option<&str>, tags: &[&str]) -> RunInput {
+fn demo_run(name: &str, steering: Steering, artifact: Option<&str>, tags: &[&str]) -> RunInput {
     RunInput {
         name: name.to_string(),
         steering,
@@ -269,7 +269,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     // 1. Base policy (DDPM) and its flow-matching twin, trained on expert demos, stopped early.
     let pb = stage("training the base diffusion policy and its flow twin on expert demonstrations");
     let demos = sim::expert_demos(&env, cfg.demos, cfg.seed);
-    let tc = sim::TrainConfig { steps: cfg.policy_steps, seed: cfg.seed, ..Default::default() };
+    let tc = sim::PolicyTrainConfig { steps: cfg.policy_steps, seed: cfg.seed, ..Default::default() };
     let (base, flow) = tokio::task::block_in_place(|| -> Result<_> {
         Ok((DiffusionPolicy::train(&pc, &tc, &demos)?, FlowPolicy::train(&pc, &tc, &demos)?))
     })?;
@@ -277,13 +277,13 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     // all take the wide gap, so its rollouts cover a different part of the state-action space.
     let alt_demos: Vec<sim::Demo> =
         sim::expert_demos(&env, 2 * cfg.demos, cfg.seed + 1).into_iter().filter(|d| d.wide).collect();
-    let alt_tc = sim::TrainConfig { steps: cfg.policy_steps * 2, seed: cfg.seed + 1, ..tc.clone() };
+    let alt_tc = sim::PolicyTrainConfig { steps: cfg.policy_steps * 2, seed: cfg.seed + 1, ..tc.clone() };
     let alt = tokio::task::block_in_place(|| DiffusionPolicy::train(&pc, &alt_tc, &alt_demos))?;
     base.save(&cfg.out_dir.join("policies/base"))?;
     alt.save(&cfg.out_dir.join("policies/alt"))?;
     pb.finish_and_clear();
 
-    let eval = |p: &dyn ChunkPolicy, s: Steering, label: &str, seed: u64| -> Result<Vec<sim::Episode>> {
+    let eval = |p: &dyn ChunkPolicy, s: ChunkChoice, label: &str, seed: u64| -> Result<Vec<sim::Episode>> {
         let pb = stage(&format!("{label}: {n} rollouts"));
         let r = tokio::task::block_in_place(|| rollout(p, &env, n, s, seed));
         pb.finish_and_clear();
@@ -291,10 +291,10 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     };
 
     // 2. Evaluate the base policy and ingest its rollouts (success from the simulator).
-    let base_eps = eval(&base, Steering::None, "evaluating the base policy", cfg.seed + 100)?;
-    let base_run = || demo_run(BASE, RunSteering::Base, None, &[]);
+    let base_eps = eval(&base, ChunkChoice::None, "evaluating the base policy", cfg.seed + 100)?;
+    let base_run = || demo_run(BASE, Steering::Base, None, &[]);
     let v_base = ingest_rollouts(store, &base_eps, BASE, base_run(), pc.horizon, cfg.seed + 100).await?;
-    let alt_eps = eval(&alt, sim::Steering::None, "evaluating the alt checkpoint", cfg.seed + 200)?;
+    let alt_eps = eval(&alt, sim::ChunkChoice::None, "evaluating the alt checkpoint", cfg.seed + 200)?;
     let v_alt = ingest_rollouts(store, &alt_eps, ALT, base_run(), pc.horizon, cfg.seed + 200).await?;
 
     // 3. On-policy split; classifier and Q verifiers. Off-policy: a classifier on alt's rollouts.
@@ -346,10 +346,10 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         for &nn in &cfg.bon_n {
             seed += 1;
             let label = format!("{name} x BoN (N={nn})");
-            let eps = eval(&base, Steering::BestOfN { scorer: v, n: nn }, &label, seed)?;
+            let eps = eval(&base, ChunkChoice::BestOfN { scorer: v, n: nn }, &label, seed)?;
             let r = demo_run(
                 &format!("{}-bon{nn}", name.to_lowercase()),
-                RunSteering::Bon { n: nn as u32 },
+                Steering::Bon { n: nn as u32 },
                 Some(artifact_of(name)),
                 &["on-policy"],
             );
@@ -367,10 +367,10 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
             // Every guided row records what guidance did to x̂0 per denoising step (the report's
             // diagnostics table explains a collapse or a gain from them).
             let trace = diagnose::TracingScorer::new(v, pc.diffusion_steps, lambda);
-            let eps = eval(&base, Steering::Guided { scorer: &trace, lambda }, &label, seed)?;
+            let eps = eval(&base, ChunkChoice::Guided { scorer: &trace, lambda }, &label, seed)?;
             let r = demo_run(
                 &format!("{}-cg{}", name.to_lowercase(), lambda_name(lambda)),
-                RunSteering::Cg { lambda: lambda_f64(lambda) },
+                Steering::Cg { lambda: lambda_f64(lambda) },
                 Some(artifact_of(name)),
                 &["on-policy"],
             );
@@ -387,15 +387,15 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     }
     // Flow twin: same verifier, guidance from the second Euler step on.
     seed += 1;
-    let flow_base = eval(&flow, Steering::None, "flow twin, unsteered", seed)?;
-    let r = demo_run(BASE, RunSteering::Base, None, &[]);
+    let flow_base = eval(&flow, ChunkChoice::None, "flow twin, unsteered", seed)?;
+    let r = demo_run(BASE, Steering::Base, None, &[]);
     record(store, &mut report, &flow_base, FLOW, r, "flow twin, unsteered", "-", pc.horizon, seed).await?;
     seed += 1;
     let nn = cfg.bon_n[0];
-    let eps = eval(&flow, Steering::BestOfN { scorer: &clf, n: nn }, "flow twin, C x BoN", seed)?;
+    let eps = eval(&flow, ChunkChoice::BestOfN { scorer: &clf, n: nn }, "flow twin, C x BoN", seed)?;
     let r = demo_run(
         &format!("c-bon{nn}"),
-        RunSteering::Bon { n: nn as u32 },
+        Steering::Bon { n: nn as u32 },
         Some(&c_rec.id),
         &["on-policy", "ddpm-rollouts"],
     );
@@ -403,10 +403,10 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     record(store, &mut report, &eps, FLOW, r, &label, "on-policy (DDPM rollouts)", pc.horizon, seed).await?;
     // 6. Off-policy ablation: the verifier trained on the alt checkpoint's rollouts.
     seed += 1;
-    let eps = eval(&base, Steering::BestOfN { scorer: &off_clf, n: nn }, "off-policy C x BoN", seed)?;
+    let eps = eval(&base, ChunkChoice::BestOfN { scorer: &off_clf, n: nn }, "off-policy C x BoN", seed)?;
     let r = demo_run(
         &format!("off-c-bon{nn}"),
-        RunSteering::Bon { n: nn as u32 },
+        Steering::Bon { n: nn as u32 },
         Some(&off_rec.id),
         &["off-policy"],
     );
@@ -414,10 +414,10 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     record(store, &mut report, &eps, BASE, r, &label, "off-policy (alt rollouts)", pc.horizon, seed).await?;
     seed += 1;
     let lambda = cfg.lambdas[cfg.lambdas.len() / 2];
-    let eps = eval(&base, Steering::Guided { scorer: &off_clf, lambda }, "off-policy C x CG", seed)?;
+    let eps = eval(&base, ChunkChoice::Guided { scorer: &off_clf, lambda }, "off-policy C x CG", seed)?;
     let r = demo_run(
         &format!("off-c-cg{}", lambda_name(lambda)),
-        RunSteering::Cg { lambda: lambda_f64(lambda) },
+        Steering::Cg { lambda: lambda_f64(lambda) },
         Some(&off_rec.id),
         &["off-policy"],
     );
@@ -437,14 +437,14 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         let label = format!("C x BoN (N={nn_ablation})");
         let eps = eval(
             &base,
-            Steering::BestOfN { scorer: &v, n: nn_ablation },
+            ChunkChoice::BestOfN { scorer: &v, n: nn_ablation },
             &format!("{label}, {size} rollouts"),
             seed,
         )?;
         let tag = format!("trained-on-{size}");
         let r = demo_run(
             &format!("c-bon{nn_ablation}-n{size}"),
-            RunSteering::Bon { n: nn_ablation as u32 },
+            Steering::Bon { n: nn_ablation as u32 },
             Some(&rec.id),
             &["on-policy", tag.as_str()],
         );

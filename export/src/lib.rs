@@ -88,16 +88,7 @@ impl ScoreRange {
     }
 }
 
-/// Scores every step of a stored episode with a verifier. The binary implements it on the
-/// verifier core (`trainer::score_steps`), so this crate does not depend on the trainer.
-pub trait StepScorer: Send + Sync {
-    fn score_steps(&self, steps: &RecordBatch) -> std::result::Result<Vec<f32>, String>;
-    /// The layers the verifier reads (observation keys that are layers): joined to the steps
-    /// it is given.
-    fn layers(&self) -> Vec<String> {
-        Vec::new()
-    }
-}
+pub use verifier::StepScorer;
 
 /// An episode's score: the mean of its steps' scores, as Demo-SCORE aggregates a rollout
 /// classifier over a demonstration. `None` for an episode without steps.

@@ -41,7 +41,7 @@ use std::path::Path;
 
 pub use error::IngestError;
 pub use options::{Format, IngestOptions, MemoryBudget, ReadOptions};
-pub use pipeline::{ingest, IngestReport, LabelCounts};
+pub use pipeline::{ingest, IngestReport, LabelTally};
 
 use error::Result;
 use sink::EpisodeSink;

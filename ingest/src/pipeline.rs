@@ -24,8 +24,10 @@ use crate::sink::{EpisodeSink, SourceMeta};
 /// Episodes (or media files) buffered between the reader thread and the store writer.
 pub const CHANNEL_DEPTH: usize = 4;
 
+/// How many of one ingest's episodes got each label (the catalog's running counts per version
+/// are `store::LabelCounts`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
-pub struct LabelCounts {
+pub struct LabelTally {
     pub success: usize,
     pub failure: usize,
     pub unknown: usize,
@@ -43,7 +45,7 @@ pub struct IngestReport {
     pub already_ingested: bool,
     pub episodes: usize,
     pub steps: u64,
-    pub labels: LabelCounts,
+    pub labels: LabelTally,
     /// Size of the source (file, or all files of the folder).
     pub bytes: u64,
     pub media_files: usize,
@@ -271,7 +273,7 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
         already_ingested: false,
         episodes: 0,
         steps: 0,
-        labels: LabelCounts::default(),
+        labels: LabelTally::default(),
         bytes: total,
         media_files: 0,
         notes: Vec::new(),
@@ -387,7 +389,7 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
         report.already_ingested = true;
         report.episodes = 0;
         report.steps = 0;
-        report.labels = LabelCounts::default();
+        report.labels = LabelTally::default();
         report.media_files = 0;
         return Ok(report);
     }

@@ -8,7 +8,7 @@ use std::time::Instant;
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let n: usize = args.get(1).map(|s| s.parse().unwrap()).unwrap_or(500);
-    let steps: usize = args.get(2).map(|s| s.parse().unwrap()).unwrap_or(TrainConfig::default().steps);
+    let steps: usize = args.get(2).map(|s| s.parse().unwrap()).unwrap_or(PolicyTrainConfig::default().steps);
     let out = std::path::PathBuf::from(args.get(3).cloned().unwrap_or("/tmp/sim_out".into()));
     std::fs::create_dir_all(&out)?;
     let mut env = EnvConfig::default();
@@ -28,7 +28,7 @@ fn main() -> anyhow::Result<()> {
         pc.depth = v;
     }
     println!("{pc:?}");
-    let mut tc = TrainConfig { steps, ..Default::default() };
+    let mut tc = PolicyTrainConfig { steps, ..Default::default() };
     if let Ok(v) = std::env::var("LR") {
         tc.lr = v.parse().unwrap();
     }
@@ -50,10 +50,11 @@ fn main() -> anyhow::Result<()> {
     println!("ddpm trained in {:.1}s, loss {:.4}", t0.elapsed().as_secs_f32(), ddpm.train_loss);
     ddpm.save(&out)?;
     let t0 = Instant::now();
-    let base = rollout(&ddpm, &env, n, Steering::None, 1)?;
+    let base = rollout(&ddpm, &env, n, ChunkChoice::None, 1)?;
     println!("{}  ({:.1}s)", summary("ddpm base", &base), t0.elapsed().as_secs_f32());
     if only_ddpm {
-        let noiseless = rollout(&ddpm, &EnvConfig { pos_noise: 0.0, ..env.clone() }, n, Steering::None, 1)?;
+        let noiseless =
+            rollout(&ddpm, &EnvConfig { pos_noise: 0.0, ..env.clone() }, n, ChunkChoice::None, 1)?;
         println!("{}", summary("ddpm base, no noise", &noiseless));
         plot_panels(
             &out.join("base.png"),
@@ -68,9 +69,9 @@ fn main() -> anyhow::Result<()> {
     println!("flow trained in {:.1}s, loss {:.4}", t0.elapsed().as_secs_f32(), flow.train_loss);
     flow.save(&out)?;
     let t0 = Instant::now();
-    let fbase = rollout(&flow, &env, n, Steering::None, 1)?;
+    let fbase = rollout(&flow, &env, n, ChunkChoice::None, 1)?;
     println!("{}  ({:.1}s)", summary("flow base", &fbase), t0.elapsed().as_secs_f32());
-    let noiseless = rollout(&ddpm, &EnvConfig { pos_noise: 0.0, ..env.clone() }, n, Steering::None, 1)?;
+    let noiseless = rollout(&ddpm, &EnvConfig { pos_noise: 0.0, ..env.clone() }, n, ChunkChoice::None, 1)?;
     println!("{}", summary("ddpm base, no noise", &noiseless));
     plot_panels(
         &out.join("base.png"),

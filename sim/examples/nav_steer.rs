@@ -46,18 +46,18 @@ fn main() -> anyhow::Result<()> {
     let env = EnvConfig::default();
     let demos = expert_demos(&env, 100, 0);
     let pc = PolicyConfig::default();
-    let tc = TrainConfig::default();
+    let tc = PolicyTrainConfig::default();
     let ddpm = DiffusionPolicy::train(&pc, &tc, &demos)?;
     let flow = FlowPolicy::train(&pc, &tc, &demos)?;
     let sc = WideGapScorer { wide_y: env.wide_gap.0, s: 0.1 };
     let t = std::time::Instant::now();
     for (name, p) in [("ddpm", &ddpm as &dyn ChunkPolicy), ("flow", &flow as &dyn ChunkPolicy)] {
-        let base = rollout(p, &env, n, Steering::None, 7)?;
+        let base = rollout(p, &env, n, ChunkChoice::None, 7)?;
         println!("{}", summary(&format!("{name} base"), &base));
-        let bon = rollout(p, &env, n, Steering::BestOfN { scorer: &sc, n: 30 }, 7)?;
+        let bon = rollout(p, &env, n, ChunkChoice::BestOfN { scorer: &sc, n: 30 }, 7)?;
         println!("{}", summary(&format!("{name} best-of-30 (hand scorer)"), &bon));
         for lambda in [0.02, 0.1] {
-            let g = rollout(p, &env, n, Steering::Guided { scorer: &sc, lambda }, 7)?;
+            let g = rollout(p, &env, n, ChunkChoice::Guided { scorer: &sc, lambda }, 7)?;
             println!("{}", summary(&format!("{name} guided lambda={lambda} (hand scorer)"), &g));
         }
         let (k1, n1, _) = success_rate(&bon);

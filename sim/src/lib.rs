@@ -19,5 +19,5 @@ pub use evalstats as stats;
 
 pub use demos::{expert_demos, Demo};
 pub use env::{EnvConfig, NavEnv};
-pub use policy::{ChunkPolicy, DiffusionPolicy, FlowPolicy, PolicyConfig, TrainConfig};
-pub use rollout::{rollout, success_rate, Episode, Outcome, Steering};
+pub use policy::{ChunkPolicy, DiffusionPolicy, FlowPolicy, PolicyConfig, PolicyTrainConfig};
+pub use rollout::{rollout, success_rate, ChunkChoice, Episode, Outcome};

@@ -67,16 +67,16 @@ impl PolicyConfig {
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct TrainConfig {
+pub struct PolicyTrainConfig {
     pub steps: usize,
     pub batch: usize,
     pub lr: f64,
     pub seed: u64,
 }
 
-impl Default for TrainConfig {
+impl Default for PolicyTrainConfig {
     fn default() -> Self {
-        TrainConfig { steps: 1500, batch: 256, lr: 3e-3, seed: 0 }
+        PolicyTrainConfig { steps: 1500, batch: 256, lr: 3e-3, seed: 0 }
     }
 }
 
@@ -189,7 +189,12 @@ enum Objective {
     Flow,
 }
 
-fn train_mlp(cfg: &PolicyConfig, tc: &TrainConfig, demos: &[Demo], obj: &Objective) -> Result<(Mlp, f32)> {
+fn train_mlp(
+    cfg: &PolicyConfig,
+    tc: &PolicyTrainConfig,
+    demos: &[Demo],
+    obj: &Objective,
+) -> Result<(Mlp, f32)> {
     let mut rng = ChaCha8Rng::seed_from_u64(tc.seed);
     let mlp = Mlp::new(cfg, &mut rng)?;
     let (obs, act) = training_pairs(cfg, demos);
@@ -274,7 +279,7 @@ pub struct DiffusionPolicy {
 }
 
 impl DiffusionPolicy {
-    pub fn train(cfg: &PolicyConfig, tc: &TrainConfig, demos: &[Demo]) -> Result<Self> {
+    pub fn train(cfg: &PolicyConfig, tc: &PolicyTrainConfig, demos: &[Demo]) -> Result<Self> {
         let sched = DdpmSchedule::squaredcos_cap_v2(cfg.diffusion_steps)?;
         let (mlp, train_loss) = train_mlp(cfg, tc, demos, &Objective::Ddpm(sched.clone()))?;
         Ok(DiffusionPolicy { cfg: cfg.clone(), sched, mlp, train_loss })
@@ -360,7 +365,7 @@ pub struct FlowPolicy {
 }
 
 impl FlowPolicy {
-    pub fn train(cfg: &PolicyConfig, tc: &TrainConfig, demos: &[Demo]) -> Result<Self> {
+    pub fn train(cfg: &PolicyConfig, tc: &PolicyTrainConfig, demos: &[Demo]) -> Result<Self> {
         let (mlp, train_loss) = train_mlp(cfg, tc, demos, &Objective::Flow)?;
         Ok(FlowPolicy { cfg: cfg.clone(), mlp, train_loss })
     }

@@ -10,7 +10,7 @@ use steer::{best_of_n_raw, Guidance, Scorer};
 
 /// How chunks are chosen at each re-planning step.
 #[derive(Clone, Copy)]
-pub enum Steering<'a> {
+pub enum ChunkChoice<'a> {
     /// the base policy
     None,
     /// sample `n` chunks, execute the verifier's argmax (Algorithm 1)
@@ -19,12 +19,12 @@ pub enum Steering<'a> {
     Guided { scorer: &'a dyn Scorer, lambda: f32 },
 }
 
-impl Steering<'_> {
+impl ChunkChoice<'_> {
     pub fn label(&self) -> String {
         match self {
-            Steering::None => "base".into(),
-            Steering::BestOfN { n, .. } => format!("best-of-{n}"),
-            Steering::Guided { lambda, .. } => format!("guided(lambda={lambda})"),
+            ChunkChoice::None => "base".into(),
+            ChunkChoice::BestOfN { n, .. } => format!("best-of-{n}"),
+            ChunkChoice::Guided { lambda, .. } => format!("guided(lambda={lambda})"),
         }
     }
 }
@@ -78,7 +78,7 @@ pub fn rollout(
     policy: &dyn ChunkPolicy,
     env_cfg: &EnvConfig,
     n_episodes: usize,
-    steering: Steering,
+    steering: ChunkChoice,
     seed: u64,
 ) -> Result<Vec<Episode>> {
     let pc = policy.config().clone();
@@ -98,7 +98,7 @@ pub fn rollout(
         })
         .collect();
     let ad = pc.act_dim();
-    if let Steering::BestOfN { scorer, .. } | Steering::Guided { scorer, .. } = steering {
+    if let ChunkChoice::BestOfN { scorer, .. } | ChunkChoice::Guided { scorer, .. } = steering {
         anyhow::ensure!(scorer.act_dim() == ad, "scorer act_dim {} != policy chunk {}", scorer.act_dim(), ad);
         anyhow::ensure!(scorer.obs_dim() % 2 == 0, "scorer obs_dim {} is not T_o * 2", scorer.obs_dim());
     }
@@ -122,8 +122,8 @@ pub fn rollout(
         };
         let ts = vec![step as u32; alive.len()];
         let chunks = match steering {
-            Steering::None => policy.sample_chunks(&obs, None, &mut pol_rng)?,
-            Steering::BestOfN { scorer, n } => {
+            ChunkChoice::None => policy.sample_chunks(&obs, None, &mut pol_rng)?,
+            ChunkChoice::BestOfN { scorer, n } => {
                 let mut rep = Vec::with_capacity(obs.len() * n);
                 for row in obs.chunks(4) {
                     for _ in 0..n {
@@ -134,7 +134,7 @@ pub fn rollout(
                 let space = policy.sample_space();
                 best_of_n_raw(scorer, Some(&space), &verifier_obs(scorer), &ts, &cands, n)?.chunks
             }
-            Steering::Guided { scorer, lambda } => {
+            ChunkChoice::Guided { scorer, lambda } => {
                 let vo = verifier_obs(scorer);
                 let g = Guidance { scorer, obs: &vo, t: &ts, lambda };
                 policy.sample_chunks(&obs, Some(&g), &mut pol_rng)?

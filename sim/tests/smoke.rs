@@ -39,7 +39,7 @@ fn policies_train_sample_and_roll_out_with_every_steering() {
     let env = EnvConfig::default();
     let demos = expert_demos(&env, 20, 0);
     let pc = PolicyConfig { hidden: 64, depth: 2, diffusion_steps: 10, flow_steps: 5, ..Default::default() };
-    let tc = TrainConfig { steps: 150, batch: 128, ..Default::default() };
+    let tc = PolicyTrainConfig { steps: 150, batch: 128, ..Default::default() };
     let ddpm = DiffusionPolicy::train(&pc, &tc, &demos).unwrap();
     let flow = FlowPolicy::train(&pc, &tc, &demos).unwrap();
     assert!(ddpm.train_loss.is_finite() && flow.train_loss.is_finite());
@@ -51,9 +51,9 @@ fn policies_train_sample_and_roll_out_with_every_steering() {
     let small = EnvConfig { max_steps: 24, ..env.clone() };
     for p in [&ddpm as &dyn ChunkPolicy, &flow as &dyn ChunkPolicy] {
         for s in [
-            Steering::None,
-            Steering::BestOfN { scorer: &v, n: 4 },
-            Steering::Guided { scorer: &v, lambda: 0.01 },
+            ChunkChoice::None,
+            ChunkChoice::BestOfN { scorer: &v, n: 4 },
+            ChunkChoice::Guided { scorer: &v, lambda: 0.01 },
         ] {
             let eps = rollout(p, &small, 6, s, 5).unwrap();
             assert_eq!(eps.len(), 6);
@@ -63,8 +63,8 @@ fn policies_train_sample_and_roll_out_with_every_steering() {
             assert_eq!(eps[0].positions, again[0].positions, "{} {}", p.name(), s.label());
         }
         // same seed, base vs steered: same start positions
-        let a = rollout(p, &small, 3, Steering::None, 9).unwrap();
-        let b = rollout(p, &small, 3, Steering::BestOfN { scorer: &v, n: 3 }, 9).unwrap();
+        let a = rollout(p, &small, 3, ChunkChoice::None, 9).unwrap();
+        let b = rollout(p, &small, 3, ChunkChoice::BestOfN { scorer: &v, n: 3 }, 9).unwrap();
         assert_eq!(a[2].positions[0], b[2].positions[0]);
     }
     // save / load round trip gives identical samples
@@ -76,7 +76,7 @@ fn policies_train_sample_and_roll_out_with_every_steering() {
     let s2 = steer::ddpm_sample(&re, &obs, &mut ChaCha8Rng::seed_from_u64(2)).unwrap();
     assert_eq!(s1, s2);
     // plot
-    let eps = rollout(&ddpm, &small, 4, Steering::None, 1).unwrap();
+    let eps = rollout(&ddpm, &small, 4, ChunkChoice::None, 1).unwrap();
     let png = dir.path().join("t.png");
     plot_panels(
         &png,

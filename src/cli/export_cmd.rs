@@ -71,14 +71,15 @@ pub struct ExportArgs {
     pub json: bool,
 }
 
-/// A verifier artifact of the store, scoring stored steps through the verifier core.
-pub struct StoreScorer {
+/// A verifier artifact of the store with its id; it scores stored steps as
+/// `verifier::StepScorer` (pass `&loaded.verifier`).
+pub struct StoreVerifier {
     pub verifier: verifier::Verifier,
     /// The artifact's id (an alias resolved once, so everything names the same artifact).
     pub artifact: String,
 }
 
-impl StoreScorer {
+impl StoreVerifier {
     /// Loads an artifact of the store (id or POLICY/CHECKPOINT/KIND@ALIAS).
     pub async fn load(store: &store::Store, reference: &str) -> Result<Self> {
         let rec = store.resolve_artifact(reference).await?;
@@ -86,16 +87,7 @@ impl StoreScorer {
         store.download_artifact(&rec.id, tmp.path()).await?;
         let verifier = verifier::Verifier::load_dir(tmp.path())
             .with_context(|| format!("loading artifact {}", rec.id))?;
-        Ok(StoreScorer { verifier, artifact: rec.id })
-    }
-}
-
-impl ::export::StepScorer for StoreScorer {
-    fn score_steps(&self, steps: &arrow::array::RecordBatch) -> Result<Vec<f32>, String> {
-        trainer::score_steps(&self.verifier, steps).map_err(|e| format!("{e:#}"))
-    }
-    fn layers(&self) -> Vec<String> {
-        self.verifier.config().input.layout.required_producers().iter().map(|(k, _)| k.to_string()).collect()
+        Ok(StoreVerifier { verifier, artifact: rec.id })
     }
 }
 
@@ -125,7 +117,7 @@ fn ticker(bar: &Option<indicatif::ProgressBar>) -> impl Fn(usize, usize) + Send 
 pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
     let store = args.open().await?;
     let scorer = match &a.score_artifact {
-        Some(r) => Some(StoreScorer::load(&store, r).await?),
+        Some(r) => Some(StoreVerifier::load(&store, r).await?),
         None => None,
     };
     let range = scorer.as_ref().map(|s| ::export::ScoreRange {
@@ -137,7 +129,7 @@ pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
     if let Some(s) = &scorer {
         let bar = progress_bar(!a.json, selected.episodes.len(), "episodes scored");
         let tick = ticker(&bar);
-        let r = ::export::filter_by_score(&store, &mut selected, s, Some(&tick)).await;
+        let r = ::export::filter_by_score(&store, &mut selected, &s.verifier, Some(&tick)).await;
         if let Some(b) = &bar {
             b.finish_and_clear();
         }
@@ -203,11 +195,11 @@ pub struct RankArgs {
 /// `ufops rank`: every selected episode's score, lowest first (ties by id).
 pub async fn rank(args: &StoreArgs, a: RankArgs) -> Result<()> {
     let store = args.open().await?;
-    let v = StoreScorer::load(&store, &a.artifact).await?;
+    let v = StoreVerifier::load(&store, &a.artifact).await?;
     let selected = ::export::select(&store, &a.select.selection(None)?).await?;
     let bar = progress_bar(!a.json, selected.episodes.len(), "episodes scored");
     let tick = ticker(&bar);
-    let scores = ::export::score_episodes(&store, &selected.episodes, &v, Some(&tick)).await;
+    let scores = ::export::score_episodes(&store, &selected.episodes, &v.verifier, Some(&tick)).await;
     if let Some(b) = &bar {
         b.finish_and_clear();
     }

@@ -92,10 +92,11 @@ pub async fn review(args: &StoreArgs, command: ReviewCommand) -> Result<()> {
                         format!("{policy} has no review artifact setting: give --artifact or --checkpoint")
                     }
                 })?;
-            let scorer = super::export_cmd::StoreScorer::load(&store, &artifact_id).await?;
+            let scorer = super::export_cmd::StoreVerifier::load(&store, &artifact_id).await?;
             let spec = ::export::score_job::ScoreJobSpec { artifact_id, policy, checkpoint };
             let r =
-                ::export::score_job::run_score_job(&store, None, &spec, &scorer, &|_| {}, &|| false).await?;
+                ::export::score_job::run_score_job(&store, None, &spec, &scorer.verifier, &|_| {}, &|| false)
+                    .await?;
             if json {
                 return print_json(&r);
             }

@@ -95,7 +95,7 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
         chunk_len: a.chunk_len.or(recipe_input.chunk_len),
         step_stride: a.step_stride.or(recipe_input.step_stride),
     };
-    let job = store.create_job("train", &serde_json::to_value(&spec)?, &a.actor).await?;
+    let job = store.create_job(store::JobKind::Train, &serde_json::to_value(&spec)?, &a.actor).await?;
     let worker = api::worker_identity("cli");
     let claimed = store.claim_job(&worker, 3_600_000).await?;
     anyhow::ensure!(
@@ -176,7 +176,7 @@ pub async fn score(
     } else if dir.join(verifier::MANIFEST_FILE).exists() {
         verifier::Verifier::load_dir(&dir)?
     } else {
-        super::export_cmd::StoreScorer::load(&args.open().await?, artifact).await?.verifier
+        super::export_cmd::StoreVerifier::load(&args.open().await?, artifact).await?.verifier
     };
     let text = std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?;
     let mut rows = trainer::parse_rows(&text)?;

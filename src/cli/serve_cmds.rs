@@ -158,8 +158,8 @@ impl api::JobRunner for Runner {
         ctx: api::JobContext,
     ) -> BoxFuture<'a, Result<serde_json::Value, String>> {
         Box::pin(async move {
-            match job.kind.as_str() {
-                "train" => {
+            match job.kind {
+                store::JobKind::Train => {
                     let spec = train_spec(&job.spec)?;
                     let cancel = Arc::new(AtomicBool::new(false));
                     let (c2, ctx2) = (cancel.clone(), ctx.clone());
@@ -178,7 +178,7 @@ impl api::JobRunner for Runner {
                         serde_json::json!({ "artifact_id": rec.id, "metrics": rec.config["metrics"]["final"] }),
                     )
                 }
-                "ingest" => {
+                store::JobKind::Ingest => {
                     let s = &job.spec;
                     let field = |k: &str| s.get(k).and_then(|v| v.as_str()).map(String::from);
                     let path = field("path").ok_or("ingest job has no path")?;
@@ -213,12 +213,12 @@ impl api::JobRunner for Runner {
                         .map_err(|e| format!("{e:#}"))?;
                     serde_json::to_value(&r).map_err(|e| e.to_string())
                 }
-                "export" => {
+                store::JobKind::Export => {
                     let spec: ::export::job::ExportJobSpec = serde_json::from_value(job.spec.clone())
                         .map_err(|e| format!("bad export job spec: {e}"))?;
                     let scorer = match &spec.selection.score {
                         Some(r) => Some(
-                            super::export_cmd::StoreScorer::load(store, &r.artifact)
+                            super::export_cmd::StoreVerifier::load(store, &r.artifact)
                                 .await
                                 .map_err(|e| format!("{e:#}"))?,
                         ),
@@ -226,17 +226,17 @@ impl api::JobRunner for Runner {
                     };
                     let progress = |v: serde_json::Value| ctx.progress(v);
                     let cancelled = || ctx.is_cancelled();
-                    let scorer = scorer.as_ref().map(|s| s as &dyn ::export::StepScorer);
+                    let scorer = scorer.as_ref().map(|s| &s.verifier as &dyn ::export::StepScorer);
                     let r =
                         ::export::job::run_export_job(store, &job.id, &spec, scorer, &progress, &cancelled)
                             .await
                             .map_err(|e| e.to_string())?;
                     serde_json::to_value(&r).map_err(|e| e.to_string())
                 }
-                "score" => {
+                store::JobKind::Score => {
                     let spec: ::export::score_job::ScoreJobSpec = serde_json::from_value(job.spec.clone())
                         .map_err(|e| format!("bad score job spec: {e}"))?;
-                    let scorer = super::export_cmd::StoreScorer::load(store, &spec.artifact_id)
+                    let scorer = super::export_cmd::StoreVerifier::load(store, &spec.artifact_id)
                         .await
                         .map_err(|e| format!("{e:#}"))?;
                     let progress = |v: serde_json::Value| ctx.progress(v);
@@ -245,7 +245,7 @@ impl api::JobRunner for Runner {
                         store,
                         Some(&job.id),
                         &spec,
-                        &scorer,
+                        &scorer.verifier,
                         &progress,
                         &cancelled,
                     )
@@ -253,7 +253,6 @@ impl api::JobRunner for Runner {
                     .map_err(|e| e.to_string())?;
                     serde_json::to_value(&r).map_err(|e| e.to_string())
                 }
-                other => Err(format!("unknown job kind {other:?}")),
             }
         })
     }

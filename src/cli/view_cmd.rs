@@ -40,14 +40,6 @@ pub struct ViewArgs {
     pub out: PathBuf,
 }
 
-/// Loads a verifier from the store through a temporary directory (every sha256 checked).
-pub async fn load_verifier(store: &store::Store, reference: &str) -> Result<verifier::Verifier> {
-    let rec = store.resolve_artifact(reference).await?;
-    let dir = tempfile::tempdir()?;
-    store.download_artifact(&rec.id, dir.path()).await?;
-    Ok(verifier::Verifier::load_dir(dir.path())?)
-}
-
 pub async fn view(args: &StoreArgs, a: ViewArgs) -> Result<()> {
     let store = args.open().await?;
     let mut opts = viewer::ViewOptions::new(&a.policy, &a.checkpoint);
@@ -59,16 +51,12 @@ pub async fn view(args: &StoreArgs, a: ViewArgs) -> Result<()> {
     opts.image_stride = a.image_stride;
     opts.no_videos = a.no_videos;
     let scorer = match &a.artifact {
-        Some(r) => Some(viewer::VerifierScorer(load_verifier(&store, r).await?)),
+        Some(r) => Some(super::export_cmd::StoreVerifier::load(&store, r).await?.verifier),
         None => None,
     };
-    let report = viewer::write_recording(
-        &store,
-        &opts,
-        scorer.as_ref().map(|s| s as &dyn viewer::EpisodeScorer),
-        &a.out,
-    )
-    .await?;
+    let report =
+        viewer::write_recording(&store, &opts, scorer.as_ref().map(|v| v as &dyn viewer::StepScorer), &a.out)
+            .await?;
     println!(
         "{}: {} episodes ({} success, {} failure, {} unknown), {} steps",
         a.out.display(),

@@ -182,7 +182,7 @@ impl Store {
 
     /// Points `alias` of the artifact's (policy, checkpoint, kind) at the artifact.
     pub async fn set_alias(&self, alias: &str, artifact_id: &str) -> Result<ArtifactRecord, StoreError> {
-        crate::writer::check_name("alias", alias)?;
+        crate::model::check_name("alias", alias)?;
         if alias.contains('@') || alias.contains('/') {
             return Err(StoreError::invalid(format!("alias {alias:?} may not contain '@' or '/'")));
         }

@@ -425,8 +425,8 @@ impl Store {
         blind: bool,
         actor: &str,
     ) -> Result<Campaign, StoreError> {
-        crate::writer::check_name("policy", policy)?;
-        crate::writer::check_name("actor", actor)?;
+        crate::model::check_name("policy", policy)?;
+        crate::model::check_name("actor", actor)?;
         if !(1..=MAX_LABELS_NEEDED).contains(&labels_needed) {
             return Err(StoreError::invalid(format!(
                 "labels_needed must be 1 to {MAX_LABELS_NEEDED}, not {labels_needed}"
@@ -472,15 +472,15 @@ impl Store {
         causes: &[String],
         actor: &str,
     ) -> Result<Vec<String>, StoreError> {
-        crate::writer::check_name("task", task)?;
-        crate::writer::check_name("actor", actor)?;
+        crate::model::check_name("task", task)?;
+        crate::model::check_name("actor", actor)?;
         if causes.len() > MAX_FAILURE_CAUSES {
             return Err(StoreError::invalid(format!(
                 "at most {MAX_FAILURE_CAUSES} failure causes (one number key each)"
             )));
         }
         for (i, c) in causes.iter().enumerate() {
-            crate::writer::check_name("failure cause", c)?;
+            crate::model::check_name("failure cause", c)?;
             if causes[..i].contains(c) {
                 return Err(StoreError::invalid(format!("failure cause {c:?} is listed twice")));
             }
@@ -542,7 +542,7 @@ impl Store {
 
     /// Records one labeler's verdict; moves the episode's label when enough labelers agree.
     pub async fn cast_vote(&self, vote: NewVote, actor: &str) -> Result<VoteOutcome, StoreError> {
-        crate::writer::check_name("actor", actor)?;
+        crate::model::check_name("actor", actor)?;
         if vote.note.as_ref().is_some_and(|n| n.len() > 4000) {
             return Err(StoreError::invalid("label note is longer than 4000 bytes"));
         }
@@ -640,7 +640,7 @@ impl Store {
         note: Option<String>,
         actor: &str,
     ) -> Result<LabelChange, StoreError> {
-        crate::writer::check_name("actor", actor)?;
+        crate::model::check_name("actor", actor)?;
         if note.as_ref().is_some_and(|n| n.len() > 4000) {
             return Err(StoreError::invalid("label note is longer than 4000 bytes"));
         }

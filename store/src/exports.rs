@@ -97,7 +97,7 @@ impl Store {
             .jobs(None)
             .await?
             .into_iter()
-            .filter(|j| j.kind == "export" && matches!(j.state, Queued | Running | Succeeded))
+            .filter(|j| j.kind == crate::JobKind::Export && matches!(j.state, Queued | Running | Succeeded))
             .map(|j| j.id)
             .collect())
     }

@@ -1,10 +1,52 @@
-//! Jobs (training, ingest) as catalog rows that workers claim with a lease: queued → running →
+//! Jobs (training, ingest, export, scoring) as catalog rows that workers claim with a lease: queued → running →
 //! succeeded | failed | cancelled. A job whose worker stops heartbeating is claimed again (up to
 //! `max_attempts`); no job runs twice at once. Postgres claims with `FOR UPDATE SKIP LOCKED`.
 
 use crate::catalog::{Backend, RowExt};
 use crate::{now_ms, now_rfc3339, Store, StoreError};
 use serde::Serialize;
+
+/// What a job does; its spec's type follows from it.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum JobKind {
+    /// Train a verifier on a split (`trainer::TrainJobSpec`).
+    Train,
+    /// Ingest an uploaded source file.
+    Ingest,
+    /// Write an export of a selection of episodes.
+    Export,
+    /// Score episodes with a verifier for the review queue.
+    Score,
+}
+
+impl JobKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobKind::Train => "train",
+            JobKind::Ingest => "ingest",
+            JobKind::Export => "export",
+            JobKind::Score => "score",
+        }
+    }
+
+    fn parse(s: &str) -> Result<Self, StoreError> {
+        Ok(match s {
+            "train" => JobKind::Train,
+            "ingest" => JobKind::Ingest,
+            "export" => JobKind::Export,
+            "score" => JobKind::Score,
+            _ => return Err(StoreError::Corrupt(format!("unknown job kind {s:?}"))),
+        })
+    }
+}
+
+impl std::fmt::Display for JobKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
 
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -43,8 +85,7 @@ impl JobState {
 #[derive(Debug, Clone, Serialize)]
 pub struct JobRecord {
     pub id: String,
-    /// `train` or `ingest`
-    pub kind: String,
+    pub kind: JobKind,
     pub state: JobState,
     pub spec: serde_json::Value,
     pub progress: serde_json::Value,
@@ -71,7 +112,7 @@ const JOB_COLS: &str = "id, kind, state, spec, progress, result, error, attempts
 fn job_from_row(r: &sqlx::any::AnyRow) -> Result<JobRecord, StoreError> {
     Ok(JobRecord {
         id: r.s("id")?,
-        kind: r.s("kind")?,
+        kind: JobKind::parse(&r.s("kind")?)?,
         state: JobState::parse(&r.s("state")?)?,
         spec: serde_json::from_str(&r.s("spec")?)?,
         progress: serde_json::from_str(&r.s("progress")?)?,
@@ -91,7 +132,7 @@ fn job_from_row(r: &sqlx::any::AnyRow) -> Result<JobRecord, StoreError> {
 impl Store {
     pub async fn create_job(
         &self,
-        kind: &str,
+        kind: JobKind,
         spec: &serde_json::Value,
         actor: &str,
     ) -> Result<JobRecord, StoreError> {
@@ -101,7 +142,7 @@ impl Store {
             "INSERT INTO jobs ({JOB_COLS}) VALUES ($1, $2, 'queued', $3, '{{}}', NULL, NULL, 0, 3, NULL, NULL, 0, $4, $5, $5)"
         ))
         .bind(&id)
-        .bind(kind)
+        .bind(kind.as_str())
         .bind(serde_json::to_string(spec)?)
         .bind(actor)
         .bind(&now)

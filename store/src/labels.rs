@@ -68,7 +68,7 @@ impl Store {
         actor: &str,
         source: &str,
     ) -> Result<Vec<LabelChange>, StoreError> {
-        crate::writer::check_name("actor", actor)?;
+        crate::model::check_name("actor", actor)?;
         if updates.is_empty() {
             return Ok(Vec::new());
         }
@@ -109,7 +109,7 @@ impl Store {
         let mut counts = CountDeltas::default();
         for i in order {
             let (u, actor) = &items[i];
-            let r = match crate::writer::check_name("actor", actor) {
+            let r = match crate::model::check_name("actor", actor) {
                 Ok(()) => apply_one(&mut tx, backend, u, actor, source, &mut counts).await,
                 Err(e) => Err(e),
             };

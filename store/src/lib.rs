@@ -9,6 +9,7 @@ mod artifacts;
 mod catalog;
 mod consensus;
 mod counts;
+mod episodes_arrow;
 mod error;
 mod exports;
 mod frames;
@@ -40,11 +41,12 @@ pub use consensus::{
     VerdictData, Vote, VoteOutcome, MAX_FAILURE_CAUSES, MAX_LABELS_NEEDED, MAX_SPANS,
 };
 pub use counts::{CountFilter, LabelCounts};
+pub use episodes_arrow::{episodes_batch, episodes_schema};
 pub use error::StoreError;
 pub use exports::{check_export_path, ExportFile, EXPORTS_PREFIX};
 pub use frames::{cameras_of, Camera, CameraKind, FrameLocation};
 pub use gc::{GcReport, MAX_GRACE_SECONDS};
-pub use jobs::{JobRecord, JobState};
+pub use jobs::{JobKind, JobRecord, JobState};
 pub use labels::{LabelChange, LabelEvent, LabelUpdate, PreparedLabelSnapshot};
 pub use layers::{
     check_layer_name, producer_hash, EpisodeLayer, LayerRecord, LayerValues, LayerWrite, LAYER_META_KEY,

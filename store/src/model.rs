@@ -186,3 +186,14 @@ pub struct SourceInput {
     /// Format-specific metadata (robomimic `env_args`, LeRobot `info.json` bits, ...).
     pub metadata: serde_json::Value,
 }
+
+/// The rule for every name the store keeps (policy, checkpoint, task, run, alias, layer, actor…):
+/// 1-200 printable characters without surrounding spaces.
+pub(crate) fn check_name(what: &str, s: &str) -> Result<(), crate::StoreError> {
+    if s.is_empty() || s.chars().count() > 200 || s.chars().any(|c| c.is_control()) || s.trim() != s {
+        return Err(crate::StoreError::invalid(format!(
+            "invalid {what} name {s:?}: 1-200 printable characters without surrounding spaces"
+        )));
+    }
+    Ok(())
+}

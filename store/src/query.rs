@@ -2,7 +2,7 @@
 
 use crate::catalog::{bind_val, RowExt, Val};
 use crate::{Backend, Label, Store, StoreError};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -21,7 +21,8 @@ pub struct VersionInfo {
 }
 
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
-#[derive(Debug, Clone, Serialize, PartialEq)]
+// Deserialize: clients turn the API's JSON records back into this one type (episodes_batch).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct EpisodeRecord {
     pub id: String,
     pub policy: String,

@@ -4,7 +4,7 @@
 //! id is derived from its content, so two ingests of the same run share a row.
 
 use crate::catalog::RowExt;
-use crate::writer::check_name;
+use crate::model::check_name;
 use crate::{Store, StoreError};
 use serde::{Deserialize, Serialize};
 

@@ -302,7 +302,7 @@ impl Store {
 
     /// The scoreboard of a policy at a version (see the module docs).
     pub async fn scoreboard(&self, req: &ScoreboardRequest) -> Result<Scoreboard, StoreError> {
-        crate::writer::check_name("policy", &req.policy)?;
+        crate::model::check_name("policy", &req.policy)?;
         let version = match req.version {
             Some(v) => {
                 self.version(v).await?;

@@ -62,7 +62,7 @@ fn from_row(r: &sqlx::any::AnyRow) -> Result<TokenRecord, StoreError> {
 impl Store {
     /// Creates a token; returns the secret (shown once) and its record.
     pub async fn create_token(&self, name: &str, role: Role) -> Result<(String, TokenRecord), StoreError> {
-        crate::writer::check_name("token", name)?;
+        crate::model::check_name("token", name)?;
         let secret = format!("ufops_{}{}", uuid::Uuid::new_v4().simple(), uuid::Uuid::new_v4().simple());
         let id = format!("tok_{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
         let now = now_rfc3339();

@@ -4,6 +4,7 @@
 
 use crate::catalog::{insert_rows, RowExt, Tx, Val};
 use crate::counts::{insert_version_counts, CountDeltas};
+use crate::model::check_name;
 use crate::steps::{self, StepsFileWriter};
 use crate::{now_rfc3339, EpisodeInput, ExtraColumn, Label, MediaFile, SourceInput, Store, StoreError};
 use bytes::Bytes;
@@ -86,15 +87,6 @@ impl Drop for IngestWriter {
             h.abort();
         }
     }
-}
-
-pub(crate) fn check_name(what: &str, s: &str) -> Result<(), StoreError> {
-    if s.is_empty() || s.chars().count() > 200 || s.chars().any(|c| c.is_control()) || s.trim() != s {
-        return Err(StoreError::invalid(format!(
-            "invalid {what} name {s:?}: 1-200 printable characters without surrounding spaces"
-        )));
-    }
-    Ok(())
 }
 
 fn check_sha256(sha256: &str) -> Result<(), StoreError> {

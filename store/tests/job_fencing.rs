@@ -20,7 +20,7 @@ async fn open() -> (tempfile::TempDir, Store) {
 #[tokio::test]
 async fn a_stale_attempt_cannot_heartbeat_or_finish_the_new_one() {
     let (_d, store) = open().await;
-    let j = store.create_job("train", &serde_json::json!({}), "alice").await.unwrap();
+    let j = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
     let first = store.claim_job("w1", 20).await.unwrap().unwrap();
     assert_eq!(first.attempts, 1);
     tokio::time::sleep(Duration::from_millis(40)).await;
@@ -42,7 +42,7 @@ async fn a_stale_attempt_cannot_heartbeat_or_finish_the_new_one() {
 async fn a_cancelled_job_whose_worker_died_is_cancelled_not_left_running() {
     let (_d, store) = open().await;
     // Cancel requested while running; the worker dies before its next heartbeat.
-    let a = store.create_job("train", &serde_json::json!({}), "alice").await.unwrap();
+    let a = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
     store.claim_job("dead-worker", 20).await.unwrap().unwrap();
     assert!(store.cancel_job(&a.id).await.unwrap().cancel_requested);
     assert_eq!(store.job(&a.id).await.unwrap().state, JobState::Running, "the lease still runs");
@@ -53,12 +53,12 @@ async fn a_cancelled_job_whose_worker_died_is_cancelled_not_left_running() {
     assert_eq!(a.state, JobState::Cancelled);
     assert!(a.error.unwrap().contains("worker stopped"));
     // Cancelling a job whose worker is already gone finishes it at once.
-    let b = store.create_job("train", &serde_json::json!({}), "alice").await.unwrap();
+    let b = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
     store.claim_job("dead-worker", 20).await.unwrap().unwrap();
     tokio::time::sleep(Duration::from_millis(40)).await;
     assert_eq!(store.cancel_job(&b.id).await.unwrap().state, JobState::Cancelled);
     // A cancel of a live job is still only a request (its worker winds it down).
-    let c = store.create_job("train", &serde_json::json!({}), "alice").await.unwrap();
+    let c = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
     store.claim_job("w3", 60_000).await.unwrap().unwrap();
     let c = store.cancel_job(&c.id).await.unwrap();
     assert_eq!((c.state, c.cancel_requested), (JobState::Running, true));
@@ -67,7 +67,7 @@ async fn a_cancelled_job_whose_worker_died_is_cancelled_not_left_running() {
 #[tokio::test]
 async fn a_released_job_is_queued_again_without_losing_an_attempt() {
     let (_d, store) = open().await;
-    let j = store.create_job("train", &serde_json::json!({}), "alice").await.unwrap();
+    let j = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
     store.claim_job("w1", 60_000).await.unwrap().unwrap();
     assert!(!store.release_job(&j.id, "w2", 1).await.unwrap(), "only the holder releases");
     assert!(store.release_job(&j.id, "w1", 1).await.unwrap());

@@ -11,7 +11,7 @@ use std::time::Instant;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
-use trainer::{Backend, InputSpec, Kind, ObsKey, Samples, TrainConfig};
+use trainer::{InputSpec, Kind, ObsKey, Samples, TrainBackend, TrainConfig};
 
 fn env<T: std::str::FromStr>(k: &str, d: T) -> T {
     std::env::var(k).ok().and_then(|v| v.parse().ok()).unwrap_or(d)
@@ -82,10 +82,10 @@ fn main() {
         for th in threads.split(',') {
             let th: usize = th.trim().parse().unwrap();
             let backend = match b.trim() {
-                "candle" => Backend::Candle,
-                _ => Backend::Fast,
+                "candle" => TrainBackend::Candle,
+                _ => TrainBackend::Fast,
             };
-            if backend == Backend::Candle {
+            if backend == TrainBackend::Candle {
                 // candle's CPU matmul reads RAYON_NUM_THREADS on every call.
                 std::env::set_var("RAYON_NUM_THREADS", th.to_string());
             }
@@ -124,7 +124,7 @@ fn main() {
                 }
                 None => String::new(),
             };
-            if backend == Backend::Fast && th == 1 {
+            if backend == TrainBackend::Fast && th == 1 {
                 fast_1thread = Some(n as f64 / med);
             }
             println!(

@@ -81,7 +81,7 @@ pub fn write_parts(dir: &Path, cfg: &ArtifactConfig, params: &ParamSet) -> Resul
 }
 
 /// A loaded, checked artifact: its configuration, parameters and the core's verifier.
-pub struct Artifact {
+pub struct TrainedArtifact {
     pub id: String,
     pub dir: PathBuf,
     pub config: ArtifactConfig,
@@ -92,12 +92,12 @@ pub struct Artifact {
 
 /// Load an artifact directory through the core (every sha256 checked, schema, variant,
 /// tensors).
-pub fn load_artifact(dir: &Path) -> Result<Artifact> {
+pub fn load_artifact(dir: &Path) -> Result<TrainedArtifact> {
     let a = verifier::Artifact::load_dir(dir)?;
     let spec = model_spec(&a.config);
     let params = ParamSet::from_weights(&spec, &a.weights)?;
     let verifier = a.verifier()?;
-    Ok(Artifact {
+    Ok(TrainedArtifact {
         id: a.id.context("an artifact loaded from a directory has an id")?,
         dir: dir.to_path_buf(),
         config: a.config,
@@ -107,7 +107,7 @@ pub fn load_artifact(dir: &Path) -> Result<Artifact> {
     })
 }
 
-impl Artifact {
+impl TrainedArtifact {
     /// Scores: classifier `sigmoid(logit)`, Q the value.
     pub fn score(&self, rows: &[ScoreRow]) -> Result<Vec<f32>> {
         score_rows(&self.verifier, rows)
@@ -245,7 +245,7 @@ pub fn grad_rows(v: &Verifier, rows: &[ScoreRow]) -> Result<Vec<Vec<f32>>> {
 }
 
 /// Scores of raw rows under an artifact.
-pub fn score(artifact: &Artifact, rows: &[ScoreRow]) -> Result<Vec<f32>> {
+pub fn score(artifact: &TrainedArtifact, rows: &[ScoreRow]) -> Result<Vec<f32>> {
     artifact.score(rows)
 }
 

@@ -1,9 +1,9 @@
 //! Training jobs over the store: a split's episodes are read back from their pinned version,
-//! turned into [`Episode`]s, trained on, and published as an artifact with its lineage. The CLI
+//! turned into [`EpisodeSeries`]s, trained on, and published as an artifact with its lineage. The CLI
 //! (`ufops train`), the API's workers and the demo all run training through this one function.
 
 use crate::{
-    build_samples, train_samples, write_artifact, Episode, EpochReport, InputSpec, Kind, ObsKey, ObsSeries,
+    build_samples, train_samples, write_artifact, EpisodeSeries, EpochReport, InputSpec, Kind, ObsKey,
     TrainConfig,
 };
 use anyhow::{bail, Context, Result};
@@ -37,38 +37,10 @@ pub struct TrainJobSpec {
 
 /// A split's episodes, ready for training.
 pub struct SplitData {
-    pub train: Vec<Episode>,
-    pub val: Vec<Episode>,
+    pub train: Vec<EpisodeSeries>,
+    pub val: Vec<EpisodeSeries>,
     pub input: InputSpec,
     pub version: i64,
-}
-
-fn episode_from_steps(
-    id: &str,
-    success: bool,
-    batch: &arrow::array::RecordBatch,
-    keys: &[String],
-) -> Result<Episode> {
-    let mut obs = Vec::with_capacity(keys.len());
-    for k in keys {
-        let (dim, values) = store::steps::vector_column(batch, &format!("{}{k}", store::steps::OBS_PREFIX))
-            .with_context(|| format!("episode {id}"))?;
-        obs.push(ObsSeries { key: k.clone(), dim, values });
-    }
-    let (action_dim, actions) = store::steps::vector_column(batch, "action")?;
-    let action_chunk = match batch.schema().field_with_name("action_chunk") {
-        Ok(_) => {
-            let (hd, values) = store::steps::vector_column(batch, "action_chunk")?;
-            if hd % action_dim != 0 {
-                bail!(
-                    "episode {id}: action_chunk width {hd} is not a multiple of the action dim {action_dim}"
-                );
-            }
-            Some((hd / action_dim, values))
-        }
-        Err(_) => None,
-    };
-    Ok(Episode { id: id.to_string(), success, obs, actions, action_dim, action_chunk })
 }
 
 /// Notes the producer of each layer column among `keys` (field metadata of the joined read);
@@ -137,7 +109,7 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
         _ => vec![],
     };
     let mut producers: Vec<Option<String>> = vec![None; keys.as_ref().map_or(0, |k| k.len())];
-    let mut episodes: Vec<Option<Episode>> = (0..labeled.len()).map(|_| None).collect();
+    let mut episodes: Vec<Option<EpisodeSeries>> = (0..labeled.len()).map(|_| None).collect();
     {
         let wanted = keys.clone().unwrap_or_default();
         let mut stream = if layer_keys.is_empty() {
@@ -150,7 +122,8 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
             let item = item?;
             let (m, success) = labeled[item.index];
             record_producers(&m.episode_id, &item.steps, &wanted, &mut producers)?;
-            episodes[item.index] = Some(episode_from_steps(&m.episode_id, success, &item.steps, &wanted)?);
+            episodes[item.index] =
+                Some(verifier::steps::episode_from_steps(&m.episode_id, success, &item.steps, &wanted)?);
         }
     }
     let mut train = Vec::new();
@@ -281,46 +254,4 @@ pub async fn run_train_job(
         })
         .await?;
     Ok(rec)
-}
-
-/// The verifier inputs of every step of a stored episode, built exactly as for training
-/// (observation history; stored chunk, else the next H actions; step index) with the raw chunks
-/// put into the space the artifact takes (`input.action_space`).
-pub fn step_inputs(
-    cfg: &verifier::ArtifactConfig,
-    batch: &arrow::array::RecordBatch,
-) -> Result<crate::Samples> {
-    let input = &cfg.input.layout;
-    if !cfg.architecture.extra_inputs.is_empty() {
-        bail!("building stored steps for a verifier with extra inputs is not supported");
-    }
-    let keys: Vec<String> = input.obs_keys.iter().map(|k| k.key.clone()).collect();
-    // Layer keys: the batch must hold them (a read joined with the layers) from the producer
-    // the verifier was trained on.
-    let schema = batch.schema();
-    let mut provided = Vec::new();
-    for (key, want) in input.required_producers() {
-        let field = schema.field_with_name(&format!("{}{key}", store::steps::OBS_PREFIX)).map_err(|_| {
-            anyhow::anyhow!(
-                "this verifier reads layer {key} (features of producer {}): read the steps with that layer",
-                verifier::short_hash(want)
-            )
-        })?;
-        provided.push((key, field.metadata().get(store::PRODUCER_META_KEY).cloned().unwrap_or_default()));
-    }
-    input.check_producers(provided.iter().map(|(k, p)| (*k, p.as_str())))?;
-    let mut ep = episode_from_steps("scored", false, batch, &keys)?;
-    if ep.action_chunk.as_ref().is_some_and(|(h, _)| *h != input.chunk_len) {
-        ep.action_chunk = None;
-    }
-    let mut s = build_samples(std::slice::from_ref(&ep), input, cfg.gamma.unwrap_or(0.99))?;
-    cfg.input.action_space.raw_to_input(&mut s.act, input.action_dim);
-    Ok(s)
-}
-
-/// Scores every step of a stored episode with a verifier (what the viewer shows), on the
-/// inputs of [`step_inputs`], through the core.
-pub fn score_steps(v: &verifier::Verifier, batch: &arrow::array::RecordBatch) -> Result<Vec<f32>> {
-    let s = step_inputs(v.config(), batch)?;
-    Ok(v.score(&s.obs, &s.t, &s.act, 1)?)
 }

@@ -14,7 +14,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
-use crate::data::{build_samples, Episode, Fitted, InputSpec, Normalization, Samples, TimeEmbedTable};
+use crate::data::{build_samples, EpisodeSeries, Fitted, InputSpec, Normalization, Samples, TimeEmbedTable};
 use crate::fast::{BatchSource, FastModel};
 use crate::loss::{objective, objective_host, LossConfig};
 use crate::metrics::{calibration, pearson, roc_auc, Calibration};
@@ -25,7 +25,7 @@ use verifier::ActionSpace;
 /// Which implementation computes forward/backward during training.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
-pub enum Backend {
+pub enum TrainBackend {
     /// The fused fast path when it supports the architecture, candle otherwise.
     #[default]
     Auto,
@@ -73,7 +73,7 @@ pub struct TrainConfig {
     pub std_floor: f64,
     /// Threads for the fused path (data parallel). 1 measured fastest for the low-dim model.
     pub threads: usize,
-    pub backend: Backend,
+    pub backend: TrainBackend,
 }
 
 /// The verifier's input spec as a recipe file may give it (see
@@ -124,7 +124,7 @@ impl Default for TrainConfig {
             action_space: ActionSpace::default(),
             std_floor: 1e-3,
             threads: 1,
-            backend: Backend::Auto,
+            backend: TrainBackend::Auto,
         }
     }
 }
@@ -311,15 +311,20 @@ pub struct Trained {
 pub struct Cancelled;
 
 /// Train from episodes (train / validation division by the caller).
-pub fn train(train: &[Episode], val: &[Episode], input: &InputSpec, cfg: &TrainConfig) -> Result<Trained> {
+pub fn train(
+    train: &[EpisodeSeries],
+    val: &[EpisodeSeries],
+    input: &InputSpec,
+    cfg: &TrainConfig,
+) -> Result<Trained> {
     train_with(train, val, input, cfg, &mut |_| {}, None)
 }
 
 /// [`train`] with a per-epoch observer and a cancel flag (checked every step; on cancel the
 /// function returns an error that downcasts to [`Cancelled`]).
 pub fn train_with(
-    train: &[Episode],
-    val: &[Episode],
+    train: &[EpisodeSeries],
+    val: &[EpisodeSeries],
     input: &InputSpec,
     cfg: &TrainConfig,
     observer: &mut dyn FnMut(&EpochReport),
@@ -384,12 +389,12 @@ pub fn train_samples(
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let mut params = spec.init_params(&mut rng);
     let use_fast = match cfg.backend {
-        Backend::Candle => false,
-        Backend::Fast => {
+        TrainBackend::Candle => false,
+        TrainBackend::Fast => {
             ensure!(crate::fast::supports(&spec), "backend \"fast\" does not support this architecture");
             true
         }
-        Backend::Auto => crate::fast::supports(&spec),
+        TrainBackend::Auto => crate::fast::supports(&spec),
     };
     let mut engine = if use_fast {
         Engine::Fast(Box::new(FastModel::new(&spec, &params, cfg.batch_size, cfg.threads.max(1))?))

@@ -6,11 +6,11 @@ use crate::common;
 use std::sync::atomic::AtomicBool;
 
 use trainer::data::{build_samples, time_embedding};
-use trainer::{Backend, Episode, InputSpec, Kind, ObsKey, ObsSeries, TrainConfig, Variant};
+use trainer::{EpisodeSeries, InputSpec, Kind, ObsKey, ObsSeries, TrainBackend, TrainConfig, Variant};
 
 #[test]
 fn samples_history_chunks_and_targets() {
-    let ep = Episode {
+    let ep = EpisodeSeries {
         id: "e".into(),
         success: true,
         obs: vec![
@@ -98,7 +98,7 @@ fn q_correlates_with_discounted_time_to_success() {
 fn same_seed_same_weights_different_seed_different() {
     let eps = common::action_task(10, 20, 1);
     let val = common::action_task(4, 20, 2);
-    for backend in [Backend::Fast, Backend::Candle] {
+    for backend in [TrainBackend::Fast, TrainBackend::Candle] {
         let cfg = TrainConfig { epochs: 2, batch_size: 64, seed: 42, backend, ..Default::default() };
         let a = trainer::train(&eps, &val, &common::action_spec(), &cfg).unwrap();
         let b = trainer::train(&eps, &val, &common::action_spec(), &cfg).unwrap();
@@ -122,12 +122,16 @@ fn fast_and_candle_backends_train_alike() {
         &eps,
         &val,
         &common::action_spec(),
-        &TrainConfig { backend: Backend::Fast, ..cfg.clone() },
+        &TrainConfig { backend: TrainBackend::Fast, ..cfg.clone() },
     )
     .unwrap();
-    let b =
-        trainer::train(&eps, &val, &common::action_spec(), &TrainConfig { backend: Backend::Candle, ..cfg })
-            .unwrap();
+    let b = trainer::train(
+        &eps,
+        &val,
+        &common::action_spec(),
+        &TrainConfig { backend: TrainBackend::Candle, ..cfg },
+    )
+    .unwrap();
     for (x, y) in a.history.iter().zip(&b.history) {
         assert!((x.train_loss - y.train_loss).abs() < 1e-3, "{} vs {}", x.train_loss, y.train_loss);
     }
@@ -286,14 +290,14 @@ fn fast_path_honours_observation_noise() {
         &eps,
         &val,
         &common::action_spec(),
-        &TrainConfig { backend: Backend::Fast, ..cfg.clone() },
+        &TrainConfig { backend: TrainBackend::Fast, ..cfg.clone() },
     )
     .unwrap();
     let candle = trainer::train(
         &eps,
         &val,
         &common::action_spec(),
-        &TrainConfig { backend: Backend::Candle, ..cfg.clone() },
+        &TrainConfig { backend: TrainBackend::Candle, ..cfg.clone() },
     )
     .unwrap();
     assert_eq!(fast.metrics.backend, "fast");

@@ -7,7 +7,9 @@
 //! [`Architecture::tensors`]), the step embedding, and the forward pass and its gradient w.r.t.
 //! the action chunk for every variant ([`Verifier`]), with AVX2/FMA kernels chosen at run time
 //! and a portable fallback ([`kernels`], which the trainer's fused training path shares). It
-//! also builds the files the trainer writes ([`ArtifactFiles`]).
+//! also builds the files the trainer writes ([`ArtifactFiles`]), and the verifier's inputs from
+//! episodes ([`samples`]: what the trainer trains on and scorers query), from the store's steps
+//! with feature `steps` (`steps::StepScorer`: how anything scores a stored episode).
 //!
 //! It has no heavy dependencies: `steer` (on the robot) and the Python package bind it. It does
 //! not train (the `trainer` crate), sample policies or steer them (the `steer` crate).
@@ -27,6 +29,10 @@ pub mod format;
 pub mod kernels;
 mod math;
 mod net;
+pub mod samples;
+/// Verifier inputs from the store's steps batches and [`steps::StepScorer`] (feature `steps`).
+#[cfg(feature = "steps")]
+pub mod steps;
 /// Random artifacts for tests and benchmarks (feature `testing`).
 #[cfg(any(test, feature = "testing"))]
 pub mod testutil;
@@ -41,6 +47,9 @@ pub use format::{
 };
 pub use math::{sigmoid, time_embedding_into};
 pub use net::Verifier;
+pub use samples::{build_samples, EpisodeSeries, ObsSeries, Samples};
+#[cfg(feature = "steps")]
+pub use steps::StepScorer;
 pub use weights::{Tensor, Weights};
 
 use sha2::{Digest, Sha256};

@@ -3,7 +3,7 @@
 //!
 //! It owns the recording's layout — entity paths, timelines (`step`, `time`), colours, the
 //! blueprint — and nothing else: episodes and steps come from the `store` crate, verifier scores
-//! from whoever implements [`EpisodeScorer`] ([`VerifierScorer`]: a verifier artifact through the verifier core).
+//! from whoever implements [`StepScorer`] (a verifier artifact: `verifier::Verifier` implements it).
 //! [`write_recording`] writes a file for `ufops view`; [`recording_bytes`] returns the same
 //! recording in memory for the API's `GET /v1/views`.
 //!
@@ -43,6 +43,7 @@ use re_sdk_types::components::{Color, MediaType, VideoTimestamp};
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::path::Path;
 use store::{EpisodeFilter, EpisodeRecord, Label, Store, StoreError};
+pub use verifier::StepScorer;
 
 /// The re_sdk version the recordings are written with (the PyPI `rerun-sdk` to read them).
 pub const RERUN_SDK_VERSION: &str = "0.36.3";
@@ -85,23 +86,6 @@ pub struct ViewOptions {
 impl ViewOptions {
     pub fn new(policy: impl Into<String>, checkpoint: impl Into<String>) -> Self {
         ViewOptions { policy: policy.into(), checkpoint: checkpoint.into(), ..Default::default() }
-    }
-}
-
-/// Scores an episode's steps ([`VerifierScorer`] with a verifier artifact; tests may bring
-/// their own).
-pub trait EpisodeScorer {
-    /// One score per step of `batch` (a steps batch as returned by `Store::read_steps`).
-    fn score_episode(&self, batch: &RecordBatch) -> Result<Vec<f32>, String>;
-}
-
-/// The viewer's scorer: a verifier artifact through the verifier core, each step's (obs
-/// history, chunk, t) built as the trainer builds them (`trainer::score_steps`).
-pub struct VerifierScorer(pub verifier::Verifier);
-
-impl EpisodeScorer for VerifierScorer {
-    fn score_episode(&self, batch: &RecordBatch) -> Result<Vec<f32>, String> {
-        trainer::score_steps(&self.0, batch).map_err(|e| format!("{e:#}"))
     }
 }
 
@@ -157,7 +141,7 @@ fn rr<E: std::fmt::Display>(e: E) -> ViewError {
 pub async fn write_recording(
     store: &Store,
     opts: &ViewOptions,
-    scores: Option<&dyn EpisodeScorer>,
+    scores: Option<&dyn StepScorer>,
     out: &Path,
 ) -> Result<ViewReport, ViewError> {
     if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
@@ -180,7 +164,7 @@ pub async fn write_recording(
 pub async fn recording_bytes(
     store: &Store,
     opts: &ViewOptions,
-    scores: Option<&dyn EpisodeScorer>,
+    scores: Option<&dyn StepScorer>,
 ) -> Result<(Vec<u8>, ViewReport), ViewError> {
     let (rec, storage) = builder(opts).memory().map_err(rr)?;
     let report = record(&rec, store, opts, scores).await?;
@@ -192,7 +176,7 @@ pub async fn recording_bytes(
 pub async fn write_recording_to(
     store: &Store,
     opts: &ViewOptions,
-    scores: Option<&dyn EpisodeScorer>,
+    scores: Option<&dyn StepScorer>,
     w: &mut dyn std::io::Write,
 ) -> Result<ViewReport, ViewError> {
     let (bytes, report) = recording_bytes(store, opts, scores).await?;
@@ -544,7 +528,7 @@ async fn record(
     rec: &RecordingStream,
     store: &Store,
     opts: &ViewOptions,
-    scorer: Option<&dyn EpisodeScorer>,
+    scorer: Option<&dyn StepScorer>,
 ) -> Result<ViewReport, ViewError> {
     let episodes = select_episodes(store, opts).await?;
     let mut report = ViewReport { scored: scorer.is_some(), ..Default::default() };
@@ -679,8 +663,8 @@ async fn record(
         let mut has_score = false;
         if let Some(sc) = scorer {
             let scores = sc
-                .score_episode(&batch)
-                .map_err(|message| ViewError::Scorer { episode: ep.id.clone(), message })?;
+                .score_steps(&batch)
+                .map_err(|e| ViewError::Scorer { episode: ep.id.clone(), message: e.to_string() })?;
             if scores.len() != n {
                 return Err(ViewError::Scorer {
                     episode: ep.id.clone(),

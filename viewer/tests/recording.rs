@@ -122,14 +122,14 @@ fn fake_mp4() -> Vec<u8> {
 
 /// Rises to 1 along successes, stays at 0.2 on failures, 0.5 elsewhere.
 struct FakeVerifier;
-impl EpisodeScorer for FakeVerifier {
-    fn score_episode(&self, batch: &RecordBatch) -> Result<Vec<f32>, String> {
+impl StepScorer for FakeVerifier {
+    fn score_steps(&self, batch: &RecordBatch) -> verifier::Result<Vec<f32>> {
         let n = batch.num_rows();
         let success = batch
             .column_by_name("success")
             .and_then(|c| c.as_any().downcast_ref::<arrow::array::BooleanArray>())
             .map(|a| if arrow::array::Array::is_valid(a, 0) { Some(a.value(0)) } else { None })
-            .ok_or("no success column")?;
+            .ok_or_else(|| verifier::VerifierError::Input("no success column".into()))?;
         Ok((0..n)
             .map(|t| match success {
                 Some(true) => t as f32 / (n - 1) as f32,

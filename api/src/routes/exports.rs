@@ -83,7 +83,7 @@ pub struct ExportStatus {
 async fn export_job(s: &AppState, id: &str) -> ApiResult<store::JobRecord> {
     check_id("export id", id)?;
     let job = s.store().job(id).await?;
-    if job.kind != "export" {
+    if job.kind != store::JobKind::Export {
         return Err(ApiError::not_found(format!("export {id} not found")));
     }
     Ok(job)
@@ -146,7 +146,7 @@ pub async fn create_export(
     };
     spec.check().map_err(|e| ApiError::bad_request(e.to_string()))?;
     let spec = serde_json::to_value(&spec).map_err(|e| ApiError::internal(e.to_string()))?;
-    let job = s.store().create_job("export", &spec, &caller.name).await?;
+    let job = s.store().create_job(store::JobKind::Export, &spec, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(job)))
 }
 
@@ -155,7 +155,7 @@ pub async fn create_export(
     responses((status = 200, body = Vec<store::JobRecord>)))]
 pub async fn list_exports(State(s): State<AppState>) -> ApiResult<Json<Vec<store::JobRecord>>> {
     let mut jobs: Vec<store::JobRecord> =
-        s.store().jobs(None).await?.into_iter().filter(|j| j.kind == "export").collect();
+        s.store().jobs(None).await?.into_iter().filter(|j| j.kind == store::JobKind::Export).collect();
     jobs.sort_by(|a, b| b.created_at.cmp(&a.created_at));
     Ok(Json(jobs))
 }

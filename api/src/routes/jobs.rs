@@ -84,7 +84,7 @@ pub async fn create_job(
             spec[key] = v;
         }
     }
-    let job = s.store().create_job("train", &spec, &caller.name).await?;
+    let job = s.store().create_job(store::JobKind::Train, &spec, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(job)))
 }
 

@@ -88,7 +88,7 @@ pub struct LayerWriteQuery {
 /// skipped: 201 with the new version, or 200 with none when every episode was skipped.
 #[utoipa::path(post, path = "/v1/layers/{name}", tag = "layers",
     params(("name" = String, Path, pattern = r"^[A-Za-z0-9._-]{1,120}$"), LayerWriteQuery),
-    request_body(content = crate::openapi::UploadBytes, content_type = "application/octet-stream", description = "the values, an Arrow IPC stream (any content type is read as one)"),
+    request_body(content = crate::body_schemas::UploadBytes, content_type = "application/octet-stream", description = "the values, an Arrow IPC stream (any content type is read as one)"),
     responses((status = 201, body = store::LayerWrite), (status = 200, body = store::LayerWrite, description = "nothing to write"),
               (status = 400, description = "a bad stream, producer or values"),
               (status = 403, description = "the token's role is below trainer"),

@@ -40,9 +40,9 @@ pub use scoreboard::*;
 pub use splits::*;
 
 use crate::auth::Caller;
+use crate::body_schemas::FileBytes;
 use crate::error::{ApiError, ApiResult, Problem};
 use crate::extract::{check_id, check_name, ApiJson, ApiPath, ApiQuery};
-use crate::openapi::FileBytes;
 use crate::AppState;
 use axum::body::Body;
 use axum::extract::State;

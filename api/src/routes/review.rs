@@ -277,6 +277,6 @@ pub async fn create_score_job(
         }
     };
     let spec = json!({"artifact_id": artifact_id, "policy": b.policy, "checkpoint": b.checkpoint});
-    let job = s.store().create_job("score", &spec, &caller.name).await?;
+    let job = s.store().create_job(store::JobKind::Score, &spec, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(job)))
 }

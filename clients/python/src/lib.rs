@@ -42,6 +42,7 @@ fn _ufops(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
     m.add_class::<verifier::PyVerifier>()?;
     m.add_class::<store::PyStore>()?;
+    m.add_function(wrap_pyfunction!(store::episodes_ipc_from_json, m)?)?;
     #[cfg(feature = "testing")]
     m.add_function(wrap_pyfunction!(write_random_artifact, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;

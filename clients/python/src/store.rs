@@ -1,7 +1,8 @@
 //! `ufops.Store`: the store's read path (catalog queries and the Parquet steps reader) for a
-//! local data directory or Postgres + S3, read-only. Records cross into Python as JSON, steps as
-//! Arrow IPC streams (polars and pyarrow read them without a second Arrow binding in this
-//! crate). One Tokio runtime, made on first use, runs the store's async reads.
+//! local data directory or Postgres + S3, read-only. Episodes (of `store::episodes_schema`) and
+//! steps cross into Python as Arrow IPC streams (polars and pyarrow read them without a second
+//! Arrow binding in this crate), other records as JSON; the Python class `ufops.Store` composes
+//! this one. One Tokio runtime, made on first use, runs the store's async reads.
 
 use std::path::PathBuf;
 use std::sync::OnceLock;
@@ -13,6 +14,28 @@ use pyo3::types::PyBytes;
 
 use crate::errors::{from_store, from_verifier, NotFoundError};
 use crate::verifier::PyVerifier;
+
+/// Episode records as one Arrow IPC stream (the store's one definition of their columns).
+fn episodes_stream(records: &[store::EpisodeRecord]) -> PyResult<Vec<u8>> {
+    let batch = store::episodes_batch(records).map_err(from_store)?;
+    let ipc_err = |e: arrow::error::ArrowError| PyRuntimeError::new_err(format!("writing Arrow IPC: {e}"));
+    let mut w = StreamWriter::try_new(Vec::new(), &batch.schema()).map_err(ipc_err)?;
+    w.write(&batch).map_err(ipc_err)?;
+    w.into_inner().map_err(ipc_err)
+}
+
+/// Episode records as the API returns them (a JSON list) → one Arrow IPC stream of the same
+/// columns as `Store.episodes_ipc`, so both reach Python through one schema.
+#[pyfunction]
+pub(crate) fn episodes_ipc_from_json<'py>(
+    py: Python<'py>,
+    records_json: &str,
+) -> PyResult<Bound<'py, PyBytes>> {
+    let records: Vec<store::EpisodeRecord> = serde_json::from_str(records_json)
+        .map_err(|e| PyValueError::new_err(format!("episode records: {e}")))?;
+    let stream = py.detach(|| episodes_stream(&records))?;
+    Ok(PyBytes::new(py, &stream))
+}
 
 fn runtime() -> PyResult<&'static tokio::runtime::Runtime> {
     static RT: OnceLock<tokio::runtime::Runtime> = OnceLock::new();
@@ -33,16 +56,10 @@ fn json<T: serde::Serialize>(v: &T) -> PyResult<String> {
 }
 
 /// A ufops store opened read-only.
-#[pyclass(module = "ufops._ufops", name = "Store", frozen, subclass)]
+#[pyclass(module = "ufops._ufops", name = "Store", frozen)]
 pub struct PyStore {
     store: store::Store,
     describe: String,
-}
-
-impl PyStore {
-    pub(crate) fn open_dir(py: Python<'_>, dir: PathBuf) -> PyResult<Self> {
-        Self::new(py, Some(dir), None, None)
-    }
 }
 
 #[pymethods]
@@ -90,12 +107,13 @@ impl PyStore {
         json(&v)
     }
 
-    /// Episodes as a JSON list of records (what `ufops episodes --json` prints), now or at `version`.
+    /// Episodes as one Arrow IPC stream of [`store::episodes_schema`] (the records `ufops episodes
+    /// --json` prints), now or at `version`.
     #[pyo3(signature = (version=None, policy=None, checkpoint=None, task=None, label=None, tag=None, after=None, limit=None))]
     #[allow(clippy::too_many_arguments)]
-    fn episodes_json(
+    fn episodes_ipc<'py>(
         &self,
-        py: Python<'_>,
+        py: Python<'py>,
         version: Option<i64>,
         policy: Option<String>,
         checkpoint: Option<String>,
@@ -104,7 +122,7 @@ impl PyStore {
         tag: Option<String>,
         after: Option<String>,
         limit: Option<i64>,
-    ) -> PyResult<String> {
+    ) -> PyResult<Bound<'py, PyBytes>> {
         let label = label.as_deref().map(str::parse::<store::Label>).transpose().map_err(from_store)?;
         let filter = store::EpisodeFilter {
             version,
@@ -117,8 +135,11 @@ impl PyStore {
             limit,
             ..Default::default()
         };
-        let eps = py.detach(|| runtime()?.block_on(self.store.episodes(&filter)).map_err(from_store))?;
-        json(&eps)
+        let stream = py.detach(|| {
+            let eps = runtime()?.block_on(self.store.episodes(&filter)).map_err(from_store)?;
+            episodes_stream(&eps)
+        })?;
+        Ok(PyBytes::new(py, &stream))
     }
 
     /// The steps of the episodes `ids` (in that order) as Arrow IPC streams: one stream per run

@@ -141,22 +141,6 @@ impl PyVerifier {
         Ok(PyVerifier { v })
     }
 
-    /// Loads `reference` (an artifact id or `POLICY/CHECKPOINT/KIND@ALIAS`) from a store: a
-    /// `ufops.Store`, or a data directory opened read-only for the purpose. Every file is checked
-    /// against the manifest, and the manifest against the id the catalog records.
-    #[staticmethod]
-    fn from_store(py: Python<'_>, store: &Bound<'_, PyAny>, reference: &str) -> PyResult<Self> {
-        if let Ok(s) = store.cast::<crate::store::PyStore>() {
-            return s.get().verifier(py, reference);
-        }
-        let dir: std::path::PathBuf = store.extract().map_err(|_| {
-            pyo3::exceptions::PyTypeError::new_err(
-                "store must be a ufops.Store or the path of a data directory",
-            )
-        })?;
-        crate::store::PyStore::open_dir(py, dir)?.verifier(py, reference)
-    }
-
     /// The artifact id (first 16 hex digits of sha256(manifest.json)).
     #[getter]
     fn id(&self) -> Option<&str> {

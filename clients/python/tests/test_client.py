@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 import ufops
-from conftest import Server, Ufops
+from conftest import Server, Ufops, require
 
 
 def test_episodes_follow_every_page(server: Server, trained: Ufops) -> None:
@@ -14,6 +14,8 @@ def test_episodes_follow_every_page(server: Server, trained: Ufops) -> None:
     cli = trained.json("episodes", "--json")
     assert [e["id"] for e in eps] == [e["id"] for e in cli]
     assert c.episodes_frame(checkpoint="ckpt-0").height == len(cli)
+    # Over the API or from the store: one table, same columns and values.
+    require("polars.testing").assert_frame_equal(c.episodes_frame(), ufops.Store(trained.data_dir).episodes())
 
 
 def test_label_writes_and_conflicts(server: Server) -> None:

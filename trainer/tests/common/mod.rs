@@ -4,7 +4,7 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
-use trainer::{Episode, InputSpec, ObsKey, ObsSeries};
+use trainer::{EpisodeSeries, InputSpec, ObsKey, ObsSeries};
 
 pub fn normal(rng: &mut ChaCha8Rng) -> f32 {
     rng.sample(StandardNormal)
@@ -12,7 +12,7 @@ pub fn normal(rng: &mut ChaCha8Rng) -> f32 {
 
 /// Episodes whose success is determined by the actions: successful episodes act with
 /// `a[0] ~ N(+1, 0.5)`, failed ones with `a[0] ~ N(-1, 0.5)`; observations are noise.
-pub fn action_task(n_eps: usize, steps: usize, seed: u64) -> Vec<Episode> {
+pub fn action_task(n_eps: usize, steps: usize, seed: u64) -> Vec<EpisodeSeries> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     (0..n_eps)
         .map(|e| {
@@ -25,7 +25,7 @@ pub fn action_task(n_eps: usize, steps: usize, seed: u64) -> Vec<Episode> {
                 actions.push(s + 0.5 * normal(&mut rng));
                 actions.push(normal(&mut rng));
             }
-            Episode {
+            EpisodeSeries {
                 id: format!("ep{e}"),
                 success,
                 obs: vec![
@@ -53,7 +53,7 @@ pub fn action_spec() -> InputSpec {
 
 /// Successful episodes of varying length whose observation carries the remaining steps
 /// (`(T - t) / 20` plus noise), so `gamma^(T-t)` is predictable.
-pub fn q_task(n_eps: usize, seed: u64) -> Vec<Episode> {
+pub fn q_task(n_eps: usize, seed: u64) -> Vec<EpisodeSeries> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     (0..n_eps)
         .map(|e| {
@@ -67,7 +67,7 @@ pub fn q_task(n_eps: usize, seed: u64) -> Vec<Episode> {
             }
             let actions: Vec<f32> =
                 (0..steps).map(|_| if success { 1.0 } else { -1.0 } + 0.3 * normal(&mut rng)).collect();
-            Episode {
+            EpisodeSeries {
                 id: format!("q{e}"),
                 success,
                 obs: vec![ObsSeries { key: "s".into(), dim: 2, values: obs }],

@@ -10,7 +10,7 @@
 """
 from __future__ import annotations
 
-from ufops._ufops import Verifier, __version__
+from ufops._ufops import __version__
 from ufops.client import Client
 from ufops.errors import (
     ArtifactError,
@@ -23,6 +23,7 @@ from ufops.errors import (
     UfopsError,
 )
 from ufops.store import Store
+from ufops.verifier import Verifier
 
 __all__ = [
     "Verifier",

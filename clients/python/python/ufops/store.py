@@ -8,39 +8,16 @@ from __future__ import annotations
 
 import io
 import json
+import os
 from typing import TYPE_CHECKING, Any, Dict, List, Mapping, Optional, Sequence, Union
 
 from ufops import _ufops
+from ufops.verifier import Verifier
 
 if TYPE_CHECKING:
     import polars as pl
 
 JsonObject = Dict[str, Any]
-
-# The episode record's columns and their polars types (store::EpisodeRecord).
-_EPISODE_COLUMNS = [
-    ("id", "Utf8"),
-    ("policy", "Utf8"),
-    ("checkpoint", "Utf8"),
-    ("task", "Utf8"),
-    ("label", "Utf8"),
-    ("label_source", "Utf8"),
-    ("label_revision", "Int64"),
-    ("label_actor", "Utf8"),
-    ("label_updated_at", "Utf8"),
-    ("length", "Int64"),
-    ("source_sha256", "Utf8"),
-    ("source_name", "Utf8"),
-    ("source_index", "Int64"),
-    ("tags", "List[Utf8]"),
-    ("metadata", "Utf8"),
-    ("data_file", "Utf8"),
-    ("row_group", "Int64"),
-    ("row_offset", "Int64"),
-    ("row_count", "Int64"),
-    ("version_added", "Int64"),
-    ("created_at", "Utf8"),
-]
 
 
 def _polars() -> None:
@@ -51,21 +28,40 @@ def _polars() -> None:
 
 
 def episodes_frame(records: List[JsonObject]) -> "pl.DataFrame":
-    """Episode records (store or API) as a DataFrame; ``metadata`` stays a JSON string."""
+    """Episode records of the API (JSON) as a DataFrame of the same columns as
+    :meth:`Store.episodes`: the store's one definition of them (``store::episodes_schema``),
+    converted in Rust. ``metadata`` stays a JSON string."""
     _polars()
     import polars as pl
 
-    types: Dict[str, "pl.DataType | type[pl.DataType]"] = {"Utf8": pl.Utf8, "Int64": pl.Int64, "List[Utf8]": pl.List(pl.Utf8)}
-    schema = {name: types[t] for name, t in _EPISODE_COLUMNS}
-    rows = [
-        {name: (json.dumps(r.get(name)) if name == "metadata" else r.get(name)) for name in schema} for r in records
-    ]
-    return pl.DataFrame(rows, schema=schema, orient="row") if rows else pl.DataFrame(schema=schema)
+    return pl.read_ipc_stream(io.BytesIO(_ufops.episodes_ipc_from_json(json.dumps(records))))
 
 
-class Store(_ufops.Store):
+class Store:
     """A ufops store opened read-only: ``Store("ufops-data")`` for a local data directory, or
-    ``Store(database_url="postgres://…", object_store="s3://bucket/prefix")``."""
+    ``Store(database_url="postgres://…", object_store="s3://bucket/prefix")``.
+
+    Composes the native ``_ufops.Store`` (the store's Rust read path): records cross as JSON,
+    episodes and steps as Arrow IPC, and this class turns them into polars DataFrames."""
+
+    __slots__ = ("_native",)
+
+    def __init__(
+        self,
+        data_dir: Union[str, "os.PathLike[str]", None] = None,
+        *,
+        database_url: Optional[str] = None,
+        object_store: Optional[str] = None,
+    ) -> None:
+        """Opens an existing store (nothing is created: a missing one raises NotFoundError)."""
+        self._native = _ufops.Store(data_dir, database_url=database_url, object_store=object_store)
+
+    def __repr__(self) -> str:
+        return repr(self._native)
+
+    def head_version(self) -> int:
+        """The latest committed version."""
+        return self._native.head_version()
 
     def episodes(
         self,
@@ -79,9 +75,13 @@ class Store(_ufops.Store):
         after: Optional[str] = None,
         limit: Optional[int] = None,
     ) -> "pl.DataFrame":
-        """Episodes with their labels, now or as of ``version`` (labels frozen in it), in id order."""
-        records = json.loads(self.episodes_json(version, policy, checkpoint, task, label, tag, after, limit))
-        return episodes_frame(records)
+        """Episodes with their labels, now or as of ``version`` (labels frozen in it), in id order;
+        the columns of ``store::episodes_schema`` (``metadata`` as a JSON string)."""
+        _polars()
+        import polars as pl
+
+        stream = self._native.episodes_ipc(version, policy, checkpoint, task, label, tag, after, limit)
+        return pl.read_ipc_stream(io.BytesIO(stream))
 
     def steps(
         self,
@@ -99,7 +99,7 @@ class Store(_ufops.Store):
         import polars as pl
 
         wanted = [ids] if isinstance(ids, str) else list(ids)
-        streams = self.steps_ipc(wanted, version, list(layers) if layers else None)
+        streams = self._native.steps_ipc(wanted, version, list(layers) if layers else None)
         frames = [pl.read_ipc_stream(io.BytesIO(s)) for s in streams]
         if not frames:
             return pl.DataFrame()
@@ -118,14 +118,18 @@ class Store(_ufops.Store):
             "episodes": pl.Int64,
             "version": pl.Int64,
         }
-        rows = [{**r, "producer": json.dumps(r["producer"], sort_keys=True)} for r in json.loads(self.layers_json())]
+        rows = [{**r, "producer": json.dumps(r["producer"], sort_keys=True)} for r in json.loads(self._native.layers_json())]
         return pl.DataFrame(rows, schema=schema, orient="row") if rows else pl.DataFrame(schema=schema)
 
     def episode_layers(self, episode_id: str, version: Optional[int] = None) -> List[JsonObject]:
         """The layers an episode holds (layer, producer_hash, dim, version_added), now or at ``version``."""
-        return json.loads(self.episode_layers_json(episode_id, version))  # type: ignore[no-any-return]
+        return json.loads(self._native.episode_layers_json(episode_id, version))  # type: ignore[no-any-return]
 
-    def producer_hash(self, producer: Mapping[str, Any]) -> str:  # type: ignore[override]
+    def layer_episodes(self, name: str, producer_hash: str) -> List[str]:
+        """The episodes holding layer ``name`` from the producer ``producer_hash`` now."""
+        return self._native.layer_episodes(name, producer_hash)
+
+    def producer_hash(self, producer: Mapping[str, Any]) -> str:
         """The sha256 the store gives a producer (its canonical JSON: key order does not matter)."""
         return _ufops.Store.producer_hash(json.dumps(dict(producer)))
 
@@ -145,7 +149,7 @@ class Store(_ufops.Store):
         for i, a in zip(ids, arrays):
             if a.ndim != 2:
                 raise ValueError(f"layer {name}: episode {i} values have shape {a.shape}, expected (steps, dim)")
-        out = self.write_layer_arrays(name, json.dumps(dict(producer)), ids, arrays, actor)
+        out = self._native.write_layer_arrays(name, json.dumps(dict(producer)), ids, arrays, actor)
         return json.loads(out)  # type: ignore[no-any-return]
 
     def versions(self) -> "pl.DataFrame":
@@ -153,18 +157,18 @@ class Store(_ufops.Store):
         _polars()
         import polars as pl
 
-        return pl.DataFrame(json.loads(self.versions_json()))
+        return pl.DataFrame(json.loads(self._native.versions_json()))
 
     def splits(self) -> List[JsonObject]:
         """The splits (records: id, policy, checkpoint, mode, version, sizes...)."""
-        return json.loads(self.splits_json())  # type: ignore[no-any-return]
+        return json.loads(self._native.splits_json())  # type: ignore[no-any-return]
 
     def split_episodes(self, split_id: str) -> "pl.DataFrame":
         """A split's members: episode_id, part (train / val), label."""
         _polars()
         import polars as pl
 
-        rows = json.loads(self.split_episodes_json(split_id))
+        rows = json.loads(self._native.split_episodes_json(split_id))
         schema = {"episode_id": pl.Utf8, "part": pl.Utf8, "label": pl.Utf8}
         return pl.DataFrame([{k: r.get(k) for k in schema} for r in rows], schema=schema, orient="row")
 
@@ -172,8 +176,16 @@ class Store(_ufops.Store):
         self, policy: Optional[str] = None, checkpoint: Optional[str] = None, kind: Optional[str] = None
     ) -> List[JsonObject]:
         """Verifier artifacts (records with files, config and aliases)."""
-        return json.loads(self.artifacts_json(policy, checkpoint, kind))  # type: ignore[no-any-return]
+        return json.loads(self._native.artifacts_json(policy, checkpoint, kind))  # type: ignore[no-any-return]
 
-    def verifier(self, reference: str) -> _ufops.Verifier:
+    def verifier(self, reference: str) -> Verifier:
         """The verifier ``reference`` (id or ``POLICY/CHECKPOINT/KIND@ALIAS``), checked."""
-        return super().verifier(reference)
+        return Verifier(self._native.verifier(reference))
+
+    def object_size(self, path: str) -> int:
+        """Size in bytes of a stored object (e.g. a video an episode's frames are in)."""
+        return self._native.object_size(path)
+
+    def read_object_range(self, path: str, start: int, end: int) -> bytes:
+        """Bytes ``[start, end)`` of a stored object (one range read)."""
+        return self._native.read_object_range(path, start, end)

@@ -17,7 +17,7 @@ from typing import Any, Callable, Optional, Tuple
 
 import numpy as np
 
-from ufops._ufops import Verifier
+from ufops.verifier import Verifier
 
 Tensor = Any  # torch.Tensor (kept loose so the package imports without torch)
 
