@@ -81,6 +81,9 @@ pub struct FrameLocation {
     pub row: usize,
     /// The frame's encoding: `png` or `jpeg` (its MIME type is `image/<encoding>`).
     pub encoding: &'static str,
+    /// The camera is a video (`media.<camera>`): the frame is decoded from it and served as a
+    /// PNG (lossy when the video is: see [`crate::video`]).
+    pub from_video: bool,
 }
 
 impl Store {
@@ -103,13 +106,15 @@ impl Store {
     ) -> Result<FrameLocation, StoreError> {
         let loc = self.locate_episodes(&[id.to_string()], version).await?.remove(0);
         let schema = self.steps_schema(&loc.data_file).await?;
-        let Ok(field) = schema.field_with_name(&format!("{IMAGE_PREFIX}{camera}")) else {
-            return Err(StoreError::not_found(
-                "camera",
-                format!("{camera:?} (an image column) of episode {id}"),
-            ));
+        let (encoding, from_video) = match schema.field_with_name(&format!("{IMAGE_PREFIX}{camera}")) {
+            Ok(field) => (image_encoding(field.metadata()), false),
+            Err(_) if schema.field_with_name(&format!("{MEDIA_PREFIX}{camera}.path")).is_ok() => {
+                ("png", true)
+            }
+            Err(_) => {
+                return Err(StoreError::not_found("camera", format!("{camera:?} of episode {id}")));
+            }
         };
-        let encoding = image_encoding(field.metadata());
         if t >= loc.row_count as u64 {
             return Err(StoreError::not_found(
                 "step",
@@ -121,6 +126,7 @@ impl Store {
             row_group: loc.row_group,
             row: loc.row_offset + t as usize,
             encoding,
+            from_video,
         })
     }
 
@@ -141,6 +147,9 @@ impl Store {
     /// (the labeling page asks for neighbouring steps one after the other: a page of 84×84 PNGs
     /// holds dozens of them).
     pub async fn read_frame_at(&self, at: &FrameLocation, camera: &str) -> Result<bytes::Bytes, StoreError> {
+        if at.from_video {
+            return self.read_video_frame(at, camera).await;
+        }
         let fm = self.file_meta(&at.data_file).await?;
         let corrupt = |why: String| StoreError::Corrupt(format!("steps file {}: {why}", at.data_file));
         let md = fm.meta.metadata();
@@ -199,6 +208,49 @@ impl Store {
         value.ok_or_else(|| corrupt(format!("{column} has no frame at row {}", at.row)))
     }
 
+    /// A video camera's frame at a located step: the step's `media.<camera>.path` and
+    /// `.timestamp` cells are read, then the video object, and the frame shown at that time is
+    /// decoded (from the key frame before it) and encoded as PNG. Videos larger than
+    /// [`MAX_DECODED_VIDEO_BYTES`] are refused (the page plays them; a frame of them is not worth
+    /// fetching them whole here).
+    async fn read_video_frame(&self, at: &FrameLocation, camera: &str) -> Result<bytes::Bytes, StoreError> {
+        let fm = self.file_meta(&at.data_file).await?;
+        let corrupt = |why: String| StoreError::Corrupt(format!("steps file {}: {why}", at.data_file));
+        let cell = |suffix: &str| -> Result<usize, StoreError> {
+            let column = format!("{MEDIA_PREFIX}{camera}.{suffix}");
+            fm.meta.schema().index_of(&column).map_err(|_| corrupt(format!("no column {column}")))
+        };
+        let (path_root, time_root) = (cell("path")?, cell("timestamp")?);
+        let path = self.decode_rows(&fm, &at.data_file, at.row_group, path_root, at.row, 1).await?;
+        let time = self.decode_rows(&fm, &at.data_file, at.row_group, time_root, at.row, 1).await?;
+        let path = path
+            .as_any()
+            .downcast_ref::<arrow::array::StringArray>()
+            .filter(|a| a.is_valid(0))
+            .map(|a| a.value(0).to_string())
+            .ok_or_else(|| corrupt(format!("{MEDIA_PREFIX}{camera}.path has no path at row {}", at.row)))?;
+        let seconds = time
+            .as_any()
+            .downcast_ref::<arrow::array::Float64Array>()
+            .filter(|a| a.is_valid(0))
+            .map(|a| a.value(0))
+            .ok_or_else(|| {
+                corrupt(format!("{MEDIA_PREFIX}{camera}.timestamp has no time at row {}", at.row))
+            })?;
+        let size = self.objects().size(&path).await?;
+        if size > MAX_DECODED_VIDEO_BYTES {
+            return Err(StoreError::invalid(format!(
+                "camera {camera:?} is a video of {size} bytes: frames are decoded here from videos up to \
+                 {MAX_DECODED_VIDEO_BYTES} bytes; play it instead"
+            )));
+        }
+        let mp4 = self.objects().get(&path).await?.to_vec();
+        let png = tokio::task::spawn_blocking(move || crate::video::decode_frame_at(mp4, seconds)?.to_png())
+            .await
+            .map_err(|e| StoreError::invalid(format!("frame decoder stopped: {e}")))??;
+        Ok(bytes::Bytes::from(png))
+    }
+
     /// Rows `first..first + count` of one root column of a row group.
     async fn decode_rows(
         &self,
@@ -250,6 +302,9 @@ impl Store {
         Ok(rows)
     }
 }
+
+/// The largest video a frame is decoded from on request (the object is fetched whole).
+pub const MAX_DECODED_VIDEO_BYTES: u64 = 256 << 20;
 
 /// Decoded pages of image columns, by `(steps file, row group, column, first row)`, within
 /// [`PAGE_CACHE_BYTES`].

@@ -32,6 +32,7 @@ pub mod steps;
 #[cfg(any(test, feature = "testing"))]
 pub mod test_support;
 mod tokens;
+pub mod video;
 mod writer;
 
 pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
