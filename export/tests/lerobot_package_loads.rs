@@ -1,9 +1,9 @@
 //! Must show 2 of issue 16: the LeRobot v3.0 export loads in PyPI's `lerobot` itself
 //! (`LeRobotDataset`, local root, no Hub), and every frame it returns equals the export's data
-//! (tests/python/check_lerobot_package.py). Sources without video (robomimic low-dim rollouts,
-//! a LeRobot dataset with PNG image features): decoding mp4 needs FFmpeg libraries the test
-//! machine does not have; the video files themselves are checked byte for byte by
-//! pyarrow_reads_lerobot.rs.
+//! (tests/python/check_lerobot_package.py). Sources: robomimic low-dim rollouts, a LeRobot
+//! dataset with PNG image features, and the LeRobot v3.0 fixture with an mp4 camera (issue 27,
+//! Must show 6): lerobot decodes the export's video frames with its `pyav` backend (PyPI `av`
+//! ships the FFmpeg libraries) and each equals the same mp4 decoded independently with PyAV.
 
 use std::path::PathBuf;
 
@@ -20,12 +20,13 @@ fn fixtures() -> PathBuf {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn lerobot_loads_the_export_frame_for_frame() {
-    if !store::test_support::require_python(&["lerobot", "PIL"]) {
+    if !store::test_support::require_python(&["lerobot", "PIL", "av"]) {
         return;
     }
     let sources = [
         ("robomimic/lift_rollouts_lowdim.hdf5", Some("robomimic/lift_rollouts_lowdim.success.json")),
         ("lerobot/v30_unlabeled", None),
+        ("lerobot/v30_eval_video", None),
     ];
     for (name, success) in sources {
         let tmp = tempfile::tempdir().unwrap();
@@ -58,6 +59,10 @@ async fn lerobot_loads_the_export_frame_for_frame() {
         assert_eq!(summary["frames"].as_u64(), Some(report.frames), "{name}: {summary}");
         assert_eq!(summary["episodes"].as_u64().unwrap() as usize, report.episodes, "{name}: {summary}");
         assert!(summary["features"].as_array().unwrap().iter().any(|f| f == "action"), "{name}: {summary}");
+        if name.ends_with("video") {
+            // One camera: every frame lerobot returned carried a decoded video frame, checked.
+            assert_eq!(summary["video_frames"].as_u64(), Some(report.frames), "{name}: {summary}");
+        }
         eprintln!("{name}: {summary}");
     }
 }
