@@ -3,7 +3,9 @@
 # and on the LeRobot v3.0 video fixture (fixtures/lerobot/v30_eval_video, AV1 mp4) writes every
 # camera; PyPI rerun-sdk at the workspace's re_sdk version runs `rerun rrd verify` on both; each
 # recording is opened in rerun's own web viewer (`rerun --serve-web FILE.rrd`, loopback) in Debian's
-# headless Chromium (tests/web/rerun_web_screenshot.mjs) and screenshotted. Look at the PNGs.
+# headless Chromium (tests/web/rerun_web_screenshot.mjs) and screenshotted; then the ALOHA
+# episodes on the labeling page (`ufops serve`, tests/web/page_screenshot.mjs: the 3-camera grid).
+# Look at the PNGs.
 #
 # Not part of CI: rerun-sdk is a ~100 MB wheel (installed once into a cached venv by
 # viewer/scripts/check_rrd.sh), and the screenshot is evidence to look at, not an assertion.
@@ -35,12 +37,23 @@ port=9790
 for name in aloha lerobot_video; do
   # check_rrd.sh installs rerun-sdk==$VERSION once and runs `rerun rrd verify` and `rerun rrd print`.
   RERUN_SDK_VERSION=$VERSION RERUN_VENV=$RERUN_VENV viewer/scripts/check_rrd.sh "$OUT/$name.rrd" >"$OUT/$name.print.txt"
-  "$RERUN_VENV/bin/rerun" --serve-web --web-viewer-port $port --port $((port + 1)) "$OUT/$name.rrd" >"$OUT/$name.serve.log" 2>&1 &
+  # The wheel's binary itself: bin/rerun is a Python wrapper whose child would outlive a kill.
+  "$(echo "$RERUN_VENV"/lib/python3*/site-packages/rerun_sdk/rerun_cli/rerun)" --serve-web --web-viewer-port $port --port $((port + 1)) "$OUT/$name.rrd" >"$OUT/$name.serve.log" 2>&1 &
   server=$!
   for _ in $(seq 50); do curl -sf -o /dev/null "http://127.0.0.1:$port/" && break; sleep 0.2; done
   (cd tests/web && node rerun_web_screenshot.mjs \
       "http://127.0.0.1:$port/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A$((port + 1))%2Fproxy" "$OUT/${name}_web.png" 25000)
-  kill "$server"; wait "$server" 2>/dev/null || true
+  kill -0 "$server" || { echo "rerun --serve-web exited early:"; cat "$OUT/$name.serve.log"; exit 1; }
+  kill "$server" 2>/dev/null || true; wait "$server" 2>/dev/null || true
   port=$((port + 2))
 done
+# The same ALOHA store on the labeling page (Must show 1): the 3-camera grid, screenshotted.
+TOKEN=$("$UFOPS" token create --name screenshot --role labeler --json | python3 -c 'import json, sys; print(json.load(sys.stdin)["token"])')
+"$UFOPS" serve --addr 127.0.0.1:$port --no-worker >"$OUT/serve.log" 2>&1 &
+server=$!
+for _ in $(seq 50); do curl -s -o /dev/null "http://127.0.0.1:$port/" && break; sleep 0.2; done
+(cd tests/web && UFOPS_URL=http://127.0.0.1:$port UFOPS_TOKEN=$TOKEN UFOPS_POLICY=aloha OUT_PNG="$OUT/aloha_page.png" \
+    node page_screenshot.mjs) | tee "$OUT/aloha_page.txt"
+kill "$server" 2>/dev/null || true; wait "$server" 2>/dev/null || true
+grep -q '"cameras":\["cam_high","cam_left_wrist","cam_low"\]' "$OUT/aloha_page.txt"
 ls -la "$OUT"/*.png "$OUT"/*.rrd
