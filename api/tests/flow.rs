@@ -499,12 +499,19 @@ async fn image_camera_frames() {
     assert_eq!(r.status(), 200);
     assert_eq!(r.bytes().await.unwrap().as_ref(), frame("agentview_image", 1, 0).as_slice());
 
+    // A video camera's frame is decoded on request; these videos are not decodable H.264, which
+    // is the file's fault: 400 with the reason, never a 5xx.
+    let path = format!("/v1/episodes/{}/frames/front/0", video_ids[0]);
+    let r = srv.req(Method::GET, &path, "viewer").send().await.unwrap();
+    assert_eq!(r.status(), 400, "{path}");
+    let p: Value = r.json().await.unwrap();
+    assert!(p["detail"].as_str().unwrap().contains("video"), "{path}: {p}");
+
     for (path, names) in [
         ("/v1/episodes/nope-1/frames/agentview_image/0".to_string(), "episode"),
         (format!("/v1/episodes/{}/frames/wrist/0", ids[0]), "camera"),
         (format!("/v1/episodes/{}/frames/agentview_image/7", ids[0]), "step"),
         (format!("/v1/episodes/{}/frames/agentview_image/99999999999999999999999", ids[0]), "step"),
-        (format!("/v1/episodes/{}/frames/front/0", video_ids[0]), "camera"),
         (format!("/v1/episodes/{}/frames/agentview_image/0?version=999", ids[0]), "version"),
     ] {
         let r = srv.req(Method::GET, &path, "viewer").send().await.unwrap();
