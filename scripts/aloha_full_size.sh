@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 27, Must show 1 (ALOHA part) at the issue's full size: scripts/gen_aloha.py writes 3 cameras
+# ALOHA camera episodes at full size: scripts/gen_aloha.py writes 3 cameras
 # at 480x640, 10 episodes of 400 steps, raw and JPEG-compressed (--compress); each variant is
 # ingested (`ufops ingest --format aloha`), exported back (`ufops export --format aloha`) and
 # compared with h5py, every dataset (dtype, shape, every value) and attribute

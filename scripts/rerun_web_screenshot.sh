@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 27, Must show 7: `ufops view` on a generated ALOHA dataset (scripts/gen_aloha.py, 3 cameras)
+# Cameras in rerun recordings: `ufops view` on a generated ALOHA dataset (scripts/gen_aloha.py, 3 cameras)
 # and on the LeRobot v3.0 video fixture (fixtures/lerobot/v30_eval_video, AV1 mp4) writes every
 # camera; PyPI rerun-sdk at the workspace's re_sdk version runs `rerun rrd verify` on both; each
 # recording is opened in rerun's own web viewer (`rerun --serve-web FILE.rrd`, loopback) in Debian's
@@ -47,7 +47,7 @@ for name in aloha lerobot_video; do
   kill "$server" 2>/dev/null || true; wait "$server" 2>/dev/null || true
   port=$((port + 2))
 done
-# The same ALOHA store on the labeling page (Must show 1): the 3-camera grid, screenshotted.
+# The same ALOHA store on the labeling page: the 3-camera grid, screenshotted.
 TOKEN=$("$UFOPS" token create --name screenshot --role labeler --json | python3 -c 'import json, sys; print(json.load(sys.stdin)["token"])')
 "$UFOPS" serve --addr 127.0.0.1:$port --no-worker >"$OUT/serve.log" 2>&1 &
 server=$!

@@ -1,8 +1,8 @@
-//! Must show 2 of issue 16: the LeRobot v3.0 export loads in PyPI's `lerobot` itself
+//! The LeRobot v3.0 export loads in PyPI's `lerobot` itself
 //! (`LeRobotDataset`, local root, no Hub), and every frame it returns equals the export's data
 //! (tests/python/check_lerobot_package.py). Sources: robomimic low-dim rollouts, a LeRobot
-//! dataset with PNG image features, and the LeRobot v3.0 fixture with an mp4 camera (issue 27,
-//! Must show 6): lerobot decodes the export's video frames with its `pyav` backend (PyPI `av`
+//! dataset with PNG image features, and the LeRobot v3.0 fixture with an mp4 camera: lerobot
+//! decodes the export's video frames with its `pyav` backend (PyPI `av`
 //! ships the FFmpeg libraries) and each equals the same mp4 decoded independently with PyAV.
 
 use std::path::PathBuf;

@@ -1,5 +1,5 @@
 // Screenshot of the labeling page for one policy (the first episode), e.g. a generated ALOHA
-// dataset's 3-camera grid (issue 27, Must show 1). Started by scripts/aloha_page_screenshot.sh.
+// dataset's 3-camera grid. Started by scripts/rerun_web_screenshot.sh.
 // Env: UFOPS_URL, UFOPS_TOKEN (a labeler), UFOPS_POLICY, OUT_PNG, CHROMIUM. Prints the cameras shown.
 import { chromium } from 'playwright-core';
 

@@ -1,6 +1,6 @@
 // Opens a `ufops view` recording in rerun's own web viewer (served by `rerun --serve-web FILE.rrd`
 // on loopback) in Debian's headless Chromium (playwright-core) and takes a screenshot, so that a
-// person can see the cameras the recording carries (issue 27, Must show 7). Started by
+// person can see the cameras the recording carries. Started by
 // scripts/rerun_web_screenshot.sh. The viewer draws on a WebGL/WebGPU canvas, so there is no DOM to
 // query for the cameras: the script checks that the canvas is up and not blank, and the screenshot
 // is what one looks at.
