@@ -20,6 +20,7 @@ mod s3_store;
 mod snapshot_stalled_store;
 mod soak;
 mod steer_http;
+mod takeovers;
 mod upload_cleanup;
 mod verifier_parity;
 mod web_labeling;

@@ -24,11 +24,11 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-fn repo() -> PathBuf {
+pub(crate) fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
-fn chromium() -> Option<PathBuf> {
+pub(crate) fn chromium() -> Option<PathBuf> {
     if let Ok(p) = std::env::var("CHROMIUM") {
         return Some(PathBuf::from(p)).filter(|p| p.is_file());
     }
@@ -36,7 +36,7 @@ fn chromium() -> Option<PathBuf> {
 }
 
 /// What is missing to run the browser test, if anything.
-fn missing_prerequisites() -> Vec<String> {
+pub(crate) fn missing_prerequisites() -> Vec<String> {
     let mut missing = Vec::new();
     if chromium().is_none() {
         missing.push(
@@ -52,7 +52,7 @@ fn missing_prerequisites() -> Vec<String> {
     missing
 }
 
-fn artifacts_dir() -> PathBuf {
+pub(crate) fn artifacts_dir() -> PathBuf {
     // <target>/debug/deps/web_labeling-HASH → <target>
     let target = std::env::var("CARGO_TARGET_DIR").map(PathBuf::from).unwrap_or_else(|_| {
         std::env::current_exe()

@@ -30,6 +30,7 @@ fn trainer_episode(i: usize, e: &sim::Episode, horizon: usize) -> trainer::Episo
         actions: e.actions.iter().flatten().copied().collect(),
         action_dim: 2,
         action_chunk: Some((horizon, e.action_chunks.iter().flatten().copied().collect())),
+        policy_steps: None,
     }
 }
 

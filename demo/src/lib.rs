@@ -148,6 +148,7 @@ fn to_episodes(eps: &[sim::Episode], horizon: usize) -> Vec<EpisodeInput> {
                 }),
                 images: vec![],
                 media: vec![],
+                flags: Default::default(),
             }
         })
         .collect()

@@ -363,6 +363,12 @@ fn episode_file(
                 let (d, v) = Values::from_list(c)
                     .ok_or_else(|| bad(e, format!("{} is not a list column", f.name())))?;
                 root.dataset(&format!("/observations/{k}"), v, vec![t as u64, d as u64]);
+            } else if f.name() == store::steps::INTERVENTION_COLUMN {
+                // Human takeovers, where ingest reads them back (`/intervention`, 0/1).
+                let flags =
+                    c.as_boolean_opt().ok_or_else(|| bad(e, "intervention is not a boolean column"))?;
+                let flags: Vec<u8> = flags.iter().map(|b| (b == Some(true)) as u8).collect();
+                root.dataset("/intervention", Values::U8(flags), vec![t as u64]);
             } else if let Some(k) = f.name().strip_prefix(IMAGE_PREFIX) {
                 if f.metadata().get("ufops.encoding").is_some_and(|x| x == "jpeg") {
                     jpeg.push((k.to_string(), c.clone()));

@@ -12,6 +12,11 @@
 //!   `meta/stats.json`, `meta/tasks.parquet`, `meta/episodes/chunk-000/file-000.parquet`
 //!   (with `ufops/episode_id`, `ufops/label`, `ufops/source_name`, `ufops/split_part`).
 //!
+//! Human takeovers (the steps column `intervention`) are written as the bool feature
+//! `intervention`, as LeRobot's DAgger recordings have it; validity (`validity`) as GR00T's
+//! `annotation.human.validity`, an index into the tasks `valid` / `invalid` when the source was
+//! such a dataset (its tasks then hold them), else a bool.
+//!
 //! Extra columns (`extra.*`: robomimic `states`, `next_obs`) have no LeRobot feature: they are
 //! listed in the report's warnings.
 
@@ -29,7 +34,9 @@ use parquet::arrow::ArrowWriter;
 use parquet::basic::{Compression, ZstdLevel};
 use parquet::file::properties::WriterProperties;
 use serde_json::{json, Map, Value};
-use store::steps::{EXTRA_PREFIX, IMAGE_PREFIX, MEDIA_PREFIX, OBS_PREFIX};
+use store::steps::{
+    EXTRA_PREFIX, IMAGE_PREFIX, INTERVENTION_COLUMN, MEDIA_PREFIX, OBS_PREFIX, VALIDITY_COLUMN,
+};
 use store::{EpisodeRecord, Label, Store};
 
 use crate::{
@@ -46,6 +53,10 @@ const VIDEO_PATH: &str = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_
 pub const NO_TASK: &str = "(no task)";
 /// Video objects are copied in pieces of this size.
 const COPY_BYTES: u64 = 8 << 20;
+/// GR00T's per-frame validity feature (what ingest reads it from).
+const VALIDITY_KEY: &str = "annotation.human.validity";
+/// The tasks GR00T's validity indexes name.
+const VALID_TASKS: [&str; 2] = ["valid", "invalid"];
 
 /// The step columns of the first episode, which every other must share (a LeRobot dataset has
 /// one feature set).
@@ -58,10 +69,21 @@ struct Layout {
     images: Vec<(String, Vec<usize>)>,
     videos: Vec<String>,
     extras: Vec<String>,
+    /// The per-step flags (steps columns `intervention`, `validity`).
+    intervention: bool,
+    validity: bool,
 }
 
 fn layout_of(schema: &Schema) -> Result<Layout> {
-    let mut l = Layout { obs: vec![], action: 0, images: vec![], videos: vec![], extras: vec![] };
+    let mut l = Layout {
+        obs: vec![],
+        action: 0,
+        images: vec![],
+        videos: vec![],
+        extras: vec![],
+        intervention: false,
+        validity: false,
+    };
     for f in schema.fields() {
         let n = f.name();
         if let Some(k) = n.strip_prefix(OBS_PREFIX) {
@@ -83,6 +105,10 @@ fn layout_of(schema: &Schema) -> Result<Layout> {
             l.videos.push(k.to_string());
         } else if let Some(k) = n.strip_prefix(EXTRA_PREFIX) {
             l.extras.push(k.to_string());
+        } else if n == INTERVENTION_COLUMN {
+            l.intervention = true;
+        } else if n == VALIDITY_COLUMN {
+            l.validity = true;
         }
     }
     Ok(l)
@@ -163,6 +189,8 @@ struct Writer<'a> {
     fps: f64,
     labeled: bool,
     tasks: &'a BTreeMap<String, i64>,
+    /// Validity as GR00T's task indexes `(valid, invalid)`, else as a bool.
+    validity_tasks: Option<(i64, i64)>,
     file: Option<DataFile>,
     file_index: usize,
     frames: i64,
@@ -206,7 +234,7 @@ fn image_type() -> DataType {
     ]))
 }
 
-fn data_schema(steps: &Schema, l: &Layout, labeled: bool) -> Result<SchemaRef> {
+fn data_schema(steps: &Schema, l: &Layout, labeled: bool, validity_as_task: bool) -> Result<SchemaRef> {
     let mut fields = Vec::new();
     let field_of = |name: &str| -> Result<Field> {
         steps
@@ -229,6 +257,13 @@ fn data_schema(steps: &Schema, l: &Layout, labeled: bool) -> Result<SchemaRef> {
     fields.push(Field::new("next.done", DataType::Boolean, false));
     if labeled {
         fields.push(Field::new("next.success", DataType::Boolean, true));
+    }
+    if l.intervention {
+        fields.push(Field::new(INTERVENTION_COLUMN, DataType::Boolean, false));
+    }
+    if l.validity {
+        let dtype = if validity_as_task { DataType::Int64 } else { DataType::Boolean };
+        fields.push(Field::new(VALIDITY_KEY, dtype, false));
     }
     fields.push(Field::new("timestamp", DataType::Float32, false));
     for k in ["frame_index", "episode_index", "index", "task_index"] {
@@ -303,6 +338,28 @@ impl Writer<'_> {
             let s: ArrayRef = Arc::new(s);
             self.stats.entry("next.success".into()).or_default().add(1, f32_values(&s).into_iter());
             cols.push(s);
+        }
+        if self.layout.intervention {
+            let c = self.column(&steps, INTERVENTION_COLUMN, e)?.clone();
+            self.stats.entry(INTERVENTION_COLUMN.into()).or_default().add(1, f32_values(&c).into_iter());
+            cols.push(c);
+        }
+        if self.layout.validity {
+            let c = self.column(&steps, VALIDITY_COLUMN, e)?.clone();
+            let c: ArrayRef = match self.validity_tasks {
+                Some((valid, invalid)) => {
+                    Arc::new(Int64Array::from_iter_values(c.as_boolean().iter().map(|b| {
+                        if b == Some(true) {
+                            valid
+                        } else {
+                            invalid
+                        }
+                    })))
+                }
+                None => c,
+            };
+            self.stats.entry(VALIDITY_KEY.into()).or_default().add(1, f32_values(&c).into_iter());
+            cols.push(c);
         }
         let ts = self.column(&steps, "timestamp", e)?.as_primitive::<Float64Type>().clone();
         let ts32: ArrayRef = Arc::new(Float32Array::from_iter_values(ts.values().iter().map(|&t| t as f32)));
@@ -556,6 +613,17 @@ pub async fn export(
         let next = tasks.len() as i64;
         tasks.entry(t).or_insert(next);
     }
+    // A GR00T-style source's validity indexes its tasks `valid` / `invalid`: keep them so.
+    let validity_tasks = match source_feature(&sources, VALIDITY_KEY) {
+        Some(f) if f.get("dtype") != Some(&json!("bool")) => {
+            let mut at = VALID_TASKS.iter().map(|t| {
+                let next = tasks.len() as i64;
+                *tasks.entry(t.to_string()).or_insert(next)
+            });
+            Some((at.next().expect("two tasks"), at.next().expect("two tasks")))
+        }
+        _ => None,
+    };
     let labeled = sel.episodes.iter().any(|e| e.label != Label::Unknown);
     let mut report = ExportReport {
         path: out.to_path_buf(),
@@ -587,7 +655,7 @@ pub async fn export(
                     Some(f) => f,
                     None => estimate_fps(&steps),
                 };
-                let schema = data_schema(&steps.schema(), &layout, labeled)?;
+                let schema = data_schema(&steps.schema(), &layout, labeled, validity_tasks.is_some())?;
                 writer = Some(Writer {
                     root: root.clone(),
                     schema,
@@ -595,6 +663,7 @@ pub async fn export(
                     fps,
                     labeled,
                     tasks: &tasks,
+                    validity_tasks,
                     file: None,
                     file_index: 0,
                     frames: 0,
@@ -677,6 +746,13 @@ pub async fn export(
     features.insert("next.done".into(), json!({"dtype": "bool", "shape": [1], "names": null}));
     if labeled {
         features.insert("next.success".into(), json!({"dtype": "bool", "shape": [1], "names": null}));
+    }
+    if w.layout.intervention {
+        features.insert(INTERVENTION_COLUMN.into(), json!({"dtype": "bool", "shape": [1], "names": null}));
+    }
+    if w.layout.validity {
+        let dtype = if w.validity_tasks.is_some() { "int64" } else { "bool" };
+        features.insert(VALIDITY_KEY.into(), json!({"dtype": dtype, "shape": [1], "names": null}));
     }
     features.insert("timestamp".into(), json!({"dtype": "float32", "shape": [1], "names": null}));
     for k in ["frame_index", "episode_index", "index", "task_index"] {

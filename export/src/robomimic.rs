@@ -250,6 +250,12 @@ fn demo_group(
         .ok_or_else(|| bad(e, "no done column"))?;
     let dones: Vec<u8> = done.iter().map(|d| (d == Some(true)) as u8).collect();
     g.create_dataset("dones").with_u8_data(&dones);
+    // Human takeovers, where ingest reads them back (a demo's `intervention` dataset).
+    if let Some(c) = steps.column_by_name(store::steps::INTERVENTION_COLUMN) {
+        let flags = c.as_boolean_opt().ok_or_else(|| bad(e, "intervention is not a boolean column"))?;
+        let flags: Vec<u8> = flags.iter().map(|d| (d == Some(true)) as u8).collect();
+        g.create_dataset(store::steps::INTERVENTION_COLUMN).with_u8_data(&flags);
+    }
     let mut attrs: BTreeMap<String, AttrValue> = BTreeMap::new();
     attrs.insert("num_samples".into(), AttrValue::I64(t as i64));
     for f in schema.fields() {

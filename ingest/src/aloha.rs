@@ -782,6 +782,21 @@ pub fn read_episode(
         }
         manifest.push(entry);
     }
+    // The per-step human-takeover flag: the dataset `/intervention` (what ufops' export of a
+    // takeover-flagged episode writes) or the one `--intervention-key` names. It is kept as it
+    // is above too (an exact column), so the round trip stays exact.
+    let (ikey, named) = opts.intervention_key();
+    let ipath = format!("/{}", ikey.trim_start_matches('/'));
+    let intervention = match find(&ipath) {
+        Some(ds) => Some(crate::robomimic::read_flags(ds, src, &ipath, steps)?),
+        None if named => {
+            return Err(IngestError::Usage(format!(
+                "--intervention-key {ikey:?}: {} has no dataset {ipath}",
+                path.display()
+            )))
+        }
+        None => None,
+    };
     let action = action.expect("/action was found above");
     if action.values.len() != steps * action.dim {
         return Err(IngestError::invalid(src, "/action does not have one row per step"));
@@ -825,6 +840,7 @@ pub fn read_episode(
         action_chunk: None,
         images,
         media: Vec::new(),
+        flags: crate::model::StepFlags { intervention, validity: None },
     };
     Ok((ep, extras, notes))
 }

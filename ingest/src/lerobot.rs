@@ -10,6 +10,10 @@
 //!   mp4) plus one [`MediaFile`] per mp4 (content-addressed, emitted once); `image` features
 //!   (PNG bytes in a `struct<bytes, path>` column) become [`ImageColumn`]s.
 //! * success = any(`next.success`), label source `lerobot:next.success`; no such column → unknown.
+//! * human takeovers: the bool feature `intervention` (LeRobot's DAgger recordings, `lerobot-rollout
+//!   --strategy dagger`; another name with `--intervention-key`) becomes the episode's
+//!   [`StepFlags::intervention`]; GR00T's `annotation.human.validity` (an index into the tasks,
+//!   whose task is `valid` or `invalid`, or a bool) becomes [`StepFlags::validity`].
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -23,11 +27,13 @@ use parquet::file::reader::ChunkReader;
 use serde_json::{json, Map, Value};
 
 use crate::error::{IngestError, Result};
-use crate::model::{EpisodeInput, ImageColumn, Label, MediaColumn, MediaFile, VectorColumn};
+use crate::model::{EpisodeInput, ImageColumn, Label, MediaColumn, MediaFile, StepFlags, VectorColumn};
 use crate::options::ReadOptions;
 use crate::sink::{EpisodeSink, SourceMeta};
 
 const LABEL_SOURCE: &str = "lerobot:next.success";
+/// GR00T's per-frame validity annotation (an index into the tasks: `valid` / `invalid`).
+pub const VALIDITY_KEY: &str = "annotation.human.validity";
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct Feature {
@@ -638,9 +644,23 @@ struct Plan {
     has_reward: bool,
     has_done: bool,
     has_success: bool,
+    /// The per-frame takeover flag's column, when the dataset has one.
+    intervention: Option<String>,
+    has_validity: bool,
 }
 
-fn plan(info: &Info) -> Plan {
+fn plan(info: &Info, opts: &ReadOptions) -> Result<Plan> {
+    let (key, named) = opts.intervention_key();
+    let intervention = match info.feature(key) {
+        Some(_) => Some(key.to_string()),
+        None if named => {
+            return Err(IngestError::Usage(format!(
+                "--intervention-key {key:?}: the dataset has no such feature (its features: {})",
+                info.features.iter().map(|f| f.key.as_str()).collect::<Vec<_>>().join(", ")
+            )))
+        }
+        None => None,
+    };
     let mut observations = Vec::new();
     let mut images = Vec::new();
     for f in &info.features {
@@ -649,17 +669,20 @@ fn plan(info: &Info) -> Plan {
             "video" => {}
             "image" => images.push((f.key.clone(), short)),
             "string" | "str" => {}
+            _ if intervention.as_deref() == Some(f.key.as_str()) => {}
             _ if f.key.starts_with("observation.") => observations.push((f.key.clone(), short)),
             _ => {}
         }
     }
-    Plan {
+    Ok(Plan {
         observations,
         images,
         has_reward: info.feature("next.reward").is_some(),
         has_done: info.feature("next.done").is_some(),
         has_success: info.feature("next.success").is_some(),
-    }
+        intervention,
+        has_validity: info.feature(VALIDITY_KEY).is_some(),
+    })
 }
 
 /// Accumulates the rows of one episode.
@@ -678,6 +701,16 @@ struct EpBuf {
     /// `next.success` per row; null rows (an unlabeled episode in a ufops export) are `None`.
     success: Vec<Option<bool>>,
     images: Vec<Vec<Vec<u8>>>,
+    intervention: Vec<bool>,
+    /// GR00T validity per row: a bool, or a task index (resolved when the episode ends).
+    validity: Vec<Validity>,
+}
+
+/// One row's `annotation.human.validity`.
+#[derive(Clone, Copy)]
+enum Validity {
+    Flag(bool),
+    TaskIndex(i64),
 }
 
 /// Streams one data file's batches into per-episode buffers, calling `emit` when an episode's
@@ -733,6 +766,19 @@ impl<'a> DataReader<'a> {
         for (c, _) in &self.plan.images {
             imgs.push(image_bytes(path, need(c)?, c)?);
         }
+        let intervention = match &self.plan.intervention {
+            Some(c) => Some(bools(path, need(c)?, c)?),
+            None => None,
+        };
+        let validity = if self.plan.has_validity {
+            let c = flatten_single(path, need(VALIDITY_KEY)?, VALIDITY_KEY)?;
+            Some(match c.data_type() {
+                DataType::Boolean => bools(path, &c, VALIDITY_KEY)?.into_iter().map(Validity::Flag).collect(),
+                _ => ints(path, &c, VALIDITY_KEY)?.into_iter().map(Validity::TaskIndex).collect::<Vec<_>>(),
+            })
+        } else {
+            None
+        };
         if let Some(r) = &reward {
             if r.0.iter().any(|&l| l != 1) {
                 return Err(IngestError::invalid(path, "column next.reward: expected one value per row"));
@@ -809,6 +855,12 @@ impl<'a> DataReader<'a> {
             }
             for (k, im) in imgs.iter_mut().enumerate() {
                 cur.images[k].push(std::mem::take(&mut im[r]));
+            }
+            if let Some(i) = &intervention {
+                cur.intervention.push(i[r]);
+            }
+            if let Some(v) = &validity {
+                cur.validity.push(v[r]);
             }
         }
         Ok(())
@@ -1033,6 +1085,16 @@ impl Ctx<'_> {
             md.insert("videos".into(), Value::Object(video_md));
         }
         md.insert("data_file".into(), json!(path.strip_prefix(self.root).unwrap_or(path).to_string_lossy()));
+        let validity = match self.plan.has_validity.then(|| self.validity(&b.validity)) {
+            Some(Err(why)) => {
+                md.insert("validity_not_kept".into(), json!(why));
+                None
+            }
+            Some(Ok(v)) => Some(v),
+            None => None,
+        };
+        let flags =
+            StepFlags { intervention: self.plan.intervention.is_some().then_some(b.intervention), validity };
         sink.episode(EpisodeInput {
             source_name: name,
             source_index: pos as u32,
@@ -1049,7 +1111,27 @@ impl Ctx<'_> {
             action_chunk: None,
             images,
             media,
+            flags,
         })
+    }
+
+    /// GR00T's validity of each row: a task index names the task `valid` or `invalid` (any
+    /// case). An index naming another task, or none, is not read as a flag (that would guess
+    /// what the recorder meant): the episode keeps no validity, and its metadata says why.
+    fn validity(&self, rows: &[Validity]) -> std::result::Result<Vec<bool>, String> {
+        rows.iter()
+            .map(|v| match *v {
+                Validity::Flag(b) => Ok(b),
+                Validity::TaskIndex(i) => match self.tasks.get(&i).map(|t| t.to_ascii_lowercase()) {
+                    Some(t) if t == "valid" => Ok(true),
+                    Some(t) if t == "invalid" => Ok(false),
+                    other => Err(format!(
+                        "{VALIDITY_KEY} {i} names {}, not the task \"valid\" or \"invalid\"",
+                        other.map_or("no task".to_string(), |t| format!("the task {t:?}"))
+                    )),
+                },
+            })
+            .collect()
     }
 }
 
@@ -1078,7 +1160,7 @@ pub fn read_dir(root: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> 
             ));
         }
     }
-    let plan = plan(&info);
+    let plan = plan(&info, opts)?;
 
     let mut meta = Map::new();
     meta.insert("codebase_version".into(), json!(info.codebase_version));
@@ -1186,7 +1268,7 @@ pub fn fuzz_entry(info_json: &[u8], parquet: &[u8]) -> Result<usize> {
         Ok(i) => i,
         Err(_) => parse_info(p, DEFAULT_INFO.as_bytes())?,
     };
-    let plan = plan(&info);
+    let plan = plan(&info, &ReadOptions::default())?;
     let mut n = 0usize;
     let data = bytes::Bytes::copy_from_slice(parquet);
     stream_data(Path::new("fuzz/data.parquet"), data, &plan, &mut |b| {
@@ -1217,7 +1299,7 @@ mod tests {
             "action":{"dtype":"float32","shape":[7]},
             "observation.arm_effort":{"dtype":"float32","shape":[7]}}}"#;
         let info = parse_info(Path::new("meta/info.json"), info).unwrap();
-        let plan = plan(&info);
+        let plan = plan(&info, &ReadOptions::default()).unwrap();
         let names: Vec<&str> = plan.observations.iter().map(|(_, n)| n.as_str()).collect();
         assert_eq!(names, ["state", "environment_state", "arm_effort"]);
     }

@@ -931,6 +931,7 @@ impl<'a> Assembler<'a> {
             action_chunk: None,
             images: Vec::new(),
             media: Vec::new(),
+            flags: Default::default(),
         }))
     }
 }
@@ -961,6 +962,13 @@ pub fn read(
     opts: &ReadOptions,
     sink: &mut dyn EpisodeSink,
 ) -> Result<McapReadReport> {
+    // A takeover flag would be a topic's field, which the mapping file does not name yet: refuse
+    // rather than ingest without the flags asked for.
+    if let Some(k) = &opts.intervention_key {
+        return Err(IngestError::Usage(format!(
+            "--intervention-key {k:?}: MCAP recordings do not support a takeover flag yet (LeRobot, robomimic and ALOHA sources do)"
+        )));
+    }
     let mut a = Assembler::new(path, opts);
     let mut saw_footer = false;
     let end = stream_records(path, r, size_hint, &mut |rec| {

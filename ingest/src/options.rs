@@ -81,6 +81,9 @@ pub struct IngestOptions {
     pub memory: MemoryBudget,
     /// `--run NAME --steering SPEC …`: the evaluation run every episode belongs to.
     pub run: Option<store::RunInput>,
+    /// `--intervention-key NAME`: the source's per-step human-takeover flag (a LeRobot feature,
+    /// a robomimic demo's or an ALOHA file's dataset) when it is not named `intervention`.
+    pub intervention_key: Option<String>,
 }
 
 /// What one ingest may hold in memory, whatever the source's size: readers decode one episode
@@ -212,9 +215,24 @@ pub struct ReadOptions {
     pub recover: bool,
     pub policy: String,
     pub checkpoint: String,
+    /// The per-step takeover flag's name in the source (see [`IngestOptions::intervention_key`]).
+    pub intervention_key: Option<String>,
 }
 
+/// The name of a per-step human-takeover flag readers look for when `--intervention-key` names
+/// none: LeRobot's DAgger recordings' feature, and what ufops' exports write.
+pub const DEFAULT_INTERVENTION_KEY: &str = "intervention";
+
 impl ReadOptions {
+    /// The takeover flag's name in the source, and whether the user named it (then a source
+    /// without it is refused rather than read without flags).
+    pub fn intervention_key(&self) -> (&str, bool) {
+        match &self.intervention_key {
+            Some(k) => (k.as_str(), true),
+            None => (DEFAULT_INTERVENTION_KEY, false),
+        }
+    }
+
     pub fn from_ingest(opts: &IngestOptions) -> Result<ReadOptions> {
         let success_file = opts.success_file.as_deref().map(SuccessFile::load).transpose()?;
         let mapping = opts.mapping.as_deref().map(crate::mapping::Mapping::load).transpose()?;
@@ -226,6 +244,7 @@ impl ReadOptions {
             recover: opts.recover,
             policy: opts.policy.clone(),
             checkpoint: opts.checkpoint.clone(),
+            intervention_key: opts.intervention_key.clone(),
         })
     }
 

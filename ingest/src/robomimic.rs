@@ -666,10 +666,25 @@ fn read_demo(
             }
         }
     }
+    // The per-step human-takeover flag: a demo's `intervention` dataset (ufops' export writes it
+    // there), or the one `--intervention-key` names.
+    let (ikey, named) = opts.intervention_key();
+    let intervention = if members.iter().any(|m| m == ikey) {
+        let what = format!("data/{name}/{ikey}");
+        let ds = g.dataset(ikey).map_err(h5err(path, format!("cannot open {what}")))?;
+        Some(read_flags(&ds, path, &what, steps)?)
+    } else if named {
+        return Err(IngestError::Usage(format!(
+            "--intervention-key {ikey:?}: data/{name} has no such dataset (it has {})",
+            members.join(", ")
+        )));
+    } else {
+        None
+    };
     // `states` and any other per-step dataset become extra columns.
     let mut others: BTreeMap<String, Value> = BTreeMap::new();
     for m in &members {
-        if !matches!(m.as_str(), "actions" | "rewards" | "dones") {
+        if !matches!(m.as_str(), "actions" | "rewards" | "dones") && m != ikey {
             let what = format!("data/{name}/{m}");
             let ds = g.dataset(m).map_err(h5err(path, format!("cannot open {what}")))?;
             match read_extra(&ds, path, &what, m.clone(), steps)? {
@@ -717,8 +732,21 @@ fn read_demo(
         action_chunk: None,
         images,
         media: Vec::new(),
+        flags: crate::model::StepFlags { intervention, validity: None },
     };
     Ok((ep, extras, skipped))
+}
+
+/// A per-step flag dataset (one number per step, non-zero = set), e.g. human takeovers.
+pub(crate) fn read_flags(ds: &Dataset, path: &Src, what: &str, steps: usize) -> Result<Vec<bool>> {
+    let (_, dim, values) = read_matrix(ds, path, what, Some(steps))?;
+    if dim != 1 {
+        return Err(IngestError::invalid(
+            path,
+            format!("{what} has {dim} values per step (expected one flag)"),
+        ));
+    }
+    Ok(values.iter().map(|&v| v != 0.0).collect())
 }
 
 fn read_dones(g: &Group, path: &Src, name: &str, steps: usize) -> Result<Vec<bool>> {

@@ -85,6 +85,7 @@ pub async fn split(args: &StoreArgs, cmd: SplitCommand) -> Result<()> {
                 "{}: {} of {}/{} at version {} — {} train / {} val episodes",
                 s.id, s.mode, s.policy, s.checkpoint, s.version, s.train_episodes, s.val_episodes
             );
+            print_checkpoint_steps(&s);
         }
         SplitCommand::Show { id, episodes, json } => {
             let s = store.split(&id).await?;
@@ -100,6 +101,7 @@ pub async fn split(args: &StoreArgs, cmd: SplitCommand) -> Result<()> {
                 "sources: {:?}; {} train / {} val",
                 s.source_checkpoints, s.train_episodes, s.val_episodes
             );
+            print_checkpoint_steps(&s);
             for m in members.unwrap_or_default() {
                 println!("  {:<20} {:<5} {}", m.episode_id, m.part, m.label);
             }
@@ -118,6 +120,23 @@ pub async fn split(args: &StoreArgs, cmd: SplitCommand) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// Per checkpoint: the share of its steps that are the policy's own (before a human took over),
+/// which is what training uses.
+fn print_checkpoint_steps(s: &store::SplitRecord) {
+    for c in &s.checkpoint_steps {
+        println!(
+            "  {}/{}: on-policy {:.1}% of steps ({} of {}; {} of {} episodes taken over by a human)",
+            c.policy,
+            c.checkpoint,
+            100.0 * c.on_policy_fraction,
+            c.on_policy_steps,
+            c.steps,
+            c.episodes_taken_over,
+            c.episodes
+        );
+    }
 }
 
 #[derive(clap::Args, Debug)]

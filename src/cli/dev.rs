@@ -104,6 +104,7 @@ pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
                     action_chunk: None,
                     images: vec![],
                     media: vec![],
+                    flags: Default::default(),
                 })
                 .await?;
             }

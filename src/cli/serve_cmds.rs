@@ -37,6 +37,11 @@ pub struct IngestArgs {
     /// Ingest what is complete in a truncated recording instead of refusing it.
     #[arg(long)]
     pub recover: bool,
+    /// The source's per-step human-takeover flag, when not named `intervention` (LeRobot's
+    /// DAgger feature): a LeRobot feature, or a robomimic demo's / ALOHA file's dataset. Kept as
+    /// the steps' `intervention` column; splits train on the steps before a takeover.
+    #[arg(long, value_name = "NAME")]
+    pub intervention_key: Option<String>,
     /// The evaluation run these rollouts belong to (a name; see `ufops scoreboard`).
     #[arg(long)]
     pub run: Option<String>,
@@ -83,6 +88,7 @@ pub fn ingest_options(a: &IngestArgs) -> Result<ingest::IngestOptions> {
         progress: !a.json,
         memory: Default::default(),
         run: run_input(a.run.as_deref(), a.steering.as_deref(), a.run_artifact.as_deref(), &a.run_tags)?,
+        intervention_key: a.intervention_key.clone(),
     })
 }
 
@@ -196,6 +202,7 @@ impl api::JobRunner for Runner {
                         recover: s.get("recover").and_then(|v| v.as_bool()).unwrap_or(false),
                         progress: false,
                         memory: Default::default(),
+                        intervention_key: field("intervention_key"),
                         run: {
                             let tags: Vec<String> = s
                                 .get("run_tags")

@@ -39,6 +39,7 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (8, "review_scores", include_str!("../../migrations/sqlite/0008_review_scores.sql")),
     (9, "label_campaigns", include_str!("../../migrations/sqlite/0009_label_campaigns.sql")),
     (10, "layers", include_str!("../../migrations/sqlite/0010_layers.sql")),
+    (11, "episode_takeovers", include_str!("../../migrations/sqlite/0011_episode_takeovers.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
@@ -55,6 +56,7 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (8, "review_scores", include_str!("../../migrations/postgres/0008_review_scores.sql")),
     (9, "label_campaigns", include_str!("../../migrations/postgres/0009_label_campaigns.sql")),
     (10, "layers", include_str!("../../migrations/postgres/0010_layers.sql")),
+    (11, "episode_takeovers", include_str!("../../migrations/postgres/0011_episode_takeovers.sql")),
 ];
 
 fn migrator(backend: Backend) -> Migrator {
@@ -218,6 +220,7 @@ pub(crate) enum Val {
     I(i64),
     S(String),
     OS(Option<String>),
+    OI(Option<i64>),
     F(f64),
 }
 
@@ -247,6 +250,11 @@ impl From<Option<String>> for Val {
         Val::OS(v)
     }
 }
+impl From<Option<i64>> for Val {
+    fn from(v: Option<i64>) -> Self {
+        Val::OI(v)
+    }
+}
 
 pub(crate) fn bind_val<'q>(
     q: sqlx::query::Query<'q, Any, sqlx::any::AnyArguments<'q>>,
@@ -256,6 +264,7 @@ pub(crate) fn bind_val<'q>(
         Val::I(x) => q.bind(x),
         Val::S(x) => q.bind(x),
         Val::OS(x) => q.bind(x),
+        Val::OI(x) => q.bind(x),
         Val::F(x) => q.bind(x),
     }
 }

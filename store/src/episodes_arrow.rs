@@ -40,6 +40,8 @@ pub fn episodes_schema() -> SchemaRef {
         text("label_updated_at", false),
         text("created_at", false),
         text("run_id", true),
+        Field::new("first_intervention", Int64, true),
+        Field::new("intervention_steps", Int64, true),
     ]))
 }
 
@@ -54,6 +56,11 @@ pub fn episodes_batch(records: &[EpisodeRecord]) -> Result<RecordBatch, StoreErr
     let ints = |f: &dyn Fn(&EpisodeRecord) -> i64| -> ArrayRef {
         let mut b = Int64Builder::with_capacity(n);
         records.iter().for_each(|r| b.append_value(f(r)));
+        Arc::new(b.finish())
+    };
+    let opt_ints = |f: &dyn Fn(&EpisodeRecord) -> Option<i64>| -> ArrayRef {
+        let mut b = Int64Builder::with_capacity(n);
+        records.iter().for_each(|r| b.append_option(f(r)));
         Arc::new(b.finish())
     };
     let mut tags = ListBuilder::new(StringBuilder::new());
@@ -85,6 +92,8 @@ pub fn episodes_batch(records: &[EpisodeRecord]) -> Result<RecordBatch, StoreErr
         texts(&|r| Some(&r.label_updated_at)),
         texts(&|r| Some(&r.created_at)),
         texts(&|r| r.run_id.as_deref()),
+        opt_ints(&|r| r.first_intervention),
+        opt_ints(&|r| r.intervention_steps),
     ];
     Ok(RecordBatch::try_new(episodes_schema(), columns)?)
 }
@@ -118,6 +127,8 @@ mod tests {
             label_updated_at: "2026-01-01T00:00:00Z".into(),
             created_at: "2026-01-01T00:00:00Z".into(),
             run_id: None,
+            first_intervention: Some(12),
+            intervention_steps: Some(5),
         }
     }
 

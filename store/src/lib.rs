@@ -63,7 +63,7 @@ pub use review::{
 };
 pub use runs::{RunInput, RunRecord, Steering};
 pub use scoreboard::{BaselineComparison, Scoreboard, ScoreboardRequest, ScoreboardRow, NO_RUN};
-pub use splits::{SplitEpisode, SplitRecord, SplitRequest};
+pub use splits::{SplitCheckpointSteps, SplitEpisode, SplitRecord, SplitRequest};
 pub use tokens::{Role, TokenRecord};
 pub use writer::{CommitInfo, IngestWriter, SourceRecord, MAX_STEPS_FILE_BYTES};
 

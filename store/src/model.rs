@@ -143,6 +143,31 @@ pub struct EpisodeInput {
     pub action_chunk: Option<ChunkColumn>,
     pub images: Vec<ImageColumn>,
     pub media: Vec<MediaColumn>,
+    /// Per-step flags of human involvement (takeovers, validity) when the source recorded them.
+    pub flags: StepFlags,
+}
+
+/// Per-step flags a recording may carry beside its data, kept as the steps columns
+/// `intervention` and `validity` (each only when the source has it).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct StepFlags {
+    /// `true` where a human controlled the robot instead of the policy: LeRobot's DAgger
+    /// recordings (`lerobot-rollout --strategy dagger`) mark each such frame `intervention`.
+    pub intervention: Option<Vec<bool>>,
+    /// `false` where a person marked the step invalid (GR00T's `annotation.human.validity`).
+    pub validity: Option<Vec<bool>>,
+}
+
+impl StepFlags {
+    /// The first step a human controlled, if any: the steps before it are the policy's own.
+    pub fn first_intervention(&self) -> Option<usize> {
+        self.intervention.as_ref()?.iter().position(|&b| b)
+    }
+
+    /// How many steps a human controlled (`None`: the source records no takeovers).
+    pub fn intervention_steps(&self) -> Option<usize> {
+        Some(self.intervention.as_ref()?.iter().filter(|&&b| b).count())
+    }
 }
 
 impl EpisodeInput {

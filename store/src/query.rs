@@ -48,6 +48,13 @@ pub struct EpisodeRecord {
     pub created_at: String,
     /// The evaluation run that produced it (`Store::run`), if its ingest named one.
     pub run_id: Option<String>,
+    /// The first step a human took over (the steps' `intervention` flag); null when the source
+    /// records no takeovers or none happened. The steps before it are the policy's own.
+    #[serde(default)]
+    pub first_intervention: Option<i64>,
+    /// How many steps a human controlled; null when the source records no takeovers.
+    #[serde(default)]
+    pub intervention_steps: Option<i64>,
 }
 
 /// Filters for listing episodes; `version: None` means the current state (latest labels).
@@ -130,7 +137,8 @@ impl Store {
         let mut sql = String::from(
             "SELECT e.id, e.policy, e.checkpoint, e.task, e.source_sha256, e.source_name, e.source_index, \
              e.length, e.tags, e.metadata, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
-             COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, e.run_id, ",
+             COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, e.run_id, \
+             e.first_intervention, e.intervention_steps, ",
         );
         let mut conds: Vec<String> = Vec::new();
         // Label conditions go here, on `label_cols`' table.
@@ -322,5 +330,7 @@ pub(crate) fn episode_from_row(r: &sqlx::any::AnyRow) -> Result<EpisodeRecord, S
         label_updated_at: r.s("label_updated_at")?,
         created_at: r.s("created_at")?,
         run_id: r.os("run_id")?,
+        first_intervention: r.oi("first_intervention")?,
+        intervention_steps: r.oi("intervention_steps")?,
     })
 }

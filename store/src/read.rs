@@ -630,6 +630,7 @@ pub(crate) mod tests {
             action_chunk: None,
             images: vec![],
             media: vec![],
+            flags: Default::default(),
         }
     }
 

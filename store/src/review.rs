@@ -320,7 +320,7 @@ impl Store {
             "SELECT e.id, e.policy, e.checkpoint, e.task, e.source_sha256, e.source_name, e.source_index, \
              e.length, e.tags, e.metadata, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
              COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, e.run_id, \
-             s.score AS review_score, COALESCE(ra.artifact_id, aa.artifact_id) AS review_artifact, {}",
+             e.first_intervention, e.intervention_steps, s.score AS review_score, COALESCE(ra.artifact_id, aa.artifact_id) AS review_artifact, {}",
             labels_from.replace("{key}", &format!("{key} AS review_key"))
         );
         let mut cond = |c: String| {

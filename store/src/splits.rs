@@ -1,5 +1,9 @@
 //! Splits: a frozen train/val division, by episode with a seeded hash, of the labeled episodes
 //! of one checkpoint (on-policy) or of other checkpoints (off-policy), pinned to a version.
+//!
+//! An episode a human took over (its `intervention` steps) is the checkpoint's own behaviour only
+//! up to the takeover: the trainer builds samples from the steps before its first takeover, and
+//! a split reports per checkpoint how many steps that keeps ([`SplitCheckpointSteps`]).
 
 use crate::catalog::{insert_rows, RowExt, Val};
 use crate::{now_rfc3339, EpisodeFilter, Label, Store, StoreError};
@@ -39,6 +43,27 @@ pub struct SplitRecord {
     pub val_episodes: i64,
     pub created_by: String,
     pub created_at: String,
+    /// Per source checkpoint, the share of its episodes' steps that are the policy's own (before
+    /// a human took over): what training uses.
+    pub checkpoint_steps: Vec<SplitCheckpointSteps>,
+}
+
+/// The steps one checkpoint contributes to a split.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct SplitCheckpointSteps {
+    pub policy: String,
+    pub checkpoint: String,
+    pub episodes: i64,
+    /// Episodes in which a human took over.
+    pub episodes_taken_over: i64,
+    /// Steps of its episodes.
+    pub steps: i64,
+    /// Steps before each episode's first takeover (all of an episode without one): the steps
+    /// the trainer builds samples from.
+    pub on_policy_steps: i64,
+    /// `on_policy_steps / steps`.
+    pub on_policy_fraction: f64,
 }
 
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
@@ -78,6 +103,7 @@ fn split_from_row(r: &sqlx::any::AnyRow) -> Result<SplitRecord, StoreError> {
         val_episodes: r.i("val_episodes")?,
         created_by: r.s("created_by")?,
         created_at: r.s("created_at")?,
+        checkpoint_steps: Vec::new(),
     })
 }
 
@@ -182,6 +208,7 @@ impl Store {
             val_episodes: n_val,
             created_by: req.actor.clone(),
             created_at: now_rfc3339(),
+            checkpoint_steps: Vec::new(),
         };
         let mut tx = self.db().begin_write().await?;
         sqlx::query(&format!(
@@ -220,7 +247,8 @@ impl Store {
         )
         .await?;
         tx.commit().await?;
-        Ok(rec)
+        let checkpoint_steps = self.split_checkpoint_steps(&rec.id).await?;
+        Ok(SplitRecord { checkpoint_steps, ..rec })
     }
 
     pub async fn split(&self, id: &str) -> Result<SplitRecord, StoreError> {
@@ -229,14 +257,53 @@ impl Store {
             .fetch_optional(&self.db().pool)
             .await?
             .ok_or_else(|| StoreError::not_found("split", id))?;
-        split_from_row(&row)
+        let rec = split_from_row(&row)?;
+        let checkpoint_steps = self.split_checkpoint_steps(id).await?;
+        Ok(SplitRecord { checkpoint_steps, ..rec })
     }
 
     pub async fn splits(&self) -> Result<Vec<SplitRecord>, StoreError> {
         let rows = sqlx::query(&format!("SELECT {SPLIT_COLS} FROM splits ORDER BY created_at"))
             .fetch_all(&self.db().pool)
             .await?;
-        rows.iter().map(split_from_row).collect()
+        let mut out = Vec::with_capacity(rows.len());
+        for r in &rows {
+            let rec = split_from_row(r)?;
+            let checkpoint_steps = self.split_checkpoint_steps(&rec.id).await?;
+            out.push(SplitRecord { checkpoint_steps, ..rec });
+        }
+        Ok(out)
+    }
+
+    /// Per checkpoint of a split's episodes: its steps and those before a human took over
+    /// (computed from the episodes' catalog rows, which never change once written).
+    async fn split_checkpoint_steps(&self, id: &str) -> Result<Vec<SplitCheckpointSteps>, StoreError> {
+        // CAST: Postgres sums BIGINT into NUMERIC.
+        let rows = sqlx::query(
+            "SELECT e.policy, e.checkpoint, COUNT(*) AS episodes, \
+             CAST(SUM(CASE WHEN e.first_intervention IS NULL THEN 0 ELSE 1 END) AS BIGINT) AS taken_over, \
+             CAST(SUM(e.length) AS BIGINT) AS steps, \
+             CAST(SUM(COALESCE(e.first_intervention, e.length)) AS BIGINT) AS on_policy_steps \
+             FROM split_episodes s JOIN episodes e ON e.id = s.episode_id WHERE s.split_id = $1 \
+             GROUP BY e.policy, e.checkpoint ORDER BY e.policy, e.checkpoint",
+        )
+        .bind(id)
+        .fetch_all(&self.db().pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                let (steps, on_policy_steps) = (r.i("steps")?, r.i("on_policy_steps")?);
+                Ok(SplitCheckpointSteps {
+                    policy: r.s("policy")?,
+                    checkpoint: r.s("checkpoint")?,
+                    episodes: r.i("episodes")?,
+                    episodes_taken_over: r.i("taken_over")?,
+                    steps,
+                    on_policy_steps,
+                    on_policy_fraction: if steps > 0 { on_policy_steps as f64 / steps as f64 } else { 1.0 },
+                })
+            })
+            .collect()
     }
 
     pub async fn split_episodes(&self, id: &str) -> Result<Vec<SplitEpisode>, StoreError> {

@@ -31,6 +31,10 @@ pub const IMAGE_PREFIX: &str = "image.";
 pub const MEDIA_PREFIX: &str = "media.";
 /// Per-step arrays of the source beyond the step model ([`crate::ExtraColumn`]).
 pub const EXTRA_PREFIX: &str = "extra.";
+/// `true` on the steps a human controlled ([`crate::StepFlags::intervention`]).
+pub const INTERVENTION_COLUMN: &str = "intervention";
+/// `false` on the steps a person marked invalid ([`crate::StepFlags::validity`]).
+pub const VALIDITY_COLUMN: &str = "validity";
 
 /// The episode-level values repeated on every row.
 pub struct EpisodeMeta<'a> {
@@ -68,6 +72,11 @@ pub fn schema_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn]) -> SchemaRe
     }
     fields.push(Field::new("reward", DataType::Float32, false));
     fields.push(Field::new("done", DataType::Boolean, false));
+    for (name, flag) in flag_columns(&ep.flags) {
+        if flag.is_some() {
+            fields.push(Field::new(name, DataType::Boolean, false));
+        }
+    }
     if let Some(c) = &ep.action_chunk {
         let meta = HashMap::from([("ufops.shape".to_string(), format!("[{}, {}]", c.horizon, c.action_dim))]);
         fields.push(fsl_field("action_chunk", c.horizon * c.action_dim, meta));
@@ -135,6 +144,11 @@ pub fn validate(ep: &EpisodeInput) -> Result<(), StoreError> {
     if ep.reward.len() != n || ep.done.len() != n {
         return bad(format!("reward/done have {}/{} values for {n} steps", ep.reward.len(), ep.done.len()));
     }
+    for (name, flag) in flag_columns(&ep.flags) {
+        if let Some(f) = flag.filter(|f| f.len() != n) {
+            return bad(format!("{name} has {} values for {n} steps", f.len()));
+        }
+    }
     if let Some(c) = &ep.action_chunk {
         if c.horizon == 0 || c.action_dim == 0 || c.values.len() != n * c.horizon * c.action_dim {
             return bad(format!(
@@ -180,6 +194,23 @@ pub fn validate_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn]) -> Result
         }
     }
     Ok(())
+}
+
+/// The per-step flag columns in schema order, with the episode's values when it has them.
+fn flag_columns(flags: &crate::StepFlags) -> [(&'static str, Option<&Vec<bool>>); 2] {
+    [(INTERVENTION_COLUMN, flags.intervention.as_ref()), (VALIDITY_COLUMN, flags.validity.as_ref())]
+}
+
+/// The per-step flags of a steps batch as the store reads it (a column it lacks: `None`).
+pub fn step_flags(batch: &RecordBatch) -> Result<crate::StepFlags, StoreError> {
+    let flag = |name: &str| -> Result<Option<Vec<bool>>, StoreError> {
+        let Some(c) = batch.column_by_name(name) else { return Ok(None) };
+        let b = c.as_any().downcast_ref::<BooleanArray>().ok_or_else(|| {
+            StoreError::invalid(format!("steps column {name} is {}, not boolean", c.data_type()))
+        })?;
+        Ok(Some((0..b.len()).map(|i| b.is_valid(i) && b.value(i)).collect()))
+    };
+    Ok(crate::StepFlags { intervention: flag(INTERVENTION_COLUMN)?, validity: flag(VALIDITY_COLUMN)? })
 }
 
 fn fsl(dim: usize, values: Vec<f32>) -> Result<ArrayRef, StoreError> {
@@ -235,6 +266,9 @@ pub fn episode_columns_with_extras(
     }
     cols.push(Arc::new(Float32Array::from(ep.reward)));
     cols.push(Arc::new(BooleanArray::from(ep.done)));
+    for flag in [ep.flags.intervention, ep.flags.validity].into_iter().flatten() {
+        cols.push(Arc::new(BooleanArray::from(flag)));
+    }
     if let Some(c) = ep.action_chunk {
         cols.push(fsl(c.horizon * c.action_dim, c.values)?);
     }

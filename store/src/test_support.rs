@@ -199,6 +199,7 @@ pub fn square_rollout(i: u32) -> crate::EpisodeInput {
         action_chunk: None,
         images: vec![],
         media: vec![],
+        flags: Default::default(),
     }
 }
 
@@ -221,6 +222,7 @@ pub fn two_step_episode(i: u32, task: Option<&str>, label: crate::Label) -> crat
         action_chunk: None,
         images: vec![],
         media: vec![],
+        flags: Default::default(),
     }
 }
 

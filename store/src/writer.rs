@@ -46,6 +46,10 @@ struct PendingEpisode {
     label_source: String,
     /// `(key, video object, first and last frame time)` of each camera (catalog `episode_media`).
     media: Vec<(String, String, f64, f64)>,
+    /// The episode's first step a human controlled and how many it controlled (catalog
+    /// `first_intervention`, `intervention_steps`; see [`crate::StepFlags`]).
+    first_intervention: Option<i64>,
+    intervention_steps: Option<i64>,
 }
 
 struct WrittenFile {
@@ -332,6 +336,8 @@ impl IngestWriter {
                     Some((m.name.clone(), path.clone(), first, last))
                 })
                 .collect(),
+            first_intervention: ep.flags.first_intervention().map(|t| t as i64),
+            intervention_steps: ep.flags.intervention_steps().map(|n| n as i64),
         };
         let index = ep.source_index;
         let cols = steps::episode_columns_with_extras(
@@ -522,6 +528,8 @@ impl IngestWriter {
                     now.as_str().into(),
                     now.as_str().into(),
                     run_id.clone().into(),
+                    e.first_intervention.into(),
+                    e.intervention_steps.into(),
                 ]
             })
             .collect();
@@ -551,6 +559,8 @@ impl IngestWriter {
                 "label_updated_at",
                 "created_at",
                 "run_id",
+                "first_intervention",
+                "intervention_steps",
             ],
             ep_rows,
             "",
@@ -889,6 +899,7 @@ mod tests {
             action_chunk: None,
             images: vec![],
             media: vec![],
+            flags: Default::default(),
         }
     }
 

@@ -24,6 +24,7 @@ fn episode(i: u32, steps: usize, label: Label) -> EpisodeInput {
         action_chunk: None,
         images: vec![],
         media: vec![],
+        flags: Default::default(),
     }
 }
 

@@ -69,7 +69,8 @@ fn record_producers(
     Ok(())
 }
 
-/// Reads a split's labeled episodes back from the store, at the split's pinned version.
+/// Reads a split's labeled episodes back from the store, at the split's pinned version; an
+/// episode a human took over trains on its steps before the takeover (`policy_steps`).
 pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<SplitData> {
     let split = store.split(&spec.split_id).await?;
     let members = store.split_episodes(&split.id).await?;
@@ -122,8 +123,10 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
             let item = item?;
             let (m, success) = labeled[item.index];
             record_producers(&m.episode_id, &item.steps, &wanted, &mut producers)?;
-            episodes[item.index] =
-                Some(verifier::steps::episode_from_steps(&m.episode_id, success, &item.steps, &wanted)?);
+            let mut ep = verifier::steps::episode_from_steps(&m.episode_id, success, &item.steps, &wanted)?;
+            // After a human took over, the rollout is not the checkpoint's own behaviour.
+            ep.policy_steps = store::steps::step_flags(&item.steps)?.first_intervention();
+            episodes[item.index] = Some(ep);
         }
     }
     let mut train = Vec::new();

@@ -20,6 +20,7 @@ fn samples_history_chunks_and_targets() {
         actions: vec![1.0, 2.0, 3.0],
         action_dim: 1,
         action_chunk: None,
+        policy_steps: None,
     };
     let spec = InputSpec {
         obs_keys: vec![ObsKey::new("a", 2), ObsKey::new("b", 1)],

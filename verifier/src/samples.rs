@@ -37,6 +37,9 @@ pub struct EpisodeSeries {
     pub action_dim: usize,
     /// Optional stored action chunk per step: `(H, steps * H * action_dim)`.
     pub action_chunk: Option<(usize, Vec<f32>)>,
+    /// Build samples only for the steps before this one: the first step a human took over, after
+    /// which the rollout is no longer the policy's own behaviour. `None`: every step.
+    pub policy_steps: Option<usize>,
 }
 
 impl EpisodeSeries {
@@ -114,7 +117,9 @@ impl Samples {
     }
 }
 
-/// Build one sample per step of every episode (raw, un-normalised values).
+/// Build one sample per step of every episode (raw, un-normalised values), up to an episode's
+/// `policy_steps`: the steps before a human took over, whose chunks (of executed actions) stop at
+/// the takeover too; the Q target's `T` stays the episode's end.
 pub fn build_samples(episodes: &[EpisodeSeries], spec: &InputLayout, gamma: f64) -> Result<Samples> {
     ensure_input!(spec.obs_history >= 1, "obs_history must be >= 1");
     ensure_input!(spec.chunk_len >= 1, "chunk_len must be >= 1");
@@ -178,7 +183,8 @@ pub fn build_samples(episodes: &[EpisodeSeries], spec: &InputLayout, gamma: f64)
         }
         let big_t = (steps - 1) as i32;
         let r = if ep.success { 1.0 } else { 0.0 };
-        for t in 0..steps {
+        let end = ep.policy_steps.map_or(steps, |p| p.min(steps));
+        for t in 0..end {
             // Observation history, oldest first, first observation repeated at episode start.
             for k in 0..spec.obs_history {
                 let src = (t as isize - (spec.obs_history - 1 - k) as isize).max(0) as usize;
@@ -191,7 +197,7 @@ pub fn build_samples(episodes: &[EpisodeSeries], spec: &InputLayout, gamma: f64)
                 Some((_, v)) => s.act.extend_from_slice(&v[t * act_dim..(t + 1) * act_dim]),
                 None => {
                     for j in 0..h {
-                        let src = (t + j).min(steps - 1);
+                        let src = (t + j).min(end - 1);
                         s.act.extend_from_slice(&ep.actions[src * a_dim..(src + 1) * a_dim]);
                     }
                 }

@@ -39,7 +39,15 @@ pub fn episode_from_steps(
         }
         Err(_) => None,
     };
-    Ok(EpisodeSeries { id: id.to_string(), success, obs, actions, action_dim, action_chunk })
+    Ok(EpisodeSeries {
+        id: id.to_string(),
+        success,
+        obs,
+        actions,
+        action_dim,
+        action_chunk,
+        policy_steps: None,
+    })
 }
 
 /// The verifier inputs of every step of a stored episode, built exactly as for training

@@ -72,6 +72,7 @@ fn episode(i: u32, steps: usize, label: Label, o: &Opts) -> EpisodeInput {
             }],
             None => vec![],
         },
+        flags: Default::default(),
     }
 }
 

@@ -11,6 +11,7 @@ import { Player, prepare, dispose } from './player.js';
 import { drawPlots, drawTrajectory } from './plots.js';
 import * as consensus from './consensus.js';
 import { drawScore } from './review_queue.js';
+import { drawTakeovers } from './takeovers.js';
 
 const $ = (id) => document.getElementById(id);
 const LABELS = ['success', 'failure', 'unknown'];
@@ -32,6 +33,7 @@ const S = {
   selected: new Set(),
   plots: null,
   score: null,      // the verifier score plot (review_queue.js)
+  takeovers: null,  // the human-takeover strip under the scrub bar (takeovers.js)
   traj: null,
   showSeq: 0,
   conflicts: [],    // pending conflicts to ask about
@@ -59,7 +61,7 @@ function status(el, text, kind) {
 async function start() {
   player = new Player({
     grid: $('videos'), scrub: $('scrub'), frameOut: $('frame'), playButton: $('play'),
-    onFrame: (f) => { if (S.plots) S.plots.setFrame(f); if (S.score) S.score.setFrame(f); if (S.traj) S.traj.setFrame(f); },
+    onFrame: (f) => { if (S.plots) S.plots.setFrame(f); if (S.score) S.score.setFrame(f); if (S.takeovers) S.takeovers.setFrame(f); if (S.traj) S.traj.setFrame(f); },
   });
   wire();
   try {
@@ -342,6 +344,8 @@ async function show(i, t0) {
   S.plots = drawPlots($('plots'), p.steps, (f) => player.seek(f));
   if (S.score) S.score.destroy();
   S.score = drawScore($('score-plot'), e.id, p.steps.num_rows || 0, (f) => player.seek(f));
+  if (S.takeovers) S.takeovers.destroy();
+  S.takeovers = drawTakeovers($('takeovers'), $('scrub'), p.steps, p.steps.num_rows || 0, (f) => player.seek(f));
   const traj = $('traj');
   traj.hidden = player.hasVideo(); // image-only episodes (robomimic) keep the sketch under their cameras
   if (!traj.hidden) S.traj = drawTrajectory(traj, p.steps);
@@ -401,6 +405,10 @@ function renderEpisode(p) {
     ['label', `${ep.label} (rev ${ep.label_revision}${ep.label_actor ? `, ${ep.label_actor}` : ''}${ep.label_source ? `, ${ep.label_source}` : ''})`],
     ['tags', (ep.tags || []).join(', ') || '—'],
   ];
+  if (ep.intervention_steps != null) {
+    rows.push(['human takeover', ep.first_intervention == null ? 'none'
+      : `from step ${ep.first_intervention} (${ep.intervention_steps} of ${ep.length} steps)`]);
+  }
   const md = ep.metadata || {};
   for (const [k, v] of Object.entries(md)) {
     if (k === 'videos' && v && typeof v === 'object') {

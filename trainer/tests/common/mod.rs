@@ -35,6 +35,7 @@ pub fn action_task(n_eps: usize, steps: usize, seed: u64) -> Vec<EpisodeSeries> 
                 actions,
                 action_dim: 2,
                 action_chunk: None,
+                policy_steps: None,
             }
         })
         .collect()
@@ -74,6 +75,7 @@ pub fn q_task(n_eps: usize, seed: u64) -> Vec<EpisodeSeries> {
                 actions,
                 action_dim: 1,
                 action_chunk: None,
+                policy_steps: None,
             }
         })
         .collect()
