@@ -462,3 +462,198 @@ fn takeover_strip_in_the_labeling_page() {
     let shot = artifacts.join("takeovers_timeline.png");
     assert!(std::fs::metadata(&shot).map(|m| m.len() > 10_000).unwrap_or(false), "{}", shot.display());
 }
+
+/// The flags in the HDF5 layouts: the DAgger dataset exported as robomimic and as ALOHA keeps
+/// its takeovers (an `intervention` dataset per demo / file) through another ingest. (ALOHA's
+/// reader needs `/observations/qpos`: the ALOHA copy names its state so.)
+#[test]
+fn takeovers_round_trip_through_robomimic_and_aloha() {
+    let dir = tempfile::tempdir().unwrap();
+    let (ds, labels) = dagger_source(dir.path());
+    let l = labels.to_str().unwrap();
+    for format in ["robomimic", "aloha"] {
+        let src = if format == "aloha" {
+            let d = dir.path().join("dagger-qpos");
+            write_dagger_dataset(&d);
+            rename_feature(&d, "observation.state", "observation.qpos");
+            d
+        } else {
+            ds.clone()
+        };
+        let a = Target::sqlite(&dir.path().join(format!("a-{format}")));
+        a.json(&[
+            "ingest",
+            src.to_str().unwrap(),
+            "--policy",
+            "so101",
+            "--checkpoint",
+            "c1",
+            "--success-file",
+            l,
+            "--json",
+        ]);
+        let out = dir.path().join(format!("out-{format}"));
+        let out = if format == "robomimic" { out.with_extension("hdf5") } else { out };
+        a.json(&["export", out.to_str().unwrap(), "--format", format, "--json"]);
+        let b = Target::sqlite(&dir.path().join(format!("b-{format}")));
+        b.json(&["ingest", out.to_str().unwrap(), "--policy", "so101", "--checkpoint", "c1", "--json"]);
+        // Source names differ by layout (demo_<i>, episode_<i>); the flags follow the order.
+        let want: Vec<(Value, Value)> = expected_catalog().into_values().collect();
+        assert_eq!(catalog_by_index(&b), want, "{format}");
+    }
+}
+
+/// `(first_intervention, intervention_steps)` of a store's episodes in source order.
+fn catalog_by_index(t: &Target) -> Vec<(Value, Value)> {
+    let eps = t.json(&["episodes", "--json"]);
+    let mut v: Vec<(i64, (Value, Value))> = eps
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| {
+            (
+                e["source_index"].as_i64().unwrap(),
+                (e["first_intervention"].clone(), e["intervention_steps"].clone()),
+            )
+        })
+        .collect();
+    v.sort_by_key(|(i, _)| *i);
+    v.into_iter().map(|(_, x)| x).collect()
+}
+
+/// GR00T's validity (`annotation.human.validity`, an index into the tasks `valid` / `invalid`)
+/// is kept as the steps' `validity` and written back as the same feature, indexes into the same
+/// task names; an index that names another task keeps no validity and says why.
+#[test]
+fn gr00t_validity_round_trips_as_task_indexes() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("gr00t");
+    write_dagger_dataset(&ds);
+    // Tasks: 0 the instruction, 1 "valid", 2 "invalid"; episode e's steps t >= 20 - 3e invalid
+    // (episode 4: from step 8), and the flag under GR00T's name.
+    let p = ds.join("meta/info.json");
+    let mut info: Value = serde_json::from_slice(&std::fs::read(&p).unwrap()).unwrap();
+    info["features"]["annotation.human.validity"] = json!({"dtype": "int64", "shape": [1], "names": null});
+    info["total_tasks"] = json!(3);
+    std::fs::write(&p, serde_json::to_vec(&info).unwrap()).unwrap();
+    let tasks: Vec<(&str, ArrayRef)> = vec![
+        ("task_index", Arc::new(Int64Array::from(vec![0i64, 1, 2]))),
+        ("task", Arc::new(StringArray::from(vec!["put the cube in the bowl", "valid", "invalid"]))),
+    ];
+    parquet(&ds.join("meta/tasks.parquet"), RecordBatch::try_from_iter(tasks).unwrap());
+    let valid = |e: usize, t: usize| t + 3 * e < 20;
+    add_column(&ds, "annotation.human.validity", |e, t| if valid(e, t) { 1 } else { 2 });
+
+    let a = Target::sqlite(&dir.path().join("a"));
+    a.json(&["ingest", ds.to_str().unwrap(), "--policy", "g", "--checkpoint", "c", "--json"]);
+    let out = dir.path().join("export");
+    a.json(&["export", out.to_str().unwrap(), "--format", "lerobot", "--json"]);
+    let info: Value = serde_json::from_slice(&std::fs::read(out.join("meta/info.json")).unwrap()).unwrap();
+    assert_eq!(info["features"]["annotation.human.validity"]["dtype"], "int64", "{info}");
+    let names = task_names(&out);
+    let got = column_by_episode(&out, "annotation.human.validity");
+    for (e, rows) in &got {
+        let want: Vec<&str> =
+            (0..STEPS).map(|t| if valid(*e as usize, t) { "valid" } else { "invalid" }).collect();
+        let have: Vec<&str> = rows.iter().map(|i| names[i].as_str()).collect();
+        assert_eq!(have, want, "episode {e}");
+    }
+    // Through a second ingest the same again.
+    let b = Target::sqlite(&dir.path().join("b"));
+    b.json(&["ingest", out.to_str().unwrap(), "--policy", "g", "--checkpoint", "c", "--json"]);
+    let out2 = dir.path().join("export2");
+    b.json(&["export", out2.to_str().unwrap(), "--format", "lerobot", "--json"]);
+    let names2 = task_names(&out2);
+    let again: BTreeMap<i64, Vec<String>> = column_by_episode(&out2, "annotation.human.validity")
+        .into_iter()
+        .map(|(e, v)| (e, v.iter().map(|i| names2[i].clone()).collect()))
+        .collect();
+    let first: BTreeMap<i64, Vec<String>> =
+        got.into_iter().map(|(e, v)| (e, v.iter().map(|i| names[i].clone()).collect())).collect();
+    assert_eq!(again, first);
+
+    // An index naming the instruction: no validity kept, and the episode's metadata says why.
+    let odd = dir.path().join("odd");
+    write_dagger_dataset(&odd);
+    let p = odd.join("meta/info.json");
+    let mut info: Value = serde_json::from_slice(&std::fs::read(&p).unwrap()).unwrap();
+    info["features"]["annotation.human.validity"] = json!({"dtype": "int64", "shape": [1], "names": null});
+    std::fs::write(&p, serde_json::to_vec(&info).unwrap()).unwrap();
+    add_column(&odd, "annotation.human.validity", |_, _| 0);
+    let c = Target::sqlite(&dir.path().join("c"));
+    c.json(&["ingest", odd.to_str().unwrap(), "--policy", "g", "--checkpoint", "c", "--json"]);
+    let eps = c.json(&["episodes", "--json"]);
+    let why = eps[0]["metadata"]["validity_not_kept"].as_str().unwrap_or_default().to_string();
+    assert!(why.contains("names the task \"put the cube in the bowl\""), "{eps}");
+}
+
+/// Adds an int64 column `name` (value of episode e, step t) to the dataset's data file.
+fn add_column(root: &Path, name: &str, value: impl Fn(usize, usize) -> i64) {
+    let data = root.join("data/chunk-000/file-000.parquet");
+    let r = parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(
+        std::fs::File::open(&data).unwrap(),
+    )
+    .unwrap()
+    .build()
+    .unwrap();
+    let batches: Vec<RecordBatch> = r.map(|b| b.unwrap()).collect();
+    let b = arrow::compute::concat_batches(&batches[0].schema(), &batches).unwrap();
+    let mut cols: Vec<(String, ArrayRef)> =
+        b.schema().fields().iter().zip(b.columns()).map(|(f, c)| (f.name().clone(), c.clone())).collect();
+    let n = b.num_rows();
+    cols.push((
+        name.to_string(),
+        Arc::new(Int64Array::from_iter_values((0..n).map(|r| value(r / STEPS, r % STEPS)))),
+    ));
+    parquet(&data, RecordBatch::try_from_iter(cols).unwrap());
+}
+
+/// `task_index` → task of a LeRobot v3.0 dataset.
+fn task_names(root: &Path) -> BTreeMap<i64, String> {
+    let r = parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(
+        std::fs::File::open(root.join("meta/tasks.parquet")).unwrap(),
+    )
+    .unwrap()
+    .build()
+    .unwrap();
+    let mut out = BTreeMap::new();
+    for b in r {
+        let b = b.unwrap();
+        let i = b.column_by_name("task_index").unwrap().as_primitive::<arrow::datatypes::Int64Type>().clone();
+        let t = b.column_by_name("task").unwrap().as_string::<i32>().clone();
+        for r in 0..b.num_rows() {
+            out.insert(i.value(r), t.value(r).to_string());
+        }
+    }
+    out
+}
+
+/// `episode_index` → the int64 column `name` of a LeRobot v3.0 dataset's data files.
+fn column_by_episode(root: &Path, name: &str) -> BTreeMap<i64, Vec<i64>> {
+    let mut out: BTreeMap<i64, Vec<i64>> = BTreeMap::new();
+    for f in walk(&root.join("data")) {
+        let r = parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(
+            std::fs::File::open(&f).unwrap(),
+        )
+        .unwrap()
+        .build()
+        .unwrap();
+        for b in r {
+            let b = b.unwrap();
+            let ep = b
+                .column_by_name("episode_index")
+                .unwrap()
+                .as_primitive::<arrow::datatypes::Int64Type>()
+                .clone();
+            let v = b
+                .column_by_name(name)
+                .expect("the column")
+                .as_primitive::<arrow::datatypes::Int64Type>()
+                .clone();
+            for r in 0..b.num_rows() {
+                out.entry(ep.value(r)).or_default().push(v.value(r));
+            }
+        }
+    }
+    out
+}
