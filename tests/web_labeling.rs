@@ -13,6 +13,8 @@
 //! `scripts/test.sh` installs them (`ensure_browser`) and sets `UFOPS_REQUIRE_BROWSER=1`, which
 //! turns a missing browser into a failure instead of a skip. Screenshots land in
 //! `<target dir>/web-artifacts/`.
+//!
+//! One file past 700 lines: every browser test shares the one server and store set-up at the top.
 
 use crate::common;
 
@@ -363,6 +365,83 @@ fn labeling_page_in_headless_chromium() {
     );
 }
 
+/// The robomimic file's two cameras stored as H.264 video (`ufops ingest --images video`): the
+/// episode lists them as video cameras, a frame is served decoded (PNG) by the frames route, and
+/// `tests/web/video_e2e.mjs` checks that Debian's Chromium decodes and plays the codec (the
+/// pixels drawn from each video are the file's), screenshot `robomimic_video_cameras.png`.
+#[test]
+fn robomimic_video_cameras_in_headless_chromium() {
+    let missing = missing_prerequisites();
+    let probe = if missing.is_empty() { Ok(()) } else { Err(missing.join("; ")) };
+    if !store::test_support::require(store::test_support::Tool::Browser, probe) {
+        return;
+    }
+    if !store::test_support::require_python(&["h5py", "numpy"]) {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let t = Target::sqlite(dir.path());
+    t.ok(&["init"]);
+    let steps = 120;
+    let h5 = dir.path().join("lift_two_cameras.hdf5");
+    write_robomimic_images(&h5, steps);
+    let r = t.json(&[
+        "ingest",
+        h5.to_str().unwrap(),
+        "--policy",
+        "robomimic-vid",
+        "--checkpoint",
+        "c0",
+        "--images",
+        "video",
+        "--json",
+    ]);
+    assert_eq!(r["media_files"], 4, "one video per episode and camera: {r}");
+    let admin = token(&t, "admin", "admin");
+    let alice = token(&t, "alice", "labeler");
+    let srv = serve(&t);
+    let (_, page) = http(&srv.addr, "GET", "/v1/episodes?policy=robomimic-vid", &admin, None);
+    let id = page["episodes"][0]["id"].as_str().expect("an episode").to_string();
+    let (st, d) = http(&srv.addr, "GET", &format!("/v1/episodes/{id}"), &admin, None);
+    assert_eq!(st, 200, "{d}");
+    let cams: Vec<(&str, &str)> = d["cameras"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| (c["name"].as_str().unwrap(), c["kind"].as_str().unwrap()))
+        .collect();
+    assert_eq!(cams, [("agentview_image", "video"), ("robot0_eye_in_hand_image", "video")], "{d}");
+    let (st, v) =
+        http(&srv.addr, "GET", &format!("/v1/episodes/{id}/frames/agentview_image/7"), &admin, None);
+    assert_eq!(st, 200, "a video camera's frame, decoded: {v}");
+    let (st, v) =
+        http(&srv.addr, "GET", &format!("/v1/episodes/{id}/frames/agentview_image/{steps}"), &admin, None);
+    assert_eq!(st, 404, "past the last step: {v}");
+
+    let artifacts = artifacts_dir();
+    std::fs::create_dir_all(&artifacts).unwrap();
+    let _ = std::fs::remove_file(artifacts.join("robomimic_video_cameras.png"));
+    let out = Command::new("node")
+        .arg(repo().join("tests/web/video_e2e.mjs"))
+        .current_dir(repo().join("tests/web"))
+        .env("UFOPS_URL", format!("http://{}", srv.addr))
+        .env("UFOPS_TOKEN", &alice)
+        .env("UFOPS_POLICY", "robomimic-vid")
+        .env("UFOPS_ARTIFACTS", &artifacts)
+        .env("CHROMIUM", chromium().unwrap())
+        .stderr(Stdio::inherit())
+        .output()
+        .expect("run node tests/web/video_e2e.mjs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    println!("{stdout}");
+    assert!(out.status.success(), "the browser test failed (screenshots in {})", artifacts.display());
+    let line = stdout.lines().find_map(|l| l.strip_prefix("E2E_RESULT ")).expect("E2E_RESULT line");
+    let result: Value = serde_json::from_str(line).expect("E2E_RESULT json");
+    assert_eq!(result["cameras"], 2, "{result}");
+    let shot = artifacts.join("robomimic_video_cameras.png");
+    assert!(std::fs::metadata(&shot).map(|m| m.len() > 10_000).unwrap_or(false), "{}", shot.display());
+}
+
 /// The scoreboard page (`/ui/scoreboard.html`) in headless Chromium: synthetic evaluation runs of
 /// policy `synth` (a base run and two steered ones of checkpoint c1, a base run of c2, episodes
 /// without a run, a few labels taken back to unknown and frozen; the steered runs name a
@@ -505,7 +584,7 @@ fn scoreboard_page_in_headless_chromium() {
     assert_eq!(plots[0]["points"].as_u64().unwrap() as usize, nonempty);
 }
 
-/// Several labelers in headless Chromium (issue 17, Must show 1): six synthetic episodes of
+/// Several labelers in headless Chromium: six synthetic episodes of
 /// policy `synth`, all unknown, in a blind campaign needing two labelers, with failure causes.
 /// `tests/web/consensus_e2e.mjs` has alice and bob label four of them with the keyboard (bob
 /// blind until he votes, one disagreement) and the admin settle the dispute on the page; κ from
@@ -622,7 +701,7 @@ fn consensus_page_in_headless_chromium() {
     );
 }
 
-/// Issue 17, Must show 2 in the page: the Lift rollouts scored by a trained classifier (a score
+/// The review queue in the page: the Lift rollouts scored by a trained classifier (a score
 /// job through the API), the order selector set to "uncertain first": the page's queue is the
 /// API's order, nearest 0.5 first, and the score is plotted on the timeline (screenshot
 /// `review-uncertain-score-timeline.png`).

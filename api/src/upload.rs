@@ -46,6 +46,9 @@ pub struct IngestQuery {
     run_artifact: Option<String>,
     /// The run's tags, comma-separated.
     run_tags: Option<String>,
+    /// How image cameras are stored: `png` (default: lossless, one PNG per step) or `video`
+    /// (one H.264 MP4 per episode and camera: lossy, a fraction of the bytes).
+    images: Option<String>,
 }
 
 /// Free space an upload must leave on the upload dir's filesystem.
@@ -160,6 +163,9 @@ pub async fn ingest(
     if let Some(f) = &q.format {
         crate::extract::check_id("format", f)?;
     }
+    if let Some(i) = q.images.as_deref().filter(|i| !matches!(*i, "png" | "video")) {
+        return Err(ApiError::bad_request(format!("images {i:?}: expected png or video")));
+    }
     let run_tags: Vec<String> = q
         .run_tags
         .as_deref()
@@ -223,6 +229,7 @@ pub async fn ingest(
         "steering": run.as_ref().map(|r| r.steering.to_string()),
         "run_artifact": q.run_artifact,
         "run_tags": run_tags,
+        "images": q.images,
     });
     let job = s.store().create_job(store::JobKind::Ingest, &spec, &caller.name).await?;
     Ok((StatusCode::ACCEPTED, Json(job)))

@@ -459,7 +459,7 @@ async fn image_camera_frames() {
             ep.images.push(store::ImageColumn {
                 name: cam.into(),
                 shape: [8, 8, 3],
-                png_frames: (0..7).map(|t| frame(cam, i, t)).collect(),
+                frames: store::Frames::Encoded((0..7).map(|t| frame(cam, i, t)).collect()),
             });
         }
         ids.push(w.add_episode(ep).await.unwrap());

@@ -73,6 +73,7 @@ fn loadavg() -> String {
         .unwrap_or_else(|_| "unknown".into())
 }
 
+// One function past 100 lines: the benchmark's measurements in the order the report prints them.
 fn main() {
     // `cargo bench` passes --bench; `cargo test --benches` passes nothing useful: run only on bench
     if std::env::args().any(|a| a == "--list") {
@@ -173,7 +174,10 @@ fn main() {
         };
         let mut w = store.begin_ingest(src, "bench", "c1").await.unwrap();
         let t = Instant::now();
-        for e in collected.episodes.iter().cloned() {
+        // A second read: episodes are not Clone (their cameras may stream).
+        let mut again = CollectSink::default();
+        ingest::read_path(&inp, Format::Robomimic, &ReadOptions::default(), &mut again).unwrap();
+        for e in again.episodes {
             w.add_episode(e).await.unwrap();
         }
         let t_add = t.elapsed();

@@ -19,6 +19,10 @@ pub enum IngestError {
     /// The store refused the write (the store is left as it was).
     #[error("store: {0}")]
     Store(String),
+    /// A camera's frames failed while they were pulled from their stream (`store::FrameStream`);
+    /// the message names the file and the dataset.
+    #[error("{0}")]
+    Frames(String),
     /// The run was cancelled (the consumer went away); nothing was committed.
     #[error("ingest cancelled")]
     Cancelled,

@@ -1031,7 +1031,7 @@ impl Ctx<'_> {
             let shape = frames.first().and_then(|f| png_shape(f)).ok_or_else(|| {
                 IngestError::invalid(path, format!("episode {e}: image {short} is not a valid PNG"))
             })?;
-            images.push(ImageColumn { name: short.clone(), shape, png_frames: frames });
+            images.push(ImageColumn { name: short.clone(), shape, frames: frames.into() });
         }
         let mut media = Vec::new();
         let mut video_md = Map::new();

@@ -36,12 +36,14 @@ pub mod pqfooter;
 pub mod robomimic;
 pub mod ros2msg;
 pub mod sink;
+pub mod video;
 
 use std::path::Path;
 
 pub use error::IngestError;
 pub use options::{Format, IngestOptions, MemoryBudget, ReadOptions};
 pub use pipeline::{ingest, IngestReport, LabelTally};
+pub use video::ImageStorage;
 
 use error::Result;
 use sink::EpisodeSink;

@@ -1,12 +1,14 @@
 //! The async glue: one ingest = one store version, all or nothing.
 //!
 //! The format reader runs on a blocking thread and pushes into a bounded channel (at most
-//! [`CHANNEL_DEPTH`] episodes and [`MemoryBudget::in_flight_bytes`] in flight); the source's
-//! sha256 is computed on a second blocking thread reading the file itself at the same time. The
-//! store's `IngestWriter` encodes episodes as they come; until the hash (the episode ids' prefix)
-//! is known it holds at most [`MemoryBudget::unhashed_bytes`] of encoded steps, then the reader
-//! waits for the hash. Memory is therefore bounded by an episode and the budgets, never by the
-//! source. Any error aborts the writer, so the store stays exactly as it was.
+//! [`CHANNEL_DEPTH`] episodes and
+//! [`MemoryBudget::in_flight_bytes`](crate::MemoryBudget::in_flight_bytes) in flight); the
+//! source's sha256 is computed on a second blocking thread reading the file itself at the same
+//! time. The store's `IngestWriter` encodes episodes as they come; until the hash (the episode
+//! ids' prefix) is known it holds at most
+//! [`MemoryBudget::unhashed_bytes`](crate::MemoryBudget::unhashed_bytes) of encoded steps, then
+//! the reader waits for the hash. Memory is therefore bounded by an episode and the budgets,
+//! never by the source. Any error aborts the writer, so the store stays exactly as it was.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -18,7 +20,7 @@ use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
 
 use crate::error::{IngestError, Result};
 use crate::model::{EpisodeInput, ExtraColumn, Label, MediaFile, SourceInput};
-use crate::options::{Format, IngestOptions, MemoryBudget, ReadOptions};
+use crate::options::{Format, IngestOptions, ReadOptions};
 use crate::sink::{EpisodeSink, SourceMeta};
 
 /// Episodes (or media files) buffered between the reader thread and the store writer.
@@ -135,7 +137,13 @@ fn approx_bytes(ep: &EpisodeInput) -> usize {
         + ep.action.values.len()
         + ep.reward.len()
         + ep.action_chunk.as_ref().map_or(0, |c| c.values.len());
-    let images: usize = ep.images.iter().flat_map(|im| im.png_frames.iter().map(|f| f.len() + 24)).sum();
+    // Streamed cameras count nothing: their frames are read as the writer pulls them.
+    let images: usize = ep
+        .images
+        .iter()
+        .filter_map(|im| im.frames.as_encoded())
+        .flat_map(|f| f.iter().map(|f| f.len() + 24))
+        .sum();
     let media: usize = ep.media.iter().map(|m| m.timestamps.len() * 8).sum();
     floats * 4 + ep.timestamps.len() * 8 + ep.done.len() + images + media
 }
@@ -198,6 +206,84 @@ fn store_err(path: &Path, e: store::StoreError) -> IngestError {
     IngestError::Store(format!("{}: {e}", path.display()))
 }
 
+/// The threads an ingest runs beside the store's writer: the format reader (feeding the
+/// channel) and the source's hash. Every way out of [`ingest`] ends them the same way
+/// ([`Background::stop`]).
+struct Background {
+    feed: Feed,
+    reader: tokio::task::JoinHandle<Result<crate::ReadOutcome>>,
+    /// `None` once the hash is known (or after `stop`).
+    hash: Option<tokio::task::JoinHandle<Result<(String, u64)>>>,
+    /// Bytes hashed so far (the progress bar's position).
+    hashed: Arc<AtomicU64>,
+    /// `--images video`: the cameras' MP4s are written here on the reader's thread and copied
+    /// into the store as the writer takes them; the folder lives until the ingest ends.
+    _video_dir: Option<tempfile::TempDir>,
+}
+
+impl Background {
+    /// Starts hashing `path` (sequentially, in 4 MB buffers, on its own thread) and reading it
+    /// as `format` into a bounded channel, at most `in_flight_bytes` of episodes ahead.
+    fn start(
+        path: &Path,
+        format: Format,
+        read_opts: ReadOptions,
+        opts: &IngestOptions,
+    ) -> Result<Background> {
+        let hashed = Arc::new(AtomicU64::new(0));
+        let hash = {
+            let p = path.to_path_buf();
+            let h = hashed.clone();
+            tokio::task::spawn_blocking(move || crate::hashing::hash_path_progress(&p, Some(&h)))
+        };
+        let (tx, rx) = mpsc::channel::<Msg>(CHANNEL_DEPTH);
+        let budget_kib = (opts.memory.in_flight_bytes / 1024)
+            .clamp(1, Semaphore::MAX_PERMITS.min(u32::MAX as usize)) as u32;
+        let feed = Feed { rx, in_flight: Arc::new(Semaphore::new(budget_kib as usize)) };
+        let video_dir = match opts.images {
+            crate::video::ImageStorage::Video => {
+                Some(tempfile::tempdir().map_err(|e| IngestError::io(Path::new("video temp dir"), e))?)
+            }
+            crate::video::ImageStorage::Png => None,
+        };
+        let mut sink = ChannelSink {
+            tx,
+            in_flight: feed.in_flight.clone(),
+            budget_kib,
+            runtime: tokio::runtime::Handle::current(),
+        };
+        let p = path.to_path_buf();
+        let dir = video_dir.as_ref().map(|d| d.path().to_path_buf());
+        let reader = tokio::task::spawn_blocking(move || match dir {
+            Some(dir) => crate::read_path_report(
+                &p,
+                format,
+                &read_opts,
+                &mut crate::video::VideoSink::new(&mut sink, &dir),
+            ),
+            None => crate::read_path_report(&p, format, &read_opts, &mut sink),
+        });
+        Ok(Background { feed, reader, hash: Some(hash), hashed, _video_dir: video_dir })
+    }
+
+    /// Closes the channel (a reader waiting on it or on the budget stops), waits for both
+    /// threads and returns the reader's result.
+    async fn stop(mut self) -> Result<crate::ReadOutcome> {
+        self.feed.close();
+        if let Some(h) = self.hash.take() {
+            let _ = h.await;
+        }
+        self.reader.await.map_err(join_err).and_then(|r| r)
+    }
+}
+
+/// How feeding the writer ended.
+enum Fed {
+    Done,
+    /// The source's hash names a version that already holds it.
+    AlreadyIngested(i64),
+}
+
 /// Ingests `path` into `store` as one new version (or reports the version that already holds
 /// the same content). On any error nothing is committed and the error names the file.
 pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> Result<IngestReport> {
@@ -210,202 +296,79 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
         f => f,
     };
     let total = source_size(path)?;
-
-    // Hash the source on its own thread, reading the file itself (sequentially, in 4 MB
-    // buffers), while the reader decodes it.
-    let hashed = Arc::new(AtomicU64::new(0));
-    let hash_task = {
-        let p = path.to_path_buf();
-        let h = hashed.clone();
-        Some(tokio::task::spawn_blocking(move || crate::hashing::hash_path_progress(&p, Some(&h))))
-    };
-
-    let MemoryBudget { in_flight_bytes, unhashed_bytes, row_group_bytes, file_bytes } = opts.memory;
-    let (tx, rx) = mpsc::channel::<Msg>(CHANNEL_DEPTH);
-    let budget_kib = (in_flight_bytes / 1024).clamp(1, Semaphore::MAX_PERMITS.min(u32::MAX as usize)) as u32;
-    let mut feed = Feed { rx, in_flight: Arc::new(Semaphore::new(budget_kib as usize)) };
-    let reader = {
-        let p = path.to_path_buf();
-        let mut sink = ChannelSink {
-            tx,
-            in_flight: feed.in_flight.clone(),
-            budget_kib,
-            runtime: tokio::runtime::Handle::current(),
-        };
-        tokio::task::spawn_blocking(move || crate::read_path_report(&p, format, &read_opts, &mut sink))
-    };
-
+    let mut bg = Background::start(path, format, read_opts, opts)?;
     let progress = Progress::new(opts.progress, total);
 
     // The first message is the source metadata (or the channel closes on a reader error).
-    let first = feed.rx.recv().await;
-    let meta = match first {
+    let meta = match bg.feed.rx.recv().await {
         Some(Msg::Source(m)) => m,
         Some(_) => {
-            feed.close();
-            let _ = reader.await;
+            let _ = bg.stop().await;
             return Err(IngestError::Usage("internal error: reader sent data before the source".into()));
         }
         None => {
-            let r = reader.await.map_err(join_err)?;
-            if let Some(h) = hash_task {
-                let _ = h.await;
-            }
-            return Err(match r {
+            return Err(match bg.stop().await {
                 Err(e) => e,
                 Ok(_) => IngestError::invalid(path, "the reader produced nothing"),
-            });
+            })
         }
     };
-    let meta_episodes = meta.metadata.get("num_demos").and_then(|v| v.as_u64());
+    // Robomimic: the source's metadata says how many episodes to expect (progress without a
+    // separate hashing pass to count bytes).
+    let expected_episodes = meta.metadata.get("num_demos").and_then(|v| v.as_u64()).filter(|&n| n > 0);
+    let mut report = IngestReport::empty(path, &meta.format, total);
     let source = SourceInput {
         path: path.display().to_string(),
         sha256: String::new(),
-        format: meta.format.clone(),
+        format: meta.format,
         size_bytes: total,
         metadata: meta.metadata,
     };
-    let mut report = IngestReport {
-        path: path.to_path_buf(),
-        format: meta.format,
-        sha256: String::new(),
-        version: 0,
-        already_ingested: false,
-        episodes: 0,
-        steps: 0,
-        labels: LabelTally::default(),
-        bytes: total,
-        media_files: 0,
-        notes: Vec::new(),
-    };
     // The writer encodes episodes while the hash is still being computed; nothing is written to
     // object storage before the hash is known (and checked against the store).
-    let writer = store
-        .begin_ingest_unhashed(source, &opts.policy, &opts.checkpoint)
-        .map(|w| w.with_max_file_bytes(file_bytes).with_max_row_group_bytes(row_group_bytes))
-        .and_then(|mut w| {
-            if let Some(run) = &opts.run {
-                w.set_run(run.clone())?;
-            }
-            Ok(w)
-        });
-    let mut writer = match writer {
+    let mut writer = match begin_writer(store, source, opts) {
         Ok(w) => w,
         Err(e) => {
-            feed.close();
-            let _ = reader.await;
-            if let Some(h) = hash_task {
-                let _ = h.await;
-            }
+            let _ = bg.stop().await;
             progress.finish();
             return Err(store_err(path, e));
         }
     };
 
-    enum Fed {
-        Done,
-        AlreadyIngested(i64),
-    }
-    enum Event {
-        Hash(Result<(String, u64)>),
-        Msg(Option<Msg>),
-    }
-    let mut hash_task = hash_task;
-    // Robomimic: the source's metadata says how many episodes to expect (progress without a
-    // separate hashing pass to count bytes).
-    let expected_episodes = meta_episodes.filter(|&n| n > 0);
-    // Feed the writer; on any error abort (nothing becomes visible).
-    let fed: Result<Fed> = async {
-        let mut open = true;
-        while open || hash_task.is_some() {
-            // Until the hash is known the writer holds what it encodes: past the budget, stop
-            // taking episodes (the reader blocks on the channel) and wait for the hash.
-            let take = open && (hash_task.is_none() || writer.unhashed_bytes() < unhashed_bytes);
-            let ev = tokio::select! {
-                biased;
-                h = async { hash_task.as_mut().expect("guarded").await }, if hash_task.is_some() => {
-                    Event::Hash(h.map_err(join_err).and_then(|r| r))
-                }
-                m = feed.rx.recv(), if take => Event::Msg(m),
-            };
-            let (sha256, size) = match ev {
-                Event::Hash(h) => {
-                    hash_task = None;
-                    h?
-                }
-                Event::Msg(None) => {
-                    open = false;
-                    continue;
-                }
-                Event::Msg(Some(Msg::Source(_))) => continue,
-                Event::Msg(Some(Msg::Media(f))) => {
-                    writer.add_media(&f).await.map_err(|e| store_err(path, e))?;
-                    report.media_files += 1;
-                    continue;
-                }
-                Event::Msg(Some(Msg::Episode(item, permit))) => {
-                    let (ep, extras) = *item;
-                    report.episodes += 1;
-                    report.steps += ep.len() as u64;
-                    match ep.label {
-                        Label::Success => report.labels.success += 1,
-                        Label::Failure => report.labels.failure += 1,
-                        Label::Unknown => report.labels.unknown += 1,
-                    }
-                    writer.push_episode_with_extras(ep, extras).await.map_err(|e| store_err(path, e))?;
-                    // Encoded: its decoded columns are gone, so is its share of the budget.
-                    drop(permit);
-                    let pos = match expected_episodes {
-                        Some(n) if hash_task.is_none() => total.saturating_mul(report.episodes as u64) / n,
-                        _ => hashed.load(Ordering::Relaxed),
-                    };
-                    progress.update(pos, report.episodes, report.steps);
-                    continue;
-                }
-            };
-            // The source's hash: check the store for it; from now on files can be written.
-            report.sha256 = sha256.clone();
-            report.bytes = size;
-            match writer.set_source_hash(&sha256, size).await {
-                Ok(()) => {}
-                Err(store::StoreError::AlreadyIngested { version, .. }) => {
-                    return Ok(Fed::AlreadyIngested(version))
-                }
-                Err(e) => return Err(store_err(path, e)),
-            }
-        }
-        Ok(Fed::Done)
-    }
-    .await;
-    feed.close();
-    if let Some(h) = hash_task.take() {
-        let _ = h.await;
-    }
-    let read_result = reader.await.map_err(join_err);
-    if let Ok(Fed::AlreadyIngested(version)) = fed {
-        progress.finish();
-        let _ = writer.abort().await;
-        report.version = version;
-        report.already_ingested = true;
-        report.episodes = 0;
-        report.steps = 0;
-        report.labels = LabelTally::default();
-        report.media_files = 0;
-        return Ok(report);
-    }
-    let outcome = match (fed, read_result) {
-        (Err(e), _) => Err(e),
-        (Ok(_), Err(e)) => Err(e),
-        (Ok(_), Ok(Err(e))) => Err(e),
-        (Ok(_), Ok(Ok(out))) => Ok(out),
+    let fed = {
+        let mut feeding = Feeding {
+            path,
+            bg: &mut bg,
+            writer: &mut writer,
+            report: &mut report,
+            progress: &progress,
+            unhashed_bytes: opts.memory.unhashed_bytes,
+            expected_episodes,
+            total,
+        };
+        feeding.run().await
     };
-    let outcome = match outcome {
-        Ok(o) => o,
-        Err(e) => {
+    let read = bg.stop().await;
+    let outcome = match (fed, read) {
+        (Ok(Fed::AlreadyIngested(version)), _) => {
+            progress.finish();
+            let _ = writer.abort().await;
+            return Ok(IngestReport {
+                version,
+                already_ingested: true,
+                episodes: 0,
+                steps: 0,
+                labels: LabelTally::default(),
+                media_files: 0,
+                ..report
+            });
+        }
+        (Err(e), _) | (Ok(Fed::Done), Err(e)) => {
             progress.finish();
             let _ = writer.abort().await;
             return Err(e);
         }
+        (Ok(Fed::Done), Ok(outcome)) => outcome,
     };
     report.notes = outcome.notes;
     let msg = format!(
@@ -418,9 +381,134 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
     );
     let info = writer.commit(&msg).await.map_err(|e| store_err(path, e));
     progress.finish();
-    let info = info?;
-    report.version = info.version;
+    report.version = info?.version;
     Ok(report)
+}
+
+/// Feeds the reader's episodes to the writer until the channel closes and the hash is known;
+/// on any error the caller aborts the writer (nothing becomes visible).
+struct Feeding<'a> {
+    path: &'a Path,
+    bg: &'a mut Background,
+    writer: &'a mut store::IngestWriter,
+    report: &'a mut IngestReport,
+    progress: &'a Progress,
+    /// Past this many encoded bytes held for want of the hash, stop taking episodes.
+    unhashed_bytes: usize,
+    expected_episodes: Option<u64>,
+    total: u64,
+}
+
+enum Event {
+    Hash(Result<(String, u64)>),
+    Msg(Option<Msg>),
+}
+
+impl Feeding<'_> {
+    async fn run(&mut self) -> Result<Fed> {
+        let mut open = true;
+        while open || self.bg.hash.is_some() {
+            // Until the hash is known the writer holds what it encodes: past the budget, stop
+            // taking episodes (the reader blocks on the channel) and wait for the hash.
+            let take = open && (self.bg.hash.is_none() || self.writer.unhashed_bytes() < self.unhashed_bytes);
+            let hashing = self.bg.hash.is_some();
+            let ev = tokio::select! {
+                biased;
+                h = async { self.bg.hash.as_mut().expect("guarded").await }, if hashing => {
+                    Event::Hash(h.map_err(join_err).and_then(|r| r))
+                }
+                m = self.bg.feed.rx.recv(), if take => Event::Msg(m),
+            };
+            match ev {
+                Event::Hash(h) => {
+                    self.bg.hash = None;
+                    let (sha256, size) = h?;
+                    if let Some(version) = self.source_hashed(sha256, size).await? {
+                        return Ok(Fed::AlreadyIngested(version));
+                    }
+                }
+                Event::Msg(None) => open = false,
+                Event::Msg(Some(Msg::Source(_))) => {}
+                Event::Msg(Some(Msg::Media(f))) => {
+                    self.writer.add_media(&f).await.map_err(|e| store_err(self.path, e))?;
+                    self.report.media_files += 1;
+                }
+                Event::Msg(Some(Msg::Episode(item, permit))) => {
+                    let (ep, extras) = *item;
+                    self.episode(ep, extras).await?;
+                    // Encoded: its decoded columns are gone, so is its share of the budget.
+                    drop(permit);
+                }
+            }
+        }
+        Ok(Fed::Done)
+    }
+
+    /// The source's hash: checks the store for it (`Some(version)` when a version already holds
+    /// it); from now on files can be written.
+    async fn source_hashed(&mut self, sha256: String, size: u64) -> Result<Option<i64>> {
+        self.report.bytes = size;
+        let set = self.writer.set_source_hash(&sha256, size).await;
+        self.report.sha256 = sha256;
+        match set {
+            Ok(()) => Ok(None),
+            Err(store::StoreError::AlreadyIngested { version, .. }) => Ok(Some(version)),
+            Err(e) => Err(store_err(self.path, e)),
+        }
+    }
+
+    async fn episode(&mut self, ep: EpisodeInput, extras: Vec<ExtraColumn>) -> Result<()> {
+        let report = &mut *self.report;
+        report.episodes += 1;
+        report.steps += ep.len() as u64;
+        match ep.label {
+            Label::Success => report.labels.success += 1,
+            Label::Failure => report.labels.failure += 1,
+            Label::Unknown => report.labels.unknown += 1,
+        }
+        self.writer.push_episode_with_extras(ep, extras).await.map_err(|e| store_err(self.path, e))?;
+        let pos = match self.expected_episodes {
+            Some(n) if self.bg.hash.is_none() => self.total.saturating_mul(report.episodes as u64) / n,
+            _ => self.bg.hashed.load(Ordering::Relaxed),
+        };
+        self.progress.update(pos, report.episodes, report.steps);
+        Ok(())
+    }
+}
+
+impl IngestReport {
+    /// Nothing ingested yet from `path` (`total` bytes, read as `format`).
+    fn empty(path: &Path, format: &str, total: u64) -> IngestReport {
+        IngestReport {
+            path: path.to_path_buf(),
+            format: format.to_string(),
+            sha256: String::new(),
+            version: 0,
+            already_ingested: false,
+            episodes: 0,
+            steps: 0,
+            labels: LabelTally::default(),
+            bytes: total,
+            media_files: 0,
+            notes: Vec::new(),
+        }
+    }
+}
+
+/// The store's writer for `source`, before its hash is known, with the ingest's budgets and run.
+fn begin_writer(
+    store: &store::Store,
+    source: SourceInput,
+    opts: &IngestOptions,
+) -> std::result::Result<store::IngestWriter, store::StoreError> {
+    let mut w = store
+        .begin_ingest_unhashed(source, &opts.policy, &opts.checkpoint)?
+        .with_max_file_bytes(opts.memory.file_bytes)
+        .with_max_row_group_bytes(opts.memory.row_group_bytes);
+    if let Some(run) = &opts.run {
+        w.set_run(run.clone())?;
+    }
+    Ok(w)
 }
 
 fn source_size(path: &Path) -> Result<u64> {

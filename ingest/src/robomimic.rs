@@ -9,6 +9,9 @@
 //! `next_obs/<key>` where it differs from the next step's `obs/<key>`, any other per-step
 //! dataset, attribute values too large for the episode metadata), so an export gives the file
 //! back; what still cannot be kept is reported as a note.
+//!
+//! One file past 700 lines: one format's reader (file checks, demo groups, observation and image
+//! datasets, labels) whose parts are read in the file's order and share its error context.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
@@ -834,7 +837,7 @@ fn read_images(
     }
     let png_frames = encode_png_frames(&bytes, t, h, w, c)
         .map_err(|e| IngestError::invalid(path, format!("{what}: {e}")))?;
-    Ok((ImageColumn { name: key.to_string(), shape: [h, w, c], png_frames }, bytes))
+    Ok((ImageColumn { name: key.to_string(), shape: [h, w, c], frames: png_frames.into() }, bytes))
 }
 
 /// PNG-encodes `t` frames of `h x w x c` u8 (fast compression), on two threads when it pays.

@@ -2,8 +2,28 @@
 //! Readers are plain synchronous Rust; the async glue in [`crate::pipeline`] runs them on a
 //! blocking thread and forwards what they emit to the store through a bounded channel.
 
-use crate::error::Result;
-use crate::model::{EpisodeInput, ExtraColumn, MediaFile};
+use crate::error::{IngestError, Result};
+use crate::model::{EpisodeInput, ExtraColumn, Frames, MediaFile};
+
+/// Pulls every streamed camera of `episode` to its end (a reader's errors in its frames surface
+/// here, as they would in the store's writer), keeping the frames in memory when `keep`.
+pub fn pull_frames(episode: &mut EpisodeInput, keep: bool) -> Result<()> {
+    for im in &mut episode.images {
+        if matches!(im.frames, Frames::Stream(_)) {
+            let frames = std::mem::take(&mut im.frames);
+            if keep {
+                im.frames = Frames::Encoded(
+                    frames.collect_encoded().map_err(|e| IngestError::Frames(e.to_string()))?,
+                );
+            } else {
+                for f in frames {
+                    f.map_err(|e| IngestError::Frames(e.to_string()))?;
+                }
+            }
+        }
+    }
+    Ok(())
+}
 
 /// What the reader learned about the source before any episode (format + metadata JSON).
 #[derive(Debug, Clone, PartialEq)]
@@ -25,7 +45,8 @@ pub trait EpisodeSink {
     fn episode_with_extras(&mut self, episode: EpisodeInput, extras: Vec<ExtraColumn>) -> Result<()>;
 }
 
-/// A sink that keeps everything in memory (tests, small files, fuzzing).
+/// A sink that keeps everything in memory (tests, small files, fuzzing); streamed cameras are
+/// collected into memory.
 #[derive(Debug, Default)]
 pub struct CollectSink {
     pub source: Option<SourceMeta>,
@@ -44,14 +65,16 @@ impl EpisodeSink for CollectSink {
         self.media.push(file);
         Ok(())
     }
-    fn episode_with_extras(&mut self, episode: EpisodeInput, extras: Vec<ExtraColumn>) -> Result<()> {
+    fn episode_with_extras(&mut self, mut episode: EpisodeInput, extras: Vec<ExtraColumn>) -> Result<()> {
+        pull_frames(&mut episode, true)?;
         self.episodes.push(episode);
         self.extras.push(extras);
         Ok(())
     }
 }
 
-/// A sink that only counts (used by fuzzing and benchmarks of the reader alone).
+/// A sink that only counts (used by fuzzing and benchmarks of the reader alone); streamed
+/// cameras are pulled to their end and dropped, so a reader's errors in them surface.
 #[derive(Debug, Default)]
 pub struct CountSink {
     pub episodes: usize,
@@ -67,7 +90,8 @@ impl EpisodeSink for CountSink {
         self.media += 1;
         Ok(())
     }
-    fn episode_with_extras(&mut self, episode: EpisodeInput, _extras: Vec<ExtraColumn>) -> Result<()> {
+    fn episode_with_extras(&mut self, mut episode: EpisodeInput, _extras: Vec<ExtraColumn>) -> Result<()> {
+        pull_frames(&mut episode, false)?;
         self.episodes += 1;
         self.steps += episode.len();
         Ok(())

@@ -307,3 +307,81 @@ fn tiny_budgets_store_the_same_steps() {
         }
     }
 }
+
+/// An ALOHA episode file with raw cameras: `/observations/{qpos, qvel, images/cam_*}` and
+/// `/action`, three `(steps, 96, 128, 3)` uint8 cameras chunked a frame per chunk (as ALOHA's
+/// recorders write them), frames of noise so their PNGs are as large as the raw frames.
+fn write_aloha_raw(path: &Path, steps: usize) {
+    const H: usize = 96;
+    const W: usize = 128;
+    let t = steps as u64;
+    let mut b = FileBuilder::new();
+    let vec: Vec<f32> = (0..steps * 14).map(|k| k as f32 * 0.01).collect();
+    let mut obs = b.create_group("observations");
+    obs.create_dataset("qpos").with_f32_data(&vec).with_shape(&[t, 14]);
+    obs.create_dataset("qvel").with_f32_data(&vec).with_shape(&[t, 14]);
+    let mut images = obs.create_group("images");
+    for (k, cam) in ["cam_high", "cam_left_wrist", "cam_right_wrist"].iter().enumerate() {
+        images
+            .create_dataset(cam)
+            .with_u8_data(&noise(k as u64 * 1000 + steps as u64, steps * H * W * 3))
+            .with_shape(&[t, H as u64, W as u64, 3])
+            .with_chunks(&[1, H as u64, W as u64, 3]);
+    }
+    obs.add_group(images.finish());
+    b.add_group(obs.finish());
+    b.create_dataset("action").with_f32_data(&vec).with_shape(&[t, 14]);
+    b.set_attr("sim", AttrValue::I8(0));
+    b.write(path).unwrap();
+}
+
+/// One ALOHA episode of 200 and one of 800 steps (raw cameras, 22 and 88 MB of frames): the
+/// cameras stream to the store a page at a time, so the longer episode's peak heap is about the
+/// shorter one's (within 50%), not four times it, and far below its frames. A reader that
+/// collects an episode's frames, or a writer that keeps an episode's encoded row group in
+/// memory, fails here.
+#[test]
+fn peak_memory_does_not_grow_with_an_episodes_length() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let mut peaks = Vec::new();
+    for steps in [200, 800] {
+        let file = dir.path().join(format!("episode_{steps}.hdf5"));
+        write_aloha_raw(&file, steps);
+        let store_dir = dir.path().join(format!("store_{steps}"));
+        let (peak, episodes) = peak_while_ingesting(&rt, &file, Format::Aloha, &store_dir);
+        assert_eq!(episodes, 1);
+        let frames = steps * 3 * 96 * 128 * 3;
+        eprintln!(
+            "aloha: one episode of {steps} steps ({:.1} MB of frames) peak heap {:.1} MB",
+            frames as f64 / 1e6,
+            peak as f64 / 1e6
+        );
+        // Every frame is there, in order, as PNG.
+        let store = rt.block_on(store::Store::open(&store::StoreConfig::local(&store_dir))).unwrap();
+        let eps = rt.block_on(store.episodes(&store::EpisodeFilter::default())).unwrap();
+        let steps_batch = rt.block_on(store.read_steps(&eps[0].id, None)).unwrap();
+        assert_eq!(steps_batch.num_rows(), steps);
+        let cam = steps_batch.column_by_name("image.cam_left_wrist").unwrap();
+        let cam = cam.as_any().downcast_ref::<BinaryArray>().unwrap();
+        for t in [0, steps / 2, steps - 1] {
+            let mut r = png::Decoder::new(std::io::Cursor::new(cam.value(t))).read_info().unwrap();
+            let mut buf = vec![0; r.output_buffer_size().unwrap()];
+            r.next_frame(&mut buf).unwrap();
+            let raw = noise(1000 + steps as u64, steps * 96 * 128 * 3);
+            let at = t * 96 * 128 * 3;
+            assert_eq!(buf, raw[at..at + 96 * 128 * 3], "frame {t} of {steps}");
+        }
+        peaks.push((peak, frames));
+    }
+    let ((short, _), (long, long_frames)) = (peaks[0], peaks[1]);
+    assert!(
+        (long as f64) < short as f64 * 1.5,
+        "peak heap grew with the episode: {short} bytes for 200 steps, {long} for 800"
+    );
+    assert!(
+        long < long_frames / 3,
+        "peak heap {long} bytes is not far below the episode's {long_frames} bytes of frames"
+    );
+}

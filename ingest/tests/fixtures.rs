@@ -52,7 +52,7 @@ fn check_robomimic(name: &str) {
                     v.as_array().unwrap().iter().map(|x| x.as_u64().unwrap() as usize).collect();
                 let im = e.images.iter().find(|i| &i.name == k).unwrap_or_else(|| panic!("no image {k}"));
                 assert_eq!(im.shape.to_vec(), shape);
-                assert_eq!(im.png_frames.len(), e.len());
+                assert_eq!(im.frames.len(), e.len());
             }
         }
         // the 38 KB model_file is summarized, not copied
@@ -91,7 +91,7 @@ fn robomimic_image() {
     // of... (obs[0] is correct in every demo, see the fixture README)
     let s = read("robomimic/lift_rollouts_image.hdf5", &ReadOptions::default()).unwrap();
     let im = &s.episodes[1].images[0];
-    let dec = png::Decoder::new(std::io::Cursor::new(&im.png_frames[0]));
+    let dec = png::Decoder::new(std::io::Cursor::new(&im.frames.as_encoded().expect("collected")[0]));
     let mut r = dec.read_info().unwrap();
     let mut buf = vec![0; r.output_buffer_size().unwrap()];
     let info = r.next_frame(&mut buf).unwrap();
@@ -159,7 +159,7 @@ fn check_lerobot(name: &str) {
         assert_eq!(e.images.len(), exp["image_keys"].as_array().unwrap().len());
         for im in &e.images {
             assert_eq!(im.shape, [64, 64, 3]);
-            assert_eq!(im.png_frames.len(), e.len());
+            assert_eq!(im.frames.len(), e.len());
         }
         for m in &e.media {
             assert_eq!(m.timestamps.len(), e.len());

@@ -8,3 +8,4 @@ mod end_to_end;
 mod fixtures;
 mod fuzz_mutations;
 mod mcap_no_actions;
+mod video;

@@ -37,6 +37,12 @@ pub struct IngestArgs {
     /// Ingest what is complete in a truncated recording instead of refusing it.
     #[arg(long)]
     pub recover: bool,
+    /// How image cameras are stored: `png` (default) keeps every frame losslessly, one PNG per
+    /// step; `video` stores each camera of an episode as one H.264 MP4 (lossy, visually
+    /// lossless: ~40 dB PSNR, a fraction of the bytes; see ingest/README.md). JPEG cameras are
+    /// kept as recorded either way.
+    #[arg(long, default_value = "png", value_name = "png|video")]
+    pub images: String,
     /// The source's per-step human-takeover flag, when not named `intervention` (LeRobot's
     /// DAgger feature): a LeRobot feature, or a robomimic demo's / ALOHA file's dataset. Kept as
     /// the steps' `intervention` column; splits train on the steps before a takeover.
@@ -85,6 +91,7 @@ pub fn ingest_options(a: &IngestArgs) -> Result<ingest::IngestOptions> {
         success_from_rewards,
         mapping: a.mapping.clone(),
         recover: a.recover,
+        images: a.images.parse()?,
         progress: !a.json,
         memory: Default::default(),
         run: run_input(a.run.as_deref(), a.steering.as_deref(), a.run_artifact.as_deref(), &a.run_tags)?,
@@ -165,104 +172,118 @@ impl api::JobRunner for Runner {
     ) -> BoxFuture<'a, Result<serde_json::Value, String>> {
         Box::pin(async move {
             match job.kind {
-                store::JobKind::Train => {
-                    let spec = train_spec(&job.spec)?;
-                    let cancel = Arc::new(AtomicBool::new(false));
-                    let (c2, ctx2) = (cancel.clone(), ctx.clone());
-                    let watcher = tokio::spawn(async move {
-                        ctx2.cancelled().await;
-                        c2.store(true, Ordering::SeqCst);
-                    });
-                    let ctx3 = ctx.clone();
-                    let observer = Box::new(move |r: &trainer::EpochReport| {
-                        ctx3.progress(serde_json::to_value(r).unwrap_or_default());
-                    });
-                    let r = trainer::run_train_job(store, &spec, Some(&job.id), observer, Some(cancel)).await;
-                    watcher.abort();
-                    let rec = r.map_err(|e| format!("{e:#}"))?;
-                    Ok(
-                        serde_json::json!({ "artifact_id": rec.id, "metrics": rec.config["metrics"]["final"] }),
-                    )
-                }
-                store::JobKind::Ingest => {
-                    let s = &job.spec;
-                    let field = |k: &str| s.get(k).and_then(|v| v.as_str()).map(String::from);
-                    let path = field("path").ok_or("ingest job has no path")?;
-                    let opts = ingest::IngestOptions {
-                        policy: field("policy").ok_or("ingest job has no policy")?,
-                        checkpoint: field("checkpoint").ok_or("ingest job has no checkpoint")?,
-                        task: field("task"),
-                        format: field("format")
-                            .unwrap_or_else(|| "auto".into())
-                            .parse()
-                            .map_err(|e| format!("{e}"))?,
-                        success_file: None,
-                        success_from_rewards: s.get("reward_threshold").and_then(|v| v.as_f64()),
-                        mapping: None,
-                        recover: s.get("recover").and_then(|v| v.as_bool()).unwrap_or(false),
-                        progress: false,
-                        memory: Default::default(),
-                        intervention_key: field("intervention_key"),
-                        run: {
-                            let tags: Vec<String> = s
-                                .get("run_tags")
-                                .and_then(|v| v.as_array())
-                                .map(|a| a.iter().filter_map(|t| t.as_str().map(String::from)).collect())
-                                .unwrap_or_default();
-                            let (run, steering, artifact) =
-                                (field("run"), field("steering"), field("run_artifact"));
-                            run_input(run.as_deref(), steering.as_deref(), artifact.as_deref(), &tags)
-                                .map_err(|e| format!("{e:#}"))?
-                        },
-                    };
-                    let r = ingest::ingest(store, std::path::Path::new(&path), &opts)
-                        .await
-                        .map_err(|e| format!("{e:#}"))?;
-                    serde_json::to_value(&r).map_err(|e| e.to_string())
-                }
-                store::JobKind::Export => {
-                    let spec: ::export::job::ExportJobSpec = serde_json::from_value(job.spec.clone())
-                        .map_err(|e| format!("bad export job spec: {e}"))?;
-                    let scorer = match &spec.selection.score {
-                        Some(r) => Some(
-                            super::export_cmd::StoreVerifier::load(store, &r.artifact)
-                                .await
-                                .map_err(|e| format!("{e:#}"))?,
-                        ),
-                        None => None,
-                    };
-                    let progress = |v: serde_json::Value| ctx.progress(v);
-                    let cancelled = || ctx.is_cancelled();
-                    let scorer = scorer.as_ref().map(|s| &s.verifier as &dyn ::export::StepScorer);
-                    let r =
-                        ::export::job::run_export_job(store, &job.id, &spec, scorer, &progress, &cancelled)
-                            .await
-                            .map_err(|e| e.to_string())?;
-                    serde_json::to_value(&r).map_err(|e| e.to_string())
-                }
-                store::JobKind::Score => {
-                    let spec: ::export::score_job::ScoreJobSpec = serde_json::from_value(job.spec.clone())
-                        .map_err(|e| format!("bad score job spec: {e}"))?;
-                    let scorer = super::export_cmd::StoreVerifier::load(store, &spec.artifact_id)
-                        .await
-                        .map_err(|e| format!("{e:#}"))?;
-                    let progress = |v: serde_json::Value| ctx.progress(v);
-                    let cancelled = || ctx.is_cancelled();
-                    let r = ::export::score_job::run_score_job(
-                        store,
-                        Some(&job.id),
-                        &spec,
-                        &scorer.verifier,
-                        &progress,
-                        &cancelled,
-                    )
-                    .await
-                    .map_err(|e| e.to_string())?;
-                    serde_json::to_value(&r).map_err(|e| e.to_string())
-                }
+                store::JobKind::Train => train_job(store, job, ctx).await,
+                store::JobKind::Ingest => ingest_job(store, job).await,
+                store::JobKind::Export => export_job(store, job, &ctx).await,
+                store::JobKind::Score => score_job(store, job, &ctx).await,
             }
         })
     }
+}
+
+/// A training job: trains, publishes the artifact, reports each epoch; cancelled through `ctx`.
+async fn train_job(
+    store: &store::Store,
+    job: &store::JobRecord,
+    ctx: api::JobContext,
+) -> Result<serde_json::Value, String> {
+    let spec = train_spec(&job.spec)?;
+    let cancel = Arc::new(AtomicBool::new(false));
+    let (c2, ctx2) = (cancel.clone(), ctx.clone());
+    let watcher = tokio::spawn(async move {
+        ctx2.cancelled().await;
+        c2.store(true, Ordering::SeqCst);
+    });
+    let ctx3 = ctx.clone();
+    let observer = Box::new(move |r: &trainer::EpochReport| {
+        ctx3.progress(serde_json::to_value(r).unwrap_or_default());
+    });
+    let r = trainer::run_train_job(store, &spec, Some(&job.id), observer, Some(cancel)).await;
+    watcher.abort();
+    let rec = r.map_err(|e| format!("{e:#}"))?;
+    Ok(serde_json::json!({ "artifact_id": rec.id, "metrics": rec.config["metrics"]["final"] }))
+}
+
+/// An ingest job: the options of `ufops ingest` from the job's spec.
+async fn ingest_job(store: &store::Store, job: &store::JobRecord) -> Result<serde_json::Value, String> {
+    let s = &job.spec;
+    let field = |k: &str| s.get(k).and_then(|v| v.as_str()).map(String::from);
+    let path = field("path").ok_or("ingest job has no path")?;
+    let opts = ingest::IngestOptions {
+        policy: field("policy").ok_or("ingest job has no policy")?,
+        checkpoint: field("checkpoint").ok_or("ingest job has no checkpoint")?,
+        task: field("task"),
+        format: field("format").unwrap_or_else(|| "auto".into()).parse().map_err(|e| format!("{e}"))?,
+        success_file: None,
+        success_from_rewards: s.get("reward_threshold").and_then(|v| v.as_f64()),
+        mapping: None,
+        recover: s.get("recover").and_then(|v| v.as_bool()).unwrap_or(false),
+        images: field("images").unwrap_or_else(|| "png".into()).parse().map_err(|e| format!("{e}"))?,
+        progress: false,
+        memory: Default::default(),
+        intervention_key: field("intervention_key"),
+        run: {
+            let tags: Vec<String> = s
+                .get("run_tags")
+                .and_then(|v| v.as_array())
+                .map(|a| a.iter().filter_map(|t| t.as_str().map(String::from)).collect())
+                .unwrap_or_default();
+            let (run, steering, artifact) = (field("run"), field("steering"), field("run_artifact"));
+            run_input(run.as_deref(), steering.as_deref(), artifact.as_deref(), &tags)
+                .map_err(|e| format!("{e:#}"))?
+        },
+    };
+    let r = ingest::ingest(store, std::path::Path::new(&path), &opts).await.map_err(|e| format!("{e:#}"))?;
+    serde_json::to_value(&r).map_err(|e| e.to_string())
+}
+
+/// An export job (curated by a verifier's scores when its selection asks for them).
+async fn export_job(
+    store: &store::Store,
+    job: &store::JobRecord,
+    ctx: &api::JobContext,
+) -> Result<serde_json::Value, String> {
+    let spec: ::export::job::ExportJobSpec =
+        serde_json::from_value(job.spec.clone()).map_err(|e| format!("bad export job spec: {e}"))?;
+    let scorer = match &spec.selection.score {
+        Some(r) => Some(
+            super::export_cmd::StoreVerifier::load(store, &r.artifact).await.map_err(|e| format!("{e:#}"))?,
+        ),
+        None => None,
+    };
+    let progress = |v: serde_json::Value| ctx.progress(v);
+    let cancelled = || ctx.is_cancelled();
+    let scorer = scorer.as_ref().map(|s| &s.verifier as &dyn ::export::StepScorer);
+    let r = ::export::job::run_export_job(store, &job.id, &spec, scorer, &progress, &cancelled)
+        .await
+        .map_err(|e| e.to_string())?;
+    serde_json::to_value(&r).map_err(|e| e.to_string())
+}
+
+/// A score job: the review queue's scores of a verifier artifact.
+async fn score_job(
+    store: &store::Store,
+    job: &store::JobRecord,
+    ctx: &api::JobContext,
+) -> Result<serde_json::Value, String> {
+    let spec: ::export::score_job::ScoreJobSpec =
+        serde_json::from_value(job.spec.clone()).map_err(|e| format!("bad score job spec: {e}"))?;
+    let scorer = super::export_cmd::StoreVerifier::load(store, &spec.artifact_id)
+        .await
+        .map_err(|e| format!("{e:#}"))?;
+    let progress = |v: serde_json::Value| ctx.progress(v);
+    let cancelled = || ctx.is_cancelled();
+    let r = ::export::score_job::run_score_job(
+        store,
+        Some(&job.id),
+        &spec,
+        &scorer.verifier,
+        &progress,
+        &cancelled,
+    )
+    .await
+    .map_err(|e| e.to_string())?;
+    serde_json::to_value(&r).map_err(|e| e.to_string())
 }
 
 #[derive(clap::Args, Debug)]

@@ -354,9 +354,9 @@ mod tests {
                 ep.images.push(ImageColumn {
                     name: cam.into(),
                     shape: [84, 84, 3],
-                    png_frames: (0..120)
-                        .map(|t| png_of(i + if cam.starts_with('e') { 100 } else { 0 }, t))
-                        .collect(),
+                    frames: Frames::Encoded(
+                        (0..120).map(|t| png_of(i + if cam.starts_with('e') { 100 } else { 0 }, t)).collect(),
+                    ),
                 });
             }
             w.add_episode(ep).await.unwrap();

@@ -3,7 +3,7 @@
 
 use crate::catalog::{RowExt, Tx};
 use crate::counts::CountDeltas;
-use crate::writer::{finish_version, next_version, write_labels_file_ahead, LabelsFileAhead, VersionHead};
+use crate::version::{finish_version, next_version, write_labels_file_ahead, LabelsFileAhead, VersionHead};
 use crate::{now_rfc3339, Backend, CommitInfo, Label, Store, StoreError};
 use serde::Serialize;
 

@@ -14,7 +14,7 @@ use crate::catalog::{insert_rows, RowExt, Val};
 use crate::model::check_name;
 use crate::read::{visible, EpisodeLocation, EpisodeSteps, StepsReadError, StepsStream};
 use crate::steps::{OBS_PREFIX, PAGE_MAX_BYTES, ROW_GROUP_MAX_BYTES};
-use crate::writer::{finish_version, next_version, VersionHead};
+use crate::version::{finish_version, next_version, VersionHead};
 use crate::{Store, StoreError};
 use arrow::array::{Array, ArrayRef, FixedSizeListArray, Float32Array, Int32Array, RecordBatch, StringArray};
 use arrow::datatypes::{DataType, Field, Schema};

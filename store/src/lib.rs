@@ -14,6 +14,7 @@ mod error;
 mod exports;
 mod frames;
 mod gc;
+mod ingest_writer;
 mod jobs;
 mod labels;
 mod layers;
@@ -26,14 +27,15 @@ mod read;
 mod review;
 mod runs;
 mod scoreboard;
+mod spill;
 mod splits;
 pub mod steps;
 /// Test support for every crate's tests (feature `testing`, enabled by the dev-dependencies).
 #[cfg(any(test, feature = "testing"))]
 pub mod test_support;
 mod tokens;
+mod version;
 pub mod video;
-mod writer;
 
 pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
 pub use catalog::{migration_names, Backend};
@@ -47,6 +49,7 @@ pub use error::StoreError;
 pub use exports::{check_export_path, ExportFile, EXPORTS_PREFIX};
 pub use frames::{cameras_of, Camera, CameraKind, FrameLocation};
 pub use gc::{GcReport, MAX_GRACE_SECONDS};
+pub use ingest_writer::{CommitInfo, IngestWriter, SourceRecord, MAX_STEPS_FILE_BYTES};
 pub use jobs::{JobKind, JobRecord, JobState};
 pub use labels::{LabelChange, LabelEvent, LabelUpdate, PreparedLabelSnapshot};
 pub use layers::{
@@ -65,7 +68,6 @@ pub use runs::{RunInput, RunRecord, Steering};
 pub use scoreboard::{BaselineComparison, Scoreboard, ScoreboardRequest, ScoreboardRow, NO_RUN};
 pub use splits::{SplitCheckpointSteps, SplitEpisode, SplitRecord, SplitRequest};
 pub use tokens::{Role, TokenRecord};
-pub use writer::{CommitInfo, IngestWriter, SourceRecord, MAX_STEPS_FILE_BYTES};
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

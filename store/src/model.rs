@@ -74,27 +74,272 @@ pub struct ChunkColumn {
     pub values: Vec<f32>,
 }
 
-/// Per-step images, each stored losslessly as encoded bytes: PNG, or JPEG kept exactly as the
-/// source recorded it (ALOHA's compressed cameras; never re-encoded). `shape` is `[H, W, C]`.
-#[derive(Debug, Clone, PartialEq)]
+/// Per-step images of one camera, each stored losslessly as encoded bytes: PNG, or JPEG kept
+/// exactly as the source recorded it (ALOHA's compressed cameras; never re-encoded). `shape` is
+/// `[H, W, C]`.
+///
+/// The frames are [`Frames`]: either all in memory, or a [`FrameStream`] that the reader fills
+/// while the consumer pulls it, so an episode's frames never sit in memory together (an ALOHA
+/// episode is 0.5-2 GB of raw frames). The store's writer pulls a stream a page at a time
+/// (`steps::PAGE_MAX_BYTES` of frames) and spills each page to a temporary file, so its memory
+/// is bounded by a page per camera whatever the episode's length.
+///
+/// Consuming the frames elsewhere (a video encoder, a checker): take them with
+/// [`ImageColumn::into_frames`] (or `std::mem::take(&mut column.frames)`) and iterate — every
+/// [`Frames`] turns into an iterator of `Result<Vec<u8>, StoreError>`, one encoded frame per
+/// step in order; the error names what could not be read (a stream reports a short or unreadable source
+/// there, and yields nothing after it). [`Frames::collect_encoded`] gathers them (tests, small
+/// episodes).
+#[derive(Debug, PartialEq)]
 pub struct ImageColumn {
     pub name: String,
     pub shape: [usize; 3],
     /// One encoded frame per step (PNG, or JPEG: see [`ImageColumn::encoding`]).
-    pub png_frames: Vec<Vec<u8>>,
+    pub frames: Frames,
 }
 
 impl ImageColumn {
-    /// `jpeg` when every frame starts with a JPEG's start-of-image marker, else `png` (recorded
-    /// as the column's `ufops.encoding`).
+    /// `jpeg` when every frame starts with a JPEG's start-of-image marker (in-memory frames), or
+    /// when the stream says so; else `png` (recorded as the column's `ufops.encoding`).
     pub fn encoding(&self) -> &'static str {
-        let jpeg =
-            !self.png_frames.is_empty() && self.png_frames.iter().all(|f| f.starts_with(&[0xFF, 0xD8, 0xFF]));
-        if jpeg {
-            "jpeg"
-        } else {
-            "png"
+        match &self.frames {
+            Frames::Encoded(f) => {
+                if !f.is_empty() && f.iter().all(|f| is_jpeg(f)) {
+                    "jpeg"
+                } else {
+                    "png"
+                }
+            }
+            Frames::Stream(s) => s.encoding,
         }
+    }
+
+    /// The frames, leaving an empty column behind.
+    pub fn into_frames(self) -> Frames {
+        self.frames
+    }
+}
+
+/// Starts with a JPEG's start-of-image marker.
+pub fn is_jpeg(frame: &[u8]) -> bool {
+    frame.starts_with(&[0xFF, 0xD8, 0xFF])
+}
+
+/// One encoded frame, or why it could not be produced.
+pub type FrameResult = Result<Vec<u8>, crate::StoreError>;
+
+/// The encoded frames of one camera, in step order (see [`ImageColumn`]). Either way it turns
+/// into an iterator of [`FrameResult`]s (`IntoIterator`).
+pub enum Frames {
+    /// Every frame in memory.
+    Encoded(Vec<Vec<u8>>),
+    /// Frames produced as they are pulled.
+    Stream(FrameStream),
+}
+
+impl Default for Frames {
+    fn default() -> Self {
+        Frames::Encoded(Vec::new())
+    }
+}
+
+impl From<Vec<Vec<u8>>> for Frames {
+    fn from(v: Vec<Vec<u8>>) -> Self {
+        Frames::Encoded(v)
+    }
+}
+
+impl Frames {
+    /// How many frames there are (a stream's declared count: pulling it checks that it holds
+    /// exactly that many).
+    pub fn len(&self) -> usize {
+        match self {
+            Frames::Encoded(f) => f.len(),
+            Frames::Stream(s) => s.len,
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The frames when they are all in memory.
+    pub fn as_encoded(&self) -> Option<&[Vec<u8>]> {
+        match self {
+            Frames::Encoded(f) => Some(f),
+            Frames::Stream(_) => None,
+        }
+    }
+
+    /// Every frame in memory (pulls a stream to its end; its first error is returned).
+    pub fn collect_encoded(self) -> Result<Vec<Vec<u8>>, crate::StoreError> {
+        match self {
+            Frames::Encoded(f) => Ok(f),
+            Frames::Stream(s) => s.collect(),
+        }
+    }
+}
+
+/// Frames in step order: `for frame in column.frames { let png_or_jpeg = frame?; … }`.
+impl IntoIterator for Frames {
+    type Item = FrameResult;
+    type IntoIter = Box<dyn Iterator<Item = FrameResult> + Send>;
+    fn into_iter(self) -> Self::IntoIter {
+        match self {
+            Frames::Encoded(f) => Box::new(f.into_iter().map(Ok)),
+            Frames::Stream(s) => Box::new(s),
+        }
+    }
+}
+
+impl std::fmt::Debug for Frames {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Frames::Encoded(v) => write!(f, "Frames::Encoded({} frames)", v.len()),
+            Frames::Stream(s) => write!(f, "Frames::Stream({} {} frames)", s.len, s.encoding),
+        }
+    }
+}
+
+/// Two in-memory frame lists compare by content; a stream equals nothing (comparing it would
+/// consume it).
+impl PartialEq for Frames {
+    fn eq(&self, other: &Self) -> bool {
+        match (self, other) {
+            (Frames::Encoded(a), Frames::Encoded(b)) => a == b,
+            _ => false,
+        }
+    }
+}
+
+/// A camera's frames produced on demand: `len` frames of one `encoding` (`png` or `jpeg`),
+/// pulled in order. It checks what it yields: exactly `len` frames (fewer or more is an error
+/// naming the camera), each of the declared encoding; after an error it yields nothing.
+pub struct FrameStream {
+    name: String,
+    len: usize,
+    encoding: &'static str,
+    produced: usize,
+    failed: bool,
+    source: Box<dyn Iterator<Item = FrameResult> + Send>,
+}
+
+impl FrameStream {
+    /// `len` frames of `encoding` (`png` or `jpeg`) of the camera `name` (for errors), from
+    /// `source`.
+    pub fn new(
+        name: &str,
+        len: usize,
+        encoding: &'static str,
+        source: impl Iterator<Item = FrameResult> + Send + 'static,
+    ) -> Self {
+        FrameStream {
+            name: name.to_string(),
+            len,
+            encoding,
+            produced: 0,
+            failed: false,
+            source: Box::new(source),
+        }
+    }
+
+    /// The same stream produced ahead on a thread of its own (started on the first pull), at
+    /// most `depth` frames ahead: the source's work (reading, PNG encoding) overlaps the
+    /// consumer's (compressing, writing). Memory: `depth` frames and what the source holds.
+    pub fn prefetched(mut self, depth: usize) -> Self {
+        let source = std::mem::replace(&mut self.source, Box::new(std::iter::empty()));
+        self.source = Box::new(Prefetch { source: Some(source), rx: None, depth: depth.max(1) });
+        self
+    }
+
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    pub fn encoding(&self) -> &'static str {
+        self.encoding
+    }
+
+    fn fail(&mut self, msg: String) -> Option<FrameResult> {
+        self.failed = true;
+        Some(Err(crate::StoreError::invalid(msg)))
+    }
+}
+
+impl Iterator for FrameStream {
+    type Item = FrameResult;
+    fn next(&mut self) -> Option<FrameResult> {
+        if self.failed {
+            return None;
+        }
+        if self.produced == self.len {
+            return match self.source.next() {
+                None => None,
+                Some(Err(e)) => {
+                    self.failed = true;
+                    Some(Err(e))
+                }
+                Some(Ok(_)) => {
+                    let (name, len) = (self.name.clone(), self.len);
+                    self.fail(format!("camera {name:?} yields more than its {len} frames"))
+                }
+            };
+        }
+        match self.source.next() {
+            None => {
+                let (name, len, got) = (self.name.clone(), self.len, self.produced);
+                self.fail(format!("camera {name:?} ended after {got} of its {len} frames"))
+            }
+            Some(Err(e)) => {
+                self.failed = true;
+                Some(Err(e))
+            }
+            Some(Ok(f)) => {
+                if self.encoding == "jpeg" && !is_jpeg(&f) {
+                    let (name, t) = (self.name.clone(), self.produced);
+                    return self.fail(format!("camera {name:?}: frame {t} is not a JPEG image"));
+                }
+                self.produced += 1;
+                Some(Ok(f))
+            }
+        }
+    }
+}
+
+/// A source run on its own thread, `depth` frames ahead (see [`FrameStream::prefetched`]). The
+/// thread stops when the source ends or fails, or when this end is dropped.
+struct Prefetch {
+    source: Option<Box<dyn Iterator<Item = FrameResult> + Send>>,
+    rx: Option<std::sync::mpsc::Receiver<FrameResult>>,
+    depth: usize,
+}
+
+impl Iterator for Prefetch {
+    type Item = FrameResult;
+    fn next(&mut self) -> Option<FrameResult> {
+        if let Some(source) = self.source.take() {
+            let (tx, rx) = std::sync::mpsc::sync_channel(self.depth);
+            let spawned = std::thread::Builder::new().name("ufops-frames".into()).spawn(move || {
+                for f in source {
+                    let stop = f.is_err();
+                    // The consumer is gone: nothing left to do.
+                    if tx.send(f).is_err() || stop {
+                        break;
+                    }
+                }
+            });
+            if let Err(e) = spawned {
+                return Some(Err(crate::StoreError::invalid(format!(
+                    "cannot start a frame reader thread: {e}"
+                ))));
+            }
+            self.rx = Some(rx);
+        }
+        self.rx.as_ref()?.recv().ok()
     }
 }
 
@@ -118,8 +363,9 @@ pub struct MediaFile {
     pub size_bytes: u64,
 }
 
-/// One episode as produced by an ingester.
-#[derive(Debug, Clone, PartialEq)]
+/// One episode as produced by an ingester. Not `Clone`: its cameras may be streams
+/// ([`Frames::Stream`]), which only one consumer can pull.
+#[derive(Debug, PartialEq)]
 pub struct EpisodeInput {
     /// Name of the episode inside its source (`demo_3`, `episode_000002`, `episode 1`).
     pub source_name: String,

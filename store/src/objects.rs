@@ -232,6 +232,26 @@ impl Objects {
         .await
     }
 
+    /// Writes a new object from an open local file (a steps file built in a temporary file) of
+    /// `len` bytes, read from its current position: one put (if absent) when it is small,
+    /// streamed in parts otherwise, so memory stays a few parts whatever its size.
+    pub async fn put_new_file(&self, path: &str, file: std::fs::File, len: u64) -> Result<(), StoreError> {
+        let io = |e: std::io::Error| {
+            StoreError::invalid(format!("cannot read back a temporary file for {path}: {e}"))
+        };
+        let mut f = tokio::fs::File::from_std(file);
+        if len <= FILE_PART_BYTES as u64 {
+            let mut data = Vec::with_capacity(len as usize);
+            f.read_to_end(&mut data).await.map_err(io)?;
+            return Ok(self.put_new(path, Bytes::from(data)).await?);
+        }
+        let copied = self.upload_parts(path, &mut f, io, |_| Ok(())).await?;
+        if copied != len {
+            return Err(StoreError::invalid(format!("{path}: copied {copied} of {len} bytes")));
+        }
+        Ok(())
+    }
+
     /// Copies a local file into the object `path` (replacing it), streamed in parts: memory is a
     /// few parts whatever the file's size. Returns the number of bytes copied.
     pub async fn put_file(&self, path: &str, local: &std::path::Path) -> Result<u64, StoreError> {

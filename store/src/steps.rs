@@ -3,10 +3,11 @@
 //! row so the files stand on their own. Episodes follow each other in row groups of up to 1 Mi
 //! rows / 64 MB; the catalog records each one's `(row_group, row_offset, row_count)`.
 
-use crate::{EpisodeInput, ExtraColumn, Label, StoreError};
+use crate::spill::{SpillColumn, SpilledChunk};
+use crate::{EpisodeInput, ExtraColumn, Frames, Label, StoreError};
 use arrow::array::{
-    Array, ArrayRef, BinaryArray, BinaryBuilder, BooleanArray, FixedSizeListArray, Float32Array,
-    Float64Array, Int32Array, RecordBatch, StringArray,
+    Array, ArrayRef, BinaryArray, BooleanArray, FixedSizeListArray, Float32Array, Float64Array, Int32Array,
+    RecordBatch, StringArray,
 };
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
 use bytes::Bytes;
@@ -19,7 +20,7 @@ use parquet::arrow::arrow_writer::{
 use parquet::arrow::{add_encoded_arrow_schema_to_metadata, ArrowSchemaConverter, ArrowWriter};
 use parquet::basic::{Compression, ConvertedType, Type as PhysicalType, ZstdLevel};
 use parquet::file::metadata::PageIndexPolicy;
-use parquet::file::properties::{EnabledStatistics, WriterProperties};
+use parquet::file::properties::{EnabledStatistics, WriterProperties, WriterPropertiesPtr};
 use parquet::file::writer::SerializedFileWriter;
 use parquet::schema::types::SchemaDescriptor;
 use std::collections::HashMap;
@@ -160,8 +161,8 @@ pub fn validate(ep: &EpisodeInput) -> Result<(), StoreError> {
         }
     }
     for im in &ep.images {
-        if im.png_frames.len() != n {
-            return bad(format!("image {:?} has {} frames for {n} steps", im.name, im.png_frames.len()));
+        if im.frames.len() != n {
+            return bad(format!("image {:?} has {} frames for {n} steps", im.name, im.frames.len()));
         }
     }
     for m in &ep.media {
@@ -219,28 +220,55 @@ fn fsl(dim: usize, values: Vec<f32>) -> Result<ArrayRef, StoreError> {
     Ok(Arc::new(FixedSizeListArray::try_new(f32_item(), dim as i32, child, None)?))
 }
 
-/// Builds the record batch of one episode (call [`validate`] first).
+/// Builds the record batch of one episode (call [`validate`] first); its cameras' frames are
+/// pulled into memory.
 pub fn episode_batch(
-    ep: &EpisodeInput,
+    ep: EpisodeInput,
     meta: &EpisodeMeta<'_>,
     media_paths: &HashMap<String, String>,
 ) -> Result<RecordBatch, StoreError> {
     let n = ep.len();
-    let schema = schema_for(ep);
+    let schema = schema_for(&ep);
     let mut cols: Vec<ArrayRef> = vec![Arc::new(StringArray::from(vec![meta.episode_id; n]))];
-    cols.extend(episode_columns(ep.clone(), meta.policy, meta.checkpoint, media_paths)?);
+    for c in episode_columns(ep, meta.policy, meta.checkpoint, media_paths)? {
+        cols.push(match c {
+            StepColumn::Values(a) => a,
+            StepColumn::Frames(f) => {
+                let frames = f.collect_encoded()?;
+                Arc::new(BinaryArray::from_iter_values(frames.iter()))
+            }
+        });
+    }
     Ok(RecordBatch::try_new(schema, cols)?)
+}
+
+/// One column of an episode as [`StepsFileWriter::write_episode`] takes it: values in memory, or
+/// a camera's frames, which the writer pulls a page at a time (a stream's frames are never all
+/// in memory).
+pub enum StepColumn {
+    Values(ArrayRef),
+    Frames(Frames),
+}
+
+impl StepColumn {
+    fn rows(&self) -> usize {
+        match self {
+            StepColumn::Values(a) => a.len(),
+            StepColumn::Frames(f) => f.len(),
+        }
+    }
 }
 
 /// The columns of one episode after `episode_id` (which [`StepsFileWriter`] adds itself, as the
 /// id may only be known once the source's hash is), in [`schema_for`] order. Consumes the episode
-/// so its vectors become Arrow buffers without a copy. Call [`validate`] first.
+/// so its vectors become Arrow buffers without a copy and its cameras' frames are handed on
+/// unread. Call [`validate`] first.
 pub fn episode_columns(
     ep: EpisodeInput,
     policy: &str,
     checkpoint: &str,
     media_paths: &HashMap<String, String>,
-) -> Result<Vec<ArrayRef>, StoreError> {
+) -> Result<Vec<StepColumn>, StoreError> {
     episode_columns_with_extras(ep, Vec::new(), policy, checkpoint, media_paths)
 }
 
@@ -252,7 +280,7 @@ pub fn episode_columns_with_extras(
     policy: &str,
     checkpoint: &str,
     media_paths: &HashMap<String, String>,
-) -> Result<Vec<ArrayRef>, StoreError> {
+) -> Result<Vec<StepColumn>, StoreError> {
     let n = ep.len();
     let label = ep.label.as_bool();
     let mut cols: Vec<ArrayRef> = Vec::with_capacity(12 + ep.observations.len());
@@ -272,14 +300,12 @@ pub fn episode_columns_with_extras(
     if let Some(c) = ep.action_chunk {
         cols.push(fsl(c.horizon * c.action_dim, c.values)?);
     }
-    for im in &ep.images {
-        let total: usize = im.png_frames.iter().map(|f| f.len()).sum();
-        let mut b = BinaryBuilder::with_capacity(n, total);
-        for f in &im.png_frames {
-            b.append_value(f);
-        }
-        cols.push(Arc::new(b.finish()));
+    let mut frames = Vec::with_capacity(ep.images.len());
+    for im in ep.images {
+        frames.push(im.frames);
     }
+    // The image columns' position among the others (schema order).
+    let image_at = cols.len();
     for m in ep.media {
         let path = media_paths.get(&m.sha256).ok_or_else(|| {
             StoreError::invalid(format!(
@@ -296,7 +322,12 @@ pub fn episode_columns_with_extras(
     cols.push(Arc::new(StringArray::from(vec![ep.task.as_deref(); n])));
     cols.push(Arc::new(BooleanArray::from(vec![label; n])));
     cols.push(Arc::new(StringArray::from(vec![ep.label_source.as_str(); n])));
-    Ok(cols)
+    let mut out: Vec<StepColumn> = Vec::with_capacity(cols.len() + frames.len());
+    let mut cols = cols.into_iter();
+    out.extend(cols.by_ref().take(image_at).map(StepColumn::Values));
+    out.extend(frames.into_iter().map(StepColumn::Frames));
+    out.extend(cols.map(StepColumn::Values));
+    Ok(out)
 }
 
 /// zstd level of every file the store writes (level 1, like pyarrow's default).
@@ -388,29 +419,52 @@ pub struct RowRange {
 }
 
 /// The row group being filled: one column writer per leaf column, the episode id column
-/// (leaf 0) written last, once the episodes' ids are known.
+/// (leaf 0) written last, once the episodes' ids are known. Image leaves are written by their
+/// [`SpillColumn`] (pages to a temporary file), their in-memory writer left unused.
 struct OpenRowGroup {
     writers: Vec<ArrowColumnWriter>,
+    /// Per leaf: the spilled writer of an image column.
+    spills: Vec<Option<SpillColumn>>,
     /// `(source index, rows)` of each episode, in order.
     episodes: Vec<(u32, usize)>,
     rows: usize,
 }
 
+impl OpenRowGroup {
+    fn estimated_bytes(&self) -> usize {
+        self.writers.iter().map(|w| w.get_estimated_total_bytes()).sum::<usize>()
+            + self.spills.iter().flatten().map(SpillColumn::bytes_written).sum::<usize>()
+    }
+}
+
+/// An encoded column chunk: in memory, or spilled to a temporary file (image columns).
+enum Chunk {
+    Memory(ArrowColumnChunk),
+    Spilled(SpilledChunk),
+}
+
 /// A row group whose data columns are encoded and whose id column waits for the id prefix.
 struct ClosedRowGroup {
     id_writer: ArrowColumnWriter,
-    chunks: Vec<ArrowColumnChunk>,
+    chunks: Vec<Chunk>,
     episodes: Vec<(u32, usize)>,
 }
 
-/// A Parquet steps file being filled in memory. Several episodes share a row group (cut between
-/// episodes at [`ROW_GROUP_MAX_ROWS`] / [`ROW_GROUP_MAX_BYTES`]); [`Self::write_episode`] says
-/// where each one landed. The `episode_id` column (`<prefix>-<index:05>`) is written when a row
-/// group closes; until the prefix (from the source's sha256) is known, closed row groups wait
-/// in memory, encoded, and are appended to the file by [`Self::set_id_prefix`].
+/// A Parquet steps file being filled in a temporary file. Several episodes share a row group
+/// (cut between episodes at [`ROW_GROUP_MAX_ROWS`] / [`ROW_GROUP_MAX_BYTES`]);
+/// [`Self::write_episode`] says where each one landed. The `episode_id` column
+/// (`<prefix>-<index:05>`) is written when a row group closes; until the prefix (from the
+/// source's sha256) is known, closed row groups wait, encoded (in memory, image columns in
+/// their temporary files), and are appended to the file by [`Self::set_id_prefix`]. What stays
+/// in memory is the open row group's non-image columns and a page per camera: never an
+/// episode's frames.
 pub struct StepsFileWriter {
-    file: SerializedFileWriter<Vec<u8>>,
+    file: SerializedFileWriter<std::fs::File>,
     factory: ArrowRowGroupWriterFactory,
+    props: WriterPropertiesPtr,
+    parquet: SchemaDescriptor,
+    /// Per leaf: whether it is an image column's (written by a [`SpillColumn`]).
+    image_leaf: Vec<bool>,
     pub schema: SchemaRef,
     open: Option<OpenRowGroup>,
     waiting: Vec<ClosedRowGroup>,
@@ -426,15 +480,23 @@ impl StepsFileWriter {
         let parquet = ArrowSchemaConverter::new().convert(&schema)?;
         let mut props = steps_writer_properties(&parquet);
         add_encoded_arrow_schema_to_metadata(&schema, &mut props);
-        let file = SerializedFileWriter::new(
-            Vec::with_capacity(1 << 20),
-            parquet.root_schema_ptr(),
-            Arc::new(props),
-        )?;
+        let props = Arc::new(props);
+        let tmp = tempfile::tempfile()
+            .map_err(|e| StoreError::invalid(format!("cannot create a temporary steps file: {e}")))?;
+        let file = SerializedFileWriter::new(tmp, parquet.root_schema_ptr(), props.clone())?;
         let factory = ArrowRowGroupWriterFactory::new(&file, schema.clone());
+        let image_leaf = (0..parquet.num_columns())
+            .map(|leaf| {
+                let f = schema.field(parquet.get_column_root_idx(leaf));
+                f.name().starts_with(IMAGE_PREFIX) && f.data_type() == &DataType::Binary
+            })
+            .collect();
         Ok(StepsFileWriter {
             file,
             factory,
+            props,
+            parquet,
+            image_leaf,
             schema,
             open: None,
             waiting: Vec::new(),
@@ -470,9 +532,12 @@ impl StepsFileWriter {
     }
 
     /// Appends one episode: `columns` are its columns after `episode_id` (see
-    /// [`episode_columns`]), `index` its source index. Returns where its rows are.
-    pub fn write_episode(&mut self, index: u32, columns: &[ArrayRef]) -> Result<RowRange, StoreError> {
-        let fields = self.schema.fields();
+    /// [`episode_columns`]), `index` its source index. Returns where its rows are. A camera's
+    /// frames are pulled a page (up to [`PAGE_MAX_BYTES`]) at a time and written to its
+    /// temporary file; a frame source that fails, or holds more or fewer frames than the
+    /// episode's steps, fails the episode (the file is then unusable: drop the writer).
+    pub fn write_episode(&mut self, index: u32, columns: Vec<StepColumn>) -> Result<RowRange, StoreError> {
+        let fields = self.schema.fields().clone();
         if columns.len() + 1 != fields.len() {
             return Err(StoreError::invalid(format!(
                 "episode has {} columns, the steps file has {}",
@@ -480,10 +545,17 @@ impl StepsFileWriter {
                 fields.len()
             )));
         }
-        let n = columns.first().map(|c| c.len()).unwrap_or(0);
+        let n = columns.first().map(StepColumn::rows).unwrap_or(0);
         if self.open.is_none() {
             let writers = self.factory.create_column_writers(self.row_groups)?;
-            self.open = Some(OpenRowGroup { writers, episodes: Vec::new(), rows: 0 });
+            let mut spills = Vec::with_capacity(writers.len());
+            for (leaf, image) in self.image_leaf.iter().enumerate() {
+                spills.push(match image {
+                    true => Some(SpillColumn::new(self.parquet.column(leaf), self.props.clone())?),
+                    false => None,
+                });
+            }
+            self.open = Some(OpenRowGroup { writers, spills, episodes: Vec::new(), rows: 0 });
             self.row_groups += 1;
         }
         let rg = self.open.as_mut().expect("row group just opened");
@@ -491,6 +563,17 @@ impl StepsFileWriter {
         // fields to leaves in order anyway. Each `write` is one page (see steps_writer_properties).
         let mut leaf = 1;
         for (field, col) in fields.iter().skip(1).zip(columns) {
+            let col = match col {
+                StepColumn::Values(a) => a,
+                StepColumn::Frames(frames) => {
+                    let spill = rg.spills.get_mut(leaf).and_then(Option::as_mut).ok_or_else(|| {
+                        StoreError::invalid(format!("column {:?} is not an image column", field.name()))
+                    })?;
+                    write_frames(spill, field.name(), frames, n)?;
+                    leaf += 1;
+                    continue;
+                }
+            };
             if col.len() != n || col.data_type() != field.data_type() {
                 return Err(StoreError::invalid(format!(
                     "column {:?}: {} rows of {}, expected {n} of {}",
@@ -518,9 +601,7 @@ impl StepsFileWriter {
         rg.episodes.push((index, n));
         rg.rows += n;
         self.rows += n;
-        let full = rg.rows >= ROW_GROUP_MAX_ROWS
-            || rg.writers.iter().map(|w| w.get_estimated_total_bytes()).sum::<usize>()
-                >= self.max_row_group_bytes;
+        let full = rg.rows >= ROW_GROUP_MAX_ROWS || rg.estimated_bytes() >= self.max_row_group_bytes;
         if full {
             self.close_row_group()?;
         }
@@ -529,15 +610,27 @@ impl StepsFileWriter {
 
     fn close_row_group(&mut self) -> Result<(), StoreError> {
         let Some(rg) = self.open.take() else { return Ok(()) };
-        let mut writers = rg.writers.into_iter();
-        let id_writer = writers.next().ok_or_else(|| StoreError::invalid("steps schema has no columns"))?;
-        let chunks = writers.map(|w| w.close()).collect::<Result<Vec<_>, _>>()?;
+        let mut writers = rg.writers.into_iter().zip(rg.spills);
+        let (id_writer, _) =
+            writers.next().ok_or_else(|| StoreError::invalid("steps schema has no columns"))?;
+        let chunks = writers
+            .map(|(w, spill)| match spill {
+                Some(s) => s.close().map(Chunk::Spilled),
+                None => Ok(Chunk::Memory(w.close()?)),
+            })
+            .collect::<Result<Vec<_>, StoreError>>()?;
         let closed = ClosedRowGroup { id_writer, chunks, episodes: rg.episodes };
         if self.id_prefix.is_some() && self.waiting.is_empty() {
             self.append_row_group(closed)
         } else {
-            self.waiting_bytes +=
-                closed.chunks.iter().map(|c| c.close().bytes_written as usize).sum::<usize>();
+            self.waiting_bytes += closed
+                .chunks
+                .iter()
+                .map(|c| match c {
+                    Chunk::Memory(c) => c.close().bytes_written as usize,
+                    Chunk::Spilled(c) => c.bytes(),
+                })
+                .sum::<usize>();
             self.waiting.push(closed);
             Ok(())
         }
@@ -558,7 +651,10 @@ impl StepsFileWriter {
         let mut w = self.file.next_row_group()?;
         id_writer.close()?.append_to_row_group(&mut w)?;
         for c in rg.chunks {
-            c.append_to_row_group(&mut w)?;
+            match c {
+                Chunk::Memory(c) => c.append_to_row_group(&mut w)?,
+                Chunk::Spilled(c) => c.append_to_row_group(&mut w)?,
+            }
         }
         w.close()?;
         Ok(())
@@ -568,20 +664,52 @@ impl StepsFileWriter {
     pub fn bytes_written(&self) -> usize {
         self.file.bytes_written()
             + self.waiting_bytes
-            + self
-                .open
-                .as_ref()
-                .map_or(0, |rg| rg.writers.iter().map(|w| w.get_estimated_total_bytes()).sum())
+            + self.open.as_ref().map_or(0, OpenRowGroup::estimated_bytes)
     }
 
-    /// Closes the file (the id prefix must be known) and returns its bytes.
-    pub fn finish(mut self) -> Result<Vec<u8>, StoreError> {
+    /// Closes the file (the id prefix must be known) and returns it (a temporary file, read
+    /// from its start) and its size.
+    pub fn finish(mut self) -> Result<(std::fs::File, u64), StoreError> {
+        use std::io::{Seek, SeekFrom};
         self.close_row_group()?;
         if !self.waiting.is_empty() {
             return Err(StoreError::invalid("steps file finished before its episode ids were known"));
         }
-        Ok(self.file.into_inner()?)
+        let mut f = self.file.into_inner()?;
+        let size = f
+            .seek(SeekFrom::End(0))
+            .and_then(|n| f.seek(SeekFrom::Start(0)).map(|_| n))
+            .map_err(|e| StoreError::invalid(format!("cannot read back a temporary steps file: {e}")))?;
+        Ok((f, size))
     }
+}
+
+/// Pulls a camera's `n` frames and writes them as pages of up to [`PAGE_MAX_BYTES`] (at least
+/// one frame each): memory is a page, whatever the episode's length.
+fn write_frames(spill: &mut SpillColumn, column: &str, frames: Frames, n: usize) -> Result<(), StoreError> {
+    let mut page: Vec<Vec<u8>> = Vec::new();
+    let mut page_bytes = 0usize;
+    let mut got = 0usize;
+    for f in frames {
+        let f = f.map_err(|e| StoreError::invalid(format!("column {column:?}: {e}")))?;
+        got += 1;
+        if got > n {
+            return Err(StoreError::invalid(format!("column {column:?} has more than {n} frames")));
+        }
+        page_bytes += f.len();
+        page.push(f);
+        if page_bytes >= PAGE_MAX_BYTES {
+            spill.write_page(std::mem::take(&mut page))?;
+            page_bytes = 0;
+        }
+    }
+    if got != n {
+        return Err(StoreError::invalid(format!("column {column:?} has {got} frames for {n} steps")));
+    }
+    if !page.is_empty() {
+        spill.write_page(page)?;
+    }
+    Ok(())
 }
 
 /// An episode's id: `<source sha256[:12]>-<index:05>`.

@@ -183,11 +183,9 @@ pub fn square_rollout(i: u32) -> crate::EpisodeInput {
             .collect(),
     };
     let success = !i.is_multiple_of(3);
+    let label = if success { crate::Label::Success } else { crate::Label::Failure };
     crate::EpisodeInput {
-        source_name: format!("demo_{i}"),
-        source_index: i,
         task: Some("square".into()),
-        label: if success { crate::Label::Success } else { crate::Label::Failure },
         label_source: "bench".into(),
         tags: vec![],
         metadata: serde_json::json!({}),
@@ -195,6 +193,32 @@ pub fn square_rollout(i: u32) -> crate::EpisodeInput {
         observations,
         action,
         reward: (0..steps).map(|t| if success && t + 1 == steps { 1.0 } else { 0.0 }).collect(),
+        ..episode(i, steps, label)
+    }
+}
+
+/// The test episode every crate's tests build on: `demo_<i>` of task `reach`, `steps` steps at
+/// 10 Hz, a 2-D `pos` observation whose values say which episode and step they are
+/// (`k + 1000·i`), a constant 3-D action, no reward, done on the last step, tag `eval` and
+/// metadata `{"i": i}`. A test that needs other columns overrides them with struct update
+/// syntax: `EpisodeInput { observations: …, ..test_support::episode(i, steps, label) }`.
+pub fn episode(i: u32, steps: usize, label: crate::Label) -> crate::EpisodeInput {
+    crate::EpisodeInput {
+        source_name: format!("demo_{i}"),
+        source_index: i,
+        task: Some("reach".into()),
+        label,
+        label_source: "test".into(),
+        tags: vec!["eval".into()],
+        metadata: serde_json::json!({ "i": i }),
+        timestamps: (0..steps).map(|t| t as f64 / 10.0).collect(),
+        observations: vec![crate::VectorColumn {
+            name: "pos".into(),
+            dim: 2,
+            values: (0..steps * 2).map(|k| (k as f32) + i as f32 * 1000.0).collect(),
+        }],
+        action: crate::VectorColumn { name: "action".into(), dim: 3, values: vec![0.5; steps * 3] },
+        reward: vec![0.0; steps],
         done: (0..steps).map(|t| t + 1 == steps).collect(),
         action_chunk: None,
         images: vec![],
@@ -203,26 +227,28 @@ pub fn square_rollout(i: u32) -> crate::EpisodeInput {
     }
 }
 
-/// A two-step episode (`demo_<i>`, one-dimensional observation and action) for catalog tests,
-/// where only the episode's identity, task and label matter.
+/// The source of test episodes named `tag` (path `/tmp/<tag>`, hashed by its name, format `test`).
+pub fn source(tag: &str) -> crate::SourceInput {
+    crate::SourceInput {
+        path: format!("/tmp/{tag}"),
+        sha256: crate::sha256_hex(tag.as_bytes()),
+        format: "test".into(),
+        size_bytes: 1,
+        metadata: serde_json::json!({}),
+    }
+}
+
+/// A two-step [`episode`] (one-dimensional observation and action) for catalog tests, where only
+/// the episode's identity, task and label matter.
 pub fn two_step_episode(i: u32, task: Option<&str>, label: crate::Label) -> crate::EpisodeInput {
     crate::EpisodeInput {
-        source_name: format!("demo_{i}"),
-        source_index: i,
         task: task.map(str::to_string),
-        label,
-        label_source: "test".into(),
         tags: vec![],
         metadata: serde_json::json!({}),
-        timestamps: vec![0.0, 0.1],
         observations: vec![crate::VectorColumn { name: "pos".into(), dim: 1, values: vec![0.0, 1.0] }],
         action: crate::VectorColumn { name: "action".into(), dim: 1, values: vec![0.0, 1.0] },
         reward: vec![0.0, 1.0],
-        done: vec![false, true],
-        action_chunk: None,
-        images: vec![],
-        media: vec![],
-        flags: Default::default(),
+        ..episode(i, 2, label)
     }
 }
 

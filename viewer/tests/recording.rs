@@ -37,10 +37,7 @@ fn episode(i: u32, steps: usize, label: Label, o: &Opts) -> EpisodeInput {
     }
     EpisodeInput {
         source_name: format!("ep_{i}"),
-        source_index: i,
         task: Some("nav".into()),
-        label,
-        label_source: "test".into(),
         tags: vec![],
         metadata: serde_json::json!({}),
         timestamps: (0..steps).map(|t| t as f64 * 0.05).collect(),
@@ -57,10 +54,12 @@ fn episode(i: u32, steps: usize, label: Label, o: &Opts) -> EpisodeInput {
         reward: (0..steps)
             .map(|t| if label == Label::Success && t + 1 == steps { 1.0 } else { 0.0 })
             .collect(),
-        done: (0..steps).map(|t| t + 1 == steps).collect(),
-        action_chunk: None,
         images: if o.images {
-            vec![ImageColumn { name: "top".into(), shape: [2, 2, 3], png_frames: vec![PNG.to_vec(); steps] }]
+            vec![ImageColumn {
+                name: "top".into(),
+                shape: [2, 2, 3],
+                frames: vec![PNG.to_vec(); steps].into(),
+            }]
         } else {
             vec![]
         },
@@ -72,7 +71,7 @@ fn episode(i: u32, steps: usize, label: Label, o: &Opts) -> EpisodeInput {
             }],
             None => vec![],
         },
-        flags: Default::default(),
+        ..test_support::episode(i, steps, label)
     }
 }
 
@@ -425,9 +424,9 @@ async fn two_image_cameras_every_step_with_their_media_type() {
             ImageColumn {
                 name: "agentview_image".into(),
                 shape: [2, 2, 3],
-                png_frames: vec![PNG.to_vec(); n],
+                frames: vec![PNG.to_vec(); n].into(),
             },
-            ImageColumn { name: "cam_high".into(), shape: [2, 2, 3], png_frames: vec![JPEG.to_vec(); n] },
+            ImageColumn { name: "cam_high".into(), shape: [2, 2, 3], frames: vec![JPEG.to_vec(); n].into() },
         ];
         w.add_episode(ep).await.unwrap();
     }
