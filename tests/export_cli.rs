@@ -262,7 +262,7 @@ fn export_curated_by_verifier_score_keeps_what_the_scorer_keeps() {
     assert!(text(&out.stderr).contains("min <= max"), "{}", text(&out.stderr));
 }
 
-/// A verdict's failure cause and time spans (issue 17) travel with the episode: the LeRobot
+/// A verdict's failure cause and time spans travel with the episode: the LeRobot
 /// export's episode table has them in `ufops/failure_cause` and `ufops/label_spans` (JSON), the
 /// robomimic export's demos as attributes (read with h5py), for exactly the episodes whose frozen
 /// label carries them.

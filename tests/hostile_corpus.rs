@@ -1,4 +1,4 @@
-//! The hostile-input corpus (issue 15, Must show 2): every source written by
+//! The hostile-input corpus: every source written by
 //! `ingest::hostile::write_corpus` is given to the real `ufops ingest` as a child process, which
 //! must refuse it with the expected error and a non-zero exit, without a panic, with its peak
 //! resident memory under [`MAX_RSS_BYTES`], and leave the store as it was (same versions, same

@@ -1,4 +1,4 @@
-//! The API contract (issue 18): the committed `api/openapi.json` is the document `ufops serve`
+//! The API contract: the committed `api/openapi.json` is the document `ufops serve`
 //! serves; schemathesis (all checks, every phase including the stateful one) finds no response
 //! that breaks it on a server with real data (the Lift rollouts and a classifier trained on
 //! them); and pydantic models generated from it parse every response of the end-to-end flow.

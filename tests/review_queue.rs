@@ -1,4 +1,4 @@
-//! The verifier-ordered review queue (issue 17, Must show 2) through `ufops serve` and its worker:
+//! The verifier-ordered review queue through `ufops serve` and its worker:
 //! a classifier trained on real Lift rollouts scores the episodes in a `score` job, and
 //! `GET /v1/episodes?order=uncertain` lists them nearest 0.5 first, a keyset page at a time;
 //! the per-step series is served for the timeline; hostile queries are 4xx.

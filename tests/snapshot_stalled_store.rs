@@ -1,4 +1,4 @@
-//! A label snapshot writes its labels file before it takes the version lock (issue 15): on
+//! A label snapshot writes its labels file before it takes the version lock: on
 //! SQLite that lock stops every label write, so an object store that stalls (S3 under load, a
 //! network hiccup) must not stop labeling. Here SeaweedFS is frozen (SIGSTOP) while a snapshot
 //! uploads: label writes go on; once it resumes, the snapshot commits with the labels as of its

@@ -1,4 +1,4 @@
-//! Human takeovers (issue 27, item 6 and Must show 5), end to end through the binary: a LeRobot
+//! Human takeovers, end to end through the binary: a LeRobot
 //! v3.0 dataset laid out as `lerobot-rollout --strategy dagger` records one (the bool feature
 //! `intervention`, shape [1], true on the frames a human drove; generated here, in a temp dir) is
 //! ingested; the flags survive ingest → export → ingest → export frame for frame; the catalog,

@@ -1,4 +1,4 @@
-//! `GET /v1/scoreboard` at 100,000 episodes (issue 19, must show 4): fills a catalog through SQL
+//! `GET /v1/scoreboard` at 100,000 episodes: fills a catalog through SQL
 //! with one policy's evaluation — 100 sources of 1000 episodes, 5 checkpoints, 4 tasks, 10 runs
 //! (a base run and nine steered ones), 90 % labeled, 60 % of those success — then, over loopback
 //! HTTP against a real server (`api::spawn`), measures p50/p99 of the scoreboard as JSON and as

@@ -1,7 +1,6 @@
 //! Connections: the accept loop of `ufops serve`.
 //!
-//! Our own loop instead of `axum::serve`, because the server must bound what one client can hold
-//! (issue 15, "request and body timeouts"):
+//! Our own loop instead of `axum::serve`, because the server must bound what one client can hold:
 //! - a request's headers must arrive within `header_read_timeout`, counted from when the
 //!   connection waits for them: a slowloris client trickling headers is cut off, and an idle
 //!   keep-alive connection is closed after the same time;

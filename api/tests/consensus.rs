@@ -1,4 +1,4 @@
-//! Several labelers over real HTTP, on SQLite and Postgres (issue 17): campaign settings and
+//! Several labelers over real HTTP, on SQLite and Postgres: campaign settings and
 //! failure causes (admin only), votes with causes and spans, blind mode, agreement moving the
 //! label through the ordinary label events, a dispute settled by an admin, κ and α against an
 //! independent computation, hostile input answered with 4xx.

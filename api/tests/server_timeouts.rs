@@ -1,4 +1,4 @@
-//! What one client can hold (issue 15, "request and body timeouts", "rate limits"): a request
+//! What one client can hold: a request
 //! whose headers trickle in, an idle keep-alive connection, a body that stops arriving and a
 //! download nobody reads are all cut off; a token's requests per second and the checks of
 //! unknown tokens per peer address are bounded (429 with Retry-After), without touching others.

@@ -1,4 +1,4 @@
-//! Issue 17, Must show 3: a simulated labeling campaign on the demo's rollouts. The base diffusion
+//! A simulated labeling campaign on the demo's rollouts. The base diffusion
 //! policy of `ufops demo` is trained (quick scale) and rolled out; a pool of rollouts is labeled
 //! 50 at a time in verifier-uncertainty order (nearest 0.5 first, as the review queue serves) or
 //! in random order, a classifier (the real trainer, the demo's recipe) is retrained after each

@@ -1,4 +1,4 @@
-//! A simulated labeling campaign (issue 17, Must show 3): a pool of the demo's rollouts whose
+//! A simulated labeling campaign: a pool of the demo's rollouts whose
 //! labels are "asked for" 50 at a time, in verifier-uncertainty order (the episodes the current
 //! classifier scores nearest 0.5 first, what `GET /v1/episodes?order=uncertain` serves) or in
 //! random order; after each batch the classifier is retrained on the labels so far and its AUROC

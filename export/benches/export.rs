@@ -1,4 +1,4 @@
-//! Export of 5,000 rollouts (issue 16, Must show 5): `export::lerobot::export` and
+//! Export of 5,000 rollouts: `export::lerobot::export` and
 //! `export::robomimic::export` against the Python path a user would write with pyarrow / h5py
 //! (`bench/reference/py_export_store.py`), in the same run, each in its own process (wall time
 //! and peak RSS), medians of `EXPORT_BENCH_RUNS` (default 3).

@@ -1,4 +1,4 @@
-//! The `score` job (issue 17, the review queue): scores a policy's (or one checkpoint's) current
+//! The `score` job: scores a policy's (or one checkpoint's) current
 //! episodes with one verifier artifact and stores each episode's mean step score and per-step
 //! series in the catalog (`Store::put_episode_scores`), so the labeling queue is ordered and the
 //! timeline plotted from stored scores, never by a forward pass per page view. The scoring is

@@ -1,6 +1,5 @@
-//! The robomimic export read by h5py along robomimic's documented layout (issue 16, Must show 2,
-//! robomimic part): demos, states, obs, next_obs, actions, rewards, dones, attributes and the
-//! split's masks compared with the source file (tests/python/check_robomimic_export.py).
+//! The robomimic export read by h5py along robomimic's documented layout: demos, states, obs,
+//! next_obs, actions, rewards, dones, attributes and the split's masks compared with the source file (tests/python/check_robomimic_export.py).
 
 use std::path::PathBuf;
 

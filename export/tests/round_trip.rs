@@ -1,4 +1,4 @@
-//! Round trips (issue 16, Must show 1): every shared robomimic and LeRobot fixture is ingested,
+//! Round trips: every shared robomimic and LeRobot fixture is ingested,
 //! exported (LeRobot v3.0, robomimic HDF5) and the export ingested into a second store; both
 //! stores hold the same episodes: the same labels, tasks and lengths, every step column equal
 //! bit for bit (floats compared as bits), the same media objects (content-addressed by sha256)

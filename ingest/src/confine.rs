@@ -1,4 +1,4 @@
-//! Paths named by a source's own metadata stay inside the source (issue 15).
+//! Paths named by a source's own metadata stay inside the source.
 //!
 //! A LeRobot dataset's `meta/info.json` holds path templates (`data_path`, `video_path`) filled
 //! with feature keys and chunk/file indices from its episode metadata: all of it is untrusted. A

@@ -1,4 +1,4 @@
-//! The readers refuse every source of the hostile corpus (`ingest::hostile`, issue 15) with the
+//! The readers refuse every source of the hostile corpus (`ingest::hostile`) with the
 //! expected error, and no single allocation comes near what the sources declare (a counting global
 //! allocator records the largest request). The same corpus through the `ufops` binary, with the
 //! child's peak RSS and the store checked, is `tests/hostile_corpus.rs` at the workspace root.

@@ -89,7 +89,7 @@ fn no_actions_fixture_is_reproducible() {
     assert!(committed == made, "{} differs from what drop_actions writes", path.display());
 }
 
-/// Must show 4: all five labeled episodes come out, 1 and 3 without actions.
+/// All five labeled episodes come out, 1 and 3 without actions.
 #[test]
 fn labeled_episodes_without_actions_are_read() {
     let mut s = CollectSink::default();

@@ -1,4 +1,4 @@
-//! The store's read path at scale (issue 12, must-show 1 and 2):
+//! The store's read path at scale:
 //!
 //! * 5,000 and 20,000 generated Square-like rollouts (obs 23 floats in 4 keys, action 7, 150-400
 //!   steps) written through the store's own writer into a local store under target/;
@@ -127,7 +127,7 @@ async fn sequential_read(store: &Store, files: &[(String, u64)], decode: bool) -
     rows
 }
 
-/// The read path before issue 12: every episode fetched its whole data file.
+/// The read path before range reads: every episode fetched its whole data file.
 async fn old_read_steps(store: &Store, loc: &EpisodeLocation) -> RecordBatch {
     let data = store.get_object(&loc.data_file).await.unwrap();
     steps::read_rows(data, loc.row_group, Some((loc.row_offset, loc.row_count))).unwrap()

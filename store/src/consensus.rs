@@ -1,4 +1,4 @@
-//! Several labelers per episode (issue 17), on top of the label event log.
+//! Several labelers per episode, on top of the label event log.
 //!
 //! A campaign is a policy's setting: how many independent verdicts an episode needs
 //! (`labels_needed`, default 1) and whether labelers work blind. Each labeler's verdict is an
@@ -10,6 +10,9 @@
 //! `adjudication`). With `labels_needed = 1` one vote is one label write, as a PUT is.
 //!
 //! Votes and events carry data: a failure cause from the task's taxonomy and time spans in steps.
+//!
+//! One file past 700 lines: campaign settings, votes and their resolution are one protocol over the
+//! same tables.
 
 use crate::catalog::{RowExt, Tx};
 use crate::counts::CountDeltas;

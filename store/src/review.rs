@@ -1,4 +1,4 @@
-//! The review queue (issue 17): verifier scores of episodes, stored by the `score` job (one row
+//! The review queue: verifier scores of episodes, stored by the `score` job (one row
 //! per artifact and episode: the mean step score and the per-step series), the artifact that
 //! scores each policy's queue, and the queue itself ordered by those stored scores.
 

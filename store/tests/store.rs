@@ -1,42 +1,8 @@
 //! The store's behaviour on both catalogs: versions and time travel, labels with optimistic
 //! concurrency and audit, snapshots, splits, artifacts, jobs, tokens and gc.
 
+use store::test_support::{episode, source};
 use store::*;
-
-fn episode(i: u32, steps: usize, label: Label) -> EpisodeInput {
-    EpisodeInput {
-        source_name: format!("demo_{i}"),
-        source_index: i,
-        task: Some("reach".into()),
-        label,
-        label_source: "test".into(),
-        tags: vec!["eval".into()],
-        metadata: serde_json::json!({"i": i}),
-        timestamps: (0..steps).map(|t| t as f64 / 10.0).collect(),
-        observations: vec![VectorColumn {
-            name: "pos".into(),
-            dim: 2,
-            values: (0..steps * 2).map(|k| (k as f32) + i as f32 * 1000.0).collect(),
-        }],
-        action: VectorColumn { name: "action".into(), dim: 3, values: vec![0.5; steps * 3] },
-        reward: vec![0.0; steps],
-        done: (0..steps).map(|t| t + 1 == steps).collect(),
-        action_chunk: None,
-        images: vec![],
-        media: vec![],
-        flags: Default::default(),
-    }
-}
-
-fn source(tag: &str) -> SourceInput {
-    SourceInput {
-        path: format!("/tmp/{tag}"),
-        sha256: sha256_hex(tag.as_bytes()),
-        format: "test".into(),
-        size_bytes: 1,
-        metadata: serde_json::json!({}),
-    }
-}
 
 async fn ingest(store: &Store, tag: &str, ckpt: &str, n: u32) -> CommitInfo {
     let mut w = store.begin_ingest(source(tag), "pol", ckpt).await.unwrap();

@@ -166,7 +166,7 @@ impl HttpResponse {
     }
 }
 
-/// One HTTP/1.1 request (`Connection: close`, no chunked bodies sent) to a server of [`Target::serve`].
+/// One request to a server of [`Target::serve`], with a JSON body if any.
 pub fn http(
     url: &str,
     method: &str,
@@ -179,7 +179,9 @@ pub fn http(
     http_bytes(url, method, path, headers, body.as_bytes(), ctype)
 }
 
-/// [`http`] with a raw body.
+/// [`http`] with a raw body. The tests' one HTTP client is reqwest's (the API crate's tests use
+/// its async side): redirects are not followed, nothing times out, and no connection is reused
+/// (each request is the server's only work from that socket, as a load test wants).
 pub fn http_bytes(
     url: &str,
     method: &str,
@@ -188,59 +190,40 @@ pub fn http_bytes(
     body: &[u8],
     content_type: Option<&str>,
 ) -> HttpResponse {
-    use std::io::{Read, Write};
-    let addr = url.trim_start_matches("http://").trim_end_matches('/');
-    let mut s = std::net::TcpStream::connect(addr).unwrap();
-    let mut req = format!(
-        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n",
-        body.len()
-    );
+    static CLIENT: std::sync::OnceLock<reqwest::blocking::Client> = std::sync::OnceLock::new();
+    let client = CLIENT.get_or_init(|| {
+        reqwest::blocking::Client::builder()
+            .redirect(reqwest::redirect::Policy::none())
+            .timeout(None)
+            .pool_max_idle_per_host(0)
+            .build()
+            .expect("an HTTP client")
+    });
+    let method = reqwest::Method::from_bytes(method.as_bytes()).expect("an HTTP method");
+    let mut req = client.request(method, format!("{}{path}", url.trim_end_matches('/'))).body(body.to_vec());
     if let Some(ct) = content_type {
-        req.push_str(&format!("Content-Type: {ct}\r\n"));
+        req = req.header("Content-Type", ct);
     }
     for (k, v) in headers {
-        req.push_str(&format!("{k}: {v}\r\n"));
+        req = req.header(*k, *v);
     }
-    req.push_str("\r\n");
-    // A server may answer (413, 401) and close before taking the whole body: keep what it said.
-    let wrote = s.write_all(req.as_bytes()).and_then(|_| s.write_all(body));
-    let mut raw = Vec::new();
-    let read = s.read_to_end(&mut raw);
-    let Some(end) = raw.windows(4).position(|w| w == b"\r\n\r\n") else {
-        // No response at all (status 0): the connection was closed on us.
-        return HttpResponse {
-            status: 0,
-            headers: Vec::new(),
-            body: format!("no response; write: {wrote:?}, read: {read:?}").into_bytes(),
-        };
-    };
-    let head = String::from_utf8_lossy(&raw[..end]).into_owned();
-    let mut lines = head.lines();
-    let status = lines.next().unwrap_or_default().split(' ').nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
-    let headers: Vec<(String, String)> = lines
-        .filter_map(|l| l.split_once(':').map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string())))
-        .collect();
-    let mut body = raw[end + 4..].to_vec();
-    if headers.iter().any(|(k, v)| k == "transfer-encoding" && v.contains("chunked")) {
-        body = dechunk(&body);
-    }
-    HttpResponse { status, headers, body }
-}
-
-fn dechunk(mut raw: &[u8]) -> Vec<u8> {
-    let mut out = Vec::new();
-    loop {
-        let Some(eol) = raw.windows(2).position(|w| w == b"\r\n") else { return out };
-        let size = usize::from_str_radix(
-            String::from_utf8_lossy(&raw[..eol]).trim().split(';').next().unwrap_or("0"),
-            16,
-        )
-        .unwrap_or(0);
-        if size == 0 {
-            return out;
+    match req.send() {
+        Ok(r) => {
+            let status = r.status().as_u16();
+            let headers = r
+                .headers()
+                .iter()
+                .map(|(k, v)| (k.as_str().to_string(), String::from_utf8_lossy(v.as_bytes()).into_owned()))
+                .collect();
+            // A body cut short still says what the server answered.
+            let body = r.bytes().map(|b| b.to_vec()).unwrap_or_default();
+            HttpResponse { status, headers, body }
         }
-        out.extend_from_slice(&raw[eol + 2..eol + 2 + size]);
-        raw = &raw[eol + 2 + size + 2..];
+        // No response at all (status 0): the connection was closed on us (a server refusing a
+        // body it will not read may close before the request is sent).
+        Err(e) => {
+            HttpResponse { status: 0, headers: Vec::new(), body: format!("no response: {e}").into_bytes() }
+        }
     }
 }
 

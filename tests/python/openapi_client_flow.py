@@ -1,5 +1,5 @@
 """A client generated from the committed OpenAPI document parses every response of the end-to-end
-API flow (issue 18, Must show 2). Driven by tests/openapi_contract.rs:
+API flow. Driven by tests/openapi_contract.rs:
 
     python3 openapi_client_flow.py OPENAPI_JSON BASE_URL ADMIN_TOKEN WORKDIR
 

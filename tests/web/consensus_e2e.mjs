@@ -1,4 +1,4 @@
-// Several labelers in real headless Chromium (issue 17, Must show 1). Started by
+// Several labelers in real headless Chromium. Started by
 // tests/web_labeling.rs against `ufops serve` with six synthetic episodes of policy `synth`, all
 // unknown, in a blind campaign that needs two labelers, with failure causes for every task.
 //

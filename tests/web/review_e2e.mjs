@@ -1,4 +1,4 @@
-// The review queue in the labeling page (issue 17, Must show 2), in headless Chromium: started by
+// The review queue in the labeling page, in headless Chromium: started by
 // tests/web_labeling.rs with the Lift rollouts scored by a trained classifier (a `score` job).
 // Signs in, picks "verifier uncertain first" in the order selector, checks the queue shows the
 // episodes in the API's order with the nearest-0.5 one first, waits for the score plot on the

@@ -1,4 +1,4 @@
-// Human takeovers on the labeling page's timeline (issue 27, Must show 5), in headless Chromium:
+// Human takeovers on the labeling page's timeline, in headless Chromium:
 // started by tests/takeovers.rs with a generated LeRobot v3.0 DAgger rollout dataset ingested.
 // For each episode named in UFOPS_EXPECT, opens it, checks the strip under the scrub bar shows one
 // shaded span per run of `intervention` steps (and none for an episode without takeovers), that

@@ -80,33 +80,9 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
         members.iter().filter_map(|m| m.label.as_bool().map(|s| (m, s))).collect();
     let ids: Vec<String> = labeled.iter().map(|(m, _)| m.episode_id.clone()).collect();
     let locations = store.locate_episodes(&ids, Some(split.version)).await?;
-    let keys: Option<Vec<String>> = match (&spec.obs_keys, members.first()) {
-        (Some(k), _) => Some(k.clone()),
-        // As before: the observation columns of the split's first episode.
-        (None, Some(first)) => {
-            let at =
-                store.locate_episodes(std::slice::from_ref(&first.episode_id), Some(split.version)).await?;
-            let schema = store.steps_schema(&at[0].data_file).await?;
-            Some(store::steps::observation_keys(schema.as_ref()).into_iter().map(|(k, _)| k).collect())
-        }
-        (None, None) => None,
-    };
-    // Keys the steps files lack but a layer of the store provides (an encoder's features): read
-    // joined, from the layer values current now (derived data computed after the split was
-    // frozen counts; the producer recorded below pins what they were).
+    let keys = observation_keys(store, spec, members.first(), split.version).await?;
     let layer_keys = match (&keys, locations.first()) {
-        (Some(keys), Some(first)) => {
-            let schema = store.steps_schema(&first.data_file).await?;
-            let names: std::collections::HashSet<String> =
-                store.layers().await?.into_iter().map(|l| l.name).collect();
-            keys.iter()
-                .filter(|k| {
-                    schema.field_with_name(&format!("{}{k}", store::steps::OBS_PREFIX)).is_err()
-                        && names.contains(*k)
-                })
-                .cloned()
-                .collect::<Vec<String>>()
-        }
+        (Some(keys), Some(first)) => layer_keys(store, keys, &first.data_file).await?,
         _ => vec![],
     };
     let mut producers: Vec<Option<String>> = vec![None; keys.as_ref().map_or(0, |k| k.len())];
@@ -148,22 +124,7 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
         }
     }
     let keys = keys.unwrap_or_default();
-    let chunk_len = match (chunk_len, spec.chunk_len) {
-        (Some(stored), Some(given)) if stored != given => bail!(
-            "the episodes store action chunks of length {stored}: chunk_len {given} would build chunks that straddle \
-             the policy's own; leave it out (it is inferred) or give {stored}"
-        ),
-        (Some(stored), _) => stored,
-        (None, Some(given)) => given,
-        // A guess here (the paper's 16) trained verifiers over chunks straddling the policy's own,
-        // found only when scoring: the policy's chunk length is asked for instead.
-        (None, None) => bail!(
-            "the episodes of split {} store no action chunks, so the verifier's chunk length is unknown: give the \
-             policy's chunk length, the number of actions it executes per prediction (--chunk-len N, or chunk_len \
-             in the recipe file; 1 for a policy that acts one step at a time)",
-            split.id
-        ),
-    };
+    let chunk_len = resolve_chunk_len(chunk_len, spec.chunk_len, &split.id)?;
     if let Some(stride) = spec.step_stride.filter(|s| *s > 1 && *s != chunk_len) {
         tracing::warn!("step_stride {stride} differs from the chunk length {chunk_len}: a chunking policy re-plans every chunk");
     }
@@ -187,6 +148,62 @@ pub async fn load_split(store: &store::Store, spec: &TrainJobSpec) -> Result<Spl
         extra_inputs: vec![],
     };
     Ok(SplitData { train, val, input, version: split.version })
+}
+
+/// The observation keys to train on: the spec's, or else the observation columns of the split's
+/// first episode (`None` for an empty split).
+async fn observation_keys(
+    store: &store::Store,
+    spec: &TrainJobSpec,
+    first: Option<&store::SplitEpisode>,
+    version: i64,
+) -> Result<Option<Vec<String>>> {
+    Ok(match (&spec.obs_keys, first) {
+        (Some(k), _) => Some(k.clone()),
+        (None, Some(first)) => {
+            let at = store.locate_episodes(std::slice::from_ref(&first.episode_id), Some(version)).await?;
+            let schema = store.steps_schema(&at[0].data_file).await?;
+            Some(store::steps::observation_keys(schema.as_ref()).into_iter().map(|(k, _)| k).collect())
+        }
+        (None, None) => None,
+    })
+}
+
+/// Keys the steps files lack (judged by `data_file`, one of them) but a layer of the store
+/// provides (an encoder's features): read joined, from the layer values current now (derived
+/// data computed after the split was frozen counts; the producer recorded with the input spec
+/// pins what they were).
+async fn layer_keys(store: &store::Store, keys: &[String], data_file: &str) -> Result<Vec<String>> {
+    let schema = store.steps_schema(data_file).await?;
+    let names: std::collections::HashSet<String> =
+        store.layers().await?.into_iter().map(|l| l.name).collect();
+    Ok(keys
+        .iter()
+        .filter(|k| {
+            schema.field_with_name(&format!("{}{k}", store::steps::OBS_PREFIX)).is_err() && names.contains(*k)
+        })
+        .cloned()
+        .collect())
+}
+
+/// The verifier's chunk length: the one the episodes store (a different one given is refused:
+/// its chunks would straddle the policy's own), else the one given.
+fn resolve_chunk_len(stored: Option<usize>, given: Option<usize>, split_id: &str) -> Result<usize> {
+    Ok(match (stored, given) {
+        (Some(stored), Some(given)) if stored != given => bail!(
+            "the episodes store action chunks of length {stored}: chunk_len {given} would build chunks that straddle \
+             the policy's own; leave it out (it is inferred) or give {stored}"
+        ),
+        (Some(stored), _) => stored,
+        (None, Some(given)) => given,
+        // A guess here (the paper's 16) trained verifiers over chunks straddling the policy's own,
+        // found only when scoring: the policy's chunk length is asked for instead.
+        (None, None) => bail!(
+            "the episodes of split {split_id} store no action chunks, so the verifier's chunk length is unknown: give \
+             the policy's chunk length, the number of actions it executes per prediction (--chunk-len N, or \
+             chunk_len in the recipe file; 1 for a policy that acts one step at a time)"
+        ),
+    })
 }
 
 /// Runs a training job end to end and publishes the artifact (which becomes `latest`).

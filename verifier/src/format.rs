@@ -1,6 +1,9 @@
 //! The artifact format (trainer/ARTIFACT.md, schema_version 1): the types of `config.json` and
 //! `manifest.json`, their validation, and the one list of tensors (names, shapes, parameter order)
 //! an architecture needs. The trainer writes these types and every client reads them.
+//!
+//! One file past 700 lines: the artifact's types and their validation are the format's one
+//! definition.
 
 use std::collections::BTreeMap;
 

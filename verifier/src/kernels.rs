@@ -2,6 +2,9 @@
 //! row-wise LayerNorm (+ ReLU) forward and backward that the trainer's fused training path
 //! shares. Each has an AVX2/FMA version, selected at run time ([`Isa::detect`]), and a portable
 //! one; both compute the same thing up to summation order.
+//!
+//! One file past 700 lines: each kernel sits beside its portable twin and the tests that hold them
+//! equal.
 
 /// Which instruction set the kernels use.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -6,6 +6,8 @@
 //! of `trunk.0`) is computed once per group of candidates, the action side once per
 //! candidate; candidates of a group then meet in `trunk.0`. Matrix products go through the
 //! packed kernel of [`crate::kernels`] (AVX2/FMA when the CPU has it).
+//!
+//! One file at 700 lines: the forward pass and its action gradient, read against each other.
 
 use crate::error::{Result, VerifierError};
 use crate::format::{Activation, ArtifactConfig, Kind};
@@ -523,6 +525,8 @@ impl Verifier {
     }
 
     /// Input gradients for B rows into `out` (`B * act_dim`).
+    // Past 100 lines on purpose: the hand-derived backward pass, layer by layer in reverse, reads
+    // line for line against `forward`; helpers would hide which buffer each step reuses.
     fn backward(&self, obs: &[f32], extras: &[&[f32]], t: &[u32], chunks: &[f32], out: &mut [f32]) {
         let m = t.len();
         let (ad, ew, eps, isa) = (self.ad, self.ew, self.eps, self.isa);

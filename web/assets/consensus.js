@@ -1,4 +1,4 @@
-// Several labelers on the labeling page (issue 17). For the episode on screen: its policy's
+// Several labelers on the labeling page. For the episode on screen: its policy's
 // campaign (how many labelers must agree, blind or not), the task's failure causes on the number
 // keys 1-9 (0 clears the cause and the spans), time spans marked with [ (start) and ] (end) at
 // the frame shown, and the episode's votes — in a blind campaign only how many there are until

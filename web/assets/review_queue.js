@@ -1,4 +1,4 @@
-// The review queue's part of the episode view (issue 17): the verifier's per-step score, as the
+// The review queue's part of the episode view: the verifier's per-step score, as the
 // `score` job stored it (GET /v1/episodes/{id}/scores), plotted on the timeline with the same
 // frame cursor and click-to-seek as the other plots. The queue-order selector (#f-order) is one
 // more filter of app.js: its value goes to GET /v1/episodes as `order`.

@@ -1,4 +1,4 @@
-//! Several labelers (issue 17): campaign settings, failure-cause taxonomies, votes, the
+//! Several labelers: campaign settings, failure-cause taxonomies, votes, the
 //! adjudication queue and agreement. The rules (when votes agree, what a dispute is) live in
 //! the store (`store::consensus`); these handlers check roles and hide votes from blind labelers.
 

@@ -1,4 +1,4 @@
-//! The review queue (issue 17): the verifier orders the labeling queue from scores a `score` job
+//! The review queue: the verifier orders the labeling queue from scores a `score` job
 //! stored; per-step scores for the episode view's timeline; the artifact scoring each policy's
 //! queue (a campaign here is a policy).
 

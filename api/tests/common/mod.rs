@@ -8,6 +8,7 @@ use serde_json::{json, Value};
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+pub use store::test_support::{episode, source};
 use store::*;
 
 pub mod load;
@@ -33,41 +34,6 @@ pub async fn open_store(db: Db, dir: &Path) -> Store {
             .await
             .unwrap()
         }
-    }
-}
-
-pub fn episode(i: u32, steps: usize, label: Label) -> EpisodeInput {
-    EpisodeInput {
-        source_name: format!("demo_{i}"),
-        source_index: i,
-        task: Some("reach".into()),
-        label,
-        label_source: "test".into(),
-        tags: vec!["eval".into()],
-        metadata: json!({"i": i}),
-        timestamps: (0..steps).map(|t| t as f64 / 10.0).collect(),
-        observations: vec![VectorColumn {
-            name: "pos".into(),
-            dim: 2,
-            values: (0..steps * 2).map(|k| (k as f32) + i as f32 * 1000.0).collect(),
-        }],
-        action: VectorColumn { name: "action".into(), dim: 3, values: vec![0.5; steps * 3] },
-        reward: vec![0.0; steps],
-        done: (0..steps).map(|t| t + 1 == steps).collect(),
-        action_chunk: None,
-        images: vec![],
-        media: vec![],
-        flags: Default::default(),
-    }
-}
-
-pub fn source(tag: &str) -> SourceInput {
-    SourceInput {
-        path: format!("/tmp/{tag}"),
-        sha256: sha256_hex(tag.as_bytes()),
-        format: "test".into(),
-        size_bytes: 1,
-        metadata: json!({}),
     }
 }
 

@@ -20,6 +20,9 @@ layers=[name])`` then returns it as the column ``obs.<name>``.
 torch, PyAV (``pip install av``) and Pillow (``pip install pillow``, for PNG columns) are imported
 by the functions that need them, so ``import ufops`` works without them.
 """
+
+# One module past 700 lines: it is the public namespace `ufops.features` (encoders, frame
+# decoding, layer computation), which users import as one.
 from __future__ import annotations
 
 import contextlib
