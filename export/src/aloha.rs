@@ -348,120 +348,77 @@ fn episode_file(
     steps: &RecordBatch,
     manifest: Option<&Value>,
 ) -> Result<(Node, Vec<String>)> {
+    match manifest {
+        Some(m) => episode_from_manifest(e, steps, m),
+        None => Ok((episode_from_columns(e, steps)?, Vec::new())),
+    }
+}
+
+/// The steps' column `name`, or an error saying the episode has none.
+fn need<'a>(e: &EpisodeRecord, steps: &'a RecordBatch, name: &str) -> Result<&'a ArrayRef> {
+    steps.column_by_name(name).ok_or_else(|| bad(e, format!("has no column {name}")))
+}
+
+/// ALOHA's layout from the store's columns (an episode whose source was not ALOHA).
+fn episode_from_columns(e: &EpisodeRecord, steps: &RecordBatch) -> Result<Node> {
     let t = steps.num_rows();
-    let col = |name: &str| steps.column_by_name(name);
-    let need = |name: &str| col(name).ok_or_else(|| bad(e, format!("has no column {name}")));
+    let mut root = Node::default();
+    let schema = steps.schema();
+    let mut jpeg: Vec<(String, ArrayRef)> = Vec::new();
+    for f in schema.fields() {
+        let c = need(e, steps, f.name())?;
+        if let Some(k) = f.name().strip_prefix(OBS_PREFIX) {
+            let (d, v) =
+                Values::from_list(c).ok_or_else(|| bad(e, format!("{} is not a list column", f.name())))?;
+            root.dataset(&format!("/observations/{k}"), v, vec![t as u64, d as u64]);
+        } else if f.name() == store::steps::INTERVENTION_COLUMN {
+            // Human takeovers, where ingest reads them back (`/intervention`, 0/1).
+            let flags = c.as_boolean_opt().ok_or_else(|| bad(e, "intervention is not a boolean column"))?;
+            let flags: Vec<u8> = flags.iter().map(|b| (b == Some(true)) as u8).collect();
+            root.dataset("/intervention", Values::U8(flags), vec![t as u64]);
+        } else if let Some(k) = f.name().strip_prefix(IMAGE_PREFIX) {
+            if f.metadata().get("ufops.encoding").is_some_and(|x| x == "jpeg") {
+                jpeg.push((k.to_string(), c.clone()));
+            } else {
+                let (v, shape) = raw_frames(e, f.name(), c)?;
+                root.dataset(&format!("/observations/images/{k}"), Values::U8(v), shape);
+            }
+        }
+    }
+    let (d, v) = Values::from_list(need(e, steps, "action")?)
+        .ok_or_else(|| bad(e, "has no actions: ALOHA needs one per step"))?;
+    root.dataset("/action", v, vec![t as u64, d as u64]);
+    root.group("/observations/images");
+    let mut attrs = vec![("sim".to_string(), AttrValue::I8(0))];
+    if !jpeg.is_empty() {
+        jpeg.sort_by(|a, b| a.0.cmp(&b.0));
+        let mut lens = Vec::new();
+        for (k, c) in &jpeg {
+            let (rows, shape, l) = padded_rows(e, k, c, None, None)?;
+            root.dataset(&format!("/observations/images/{k}"), Values::U8(rows), shape);
+            lens.extend(l.into_iter().map(|x| x as f32));
+        }
+        root.dataset("/compress_len", Values::F32(lens), vec![jpeg.len() as u64, t as u64]);
+        attrs.push(("compress".to_string(), AttrValue::I8(1)));
+    }
+    root.set_attrs("/", attrs);
+    Ok(root)
+}
+
+/// The ALOHA source's file as its manifest describes it: groups, datasets and attributes, with
+/// warnings for what could not be written back.
+fn episode_from_manifest(e: &EpisodeRecord, steps: &RecordBatch, m: &Value) -> Result<(Node, Vec<String>)> {
     let mut root = Node::default();
     let mut warnings = Vec::new();
-    let Some(m) = manifest else {
-        // ALOHA's layout from the store's columns.
-        let schema = steps.schema();
-        let mut jpeg: Vec<(String, ArrayRef)> = Vec::new();
-        for f in schema.fields() {
-            let c = need(f.name())?;
-            if let Some(k) = f.name().strip_prefix(OBS_PREFIX) {
-                let (d, v) = Values::from_list(c)
-                    .ok_or_else(|| bad(e, format!("{} is not a list column", f.name())))?;
-                root.dataset(&format!("/observations/{k}"), v, vec![t as u64, d as u64]);
-            } else if f.name() == store::steps::INTERVENTION_COLUMN {
-                // Human takeovers, where ingest reads them back (`/intervention`, 0/1).
-                let flags =
-                    c.as_boolean_opt().ok_or_else(|| bad(e, "intervention is not a boolean column"))?;
-                let flags: Vec<u8> = flags.iter().map(|b| (b == Some(true)) as u8).collect();
-                root.dataset("/intervention", Values::U8(flags), vec![t as u64]);
-            } else if let Some(k) = f.name().strip_prefix(IMAGE_PREFIX) {
-                if f.metadata().get("ufops.encoding").is_some_and(|x| x == "jpeg") {
-                    jpeg.push((k.to_string(), c.clone()));
-                } else {
-                    let (v, shape) = raw_frames(e, f.name(), c)?;
-                    root.dataset(&format!("/observations/images/{k}"), Values::U8(v), shape);
-                }
-            }
-        }
-        let (d, v) = Values::from_list(need("action")?)
-            .ok_or_else(|| bad(e, "has no actions: ALOHA needs one per step"))?;
-        root.dataset("/action", v, vec![t as u64, d as u64]);
-        root.group("/observations/images");
-        let mut attrs = vec![("sim".to_string(), AttrValue::I8(0))];
-        if !jpeg.is_empty() {
-            jpeg.sort_by(|a, b| a.0.cmp(&b.0));
-            let mut lens = Vec::new();
-            for (k, c) in &jpeg {
-                let (rows, shape, l) = padded_rows(e, k, c, None, None)?;
-                root.dataset(&format!("/observations/images/{k}"), Values::U8(rows), shape);
-                lens.extend(l.into_iter().map(|x| x as f32));
-            }
-            root.dataset("/compress_len", Values::F32(lens), vec![jpeg.len() as u64, t as u64]);
-            attrs.push(("compress".to_string(), AttrValue::I8(1)));
-        }
-        root.set_attrs("/", attrs);
-        return Ok((root, warnings));
-    };
-
     for g in m.get("groups").and_then(Value::as_array).into_iter().flatten() {
         if let Some(p) = g.as_str() {
             root.group(p);
         }
     }
     for d in m.get("datasets").and_then(Value::as_array).into_iter().flatten() {
-        let path = d
-            .get("path")
-            .and_then(Value::as_str)
-            .ok_or_else(|| bad(e, "manifest: a dataset without a path"))?;
-        let dtype = d.get("dtype").and_then(Value::as_str).unwrap_or("");
-        let shape: Vec<u64> = d
-            .get("shape")
-            .and_then(Value::as_array)
-            .map(|s| s.iter().filter_map(Value::as_u64).collect())
-            .unwrap_or_default();
-        if d.get("not_ingested").is_some() {
-            warnings.push(format!("{path} was not ingested: left out of {}", e.source_name));
-            continue;
+        if let Some((path, values, shape)) = manifest_dataset(e, steps, d, &mut warnings)? {
+            root.dataset(path, values, shape);
         }
-        if let Some(v) = d.get("values") {
-            let v = Values::from_json(dtype, v)
-                .ok_or_else(|| bad(e, format!("manifest: {path} has values that are not {dtype}")))?;
-            root.dataset(path, v, shape);
-            continue;
-        }
-        let column = d.get("column").and_then(Value::as_str).unwrap_or("");
-        let exact = d.get("exact_column").and_then(Value::as_str);
-        let values = if let Some(k) = column.strip_prefix(IMAGE_PREFIX) {
-            let c = need(column)?;
-            if d.get("encoding").and_then(Value::as_str) == Some("jpeg") {
-                let pad = d.get("pad_column").and_then(Value::as_str).and_then(col);
-                let width = shape.get(1).map(|&w| w as usize);
-                let (rows, s, _) = padded_rows(e, k, c, pad, width)?;
-                if s != shape {
-                    return Err(bad(e, format!("{path}: rows of shape {s:?}, the source's were {shape:?}")));
-                }
-                Values::U8(rows)
-            } else {
-                let (v, s) = raw_frames(e, column, c)?;
-                if s != shape {
-                    return Err(bad(
-                        e,
-                        format!("{path}: frames of shape {s:?}, the source's were {shape:?}"),
-                    ));
-                }
-                Values::U8(v)
-            }
-        } else {
-            let name = exact.unwrap_or(column);
-            let c = need(name)?;
-            let (dim, v) =
-                Values::from_list(c).ok_or_else(|| bad(e, format!("{name} is not a list column")))?;
-            if d.get("transposed").and_then(Value::as_bool) == Some(true) {
-                v.transposed(t, dim)
-            } else {
-                v
-            }
-        };
-        let expected: u64 = shape.iter().product();
-        if values.len() as u64 != expected {
-            return Err(bad(e, format!("{path}: {} values for the source's shape {shape:?}", values.len())));
-        }
-        root.dataset(path, values, shape);
     }
     for (p, a) in m.get("attrs").and_then(Value::as_object).into_iter().flatten() {
         let mut list = Vec::new();
@@ -476,6 +433,83 @@ fn episode_file(
         root.set_attrs(p, list);
     }
     Ok((root, warnings))
+}
+
+/// One dataset of the manifest as (path, values, shape): its inline values, or its column's
+/// checked against the source's shape; `None` (and a warning) when it was not ingested.
+fn manifest_dataset<'m>(
+    e: &EpisodeRecord,
+    steps: &RecordBatch,
+    d: &'m Value,
+    warnings: &mut Vec<String>,
+) -> Result<Option<(&'m str, Values, Vec<u64>)>> {
+    let path =
+        d.get("path").and_then(Value::as_str).ok_or_else(|| bad(e, "manifest: a dataset without a path"))?;
+    let dtype = d.get("dtype").and_then(Value::as_str).unwrap_or("");
+    let shape: Vec<u64> = d
+        .get("shape")
+        .and_then(Value::as_array)
+        .map(|s| s.iter().filter_map(Value::as_u64).collect())
+        .unwrap_or_default();
+    if d.get("not_ingested").is_some() {
+        warnings.push(format!("{path} was not ingested: left out of {}", e.source_name));
+        return Ok(None);
+    }
+    if let Some(v) = d.get("values") {
+        let v = Values::from_json(dtype, v)
+            .ok_or_else(|| bad(e, format!("manifest: {path} has values that are not {dtype}")))?;
+        return Ok(Some((path, v, shape)));
+    }
+    let values = column_values(e, steps, d, path, &shape)?;
+    let expected: u64 = shape.iter().product();
+    if values.len() as u64 != expected {
+        return Err(bad(e, format!("{path}: {} values for the source's shape {shape:?}", values.len())));
+    }
+    Ok(Some((path, values, shape)))
+}
+
+/// A manifest dataset's values from the steps: a camera's frames (JPEG rows padded as the
+/// source's were, or raw frames), else a list column (the exact one when kept), transposed
+/// back where the source's was.
+fn column_values(
+    e: &EpisodeRecord,
+    steps: &RecordBatch,
+    d: &Value,
+    path: &str,
+    shape: &[u64],
+) -> Result<Values> {
+    let t = steps.num_rows();
+    let col = |name: &str| steps.column_by_name(name);
+    let column = d.get("column").and_then(Value::as_str).unwrap_or("");
+    let exact = d.get("exact_column").and_then(Value::as_str);
+    let values = if let Some(k) = column.strip_prefix(IMAGE_PREFIX) {
+        let c = need(e, steps, column)?;
+        if d.get("encoding").and_then(Value::as_str) == Some("jpeg") {
+            let pad = d.get("pad_column").and_then(Value::as_str).and_then(col);
+            let width = shape.get(1).map(|&w| w as usize);
+            let (rows, s, _) = padded_rows(e, k, c, pad, width)?;
+            if s != shape {
+                return Err(bad(e, format!("{path}: rows of shape {s:?}, the source's were {shape:?}")));
+            }
+            Values::U8(rows)
+        } else {
+            let (v, s) = raw_frames(e, column, c)?;
+            if s != shape {
+                return Err(bad(e, format!("{path}: frames of shape {s:?}, the source's were {shape:?}")));
+            }
+            Values::U8(v)
+        }
+    } else {
+        let name = exact.unwrap_or(column);
+        let c = need(e, steps, name)?;
+        let (dim, v) = Values::from_list(c).ok_or_else(|| bad(e, format!("{name} is not a list column")))?;
+        if d.get("transposed").and_then(Value::as_bool) == Some(true) {
+            v.transposed(t, dim)
+        } else {
+            v
+        }
+    };
+    Ok(values)
 }
 
 /// The label as the root attribute `success`, in the source's type when it had one.
