@@ -191,9 +191,28 @@ fn demo_group(
     steps: &RecordBatch,
     robomimic_source: bool,
 ) -> Result<GroupBuilder> {
+    let mut g = fb.create_group(name);
+    put_observations(&mut g, e, steps)?;
+    put_step_datasets(&mut g, e, steps)?;
+    let mut attrs = put_extras(&mut g, e, steps)?;
+    // The source's demo attributes (robomimic sources keep them as episode metadata).
+    if robomimic_source {
+        add_source_attrs(&mut attrs, e);
+    }
+    if let Some(s) = e.label.as_bool() {
+        attrs.insert("success".into(), AttrValue::I64(s as i64));
+    }
+    for (k, v) in attrs {
+        g.set_attr(&k, v);
+    }
+    Ok(g)
+}
+
+/// `obs/<key>` and `next_obs/<key>` of every observation and image column (images decoded from
+/// PNG), float64 where the source's were.
+fn put_observations(g: &mut GroupBuilder, e: &EpisodeRecord, steps: &RecordBatch) -> Result<()> {
     let t = steps.num_rows();
     let schema = steps.schema();
-    let mut g = fb.create_group(name);
     let mut obs_g = g.create_group("obs");
     let mut next_g = g.create_group("next_obs");
     for f in schema.fields() {
@@ -203,21 +222,7 @@ fn demo_group(
                 f32_rows(col).ok_or_else(|| bad(e, format!("{} is not a float32 list column", f.name())))?;
             (k, Obs::F32 { dim, values })
         } else if let Some(k) = f.name().strip_prefix(IMAGE_PREFIX) {
-            let bin = col
-                .as_binary_opt::<i32>()
-                .ok_or_else(|| bad(e, format!("{} is not a binary column", f.name())))?;
-            let mut values = Vec::new();
-            let mut shape = [0; 3];
-            for r in 0..t {
-                let (px, s) =
-                    decode_png(bin.value(r)).map_err(|err| bad(e, format!("{} row {r}: {err}", f.name())))?;
-                if r > 0 && s != shape {
-                    return Err(bad(e, format!("{}: frames of different sizes", f.name())));
-                }
-                shape = s;
-                values.extend_from_slice(&px);
-            }
-            (k, Obs::U8 { shape, values })
+            (k, png_frames(e, f.name(), col, t)?)
         } else {
             continue;
         };
@@ -233,6 +238,29 @@ fn demo_group(
     }
     g.add_group(obs_g.finish());
     g.add_group(next_g.finish());
+    Ok(())
+}
+
+/// A PNG image column's `t` frames decoded to uint8 (all of one size).
+fn png_frames(e: &EpisodeRecord, name: &str, col: &ArrayRef, t: usize) -> Result<Obs> {
+    let bin = col.as_binary_opt::<i32>().ok_or_else(|| bad(e, format!("{name} is not a binary column")))?;
+    let mut values = Vec::new();
+    let mut shape = [0; 3];
+    for r in 0..t {
+        let (px, s) = decode_png(bin.value(r)).map_err(|err| bad(e, format!("{name} row {r}: {err}")))?;
+        if r > 0 && s != shape {
+            return Err(bad(e, format!("{name}: frames of different sizes")));
+        }
+        shape = s;
+        values.extend_from_slice(&px);
+    }
+    Ok(Obs::U8 { shape, values })
+}
+
+/// `actions` (float32), `rewards` (float64), `dones` (uint8) and, when the steps have them,
+/// human takeovers as `intervention` (uint8).
+fn put_step_datasets(g: &mut GroupBuilder, e: &EpisodeRecord, steps: &RecordBatch) -> Result<()> {
+    let t = steps.num_rows();
     let actions = steps
         .column_by_name("action")
         .ok_or_else(|| bad(e, "has no actions: robomimic needs one per step"))?;
@@ -256,6 +284,18 @@ fn demo_group(
         let flags: Vec<u8> = flags.iter().map(|d| (d == Some(true)) as u8).collect();
         g.create_dataset(store::steps::INTERVENTION_COLUMN).with_u8_data(&flags);
     }
+    Ok(())
+}
+
+/// The extra columns ingest kept: per-step arrays back as datasets, `attr/*` as the demo's
+/// attributes (returned with `num_samples`, for the caller to complete and set).
+fn put_extras(
+    g: &mut GroupBuilder,
+    e: &EpisodeRecord,
+    steps: &RecordBatch,
+) -> Result<BTreeMap<String, AttrValue>> {
+    let t = steps.num_rows();
+    let schema = steps.schema();
     let mut attrs: BTreeMap<String, AttrValue> = BTreeMap::new();
     attrs.insert("num_samples".into(), AttrValue::I64(t as i64));
     for f in schema.fields() {
@@ -270,37 +310,93 @@ fn demo_group(
             }
             continue;
         }
-        put_extra(&mut g, e, name, col, f.metadata(), t)?;
+        put_extra(g, e, name, col, f.metadata(), t)?;
     }
-    // The source's demo attributes (robomimic sources keep them as episode metadata).
-    if robomimic_source {
-        if let Some(md) = e.metadata.as_object() {
-            for (k, v) in md {
-                if k == "not_ingested" || k == "success" || attrs.contains_key(k) {
-                    continue;
+    Ok(attrs)
+}
+
+/// The episode metadata of a robomimic source (its demo's attributes: strings and numbers) that
+/// `attrs` does not hold yet.
+fn add_source_attrs(attrs: &mut BTreeMap<String, AttrValue>, e: &EpisodeRecord) {
+    if let Some(md) = e.metadata.as_object() {
+        for (k, v) in md {
+            if k == "not_ingested" || k == "success" || attrs.contains_key(k) {
+                continue;
+            }
+            match v {
+                Value::String(s) => {
+                    attrs.insert(k.clone(), AttrValue::VarLenString(s.clone()));
                 }
-                match v {
-                    Value::String(s) => {
-                        attrs.insert(k.clone(), AttrValue::VarLenString(s.clone()));
-                    }
-                    Value::Number(n) if n.is_i64() => {
-                        attrs.insert(k.clone(), AttrValue::I64(n.as_i64().unwrap_or_default()));
-                    }
-                    Value::Number(n) => {
-                        attrs.insert(k.clone(), AttrValue::F64(n.as_f64().unwrap_or_default()));
-                    }
-                    _ => {}
+                Value::Number(n) if n.is_i64() => {
+                    attrs.insert(k.clone(), AttrValue::I64(n.as_i64().unwrap_or_default()));
                 }
+                Value::Number(n) => {
+                    attrs.insert(k.clone(), AttrValue::F64(n.as_f64().unwrap_or_default()));
+                }
+                _ => {}
             }
         }
     }
-    if let Some(s) = e.label.as_bool() {
-        attrs.insert("success".into(), AttrValue::I64(s as i64));
+}
+
+/// Each selected source's format and metadata, by its sha256.
+async fn source_formats(store: &Store, sel: &Selected) -> Result<HashMap<String, (String, Value)>> {
+    let mut sources: HashMap<String, (String, Value)> = HashMap::new();
+    for e in &sel.episodes {
+        if !sources.contains_key(&e.source_sha256) {
+            let s = store.source(&e.source_sha256).await?;
+            sources.insert(e.source_sha256.clone(), (s.format, s.metadata));
+        }
     }
-    for (k, v) in attrs {
-        g.set_attr(&k, v);
+    Ok(sources)
+}
+
+/// `data@env_args`: a robomimic source's own, else one naming the episodes' task.
+fn env_args(sources: &HashMap<String, (String, Value)>, sel: &Selected) -> Value {
+    sources
+        .values()
+        .find_map(|(f, m)| (f == "robomimic").then(|| m.get("env_args").cloned()).flatten())
+        .filter(|v| !v.is_null())
+        .unwrap_or_else(|| {
+            let task = sel.episodes.iter().find_map(|e| e.task.clone()).unwrap_or_default();
+            serde_json::json!({"env_name": task, "env_kwargs": {}})
+        })
+}
+
+/// The sources' own filter keys (they came in as tags: they go back as masks).
+fn mask_filters(sources: &HashMap<String, (String, Value)>) -> std::collections::HashSet<String> {
+    sources
+        .values()
+        .filter_map(|(_, m)| m.get("mask_filters").and_then(|v| v.as_array()).cloned())
+        .flatten()
+        .filter_map(|v| v.as_str().map(str::to_string))
+        .collect()
+}
+
+/// The demo attributes of the selection's curation: verifier score, failure cause, label spans.
+fn set_curation_attrs(g: &mut GroupBuilder, sel: &Selected, e: &EpisodeRecord) {
+    if let Some(score) = sel.scores.get(&e.id) {
+        g.set_attr("verifier_score", AttrValue::F64(*score));
     }
-    Ok(g)
+    if let Some(c) = crate::failure_cause(sel.label_data.get(&e.id)) {
+        g.set_attr("failure_cause", AttrValue::VarLenString(c));
+    }
+    if let Some(spans) = crate::label_spans(sel.label_data.get(&e.id)) {
+        g.set_attr("label_spans", AttrValue::VarLenString(spans));
+    }
+}
+
+/// The `mask` group: per mask, the names of its demos (none when there are no masks).
+fn add_masks(fb: &mut FileBuilder, masks: &BTreeMap<String, Vec<String>>, out: &Path) -> Result<()> {
+    if !masks.is_empty() {
+        let mut mask = fb.create_group("mask");
+        for (k, demos) in masks {
+            let names: Vec<&str> = demos.iter().map(String::as_str).collect();
+            mask.create_dataset(k).with_ascii_strings(&names).map_err(|err| ExportError::write(out, err))?;
+        }
+        fb.add_group(mask.finish());
+    }
+    Ok(())
 }
 
 /// Writes the selected episodes as one robomimic HDF5 file at `out` (a new file).
@@ -314,28 +410,10 @@ pub async fn export(
         return Err(ExportError::invalid("the selection holds no episodes: nothing to export"));
     }
     let staged = Staged::new(out, false)?;
-    let mut sources: HashMap<String, (String, Value)> = HashMap::new();
-    for e in &sel.episodes {
-        if !sources.contains_key(&e.source_sha256) {
-            let s = store.source(&e.source_sha256).await?;
-            sources.insert(e.source_sha256.clone(), (s.format, s.metadata));
-        }
-    }
-    let env_args = sources
-        .values()
-        .find_map(|(f, m)| (f == "robomimic").then(|| m.get("env_args").cloned()).flatten())
-        .filter(|v| !v.is_null())
-        .unwrap_or_else(|| {
-            let task = sel.episodes.iter().find_map(|e| e.task.clone()).unwrap_or_default();
-            serde_json::json!({"env_name": task, "env_kwargs": {}})
-        });
+    let sources = source_formats(store, sel).await?;
+    let env_args = env_args(&sources, sel);
     // The source's filter keys came in as tags: they go back as masks.
-    let filters: std::collections::HashSet<String> = sources
-        .values()
-        .filter_map(|(_, m)| m.get("mask_filters").and_then(|v| v.as_array()).cloned())
-        .flatten()
-        .filter_map(|v| v.as_str().map(str::to_string))
-        .collect();
+    let filters = mask_filters(&sources);
     let mut masks: BTreeMap<String, Vec<String>> = BTreeMap::new();
     let mut report = ExportReport {
         path: out.to_path_buf(),
@@ -364,15 +442,7 @@ pub async fn export(
                 videos_left_out += 1;
             }
             let mut g = demo_group(&mut fb, &name, e, &steps, robomimic_source)?;
-            if let Some(score) = sel.scores.get(&e.id) {
-                g.set_attr("verifier_score", AttrValue::F64(*score));
-            }
-            if let Some(c) = crate::failure_cause(sel.label_data.get(&e.id)) {
-                g.set_attr("failure_cause", AttrValue::VarLenString(c));
-            }
-            if let Some(spans) = crate::label_spans(sel.label_data.get(&e.id)) {
-                g.set_attr("label_spans", AttrValue::VarLenString(spans));
-            }
+            set_curation_attrs(&mut g, sel, e);
             data.add_group(g.finish());
             for tag in &e.tags {
                 if filters.contains(tag) {
@@ -396,14 +466,7 @@ pub async fn export(
     data.set_attr("env_args", AttrValue::VarLenString(env_args.to_string()));
     data.set_attr("ufops", AttrValue::VarLenString(sel.provenance("robomimic").to_string()));
     fb.add_group(data.finish());
-    if !masks.is_empty() {
-        let mut mask = fb.create_group("mask");
-        for (k, demos) in &masks {
-            let names: Vec<&str> = demos.iter().map(String::as_str).collect();
-            mask.create_dataset(k).with_ascii_strings(&names).map_err(|err| ExportError::write(out, err))?;
-        }
-        fb.add_group(mask.finish());
-    }
+    add_masks(&mut fb, &masks, out)?;
     if videos_left_out > 0 {
         report.warnings.push(format!(
             "left out the video frames of {videos_left_out} episode(s): robomimic holds images, not videos (export them as LeRobot)"
