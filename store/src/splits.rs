@@ -6,7 +6,7 @@
 //! a split reports per checkpoint how many steps that keeps ([`SplitCheckpointSteps`]).
 
 use crate::catalog::{insert_rows, RowExt, Val};
-use crate::{now_rfc3339, EpisodeFilter, Label, Store, StoreError};
+use crate::{now_rfc3339, EpisodeFilter, EpisodeRecord, Label, Store, StoreError};
 use serde::Serialize;
 
 #[derive(Debug, Clone)]
@@ -110,6 +110,43 @@ fn split_from_row(r: &sqlx::any::AnyRow) -> Result<SplitRecord, StoreError> {
 /// The largest validation fraction of a split.
 pub const MAX_VAL_FRACTION: f64 = 0.99;
 
+/// The mode of a split and its source checkpoints: the requested one (on-policy), or the
+/// `off_policy_from` list.
+fn split_sources(req: &SplitRequest) -> (&'static str, Vec<(String, String)>) {
+    if req.off_policy_from.is_empty() {
+        ("on_policy", vec![(req.policy.clone(), req.checkpoint.clone())])
+    } else {
+        ("off_policy", req.off_policy_from.clone())
+    }
+}
+
+/// Keeps a seeded sample of at most `cap` members (nested across caps for one seed).
+fn sample_members(members: &mut Vec<EpisodeRecord>, cap: u64, seed: u64) -> Result<(), StoreError> {
+    if cap == 0 {
+        return Err(StoreError::invalid("max episodes must be at least 1"));
+    }
+    // A key independent of the train/val key, so the sample keeps the val fraction.
+    let sample_seed = seed ^ 0x9e37_79b9_7f4a_7c15;
+    members.sort_by(|a, b| split_key(sample_seed, &a.id).total_cmp(&split_key(sample_seed, &b.id)));
+    members.truncate(usize::try_from(cap).unwrap_or(usize::MAX));
+    Ok(())
+}
+
+/// Each member's part (`val` below the val fraction on the seeded key, else `train`), in
+/// episode id order.
+fn assign_parts(members: &[EpisodeRecord], seed: u64, val_fraction: f64) -> Vec<SplitEpisode> {
+    let mut parts: Vec<SplitEpisode> = members
+        .iter()
+        .map(|e| SplitEpisode {
+            episode_id: e.id.clone(),
+            part: if split_key(seed, &e.id) < val_fraction { "val" } else { "train" }.into(),
+            label: e.label,
+        })
+        .collect();
+    parts.sort_by(|a, b| a.episode_id.cmp(&b.episode_id));
+    parts
+}
+
 impl Store {
     pub async fn create_split(&self, req: &SplitRequest) -> Result<SplitRecord, StoreError> {
         // At most 0.99: a closed range a JSON client states exactly (near 1 nothing would train).
@@ -119,6 +156,44 @@ impl Store {
                 req.val_fraction
             )));
         }
+        let version = self.split_version(req).await?;
+        let (mode, sources) = split_sources(req);
+        let mut members = self.split_members(&sources, version).await?;
+        if let Some(cap) = req.max_episodes {
+            sample_members(&mut members, cap, req.seed)?;
+        }
+        if members.is_empty() {
+            // The store's state (nothing labeled yet), not the request, is what is missing: 409.
+            return Err(StoreError::Conflict(format!(
+                "no labeled episodes of {} in version {version}",
+                sources.iter().map(|(p, c)| format!("{p}/{c}")).collect::<Vec<_>>().join(", ")
+            )));
+        }
+        let parts = assign_parts(&members, req.seed, req.val_fraction);
+        let n_val = parts.iter().filter(|p| p.part == "val").count() as i64;
+        let rec = SplitRecord {
+            id: format!("split-{}", &uuid::Uuid::new_v4().simple().to_string()[..12]),
+            policy: req.policy.clone(),
+            checkpoint: req.checkpoint.clone(),
+            mode: mode.into(),
+            source_checkpoints: sources,
+            version,
+            val_fraction: req.val_fraction,
+            seed: req.seed as i64,
+            train_episodes: parts.len() as i64 - n_val,
+            val_episodes: n_val,
+            created_by: req.actor.clone(),
+            created_at: now_rfc3339(),
+            checkpoint_steps: Vec::new(),
+        };
+        self.insert_split(&rec, &parts).await?;
+        let checkpoint_steps = self.split_checkpoint_steps(&rec.id).await?;
+        Ok(SplitRecord { checkpoint_steps, ..rec })
+    }
+
+    /// The version a split pins: the requested one (which must exist), else the head after
+    /// freezing any unsnapshotted label changes; never version 0 (the empty store).
+    async fn split_version(&self, req: &SplitRequest) -> Result<i64, StoreError> {
         let version = match req.version {
             Some(v) => {
                 self.version(v).await?;
@@ -140,11 +215,16 @@ impl Store {
                 req.policy, req.checkpoint, req.policy, req.checkpoint
             )));
         }
-        let (mode, sources) = if req.off_policy_from.is_empty() {
-            ("on_policy", vec![(req.policy.clone(), req.checkpoint.clone())])
-        } else {
-            ("off_policy", req.off_policy_from.clone())
-        };
+        Ok(version)
+    }
+
+    /// The labeled episodes of `sources` in `version` that their policy ran on its own (no
+    /// steered run's).
+    async fn split_members(
+        &self,
+        sources: &[(String, String)],
+        version: i64,
+    ) -> Result<Vec<EpisodeRecord>, StoreError> {
         // Only what the checkpoint's policy did on its own: episodes of steered runs (best-of-N,
         // guidance) are evaluations of the policy plus a verifier, not its on-policy rollouts.
         let steered: std::collections::HashSet<String> =
@@ -155,7 +235,7 @@ impl Store {
                 .map(|r| r.s("id"))
                 .collect::<Result<_, _>>()?;
         let mut members = Vec::new();
-        for (p, c) in &sources {
+        for (p, c) in sources {
             let eps = self
                 .episodes(&EpisodeFilter {
                     version: Some(version),
@@ -168,48 +248,11 @@ impl Store {
                 e.label != Label::Unknown && !e.run_id.as_ref().is_some_and(|r| steered.contains(r))
             }));
         }
-        if let Some(cap) = req.max_episodes {
-            if cap == 0 {
-                return Err(StoreError::invalid("max episodes must be at least 1"));
-            }
-            // A key independent of the train/val key, so the sample keeps the val fraction.
-            let sample_seed = req.seed ^ 0x9e37_79b9_7f4a_7c15;
-            members.sort_by(|a, b| split_key(sample_seed, &a.id).total_cmp(&split_key(sample_seed, &b.id)));
-            members.truncate(usize::try_from(cap).unwrap_or(usize::MAX));
-        }
-        if members.is_empty() {
-            // The store's state (nothing labeled yet), not the request, is what is missing: 409.
-            return Err(StoreError::Conflict(format!(
-                "no labeled episodes of {} in version {version}",
-                sources.iter().map(|(p, c)| format!("{p}/{c}")).collect::<Vec<_>>().join(", ")
-            )));
-        }
-        let mut parts: Vec<SplitEpisode> = members
-            .iter()
-            .map(|e| SplitEpisode {
-                episode_id: e.id.clone(),
-                part: if split_key(req.seed, &e.id) < req.val_fraction { "val" } else { "train" }.into(),
-                label: e.label,
-            })
-            .collect();
-        parts.sort_by(|a, b| a.episode_id.cmp(&b.episode_id));
-        let n_val = parts.iter().filter(|p| p.part == "val").count() as i64;
-        let id = format!("split-{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
-        let rec = SplitRecord {
-            id: id.clone(),
-            policy: req.policy.clone(),
-            checkpoint: req.checkpoint.clone(),
-            mode: mode.into(),
-            source_checkpoints: sources,
-            version,
-            val_fraction: req.val_fraction,
-            seed: req.seed as i64,
-            train_episodes: parts.len() as i64 - n_val,
-            val_episodes: n_val,
-            created_by: req.actor.clone(),
-            created_at: now_rfc3339(),
-            checkpoint_steps: Vec::new(),
-        };
+        Ok(members)
+    }
+
+    /// Writes a split's row and its episodes' parts in one transaction.
+    async fn insert_split(&self, rec: &SplitRecord, parts: &[SplitEpisode]) -> Result<(), StoreError> {
         let mut tx = self.db().begin_write().await?;
         sqlx::query(&format!(
             "INSERT INTO splits ({SPLIT_COLS}) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12)"
@@ -236,7 +279,7 @@ impl Store {
                 .iter()
                 .map(|p| {
                     vec![
-                        Val::S(id.clone()),
+                        Val::S(rec.id.clone()),
                         p.episode_id.as_str().into(),
                         p.part.as_str().into(),
                         p.label.as_str().into(),
@@ -247,8 +290,7 @@ impl Store {
         )
         .await?;
         tx.commit().await?;
-        let checkpoint_steps = self.split_checkpoint_steps(&rec.id).await?;
-        Ok(SplitRecord { checkpoint_steps, ..rec })
+        Ok(())
     }
 
     pub async fn split(&self, id: &str) -> Result<SplitRecord, StoreError> {
