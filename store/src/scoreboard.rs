@@ -324,7 +324,24 @@ impl Store {
             }
             None => self.scoreboard_cells(req, version, false).await?,
         };
-        // The runs named by the rows (a few dozen at most).
+        let runs = self.scoreboard_runs(&cells).await?;
+        let mut rows = scoreboard_rows(req, &baseline, cells, &runs);
+        compare_with_baselines(&mut rows, req.baseline_checkpoint.as_ref());
+        if let Some(c) = &other_baseline {
+            rows.retain(|r| &r.checkpoint == c || r.is_baseline);
+        }
+        self.attach_verifier_quality(&mut rows).await?;
+        Ok(Scoreboard {
+            version,
+            policy: req.policy.clone(),
+            baseline,
+            baseline_checkpoint: req.baseline_checkpoint.clone(),
+            rows,
+        })
+    }
+
+    /// The runs named by the cells (a few dozen at most), by id.
+    async fn scoreboard_runs(&self, cells: &Cells) -> Result<BTreeMap<String, RunRecord>, StoreError> {
         let ids: std::collections::BTreeSet<String> = cells.keys().filter_map(|k| k.2.clone()).collect();
         let mut runs: BTreeMap<String, RunRecord> = BTreeMap::new();
         for id in ids {
@@ -336,75 +353,12 @@ impl Store {
             .await?;
             runs.insert(id, run_from_row(&row)?);
         }
-        let mut rows: Vec<ScoreboardRow> = cells
-            .into_iter()
-            .map(|((checkpoint, task, run_id), [s, f, u])| {
-                let run = run_id.and_then(|id| runs.get(&id).cloned());
-                let run_name = run.as_ref().map_or(NO_RUN.to_string(), |r| r.name.clone());
-                let labeled = s + f;
-                ScoreboardRow {
-                    policy: req.policy.clone(),
-                    is_baseline: run_name == baseline
-                        && req.baseline_checkpoint.as_ref().is_none_or(|c| *c == checkpoint),
-                    checkpoint,
-                    task,
-                    run_name,
-                    run,
-                    episodes: s + f + u,
-                    successes: s,
-                    failures: f,
-                    unlabeled: u,
-                    rate: (labeled > 0).then(|| s as f64 / labeled as f64),
-                    wilson_95: wilson(s, labeled),
-                    baseline: None,
-                    verifier_quality: None,
-                }
-            })
-            .collect();
-        // The baseline first within each checkpoint and task, then by run name.
-        rows.sort_by(|a, b| {
-            (&a.checkpoint, &a.task, !a.is_baseline, &a.run_name, a.run.as_ref().map(|r| &r.id)).cmp(&(
-                &b.checkpoint,
-                &b.task,
-                !b.is_baseline,
-                &b.run_name,
-                b.run.as_ref().map(|r| &r.id),
-            ))
-        });
-        let comparisons: Vec<Option<BaselineComparison>> = rows
-            .iter()
-            .map(|r| {
-                let want_ckpt = req.baseline_checkpoint.as_ref().unwrap_or(&r.checkpoint);
-                let mut cands =
-                    rows.iter().filter(|b| b.is_baseline && b.task == r.task && &b.checkpoint == want_ckpt);
-                let base = cands.next()?;
-                if cands.next().is_some() || std::ptr::eq(base, r) {
-                    return None; // ambiguous (one name, several runs), or the baseline itself
-                }
-                let (a, b) = (r.arm(), base.arm());
-                let ci = newcombe_diff(a.successes, a.labeled(), b.successes, b.labeled());
-                Some(BaselineComparison {
-                    checkpoint: base.checkpoint.clone(),
-                    run_name: base.run_name.clone(),
-                    run_id: base.run.as_ref().map(|x| x.id.clone()),
-                    diff: r.rate.unwrap_or(0.0) - base.rate.unwrap_or(0.0),
-                    newcombe_95: ci,
-                    separates: separates(ci),
-                    rollouts_to_separate: match (r.rate, base.rate) {
-                        (Some(p1), Some(p2)) => rollouts_to_separate(p1, p2),
-                        _ => None,
-                    },
-                    unlabeled_to_flip: unlabeled_to_flip(&a, &b),
-                })
-            })
-            .collect();
-        for (r, c) in rows.iter_mut().zip(comparisons) {
-            r.baseline = c;
-        }
-        if let Some(c) = &other_baseline {
-            rows.retain(|r| &r.checkpoint == c || r.is_baseline);
-        }
-        // The verifiers' quality, once per artifact.
+        Ok(runs)
+    }
+
+    /// Sets each row's verifier quality from its run's artifact, reading each artifact once
+    /// (none when the artifact is gone).
+    async fn attach_verifier_quality(&self, rows: &mut [ScoreboardRow]) -> Result<(), StoreError> {
         let mut quality: BTreeMap<String, Option<serde_json::Value>> = BTreeMap::new();
         for r in rows.iter_mut() {
             let Some(id) = r.run.as_ref().and_then(|x| x.artifact_id.clone()) else { continue };
@@ -418,12 +372,88 @@ impl Store {
             }
             r.verifier_quality = quality[&id].clone();
         }
-        Ok(Scoreboard {
-            version,
-            policy: req.policy.clone(),
-            baseline,
-            baseline_checkpoint: req.baseline_checkpoint.clone(),
-            rows,
+        Ok(())
+    }
+}
+
+/// One row per cell with its rate and Wilson interval (compared with its baseline later), in
+/// display order.
+fn scoreboard_rows(
+    req: &ScoreboardRequest,
+    baseline: &str,
+    cells: Cells,
+    runs: &BTreeMap<String, RunRecord>,
+) -> Vec<ScoreboardRow> {
+    let mut rows: Vec<ScoreboardRow> = cells
+        .into_iter()
+        .map(|((checkpoint, task, run_id), [s, f, u])| {
+            let run = run_id.and_then(|id| runs.get(&id).cloned());
+            let run_name = run.as_ref().map_or(NO_RUN.to_string(), |r| r.name.clone());
+            let labeled = s + f;
+            ScoreboardRow {
+                policy: req.policy.clone(),
+                is_baseline: run_name == baseline
+                    && req.baseline_checkpoint.as_ref().is_none_or(|c| *c == checkpoint),
+                checkpoint,
+                task,
+                run_name,
+                run,
+                episodes: s + f + u,
+                successes: s,
+                failures: f,
+                unlabeled: u,
+                rate: (labeled > 0).then(|| s as f64 / labeled as f64),
+                wilson_95: wilson(s, labeled),
+                baseline: None,
+                verifier_quality: None,
+            }
         })
+        .collect();
+    // The baseline first within each checkpoint and task, then by run name.
+    rows.sort_by(|a, b| {
+        (&a.checkpoint, &a.task, !a.is_baseline, &a.run_name, a.run.as_ref().map(|r| &r.id)).cmp(&(
+            &b.checkpoint,
+            &b.task,
+            !b.is_baseline,
+            &b.run_name,
+            b.run.as_ref().map(|r| &r.id),
+        ))
+    });
+    rows
+}
+
+/// Compares each row with the one baseline row of its task and checkpoint (`baseline_checkpoint`
+/// when given, else its own); none for the baseline itself or when several rows share the
+/// baseline's name.
+fn compare_with_baselines(rows: &mut [ScoreboardRow], baseline_checkpoint: Option<&String>) {
+    let comparisons: Vec<Option<BaselineComparison>> = rows
+        .iter()
+        .map(|r| {
+            let want_ckpt = baseline_checkpoint.unwrap_or(&r.checkpoint);
+            let mut cands =
+                rows.iter().filter(|b| b.is_baseline && b.task == r.task && &b.checkpoint == want_ckpt);
+            let base = cands.next()?;
+            if cands.next().is_some() || std::ptr::eq(base, r) {
+                return None; // ambiguous (one name, several runs), or the baseline itself
+            }
+            let (a, b) = (r.arm(), base.arm());
+            let ci = newcombe_diff(a.successes, a.labeled(), b.successes, b.labeled());
+            Some(BaselineComparison {
+                checkpoint: base.checkpoint.clone(),
+                run_name: base.run_name.clone(),
+                run_id: base.run.as_ref().map(|x| x.id.clone()),
+                diff: r.rate.unwrap_or(0.0) - base.rate.unwrap_or(0.0),
+                newcombe_95: ci,
+                separates: separates(ci),
+                rollouts_to_separate: match (r.rate, base.rate) {
+                    (Some(p1), Some(p2)) => rollouts_to_separate(p1, p2),
+                    _ => None,
+                },
+                unlabeled_to_flip: unlabeled_to_flip(&a, &b),
+            })
+        })
+        .collect();
+    for (r, c) in rows.iter_mut().zip(comparisons) {
+        r.baseline = c;
     }
 }
