@@ -102,6 +102,70 @@ fn version_from_row(r: &sqlx::any::AnyRow) -> Result<VersionInfo, StoreError> {
     })
 }
 
+/// The episode columns every episode listing selects (`e`: the episodes table); the label
+/// columns and the FROM clause follow.
+pub(crate) const EPISODE_SELECT: &str =
+    "SELECT e.id, e.policy, e.checkpoint, e.task, e.source_sha256, e.source_name, e.source_index, \
+     e.length, e.tags, e.metadata, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
+     COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, e.run_id, \
+     e.first_intervention, e.intervention_steps, ";
+
+/// Binds `v` as the next parameter of a statement being built; its placeholder (`$n`).
+pub(crate) fn push_arg(args: &mut Vec<Val>, v: Val) -> String {
+    args.push(v);
+    format!("${}", args.len())
+}
+
+/// The filter's conditions on the label columns of table alias `lab` (label, then source).
+pub(crate) fn label_conds(filter: &EpisodeFilter, lab: &str, args: &mut Vec<Val>) -> Vec<String> {
+    let mut conds = Vec::new();
+    if let Some(l) = filter.label {
+        conds.push(format!("{lab}.label = {}", push_arg(args, Val::S(l.as_str().into()))));
+    }
+    if let Some(s) = &filter.label_source {
+        conds.push(format!("{lab}.label_source = {}", push_arg(args, Val::S(s.clone()))));
+    }
+    conds
+}
+
+/// The filter's conditions on the episode's own columns (`e`): id, policy, checkpoint, task, tag.
+pub(crate) fn episode_conds(filter: &EpisodeFilter, args: &mut Vec<Val>) -> Result<Vec<String>, StoreError> {
+    let mut conds = Vec::new();
+    if let Some(id) = &filter.id {
+        conds.push(format!("e.id = {}", push_arg(args, Val::S(id.clone()))));
+    }
+    if let Some(p) = &filter.policy {
+        conds.push(format!("e.policy = {}", push_arg(args, Val::S(p.clone()))));
+    }
+    if let Some(c) = &filter.checkpoint {
+        conds.push(format!("e.checkpoint = {}", push_arg(args, Val::S(c.clone()))));
+    }
+    if let Some(t) = &filter.task {
+        conds.push(format!("e.task = {}", push_arg(args, Val::S(t.clone()))));
+    }
+    if let Some(t) = &filter.tag {
+        let pat = format!("%{}%", serde_json::to_string(t)?);
+        conds.push(format!("e.tags LIKE {}", push_arg(args, Val::S(pat))));
+    }
+    Ok(conds)
+}
+
+/// Where [`Store::episodes`] reads the labels from, and how it orders and bounds a page there.
+struct LabelSource {
+    /// The label columns and the FROM clause (a LATERAL subquery is left open for its label
+    /// conditions).
+    from: String,
+    /// A condition on the source itself (episodes now, or the version's labels).
+    cond: Option<String>,
+    /// The column that orders the page, and the columns the cursor bounds.
+    order_col: &'static str,
+    cursor_cols: &'static [&'static str],
+    /// The alias of the table the label conditions name.
+    label_alias: &'static str,
+    /// Whether `from` ends in an open LATERAL subquery.
+    lateral: bool,
+}
+
 impl Store {
     /// The latest committed version (0 for an empty store).
     pub async fn head_version(&self) -> Result<i64, StoreError> {
@@ -129,62 +193,106 @@ impl Store {
     /// order; `after` + `limit` page through them by keyset (store/README.md, "Catalog indexes and
     /// counts", has the query plans behind each shape).
     pub async fn episodes(&self, filter: &EpisodeFilter) -> Result<Vec<EpisodeRecord>, StoreError> {
+        let (sql, args) = self.episodes_sql(filter).await?;
+        let mut q = sqlx::query(&sql);
+        for a in args {
+            q = bind_val(q, a);
+        }
+        let rows = q.fetch_all(&self.db().pool).await?;
+        rows.iter().map(episode_from_row).collect()
+    }
+
+    /// The statement [`Self::episodes`] runs for `filter`, and the values it binds.
+    async fn episodes_sql(&self, filter: &EpisodeFilter) -> Result<(String, Vec<Val>), StoreError> {
         let mut args: Vec<Val> = Vec::new();
-        let next = |v: Val, args: &mut Vec<Val>| {
-            args.push(v);
-            format!("${}", args.len())
-        };
-        let mut sql = String::from(
-            "SELECT e.id, e.policy, e.checkpoint, e.task, e.source_sha256, e.source_name, e.source_index, \
-             e.length, e.tags, e.metadata, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
-             COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, e.run_id, \
-             e.first_intervention, e.intervention_steps, ",
-        );
-        let mut conds: Vec<String> = Vec::new();
-        // Label conditions go here, on `label_cols`' table.
-        let mut label_conds: Vec<String> = Vec::new();
+        let source = self.label_source(filter, &mut args).await?;
+        let mut sql = format!("{EPISODE_SELECT}{}", source.from);
+        let mut conds: Vec<String> = source.cond.into_iter().collect();
+        // Label conditions go on the label source's table (inside its LATERAL subquery, if any).
+        let mut on_labels = label_conds(filter, source.label_alias, &mut args);
+        if source.lateral {
+            for c in on_labels.drain(..) {
+                sql.push_str(" AND ");
+                sql.push_str(&c);
+            }
+            sql.push_str(" OFFSET 0) l");
+        }
+        conds.append(&mut on_labels);
+        conds.extend(episode_conds(filter, &mut args)?);
+        if let Some(a) = &filter.after {
+            let p = push_arg(&mut args, Val::S(a.clone()));
+            conds.extend(source.cursor_cols.iter().map(|c| format!("{c} > {p}")));
+        }
+        if !conds.is_empty() {
+            sql.push_str(" WHERE ");
+            sql.push_str(&conds.join(" AND "));
+        }
+        sql.push_str(&format!(" ORDER BY {}", source.order_col));
+        if let Some(n) = filter.limit {
+            sql.push_str(&format!(" LIMIT {}", push_arg(&mut args, Val::I(n.max(0)))));
+        }
+        Ok((sql, args))
+    }
+
+    /// Where [`Self::episodes`] takes the labels from: the episodes' current columns, or the
+    /// frozen labels of `filter.version` (which must exist; its number is bound into `args`).
+    async fn label_source(
+        &self,
+        filter: &EpisodeFilter,
+        args: &mut Vec<Val>,
+    ) -> Result<LabelSource, StoreError> {
         let filters_episode_columns = filter.id.is_some()
             || filter.policy.is_some()
             || filter.checkpoint.is_some()
             || filter.task.is_some()
             || filter.tag.is_some();
-        // (column that orders the page, columns the cursor bounds, label table alias)
-        let (order_col, cursor_cols, label_alias, lateral) = match filter.version {
-            None => {
-                sql.push_str(
+        Ok(match filter.version {
+            None => LabelSource {
+                from: String::from(
                     "e.label AS label, e.label_source AS label_source, e.label_revision AS label_revision, \
                      e.label_actor AS label_actor, e.label_updated_at AS label_updated_at FROM episodes e",
-                );
-                conds.push("e.version_removed IS NULL".into());
-                ("e.id", &["e.id"][..], "e", false)
-            }
+                ),
+                cond: Some("e.version_removed IS NULL".into()),
+                order_col: "e.id",
+                cursor_cols: &["e.id"],
+                label_alias: "e",
+                lateral: false,
+            },
             // Filters on the episode's own columns: walk their index in id order and look each
             // episode's frozen label up. Postgres would rather merge-join the whole version's
             // labels (hundreds of ms at a million); a LATERAL subquery behind `OFFSET 0` keeps
             // it to lookups.
             Some(v) if filters_episode_columns => {
                 self.version(v).await?;
-                let p = next(Val::I(v), &mut args);
+                let p = push_arg(args, Val::I(v));
                 match self.backend() {
-                    Backend::Sqlite => {
-                        sql.push_str(&format!(
+                    Backend::Sqlite => LabelSource {
+                        from: format!(
                             "l.label AS label, l.label_source AS label_source, l.revision AS label_revision, \
                              ev.actor AS label_actor, ev.created_at AS label_updated_at FROM episodes e \
                              JOIN version_labels l ON l.episode_id = e.id AND l.version = {p} \
                              JOIN label_events ev ON ev.episode_id = e.id AND ev.revision = l.revision"
-                        ));
-                        ("e.id", &["e.id"][..], "l", false)
-                    }
-                    Backend::Postgres => {
-                        sql.push_str(&format!(
+                        ),
+                        cond: None,
+                        order_col: "e.id",
+                        cursor_cols: &["e.id"],
+                        label_alias: "l",
+                        lateral: false,
+                    },
+                    Backend::Postgres => LabelSource {
+                        from: format!(
                             "l.label AS label, l.label_source AS label_source, l.revision AS label_revision, \
                              l.actor AS label_actor, l.created_at AS label_updated_at FROM episodes e \
                              CROSS JOIN LATERAL (SELECT v.label, v.label_source, v.revision, ev.actor, ev.created_at \
                              FROM version_labels v JOIN label_events ev ON ev.episode_id = v.episode_id \
                              AND ev.revision = v.revision WHERE v.version = {p} AND v.episode_id = e.id"
-                        ));
-                        ("e.id", &["e.id"][..], "v", true)
-                    }
+                        ),
+                        cond: None,
+                        order_col: "e.id",
+                        cursor_cols: &["e.id"],
+                        label_alias: "v",
+                        lateral: true,
+                    },
                 }
             }
             // Otherwise walk the version's labels in episode order (`version_labels`' key). The
@@ -192,65 +300,22 @@ impl Store {
             // join, and its merge joins would start from the first episode.
             Some(v) => {
                 self.version(v).await?;
-                let p = next(Val::I(v), &mut args);
-                sql.push_str(
-                    "l.label AS label, l.label_source AS label_source, l.revision AS label_revision, \
-                     ev.actor AS label_actor, ev.created_at AS label_updated_at FROM version_labels l \
-                     JOIN episodes e ON e.id = l.episode_id \
-                     JOIN label_events ev ON ev.episode_id = l.episode_id AND ev.revision = l.revision",
-                );
-                conds.push(format!("l.version = {p}"));
-                ("l.episode_id", &["l.episode_id", "e.id", "ev.episode_id"][..], "l", false)
+                let p = push_arg(args, Val::I(v));
+                LabelSource {
+                    from: String::from(
+                        "l.label AS label, l.label_source AS label_source, l.revision AS label_revision, \
+                         ev.actor AS label_actor, ev.created_at AS label_updated_at FROM version_labels l \
+                         JOIN episodes e ON e.id = l.episode_id \
+                         JOIN label_events ev ON ev.episode_id = l.episode_id AND ev.revision = l.revision",
+                    ),
+                    cond: Some(format!("l.version = {p}")),
+                    order_col: "l.episode_id",
+                    cursor_cols: &["l.episode_id", "e.id", "ev.episode_id"],
+                    label_alias: "l",
+                    lateral: false,
+                }
             }
-        };
-        if let Some(l) = filter.label {
-            label_conds.push(format!("{label_alias}.label = {}", next(Val::S(l.as_str().into()), &mut args)));
-        }
-        if let Some(s) = &filter.label_source {
-            label_conds.push(format!("{label_alias}.label_source = {}", next(Val::S(s.clone()), &mut args)));
-        }
-        if lateral {
-            for c in label_conds.drain(..) {
-                sql.push_str(" AND ");
-                sql.push_str(&c);
-            }
-            sql.push_str(" OFFSET 0) l");
-        }
-        conds.append(&mut label_conds);
-        if let Some(id) = &filter.id {
-            conds.push(format!("e.id = {}", next(Val::S(id.clone()), &mut args)));
-        }
-        if let Some(p) = &filter.policy {
-            conds.push(format!("e.policy = {}", next(Val::S(p.clone()), &mut args)));
-        }
-        if let Some(c) = &filter.checkpoint {
-            conds.push(format!("e.checkpoint = {}", next(Val::S(c.clone()), &mut args)));
-        }
-        if let Some(t) = &filter.task {
-            conds.push(format!("e.task = {}", next(Val::S(t.clone()), &mut args)));
-        }
-        if let Some(t) = &filter.tag {
-            let pat = format!("%{}%", serde_json::to_string(t)?);
-            conds.push(format!("e.tags LIKE {}", next(Val::S(pat), &mut args)));
-        }
-        if let Some(a) = &filter.after {
-            let p = next(Val::S(a.clone()), &mut args);
-            conds.extend(cursor_cols.iter().map(|c| format!("{c} > {p}")));
-        }
-        if !conds.is_empty() {
-            sql.push_str(" WHERE ");
-            sql.push_str(&conds.join(" AND "));
-        }
-        sql.push_str(&format!(" ORDER BY {order_col}"));
-        if let Some(n) = filter.limit {
-            sql.push_str(&format!(" LIMIT {}", next(Val::I(n.max(0)), &mut args)));
-        }
-        let mut q = sqlx::query(&sql);
-        for a in args {
-            q = bind_val(q, a);
-        }
-        let rows = q.fetch_all(&self.db().pool).await?;
-        rows.iter().map(episode_from_row).collect()
+        })
     }
 
     /// One episode, now or at a past version.
