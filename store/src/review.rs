@@ -3,7 +3,9 @@
 //! scores each policy's queue, and the queue itself ordered by those stored scores.
 
 use crate::catalog::{bind_val, insert_rows, RowExt, Val};
-use crate::query::{episode_from_row, EpisodeFilter, EpisodeRecord};
+use crate::query::{
+    episode_conds, episode_from_row, label_conds, push_arg, EpisodeFilter, EpisodeRecord, EPISODE_SELECT,
+};
 use crate::{now_rfc3339, Store, StoreError};
 use serde::Serialize;
 
@@ -286,12 +288,59 @@ impl Store {
                 "a review order pages with its own cursor (no id or after filter)",
             ));
         }
-        let mut args: Vec<Val> = Vec::new();
-        let next = |v: Val, args: &mut Vec<Val>| {
-            args.push(v);
-            format!("${}", args.len())
+        let Some((sql, args)) = self.review_queue_sql(filter, order, cursor, limit).await? else {
+            return Ok(Vec::new());
         };
-        let (lab, labels_from) = match filter.version {
+        let mut q = sqlx::query(&sql);
+        for a in args {
+            q = bind_val(q, a);
+        }
+        let rows = q.fetch_all(&self.db().pool).await?;
+        rows.iter().map(|r| review_entry_from_row(r, order)).collect()
+    }
+
+    /// The statement [`Self::review_queue`] runs and the values it binds; none when `cursor` is
+    /// not a position of `order` (the page past its end is empty).
+    async fn review_queue_sql(
+        &self,
+        filter: &EpisodeFilter,
+        order: ReviewOrder,
+        cursor: Option<&str>,
+        limit: i64,
+    ) -> Result<Option<(String, Vec<Val>)>, StoreError> {
+        let mut args: Vec<Val> = Vec::new();
+        let (lab, labels_from) = self.review_labels_from(filter.version, &mut args).await?;
+        let key = order.key_sql(lab);
+        let mut sql = format!(
+            "{EPISODE_SELECT}s.score AS review_score, COALESCE(ra.artifact_id, aa.artifact_id) AS review_artifact, {}",
+            labels_from.replace("{key}", &format!("{key} AS review_key"))
+        );
+        let mut conds = label_conds(filter, lab, &mut args);
+        conds.extend(episode_conds(filter, &mut args)?);
+        if let Some(c) = cursor {
+            let Some(after) = cursor_cond(order, &key, c, &mut args) else { return Ok(None) };
+            conds.push(after);
+        }
+        for c in conds {
+            sql.push_str(" AND ");
+            sql.push_str(&c);
+        }
+        sql.push_str(&format!(
+            " ORDER BY review_key, e.id LIMIT {}",
+            push_arg(&mut args, Val::I(limit.max(0)))
+        ));
+        Ok(Some((sql, args)))
+    }
+
+    /// The alias of the table holding the label columns, and the queue's label columns, `{key}`
+    /// placeholder and FROM clause up to an open WHERE: the episodes now, or as `version` froze
+    /// them (which must exist; its number is bound into `args`).
+    async fn review_labels_from(
+        &self,
+        version: Option<i64>,
+        args: &mut Vec<Val>,
+    ) -> Result<(&'static str, String), StoreError> {
+        Ok(match version {
             None => (
                 "e",
                 format!(
@@ -302,7 +351,7 @@ impl Store {
             ),
             Some(v) => {
                 self.version(v).await?;
-                let p = next(Val::I(v), &mut args);
+                let p = push_arg(args, Val::I(v));
                 (
                     "l",
                     format!(
@@ -314,70 +363,35 @@ impl Store {
                     ),
                 )
             }
-        };
-        let key = order.key_sql(lab);
-        let mut sql = format!(
-            "SELECT e.id, e.policy, e.checkpoint, e.task, e.source_sha256, e.source_name, e.source_index, \
-             e.length, e.tags, e.metadata, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
-             COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, e.run_id, \
-             e.first_intervention, e.intervention_steps, s.score AS review_score, COALESCE(ra.artifact_id, aa.artifact_id) AS review_artifact, {}",
-            labels_from.replace("{key}", &format!("{key} AS review_key"))
-        );
-        let mut cond = |c: String| {
-            sql.push_str(" AND ");
-            sql.push_str(&c);
-        };
-        if let Some(l) = filter.label {
-            cond(format!("{lab}.label = {}", next(Val::S(l.as_str().into()), &mut args)));
-        }
-        if let Some(s) = &filter.label_source {
-            cond(format!("{lab}.label_source = {}", next(Val::S(s.clone()), &mut args)));
-        }
-        if let Some(p) = &filter.policy {
-            cond(format!("e.policy = {}", next(Val::S(p.clone()), &mut args)));
-        }
-        if let Some(c) = &filter.checkpoint {
-            cond(format!("e.checkpoint = {}", next(Val::S(c.clone()), &mut args)));
-        }
-        if let Some(t) = &filter.task {
-            cond(format!("e.task = {}", next(Val::S(t.clone()), &mut args)));
-        }
-        if let Some(t) = &filter.tag {
-            let pat = format!("%{}%", serde_json::to_string(t)?);
-            cond(format!("e.tags LIKE {}", next(Val::S(pat), &mut args)));
-        }
-        if let Some(c) = cursor {
-            let (k, id) = c.rsplit_once('|').unwrap_or((c, ""));
-            let kv = if order.numeric() {
-                match k.parse::<f64>() {
-                    Ok(x) if x.is_finite() => Val::F(x),
-                    _ => return Ok(Vec::new()),
-                }
-            } else {
-                Val::S(k.to_string())
-            };
-            let (pk, pk2, pid) =
-                (next(kv.clone(), &mut args), next(kv, &mut args), next(Val::S(id.into()), &mut args));
-            cond(format!("({key} > {pk} OR ({key} = {pk2} AND e.id > {pid}))"));
-        }
-        sql.push_str(&format!(" ORDER BY review_key, e.id LIMIT {}", next(Val::I(limit.max(0)), &mut args)));
-        let mut q = sqlx::query(&sql);
-        for a in args {
-            q = bind_val(q, a);
-        }
-        let rows = q.fetch_all(&self.db().pool).await?;
-        rows.iter()
-            .map(|r| {
-                use sqlx::Row;
-                let episode = episode_from_row(r)?;
-                let key = if order.numeric() { r.f("review_key")?.to_string() } else { r.s("review_key")? };
-                Ok(ReviewEntry {
-                    cursor: format!("{key}|{}", episode.id),
-                    artifact_id: r.os("review_artifact")?,
-                    score: r.try_get::<Option<f64>, _>("review_score")?,
-                    episode,
-                })
-            })
-            .collect()
+        })
     }
+}
+
+/// The keyset condition for the page after `cursor` (`key|episode id`) in `order`, whose sort
+/// key is the SQL `key`; none when its key is not a number a numeric order can hold.
+fn cursor_cond(order: ReviewOrder, key: &str, cursor: &str, args: &mut Vec<Val>) -> Option<String> {
+    let (k, id) = cursor.rsplit_once('|').unwrap_or((cursor, ""));
+    let kv = if order.numeric() {
+        match k.parse::<f64>() {
+            Ok(x) if x.is_finite() => Val::F(x),
+            _ => return None,
+        }
+    } else {
+        Val::S(k.to_string())
+    };
+    let (pk, pk2, pid) = (push_arg(args, kv.clone()), push_arg(args, kv), push_arg(args, Val::S(id.into())));
+    Some(format!("({key} > {pk} OR ({key} = {pk2} AND e.id > {pid}))"))
+}
+
+/// One queue entry from a row of [`Store::review_queue`]'s statement.
+fn review_entry_from_row(r: &sqlx::any::AnyRow, order: ReviewOrder) -> Result<ReviewEntry, StoreError> {
+    use sqlx::Row;
+    let episode = episode_from_row(r)?;
+    let key = if order.numeric() { r.f("review_key")?.to_string() } else { r.s("review_key")? };
+    Ok(ReviewEntry {
+        cursor: format!("{key}|{}", episode.id),
+        artifact_id: r.os("review_artifact")?,
+        score: r.try_get::<Option<f64>, _>("review_score")?,
+        episode,
+    })
 }
