@@ -10,7 +10,7 @@
 //! An episode that already holds the layer from the same producer is skipped, so a computation
 //! that commits in groups resumes where it stopped and a re-run writes nothing.
 
-use crate::catalog::{insert_rows, RowExt, Val};
+use crate::catalog::{insert_rows, RowExt, Tx, Val};
 use crate::model::check_name;
 use crate::read::{visible, EpisodeLocation, EpisodeSteps, StepsReadError, StepsStream};
 use crate::steps::{OBS_PREFIX, PAGE_MAX_BYTES, ROW_GROUP_MAX_BYTES};
@@ -189,6 +189,130 @@ fn encode_layer_file(eps: &[&LayerValues], dim: usize) -> Result<LayerFile, Stor
     Ok(LayerFile { bytes, rows, ranges })
 }
 
+/// The dim the episodes' values share, checked: in `1..=MAX_LAYER_DIM`, whole rows of finite
+/// values, each episode given once.
+fn check_layer_values(name: &str, episodes: &[LayerValues]) -> Result<usize, StoreError> {
+    let Some(dim) = episodes.first().map(|e| e.dim) else {
+        return Err(StoreError::invalid(format!("layer {name}: no episodes given")));
+    };
+    if dim == 0 || dim > MAX_LAYER_DIM {
+        return Err(StoreError::invalid(format!("layer {name}: dim {dim} is not in 1..={MAX_LAYER_DIM}")));
+    }
+    let mut seen = HashSet::new();
+    for e in episodes {
+        if e.dim != dim {
+            return Err(StoreError::invalid(format!(
+                "layer {name}: episode {} has dim {}, the others {dim}",
+                e.episode_id, e.dim
+            )));
+        }
+        if e.values.len() % dim != 0 {
+            return Err(StoreError::invalid(format!(
+                "layer {name}: episode {} has {} values, not a multiple of dim {dim}",
+                e.episode_id,
+                e.values.len()
+            )));
+        }
+        if let Some(k) = e.values.iter().position(|v| !v.is_finite()) {
+            return Err(StoreError::invalid(format!(
+                "layer {name}: episode {} has a non-finite value at step {}",
+                e.episode_id,
+                k / dim
+            )));
+        }
+        if !seen.insert(e.episode_id.as_str()) {
+            return Err(StoreError::invalid(format!("layer {name}: episode {} given twice", e.episode_id)));
+        }
+    }
+    Ok(dim)
+}
+
+/// Inside a layer's commit: checks that no episode of `todo` was removed meanwhile, and ends
+/// the values of layer `name` they held so far at `version`.
+async fn end_current_layer_values(
+    tx: &mut Tx,
+    name: &str,
+    todo: &[&LayerValues],
+    version: i64,
+) -> Result<(), StoreError> {
+    // Episodes removed meanwhile cannot take the layer.
+    for chunk in todo.chunks(IDS_PER_QUERY) {
+        let marks: Vec<String> = (1..=chunk.len()).map(|i| format!("${i}")).collect();
+        let sql = format!(
+            "SELECT COUNT(*) AS n FROM episodes WHERE version_removed IS NULL AND id IN ({})",
+            marks.join(", ")
+        );
+        let mut q = sqlx::query(&sql);
+        for e in chunk {
+            q = q.bind(e.episode_id.as_str());
+        }
+        if q.fetch_one(&mut **tx).await?.i("n")? != chunk.len() as i64 {
+            return Err(StoreError::Conflict(format!(
+                "layer {name}: an episode was removed while its values were written; retry"
+            )));
+        }
+        // The values they held so far (another producer's, or a concurrent writer's) end here.
+        let sql = format!(
+            "UPDATE episode_layers SET version_removed = ${} WHERE layer = ${} AND version_removed IS NULL AND episode_id IN ({})",
+            chunk.len() + 1,
+            chunk.len() + 2,
+            marks.join(", ")
+        );
+        let mut q = sqlx::query(&sql);
+        for e in chunk {
+            q = q.bind(e.episode_id.as_str());
+        }
+        q.bind(version).bind(name).execute(&mut **tx).await?;
+    }
+    Ok(())
+}
+
+/// Inside a layer's commit: one `episode_layers` row per episode of `todo`, where its rows are
+/// in the layer file (`ranges`: row group, offset, count).
+async fn insert_episode_layers(
+    tx: &mut Tx,
+    name: &str,
+    hash: &str,
+    path: &str,
+    version: i64,
+    todo: &[&LayerValues],
+    ranges: &[(usize, usize, usize)],
+) -> Result<(), StoreError> {
+    let rows: Vec<Vec<Val>> = todo
+        .iter()
+        .zip(ranges)
+        .map(|(e, (rg, off, n))| {
+            vec![
+                name.into(),
+                e.episode_id.as_str().into(),
+                hash.into(),
+                path.into(),
+                (*rg as i64).into(),
+                (*off as i64).into(),
+                (*n as i64).into(),
+                version.into(),
+            ]
+        })
+        .collect();
+    insert_rows(
+        tx,
+        "episode_layers",
+        &[
+            "layer",
+            "episode_id",
+            "producer_hash",
+            "data_file",
+            "row_group",
+            "row_offset",
+            "row_count",
+            "version_added",
+        ],
+        rows,
+        "",
+    )
+    .await
+}
+
 impl Store {
     /// Writes one group of episodes' values of layer `name` from `producer` as a new version.
     /// Every episode must be visible now and get one row per stored step; an episode that
@@ -203,44 +327,37 @@ impl Store {
     ) -> Result<LayerWrite, StoreError> {
         check_layer_name(name)?;
         let hash = producer_hash(producer)?;
-        let Some(dim) = episodes.first().map(|e| e.dim) else {
-            return Err(StoreError::invalid(format!("layer {name}: no episodes given")));
-        };
-        if dim == 0 || dim > MAX_LAYER_DIM {
-            return Err(StoreError::invalid(format!(
-                "layer {name}: dim {dim} is not in 1..={MAX_LAYER_DIM}"
-            )));
+        let dim = check_layer_values(name, &episodes)?;
+        let todo = self.layer_episodes_to_write(name, &hash, dim, &episodes).await?;
+        let skipped = episodes.len() - todo.len();
+        if todo.is_empty() {
+            return Ok(LayerWrite {
+                version: None,
+                producer_hash: hash,
+                episodes_written: 0,
+                episodes_skipped: skipped,
+            });
         }
-        let mut seen = HashSet::new();
-        for e in &episodes {
-            if e.dim != dim {
-                return Err(StoreError::invalid(format!(
-                    "layer {name}: episode {} has dim {}, the others {dim}",
-                    e.episode_id, e.dim
-                )));
-            }
-            if e.values.len() % dim != 0 {
-                return Err(StoreError::invalid(format!(
-                    "layer {name}: episode {} has {} values, not a multiple of dim {dim}",
-                    e.episode_id,
-                    e.values.len()
-                )));
-            }
-            if let Some(k) = e.values.iter().position(|v| !v.is_finite()) {
-                return Err(StoreError::invalid(format!(
-                    "layer {name}: episode {} has a non-finite value at step {}",
-                    e.episode_id,
-                    k / dim
-                )));
-            }
-            if !seen.insert(e.episode_id.as_str()) {
-                return Err(StoreError::invalid(format!(
-                    "layer {name}: episode {} given twice",
-                    e.episode_id
-                )));
-            }
-        }
-        if let Some(existing) = self.layer_dim(name, &hash).await? {
+        let version = self.store_layer(name, producer, &hash, dim, &todo, actor).await?;
+        Ok(LayerWrite {
+            version: Some(version),
+            producer_hash: hash,
+            episodes_written: todo.len(),
+            episodes_skipped: skipped,
+        })
+    }
+
+    /// The episodes that do not hold layer `name` from producer `hash` yet, each checked against
+    /// its stored steps: a layer already written with another dim, a row count other than the
+    /// episode's steps, or a name its steps have as an observation key is an error.
+    async fn layer_episodes_to_write<'a>(
+        &self,
+        name: &str,
+        hash: &str,
+        dim: usize,
+        episodes: &'a [LayerValues],
+    ) -> Result<Vec<&'a LayerValues>, StoreError> {
+        if let Some(existing) = self.layer_dim(name, hash).await? {
             if existing != dim as i64 {
                 return Err(StoreError::invalid(format!(
                     "layer {name} from producer {}: dim {dim}, but it was written with dim {existing}",
@@ -251,7 +368,7 @@ impl Store {
         // Where the episodes are (visible now) and what they hold already.
         let ids: Vec<String> = episodes.iter().map(|e| e.episode_id.clone()).collect();
         let locations = self.locate_episodes(&ids, None).await?;
-        let done = self.episodes_with_layer(name, &hash, &ids).await?;
+        let done = self.episodes_with_layer(name, hash, &ids).await?;
         let mut files_checked = HashSet::new();
         let mut todo: Vec<&LayerValues> = Vec::new();
         for (e, loc) in episodes.iter().zip(&locations) {
@@ -276,16 +393,21 @@ impl Store {
             }
             todo.push(e);
         }
-        let skipped = episodes.len() - todo.len();
-        if todo.is_empty() {
-            return Ok(LayerWrite {
-                version: None,
-                producer_hash: hash,
-                episodes_written: 0,
-                episodes_skipped: skipped,
-            });
-        }
-        let file = encode_layer_file(&todo, dim)?;
+        Ok(todo)
+    }
+
+    /// Puts the episodes' values in a new layer file (protected from gc as pending until the
+    /// commit) and commits them as a new version: the version.
+    async fn store_layer(
+        &self,
+        name: &str,
+        producer: &serde_json::Value,
+        hash: &str,
+        dim: usize,
+        todo: &[&LayerValues],
+        actor: &str,
+    ) -> Result<i64, StoreError> {
+        let file = encode_layer_file(todo, dim)?;
         let path = format!("layers/{}.parquet", uuid::Uuid::new_v4());
         let writer = format!("layer-{}", uuid::Uuid::new_v4().simple());
         self.register_pending(&writer, &path).await?;
@@ -299,9 +421,9 @@ impl Store {
             .commit_layer(
                 name,
                 producer,
-                &hash,
+                hash,
                 dim,
-                &todo,
+                todo,
                 &file.ranges,
                 &path,
                 size,
@@ -314,13 +436,7 @@ impl Store {
             // The file is left for gc (no longer protected).
             self.clear_pending(&writer).await.ok();
         }
-        let version = committed?;
-        Ok(LayerWrite {
-            version: Some(version),
-            producer_hash: hash,
-            episodes_written: todo.len(),
-            episodes_skipped: skipped,
-        })
+        committed
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -342,35 +458,7 @@ impl Store {
         let version = next_version(&mut tx).await?;
         let now = crate::now_rfc3339();
         sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(writer).execute(&mut *tx).await?;
-        // Episodes removed meanwhile cannot take the layer.
-        for chunk in todo.chunks(IDS_PER_QUERY) {
-            let marks: Vec<String> = (1..=chunk.len()).map(|i| format!("${i}")).collect();
-            let sql = format!(
-                "SELECT COUNT(*) AS n FROM episodes WHERE version_removed IS NULL AND id IN ({})",
-                marks.join(", ")
-            );
-            let mut q = sqlx::query(&sql);
-            for e in chunk {
-                q = q.bind(e.episode_id.as_str());
-            }
-            if q.fetch_one(&mut *tx).await?.i("n")? != chunk.len() as i64 {
-                return Err(StoreError::Conflict(format!(
-                    "layer {name}: an episode was removed while its values were written; retry"
-                )));
-            }
-            // The values they held so far (another producer's, or a concurrent writer's) end here.
-            let sql = format!(
-                "UPDATE episode_layers SET version_removed = ${} WHERE layer = ${} AND version_removed IS NULL AND episode_id IN ({})",
-                chunk.len() + 1,
-                chunk.len() + 2,
-                marks.join(", ")
-            );
-            let mut q = sqlx::query(&sql);
-            for e in chunk {
-                q = q.bind(e.episode_id.as_str());
-            }
-            q.bind(version).bind(name).execute(&mut *tx).await?;
-        }
+        end_current_layer_values(&mut tx, name, todo, version).await?;
         sqlx::query(
             "INSERT INTO data_files (path, kind, size_bytes, num_rows, version_added, media_indexed) \
              VALUES ($1, 'layer', $2, $3, $4, 1)",
@@ -393,39 +481,7 @@ impl Store {
         .bind(&now)
         .execute(&mut *tx)
         .await?;
-        let rows: Vec<Vec<Val>> = todo
-            .iter()
-            .zip(ranges)
-            .map(|(e, (rg, off, n))| {
-                vec![
-                    name.into(),
-                    e.episode_id.as_str().into(),
-                    hash.into(),
-                    path.into(),
-                    (*rg as i64).into(),
-                    (*off as i64).into(),
-                    (*n as i64).into(),
-                    version.into(),
-                ]
-            })
-            .collect();
-        insert_rows(
-            &mut tx,
-            "episode_layers",
-            &[
-                "layer",
-                "episode_id",
-                "producer_hash",
-                "data_file",
-                "row_group",
-                "row_offset",
-                "row_count",
-                "version_added",
-            ],
-            rows,
-            "",
-        )
-        .await?;
+        insert_episode_layers(&mut tx, name, hash, path, version, todo, ranges).await?;
         let head = VersionHead {
             version,
             kind: "layer",
