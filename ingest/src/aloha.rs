@@ -17,6 +17,9 @@
 //! Hostile files: every dataset's declared size is checked before it is read (as robomimic's),
 //! cameras are read a window of frames at a time, and `compress_len` must describe frames that
 //! exist (one column per step, each length inside its padded row).
+//!
+//! One file past 700 lines: one format's reader (the file walk, typed attributes, cameras raw and
+//! JPEG, the manifest the export writes back from), whose parts share the file's error context.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -653,32 +656,18 @@ fn base_name(path: &str) -> &str {
     path.rsplit('/').next().unwrap_or(path)
 }
 
-/// Reads one episode file.
-pub fn read_episode(
-    path: &Path,
-    index: u32,
-    task: Option<String>,
-    opts: &ReadOptions,
-) -> Result<(EpisodeInput, Vec<ExtraColumn>, Vec<String>)> {
-    let file = open(path)?;
-    let src = &Src::new(path, file.file_size());
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default()
-        .trim_end_matches(".hdf5")
-        .trim_end_matches(".h5")
-        .to_string();
-    let tree = walk(&file, src)?;
-    let mut notes = Vec::new();
-
-    // Attributes of every object, typed.
+/// The attributes of every group and dataset, typed (by path), and the root's as read.
+fn all_attributes(
+    tree: &Tree,
+    src: &Src,
+    notes: &mut Vec<String>,
+) -> Result<(Map<String, Value>, HashMap<String, Value>)> {
     let mut attrs = Map::new();
     let mut root_attrs = HashMap::new();
     for (p, g) in &tree.groups {
         let a = group_attrs(g, src, p, &[])?;
         let types = g.attr_datatypes().map_err(h5err(src, format!("cannot read the attributes of {p}")))?;
-        let typed = typed_attrs(&a, &types, p, &mut notes);
+        let typed = typed_attrs(&a, &types, p, notes);
         if p == "/" {
             root_attrs = a;
         }
@@ -689,27 +678,36 @@ pub fn read_episode(
     for (p, ds) in &tree.datasets {
         let a = ds.attrs().map_err(h5err(src, format!("cannot read the attributes of {p}")))?;
         let types = ds.attr_datatypes().map_err(h5err(src, format!("cannot read the attributes of {p}")))?;
-        let typed = typed_attrs(&a, &types, p, &mut notes);
+        let typed = typed_attrs(&a, &types, p, notes);
         if !typed.is_empty() {
             attrs.insert(p.clone(), Value::Object(typed));
         }
     }
-    let flag = |k: &str| root_attrs.get(k).and_then(|v| v.as_i64().or_else(|| v.as_f64().map(|f| f as i64)));
+    Ok((attrs, root_attrs))
+}
 
+/// A file's JPEG-compressed cameras: `(T, padded)` uint8 datasets under /observations/images
+/// when the file says it is compressed (`@compress`, or a `/compress_len`), with each frame's
+/// real length and each camera's row of `/compress_len`.
+struct CompressedCameras {
+    /// The file is compressed.
+    on: bool,
+    /// Each camera's dataset path and padded row width.
+    cams: Vec<(String, u64)>,
+    cl: Option<CompressLen>,
+    /// Each camera's row of `/compress_len` (in `cams` order).
+    rows: Vec<usize>,
+}
+
+fn compressed_cameras(
+    tree: &Tree,
+    src: &Src,
+    compress_attr: bool,
+    steps: usize,
+) -> Result<CompressedCameras> {
     let find = |p: &str| tree.datasets.iter().find(|(q, _)| q == p).map(|(_, d)| d);
-    let qpos = find("/observations/qpos").ok_or_else(|| {
-        IngestError::invalid(src, "no /observations/qpos dataset: not an ALOHA episode file")
-    })?;
-    let steps = info(qpos, src, "/observations/qpos")?.shape.first().copied().unwrap_or(0) as usize;
-    if steps == 0 {
-        return Err(IngestError::invalid(src, "/observations/qpos has no rows"));
-    }
-    let action_ds = find("/action")
-        .ok_or_else(|| IngestError::invalid(src, "no /action dataset: not an ALOHA episode file"))?;
-
-    // Compressed cameras: (T, padded) uint8 under /observations/images when the file says so.
     let compress_ds = find("/compress_len");
-    let compressed = flag("compress").is_some_and(|c| c != 0) || compress_ds.is_some();
+    let compressed = compress_attr || compress_ds.is_some();
     let mut jpeg_cams: Vec<(String, u64)> = Vec::new();
     if compressed {
         for (p, ds) in &tree.datasets {
@@ -743,33 +741,52 @@ pub fn read_episode(
         _ => Vec::new(),
     };
 
-    let mut observations: Vec<VectorColumn> = Vec::new();
-    let mut images = Vec::new();
-    let mut extras = Vec::new();
-    let mut manifest = Vec::new();
-    let mut action = None;
-    for (p, ds) in &tree.datasets {
+    Ok(CompressedCameras { on: compressed, cams: jpeg_cams, cl, rows })
+}
+
+/// What an episode file's datasets become: observation and action columns, cameras, exact
+/// columns (`extra.*`), and the manifest entry of each dataset (how to write it back).
+#[derive(Default)]
+struct Columns {
+    observations: Vec<VectorColumn>,
+    images: Vec<ImageColumn>,
+    extras: Vec<ExtraColumn>,
+    manifest: Vec<Value>,
+    action: Option<VectorColumn>,
+}
+
+impl Columns {
+    /// The dataset `p` of an episode of `steps` steps.
+    fn add(
+        &mut self,
+        p: &str,
+        ds: &Dataset,
+        src: &Src,
+        steps: usize,
+        jpeg: &CompressedCameras,
+        notes: &mut Vec<String>,
+    ) -> Result<()> {
         let inf = info(ds, src, p)?;
         let mut entry = json!({"path": p, "dtype": dtype_name(&inf.dtype), "shape": inf.shape});
         let per_step = inf.shape.first().copied() == Some(steps as u64);
         let parent = parent_of(p);
         let key = base_name(p);
         if p == "/compress_len" {
-            let cl = cl.as_ref().expect("read above");
+            let cl = jpeg.cl.as_ref().expect("read above");
             entry["column"] = json!("extra.compress_len");
             entry["transposed"] = json!(true);
             debug_assert_eq!(cl.shape, inf.shape);
             let _ = &cl.dtype;
-        } else if let Some(k) = jpeg_cams.iter().position(|(q, _)| q == p) {
+        } else if let Some(k) = jpeg.cams.iter().position(|(q, _)| q == p) {
             if !per_step {
                 return Err(IngestError::invalid(
-                    src,
-                    format!("{p} has {} frames but /observations/qpos has {steps} steps: refused (frames that are not there)", inf.shape[0]),
-                ));
+                src,
+                format!("{p} has {} frames but /observations/qpos has {steps} steps: refused (frames that are not there)", inf.shape[0]),
+            ));
             }
-            let cl = cl.as_ref().expect("compressed cameras have compress_len");
-            let r = rows[k];
-            let padded = jpeg_cams[k].1;
+            let cl = jpeg.cl.as_ref().expect("compressed cameras have compress_len");
+            let r = jpeg.rows[k];
+            let padded = jpeg.cams[k].1;
             if let Some((t, len)) = cl.lens[r].iter().enumerate().find(|(_, &l)| l > padded) {
                 return Err(IngestError::invalid(
                     src,
@@ -784,17 +801,17 @@ pub fn read_episode(
             entry["compress_len_row"] = json!(r);
             if let Some(pad) = pad {
                 entry["pad_column"] = json!(format!("extra.{}", pad.name));
-                extras.push(pad);
+                self.extras.push(pad);
             }
-            images.push(im);
+            self.images.push(im);
         } else if parent == "/observations/images" && inf.dtype == DType::U8 && inf.shape.len() == 4 {
             if !per_step {
                 return Err(IngestError::invalid(
-                    src,
-                    format!("{p} has {} frames but /observations/qpos has {steps} steps: refused (frames that are not there)", inf.shape[0]),
-                ));
+                src,
+                format!("{p} has {} frames but /observations/qpos has {steps} steps: refused (frames that are not there)", inf.shape[0]),
+            ));
             }
-            images.push(raw_camera(ds, src, p, key, &inf.shape)?);
+            self.images.push(raw_camera(ds, src, p, key, &inf.shape)?);
             entry["column"] = json!(format!("image.{key}"));
             entry["encoding"] = json!("png");
         } else if (p == "/action" || parent == "/observations")
@@ -816,23 +833,23 @@ pub fn read_episode(
                 ));
             }
             if p == "/action" {
-                action = Some(VectorColumn { name: "action".into(), dim, values });
+                self.action = Some(VectorColumn { name: "action".into(), dim, values });
                 entry["column"] = json!("action");
             } else {
-                observations.push(VectorColumn { name: key.to_string(), dim, values });
+                self.observations.push(VectorColumn { name: key.to_string(), dim, values });
                 entry["column"] = json!(format!("obs.{key}"));
             }
             if inf.dtype != DType::F32 {
                 let xname = p.trim_start_matches('/').to_string();
                 let col = exact_column(ds, src, p, &inf.dtype, dim)?;
-                extras.push(extra(&xname, col, &inf.dtype, &inf.shape[1..], &[]));
+                self.extras.push(extra(&xname, col, &inf.dtype, &inf.shape[1..], &[]));
                 entry["exact_column"] = json!(format!("extra.{xname}"));
             }
         } else if is_numeric(&inf.dtype) && per_step && !inf.shape.is_empty() {
             let dim = inf.shape[1..].iter().product::<u64>() as usize;
             let xname = p.trim_start_matches('/').to_string();
             let col = exact_column(ds, src, p, &inf.dtype, dim)?;
-            extras.push(extra(&xname, col, &inf.dtype, &inf.shape[1..], &[]));
+            self.extras.push(extra(&xname, col, &inf.dtype, &inf.shape[1..], &[]));
             entry["column"] = json!(format!("extra.{xname}"));
         } else if is_numeric(&inf.dtype) && inf.shape.iter().product::<u64>() <= MAX_INLINE_ELEMENTS {
             entry["values"] = inline_values(ds, src, p, &inf.dtype)?;
@@ -840,8 +857,50 @@ pub fn read_episode(
             notes.push(format!("{p} ({} {:?}: not one row per step)", inf.dtype, inf.shape));
             entry["not_ingested"] = json!(true);
         }
-        manifest.push(entry);
+        self.manifest.push(entry);
+        Ok(())
     }
+}
+
+/// Reads one episode file.
+pub fn read_episode(
+    path: &Path,
+    index: u32,
+    task: Option<String>,
+    opts: &ReadOptions,
+) -> Result<(EpisodeInput, Vec<ExtraColumn>, Vec<String>)> {
+    let file = open(path)?;
+    let src = &Src::new(path, file.file_size());
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default()
+        .trim_end_matches(".hdf5")
+        .trim_end_matches(".h5")
+        .to_string();
+    let tree = walk(&file, src)?;
+    let mut notes = Vec::new();
+    let (attrs, root_attrs) = all_attributes(&tree, src, &mut notes)?;
+    let flag = |k: &str| root_attrs.get(k).and_then(|v| v.as_i64().or_else(|| v.as_f64().map(|f| f as i64)));
+
+    let find = |p: &str| tree.datasets.iter().find(|(q, _)| q == p).map(|(_, d)| d);
+    let qpos = find("/observations/qpos").ok_or_else(|| {
+        IngestError::invalid(src, "no /observations/qpos dataset: not an ALOHA episode file")
+    })?;
+    let steps = info(qpos, src, "/observations/qpos")?.shape.first().copied().unwrap_or(0) as usize;
+    if steps == 0 {
+        return Err(IngestError::invalid(src, "/observations/qpos has no rows"));
+    }
+    let action_ds = find("/action")
+        .ok_or_else(|| IngestError::invalid(src, "no /action dataset: not an ALOHA episode file"))?;
+
+    let compressed = flag("compress").is_some_and(|c| c != 0);
+    let jpeg = compressed_cameras(&tree, src, compressed, steps)?;
+    let mut cols = Columns::default();
+    for (p, ds) in &tree.datasets {
+        cols.add(p, ds, src, steps, &jpeg, &mut notes)?;
+    }
+    let Columns { mut observations, images, mut extras, manifest, action } = cols;
     // The per-step human-takeover flag: the dataset `/intervention` (what ufops' export of a
     // takeover-flagged episode writes) or the one `--intervention-key` names. It is kept as it
     // is above too (an exact column), so the round trip stays exact.
@@ -862,7 +921,7 @@ pub fn read_episode(
         return Err(IngestError::invalid(src, "/action does not have one row per step"));
     }
     let _ = action_ds;
-    if let Some(cl) = cl {
+    if let Some(cl) = jpeg.cl {
         extras.push(cl.column);
     }
     // ALOHA's order: qpos, qvel, effort, then the others by name.
@@ -881,7 +940,7 @@ pub fn read_episode(
     let metadata = json!({
         "file": path.file_name().map(|n| n.to_string_lossy().into_owned()),
         "sim": flag("sim").map(|s| s != 0),
-        "compress": compressed,
+        "compress": jpeg.on,
         "aloha": {"groups": groups, "datasets": manifest, "attrs": attrs},
     });
     let ep = EpisodeInput {

@@ -550,33 +550,14 @@ enum ObsValues {
     U8(Vec<u8>),
 }
 
-#[allow(clippy::too_many_arguments)]
-fn read_demo(
+/// A demo's rewards (zeros when it has none) and dones (the last step when it has none).
+fn read_rewards_and_dones(
     g: &Group,
     path: &Src,
     name: &str,
-    index: u32,
-    freq: Option<f64>,
-    masks: &HashMap<String, Vec<String>>,
-    env_name: Option<&str>,
-    opts: &ReadOptions,
-) -> Result<(EpisodeInput, Vec<ExtraColumn>, Vec<String>)> {
-    let attrs = group_attrs(g, path, &format!("data/{name}"), &["num_samples"])?;
-    let members = g.datasets().map_err(h5err(path, format!("cannot list data/{name}")))?;
-    if !members.iter().any(|m| m == "actions") {
-        return Err(IngestError::invalid(path, format!("data/{name} has no `actions` dataset")));
-    }
-    let actions_ds = g.dataset("actions").map_err(h5err(path, format!("cannot open data/{name}/actions")))?;
-    let (steps, adim, actions) = read_matrix(&actions_ds, path, &format!("data/{name}/actions"), None)?;
-    if let Some(n) = attrs.get("num_samples").and_then(|v| v.as_i64()) {
-        if n != steps as i64 {
-            return Err(IngestError::invalid(
-                path,
-                format!("data/{name}@num_samples is {n} but actions has {steps} rows"),
-            ));
-        }
-    }
-
+    members: &[String],
+    steps: usize,
+) -> Result<(Vec<f32>, Vec<bool>)> {
     let reward: Vec<f32> = if members.iter().any(|m| m == "rewards") {
         let ds = g.dataset("rewards").map_err(h5err(path, format!("cannot open data/{name}/rewards")))?;
         let (_, d, v) = read_matrix(&ds, path, &format!("data/{name}/rewards"), Some(steps))?;
@@ -596,8 +577,19 @@ fn read_demo(
         }
         d
     };
+    Ok((reward, done))
+}
 
-    // Observations.
+/// What a demo's `obs` and `next_obs` groups become.
+struct Observations {
+    observations: Vec<VectorColumn>,
+    images: Vec<ImageColumn>,
+    /// `next_obs` keys, kept exactly as extra columns (or as a shift of `obs` where they are one).
+    extras: Vec<ExtraColumn>,
+    skipped: Vec<String>,
+}
+
+fn read_observations(g: &Group, path: &Src, name: &str, steps: usize) -> Result<Observations> {
     let mut observations = Vec::new();
     let mut images = Vec::new();
     let mut extras = Vec::new();
@@ -636,21 +628,12 @@ fn read_demo(
             }
         }
     }
+    Ok(Observations { observations, images, extras, skipped })
+}
 
-    let timestamps: Vec<f64> = match freq {
-        Some(f) => (0..steps).map(|t| t as f64 / f).collect(),
-        None => (0..steps).map(|t| t as f64).collect(),
-    };
-
-    // A label given by the user wins; else a `success` demo attribute (ufops' robomimic export
-    // writes the frozen label there); else unknown (robomimic itself never writes success).
-    let (label, label_source) = opts.user_label(name, index, &reward).unwrap_or_else(|| {
-        match attrs.get("success").and_then(|v| v.as_i64()) {
-            Some(s) => (Label::from_bool(Some(s != 0)), "robomimic:demo@success".to_string()),
-            None => (Label::Unknown, String::new()),
-        }
-    });
-
+/// A demo's attributes as catalog metadata (sorted; a text too long for the catalog is kept as
+/// its hash and length, its value goes to a column: [`long_attribute_columns`]).
+fn demo_metadata(attrs: &HashMap<String, AttrValue>) -> Map<String, Value> {
     let mut md = Map::new();
     let mut attr_names: Vec<_> = attrs.keys().cloned().collect();
     attr_names.sort();
@@ -669,6 +652,77 @@ fn read_demo(
             }
         }
     }
+    md
+}
+
+/// Attribute values too large for the catalog (the MuJoCo `model_file`): the text on the first
+/// row of an extra column (later rows null, so it costs its compressed size once).
+fn long_attribute_columns(
+    md: &Map<String, Value>,
+    attrs: &HashMap<String, AttrValue>,
+    steps: usize,
+) -> Vec<ExtraColumn> {
+    let mut extras = Vec::new();
+    for (k, v) in &md {
+        if let (Some(obj), Some(text)) = (v.as_object(), attrs.get(k).and_then(|a| a.as_str())) {
+            if obj.contains_key("sha256") && obj.contains_key("chars") {
+                let col: ArrayRef =
+                    Arc::new(StringArray::from_iter((0..steps).map(|t| (t == 0).then_some(text))));
+                let meta = HashMap::from([("ufops.attribute".to_string(), k.clone())]);
+                extras.push(ExtraColumn { name: format!("attr/{k}"), values: col, metadata: meta });
+            }
+        }
+    }
+    extras
+}
+
+#[allow(clippy::too_many_arguments)]
+fn read_demo(
+    g: &Group,
+    path: &Src,
+    name: &str,
+    index: u32,
+    freq: Option<f64>,
+    masks: &HashMap<String, Vec<String>>,
+    env_name: Option<&str>,
+    opts: &ReadOptions,
+) -> Result<(EpisodeInput, Vec<ExtraColumn>, Vec<String>)> {
+    let attrs = group_attrs(g, path, &format!("data/{name}"), &["num_samples"])?;
+    let members = g.datasets().map_err(h5err(path, format!("cannot list data/{name}")))?;
+    if !members.iter().any(|m| m == "actions") {
+        return Err(IngestError::invalid(path, format!("data/{name} has no `actions` dataset")));
+    }
+    let actions_ds = g.dataset("actions").map_err(h5err(path, format!("cannot open data/{name}/actions")))?;
+    let (steps, adim, actions) = read_matrix(&actions_ds, path, &format!("data/{name}/actions"), None)?;
+    if let Some(n) = attrs.get("num_samples").and_then(|v| v.as_i64()) {
+        if n != steps as i64 {
+            return Err(IngestError::invalid(
+                path,
+                format!("data/{name}@num_samples is {n} but actions has {steps} rows"),
+            ));
+        }
+    }
+
+    let (reward, done) = read_rewards_and_dones(g, path, name, &members, steps)?;
+
+    let Observations { observations, images, mut extras, mut skipped } =
+        read_observations(g, path, name, steps)?;
+
+    let timestamps: Vec<f64> = match freq {
+        Some(f) => (0..steps).map(|t| t as f64 / f).collect(),
+        None => (0..steps).map(|t| t as f64).collect(),
+    };
+
+    // A label given by the user wins; else a `success` demo attribute (ufops' robomimic export
+    // writes the frozen label there); else unknown (robomimic itself never writes success).
+    let (label, label_source) = opts.user_label(name, index, &reward).unwrap_or_else(|| {
+        match attrs.get("success").and_then(|v| v.as_i64()) {
+            Some(s) => (Label::from_bool(Some(s != 0)), "robomimic:demo@success".to_string()),
+            None => (Label::Unknown, String::new()),
+        }
+    });
+
+    let mut md = demo_metadata(&attrs);
     // The per-step human-takeover flag: a demo's `intervention` dataset (ufops' export writes it
     // there), or the one `--intervention-key` names.
     let (ikey, named) = opts.intervention_key();
@@ -704,18 +758,7 @@ fn read_demo(
     if !others.is_empty() {
         md.insert("not_ingested".into(), json!(others));
     }
-    // Attribute values too large for the catalog (the MuJoCo `model_file`): the text on the
-    // first row of an extra column (later rows null, so it costs its compressed size once).
-    for (k, v) in &md {
-        if let (Some(obj), Some(text)) = (v.as_object(), attrs.get(k).and_then(|a| a.as_str())) {
-            if obj.contains_key("sha256") && obj.contains_key("chars") {
-                let col: ArrayRef =
-                    Arc::new(StringArray::from_iter((0..steps).map(|t| (t == 0).then_some(text))));
-                let meta = HashMap::from([("ufops.attribute".to_string(), k.clone())]);
-                extras.push(ExtraColumn { name: format!("attr/{k}"), values: col, metadata: meta });
-            }
-        }
-    }
+    extras.extend(long_attribute_columns(&md, &attrs, steps));
 
     let task = opts.task.clone().or_else(|| env_name.map(str::to_string));
     let tags = masks.get(name).cloned().unwrap_or_default();

@@ -2,6 +2,9 @@
 //! `FixedSizeList<Float32>` column per observation key, the episode's metadata repeated on each
 //! row so the files stand on their own. Episodes follow each other in row groups of up to 1 Mi
 //! rows / 64 MB; the catalog records each one's `(row_group, row_offset, row_count)`.
+//!
+//! One file past 700 lines: the steps layout's one definition (schema, the writer that builds files
+//! in it, the label rows) is read as one; the page spilling lives in spill.rs.
 
 use crate::spill::{SpillColumn, SpilledChunk};
 use crate::{EpisodeInput, ExtraColumn, Frames, Label, StoreError};

@@ -131,6 +131,8 @@ pub(crate) async fn write_labels_file_ahead(store: &Store) -> Result<LabelsFileA
 /// Freezes the current labels of every visible episode into the version (and their counts),
 /// writes the label snapshot file, records the version row, adds the write's `counts` deltas to
 /// the maintained counts and moves the head — then commits.
+// Past 100 lines on purpose: one transaction's steps under the version lock, in the order the
+// crash-safety argument needs them (labels file, version row, counts, head, commit).
 pub(crate) async fn finish_version(
     store: &Store,
     mut tx: Tx,
