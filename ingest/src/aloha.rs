@@ -661,7 +661,7 @@ fn all_attributes(
     tree: &Tree,
     src: &Src,
     notes: &mut Vec<String>,
-) -> Result<(Map<String, Value>, HashMap<String, Value>)> {
+) -> Result<(Map<String, Value>, HashMap<String, AttrValue>)> {
     let mut attrs = Map::new();
     let mut root_attrs = HashMap::new();
     for (p, g) in &tree.groups {

@@ -663,7 +663,7 @@ fn long_attribute_columns(
     steps: usize,
 ) -> Vec<ExtraColumn> {
     let mut extras = Vec::new();
-    for (k, v) in &md {
+    for (k, v) in md {
         if let (Some(obj), Some(text)) = (v.as_object(), attrs.get(k).and_then(|a| a.as_str())) {
             if obj.contains_key("sha256") && obj.contains_key("chars") {
                 let col: ArrayRef =
