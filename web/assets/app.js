@@ -12,8 +12,8 @@ import { drawPlots, drawTrajectory } from './plots.js';
 import * as consensus from './consensus.js';
 import { drawScore } from './review_queue.js';
 import { drawTakeovers } from './takeovers.js';
+import { $, esc, status } from './dom.js';
 
-const $ = (id) => document.getElementById(id);
 const LABELS = ['success', 'failure', 'unknown'];
 
 const S = {
@@ -46,15 +46,6 @@ const metrics = { keyActions: 0, verdicts: 0, advances: [] };
 window.ufops = { metrics, state: S };
 
 let player;
-
-function esc(s) {
-  return String(s ?? '').replace(/[&<>"']/g, (c) => ({ '&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;' }[c]));
-}
-
-function status(el, text, kind) {
-  el.textContent = text || '';
-  el.className = `status ${kind || ''}`;
-}
 
 // ------------------------------------------------------------------ sign-in
 

@@ -9,10 +9,9 @@
 // labelers or the verdict carries a cause or spans; otherwise as the plain PUT it always was.
 
 import { call, putLabel } from './api.js';
+import { $, esc } from './dom.js';
 
-const $ = (id) => document.getElementById(id);
 const enc = encodeURIComponent;
-const esc = (s) => String(s ?? '').replace(/[&<>"']/g, (c) => ({ '&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;' })[c]);
 
 const campaigns = new Map(); // policy → Promise<campaign>
 const taxonomies = new Map(); // task → Promise<causes>

@@ -50,6 +50,7 @@ pub static ASSETS: &[Asset] = &[
     asset!("index.html", "text/html; charset=utf-8", false),
     asset!("style.css", "text/css; charset=utf-8", false),
     asset!("app.js", "text/javascript; charset=utf-8", false),
+    asset!("dom.js", "text/javascript; charset=utf-8", false),
     asset!("api.js", "text/javascript; charset=utf-8", false),
     asset!("player.js", "text/javascript; charset=utf-8", false),
     asset!("cameras.js", "text/javascript; charset=utf-8", false),
@@ -157,6 +158,19 @@ mod tests {
         assert!(asset("").is_some());
         assert!(asset("../Cargo.toml").is_none());
         assert!(asset("vendor/uPlot-1.6.32.iife.min.js").unwrap().immutable);
+    }
+
+    #[test]
+    fn every_imported_module_is_served() {
+        for a in ASSETS.iter().filter(|a| a.name.ends_with(".js") && !a.name.starts_with("vendor/")) {
+            let text = std::str::from_utf8(a.body).expect("utf-8");
+            for line in text.lines().filter(|l| l.starts_with("import ")) {
+                let Some(module) = line.split("from './").nth(1).and_then(|r| r.split('\'').next()) else {
+                    continue;
+                };
+                assert!(asset(module).is_some(), "{} imports {module}, which is not in ASSETS", a.name);
+            }
+        }
     }
 
     #[test]
