@@ -48,7 +48,25 @@ pub struct IngestQuery {
     run_tags: Option<String>,
     /// How image cameras are stored: `png` (default: lossless, one PNG per step) or `video`
     /// (one H.264 MP4 per episode and camera: lossy, a fraction of the bytes).
-    images: Option<String>,
+    #[param(inline)]
+    images: Option<ImageStorage>,
+}
+
+/// How an ingest stores image cameras (`ufops ingest --images`).
+#[derive(Debug, Clone, Copy, Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum ImageStorage {
+    Png,
+    Video,
+}
+
+impl ImageStorage {
+    fn as_str(self) -> &'static str {
+        match self {
+            ImageStorage::Png => "png",
+            ImageStorage::Video => "video",
+        }
+    }
 }
 
 /// Free space an upload must leave on the upload dir's filesystem.
@@ -163,9 +181,6 @@ pub async fn ingest(
     if let Some(f) = &q.format {
         crate::extract::check_id("format", f)?;
     }
-    if let Some(i) = q.images.as_deref().filter(|i| !matches!(*i, "png" | "video")) {
-        return Err(ApiError::bad_request(format!("images {i:?}: expected png or video")));
-    }
     let run_tags: Vec<String> = q
         .run_tags
         .as_deref()
@@ -229,7 +244,7 @@ pub async fn ingest(
         "steering": run.as_ref().map(|r| r.steering.to_string()),
         "run_artifact": q.run_artifact,
         "run_tags": run_tags,
-        "images": q.images,
+        "images": q.images.map(ImageStorage::as_str),
     });
     let job = s.store().create_job(store::JobKind::Ingest, &spec, &caller.name).await?;
     Ok((StatusCode::ACCEPTED, Json(job)))
