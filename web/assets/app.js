@@ -13,11 +13,13 @@
 import * as api from './api.js';
 import { Player } from './player.js';
 import { $ } from './dom.js';
-import { S } from './state.js';
+import { S, views } from './state.js';
+import { show } from './episode.js';
 import { wire } from './keys.js';
 import { enter, showSignIn } from './signin.js';
 
 async function start() {
+  views.show = show;
   S.player = new Player({
     grid: $('videos'), scrub: $('scrub'), frameOut: $('frame'), playButton: $('play'),
     onFrame: (f) => { if (S.plots) S.plots.setFrame(f); if (S.score) S.score.setFrame(f); if (S.takeovers) S.takeovers.setFrame(f); if (S.traj) S.traj.setFrame(f); },

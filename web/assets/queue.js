@@ -5,8 +5,7 @@
 
 import * as api from './api.js';
 import { $, esc, status } from './dom.js';
-import { show } from './episode.js';
-import { LABELS, S } from './state.js';
+import { LABELS, S, views } from './state.js';
 
 export function readHash() {
   const h = new URLSearchParams(location.hash.slice(1));
@@ -62,7 +61,7 @@ export async function loadQueue(focusId) {
   let i = focusId ? S.queue.findIndex((e) => e.id === focusId) : -1;
   if (i < 0) i = S.queue.findIndex((e) => e.label === 'unknown');
   if (i < 0) i = S.queue.length ? 0 : -1;
-  if (i >= 0) await show(i);
+  if (i >= 0) await views.show(i);
   else showEmpty();
 }
 

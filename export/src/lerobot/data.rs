@@ -17,7 +17,6 @@ use parquet::file::properties::WriterProperties;
 use store::steps::{IMAGE_PREFIX, INTERVENTION_COLUMN, MEDIA_PREFIX, OBS_PREFIX, VALIDITY_COLUMN};
 use store::{EpisodeRecord, Label};
 
-use super::meta::EpisodeRow;
 use super::stats::{f32_values, Stats};
 use super::{
     feature_key, fill, layout_of, Layout, CHUNKS_SIZE, DATA_FILE_BYTES, DATA_PATH, NO_TASK, VALIDITY_KEY,
@@ -45,6 +44,28 @@ pub(super) struct Writer<'a> {
     pub(super) episodes: Vec<EpisodeRow>,
     /// video key → store objects in order of first use (their index is the file index)
     pub(super) videos: BTreeMap<String, Vec<String>>,
+}
+
+/// One exported episode as `meta/episodes` lists it: where its rows and videos are, its label
+/// and provenance (recorded by the [`Writer`] as it writes the episode's data).
+pub(super) struct EpisodeRow {
+    pub(super) index: i64,
+    pub(super) task: String,
+    pub(super) length: i64,
+    pub(super) data_file: usize,
+    pub(super) from: i64,
+    /// per video key: (file index, from_timestamp, to_timestamp)
+    pub(super) videos: Vec<(usize, f64, f64)>,
+    pub(super) id: String,
+    pub(super) label: Label,
+    pub(super) source_name: String,
+    pub(super) part: Option<String>,
+    /// The episode's verifier score when the export was curated by one.
+    pub(super) score: Option<f64>,
+    /// From the label event that set the exported label: the failure cause and the time spans
+    /// (JSON), when the labelers gave them.
+    pub(super) failure_cause: Option<String>,
+    pub(super) spans: Option<String>,
 }
 
 pub(super) fn data_props() -> WriterProperties {

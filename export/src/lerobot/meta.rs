@@ -1,5 +1,6 @@
 //! `meta/`: `info.json` (features, fps, paths, provenance), `stats.json`, `tasks.parquet` and
-//! `episodes/chunk-000/file-000.parquet` (one [`EpisodeRow`] per episode).
+//! `episodes/chunk-000/file-000.parquet` (one [`EpisodeRow`] per episode, as the data
+//! [`Writer`] recorded it).
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
@@ -13,34 +14,13 @@ use arrow::datatypes::{DataType, Field, Schema};
 use parquet::arrow::ArrowWriter;
 use serde_json::{json, Map, Value};
 use store::steps::INTERVENTION_COLUMN;
-use store::Label;
 
-use super::data::{data_props, Writer};
+use super::data::{data_props, EpisodeRow, Writer};
 use super::{
     feature_key, source_feature, CHUNKS_SIZE, CODEBASE_VERSION, DATA_FILE_BYTES, DATA_PATH, VALIDITY_KEY,
     VIDEO_PATH,
 };
 use crate::{ExportError, Result, Selected};
-
-pub(super) struct EpisodeRow {
-    pub(super) index: i64,
-    pub(super) task: String,
-    pub(super) length: i64,
-    pub(super) data_file: usize,
-    pub(super) from: i64,
-    /// per video key: (file index, from_timestamp, to_timestamp)
-    pub(super) videos: Vec<(usize, f64, f64)>,
-    pub(super) id: String,
-    pub(super) label: Label,
-    pub(super) source_name: String,
-    pub(super) part: Option<String>,
-    /// The episode's verifier score when the export was curated by one.
-    pub(super) score: Option<f64>,
-    /// From the label event that set the exported label: the failure cause and the time spans
-    /// (JSON), when the labelers gave them.
-    pub(super) failure_cause: Option<String>,
-    pub(super) spans: Option<String>,
-}
 
 /// Writes `meta/` under `root` once every episode's data is written: tasks, episodes, stats and
 /// `info.json` (whose features take names and video shapes from the sources' metadata).

@@ -8,10 +8,9 @@ use arrow::datatypes::DataType;
 use parquet::file::reader::ChunkReader;
 
 use super::columns::{
-    bools, checked_builder, col, flatten_single, floats64, guarded, ints, list_f32, opt_bools,
+    bools, checked_builder, col, flatten_single, floats64, guarded, image_bytes, ints, list_f32, opt_bools,
 };
 use super::info::Info;
-use super::media::image_bytes;
 use super::VALIDITY_KEY;
 use crate::error::{IngestError, Result};
 use crate::options::ReadOptions;

@@ -6,9 +6,9 @@ use std::path::{Path, PathBuf};
 
 use serde_json::{json, Map, Value};
 
+use super::columns::png_shape;
 use super::data::{EpBuf, Plan, Validity};
 use super::info::Info;
-use super::media::png_shape;
 use super::meta::EpisodeMeta;
 use super::VALIDITY_KEY;
 use crate::error::{IngestError, Result};

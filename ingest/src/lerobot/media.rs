@@ -1,10 +1,7 @@
-//! The media of an episode: `image` columns (PNG bytes per row) and `video` features (each
-//! mp4 located through the `video_path` template, hashed and emitted once, referenced by time).
+//! The videos of an episode: `video` features (each mp4 located through the `video_path`
+//! template, hashed and emitted once, referenced by time). Image columns are read as columns
+//! (`columns.rs`).
 
-use std::path::Path;
-
-use arrow::array::{Array, ArrayRef, AsArray};
-use arrow::datatypes::DataType;
 use serde_json::{json, Map, Value};
 
 use super::episode::Ctx;
@@ -13,55 +10,6 @@ use super::meta::{EpisodeMeta, VideoRef};
 use crate::error::{IngestError, Result};
 use crate::model::{MediaColumn, MediaFile};
 use crate::sink::EpisodeSink;
-
-/// PNG bytes per row from an `image` column (`struct<bytes: binary, path: string>` or binary).
-pub(super) fn image_bytes(path: &Path, a: &ArrayRef, what: &str) -> Result<Vec<Vec<u8>>> {
-    let bin: ArrayRef = match a.data_type() {
-        DataType::Struct(_) => {
-            let s = a.as_struct();
-            s.column_by_name("bytes").cloned().ok_or_else(|| {
-                IngestError::invalid(path, format!("image column {what} has no `bytes` field"))
-            })?
-        }
-        _ => a.clone(),
-    };
-    let bin = arrow::compute::cast(&bin, &DataType::LargeBinary)
-        .map_err(|e| IngestError::invalid(path, format!("image column {what}: {e}")))?;
-    let bin = bin.as_binary::<i64>();
-    let mut out = Vec::with_capacity(bin.len());
-    for i in 0..bin.len() {
-        if !bin.is_valid(i) {
-            return Err(IngestError::invalid(path, format!("image column {what}: row {i} has no image bytes (images stored only by path are not supported)")));
-        }
-        let v = bin.value(i);
-        if !v.starts_with(b"\x89PNG\r\n\x1a\n") {
-            return Err(IngestError::invalid(
-                path,
-                format!("image column {what}: row {i} is not a PNG image"),
-            ));
-        }
-        out.push(v.to_vec());
-    }
-    Ok(out)
-}
-
-/// (height, width, channels) from a PNG's IHDR.
-pub(super) fn png_shape(png: &[u8]) -> Option<[usize; 3]> {
-    if png.len() < 33 || &png[12..16] != b"IHDR" {
-        return None;
-    }
-    let w = u32::from_be_bytes(png[16..20].try_into().ok()?) as usize;
-    let h = u32::from_be_bytes(png[20..24].try_into().ok()?) as usize;
-    let c = match png[25] {
-        0 => 1,
-        2 => 3,
-        3 => 3,
-        4 => 2,
-        6 => 4,
-        _ => return None,
-    };
-    Some([h, w, c])
-}
 
 impl Ctx<'_> {
     fn media_for(

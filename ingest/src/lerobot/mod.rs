@@ -159,7 +159,7 @@ pub fn fuzz_entry(info_json: &[u8], parquet: &[u8]) -> Result<usize> {
     stream_data(Path::new("fuzz/data.parquet"), data, &plan, &mut |b| {
         n += b.rows;
         for im in b.images.iter().flatten() {
-            let _ = media::png_shape(im);
+            let _ = columns::png_shape(im);
         }
         Ok(())
     })?;
