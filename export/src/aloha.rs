@@ -531,10 +531,7 @@ pub async fn export(
     out: &Path,
     progress: Progress<'_>,
 ) -> Result<ExportReport> {
-    if sel.episodes.is_empty() {
-        return Err(ExportError::invalid("the selection holds no episodes: nothing to export"));
-    }
-    let staged = Staged::new(out, true)?;
+    let staged = Staged::for_selection(sel, out, true)?;
     let mut formats: HashMap<String, String> = HashMap::new();
     for e in &sel.episodes {
         if !formats.contains_key(&e.source_sha256) {

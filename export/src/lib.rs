@@ -347,6 +347,15 @@ pub(crate) struct Staged {
 }
 
 impl Staged {
+    /// The staged output of a writer exporting `sel` to `dest` (a folder when `dir`): refused
+    /// when the selection holds no episodes, before anything is created.
+    pub fn for_selection(sel: &Selected, dest: &Path, dir: bool) -> Result<Self> {
+        if sel.episodes.is_empty() {
+            return Err(ExportError::invalid("the selection holds no episodes: nothing to export"));
+        }
+        Staged::new(dest, dir)
+    }
+
     pub fn new(dest: &Path, dir: bool) -> Result<Self> {
         if dest.exists() {
             return Err(ExportError::invalid(format!(

@@ -406,10 +406,7 @@ pub async fn export(
     out: &Path,
     progress: Progress<'_>,
 ) -> Result<ExportReport> {
-    if sel.episodes.is_empty() {
-        return Err(ExportError::invalid("the selection holds no episodes: nothing to export"));
-    }
-    let staged = Staged::new(out, false)?;
+    let staged = Staged::for_selection(sel, out, false)?;
     let sources = source_formats(store, sel).await?;
     let env_args = env_args(&sources, sel);
     // The source's filter keys came in as tags: they go back as masks.

@@ -36,8 +36,7 @@ use store::steps::{
 use store::{Label, Store};
 
 use crate::{
-    count_label, disk_size, for_each_episode_with_layers, ExportError, ExportReport, Progress, Result,
-    Selected, Staged,
+    count_label, disk_size, for_each_episode_with_layers, ExportReport, Progress, Result, Selected, Staged,
 };
 use data::Writer;
 
@@ -172,10 +171,7 @@ pub async fn export(
     out: &Path,
     progress: Progress<'_>,
 ) -> Result<ExportReport> {
-    if sel.episodes.is_empty() {
-        return Err(ExportError::invalid("the selection holds no episodes: nothing to export"));
-    }
-    let staged = Staged::new(out, true)?;
+    let staged = Staged::for_selection(sel, out, true)?;
     // The sources' metadata: fps, robot type, feature names of LeRobot sources.
     let sources = source_metadata(store, sel).await?;
     let fps = sources
