@@ -39,10 +39,8 @@ fn exports_end_to_end(t: &Target) {
         .collect();
     want.sort();
     assert!(!want.is_empty() && want.len() < n, "{ranked}");
-    let trainer = t.json(&["token", "create", "--name", "curator", "--role", "trainer", "--json"]);
-    let trainer = format!("Bearer {}", trainer["token"].as_str().unwrap());
-    let viewer = t.json(&["token", "create", "--name", "robot", "--role", "viewer", "--json"]);
-    let viewer = format!("Bearer {}", viewer["token"].as_str().unwrap());
+    let trainer = t.bearer("curator", "trainer");
+    let viewer = t.bearer("robot", "viewer");
     let server = t.serve(&[]);
     let url = server.url.as_str();
 

@@ -37,8 +37,7 @@ fn sigterm_stops_gracefully_and_releases_the_running_job() {
     t.ok(&["init"]);
     t.ok(&["dev", "synth", "--episodes", "40", "--steps", "30", "--seed", "3"]);
     let split = t.json(&["split", "create", "--policy", "synth", "--checkpoint", "ckpt-0", "--json"]);
-    let token = t.json(&["token", "create", "--name", "ops", "--role", "trainer", "--json"]);
-    let auth = format!("Bearer {}", token["token"].as_str().unwrap());
+    let auth = t.bearer("ops", "trainer");
     let mut server = t.serve(&["--no-worker"]);
     let url = server.url.clone();
     // A job long enough to be running when the worker is stopped.

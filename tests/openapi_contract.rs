@@ -22,8 +22,8 @@ fn store_with_data(dir: &Path) -> (Target, String) {
     let t = Target::sqlite(dir);
     t.ok(&["init"]);
     lift_with_classifier(&t);
-    let admin = t.json(&["token", "create", "--name", "contract", "--role", "admin", "--json"]);
-    (t, admin["token"].as_str().unwrap().to_string())
+    let admin = t.token("contract", "admin");
+    (t, admin)
 }
 
 #[test]
@@ -31,9 +31,8 @@ fn committed_document_is_the_served_one() {
     let dir = tempfile::tempdir().unwrap();
     let t = Target::sqlite(dir.path());
     t.ok(&["init"]);
-    let admin = t.json(&["token", "create", "--name", "doc", "--role", "viewer", "--json"]);
+    let auth = t.bearer("doc", "viewer");
     let server = t.serve(&["--no-worker"]);
-    let auth = format!("Bearer {}", admin["token"].as_str().unwrap());
     let r = http(&server.url, "GET", "/openapi.json", &[("Authorization", &auth)], None);
     assert_eq!(r.status, 200);
     let printed: serde_json::Value = serde_json::from_str(&t.ok(&["openapi"])).unwrap();

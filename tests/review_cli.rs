@@ -86,8 +86,7 @@ fn review_queue_from_the_cli() {
     // Two labelers vote over HTTP: they agree on one episode and not on the other.
     let mut auth = Vec::new();
     for name in ["alice", "bob"] {
-        let tok = t.json(&["token", "create", "--name", name, "--role", "labeler", "--json"]);
-        auth.push(format!("Bearer {}", tok["token"].as_str().unwrap()));
+        auth.push(t.bearer(name, "labeler"));
     }
     let server = t.serve(&["--no-worker"]);
     for (who, votes) in [(0, ["success", "success"]), (1, ["success", "failure"])] {

@@ -87,10 +87,8 @@ fn uncertain_first_on_postgres() {
 fn uncertain_first_orders_by_stored_scores(t: &Target) {
     t.ok(&["init"]);
     let (artifact, n) = lift_with_classifier(t);
-    let trainer = t.json(&["token", "create", "--name", "curator", "--role", "trainer", "--json"]);
-    let trainer = format!("Bearer {}", trainer["token"].as_str().unwrap());
-    let viewer = t.json(&["token", "create", "--name", "labeler", "--role", "viewer", "--json"]);
-    let viewer = format!("Bearer {}", viewer["token"].as_str().unwrap());
+    let trainer = t.bearer("curator", "trainer");
+    let viewer = t.bearer("labeler", "viewer");
     let server = t.serve(&[]);
     let url = server.url.as_str();
 

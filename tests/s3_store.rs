@@ -172,8 +172,7 @@ fn video_range_request_fetches_only_its_range() {
     t.ok(&["ingest", fixture.to_str().unwrap(), "--policy", "arm", "--checkpoint", "c1"]);
     let episodes = t.json(&["episodes", "--json"]);
     let id = episodes[3]["id"].as_str().unwrap().to_string();
-    let token = t.json(&["token", "create", "--name", "labeler", "--role", "labeler", "--json"]);
-    let token = token["token"].as_str().unwrap().to_string();
+    let token = t.token("labeler", "labeler");
     let mut child = t
         .command()
         .args(["serve", "--addr", "127.0.0.1:0", "--no-worker"])
@@ -288,14 +287,8 @@ fn layers_over_the_api_on_postgres_and_s3() {
         .iter()
         .map(|e| (e["id"].as_str().unwrap().to_string(), e["length"].as_u64().unwrap() as usize))
         .collect();
-    let trainer = t.json(&["token", "create", "--name", "enc", "--role", "trainer", "--json"])["token"]
-        .as_str()
-        .unwrap()
-        .to_string();
-    let viewer = t.json(&["token", "create", "--name", "v", "--role", "viewer", "--json"])["token"]
-        .as_str()
-        .unwrap()
-        .to_string();
+    let trainer = t.token("enc", "trainer");
+    let viewer = t.token("v", "viewer");
     let server = t.serve(&["--no-worker"]);
     let (ta, va) = (format!("Bearer {trainer}"), format!("Bearer {viewer}"));
     let producer = r#"{"encoder":"cnn","policy":"arm","checkpoint":"c1","content_hash":"abc"}"#;

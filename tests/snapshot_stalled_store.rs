@@ -39,8 +39,7 @@ fn labeling_goes_on_while_a_snapshot_uploads_to_a_stalled_object_store() {
     t.ok(&["init"]);
     let fixture = fixtures().join("robomimic/lift_rollouts_lowdim.hdf5");
     t.ok(&["ingest", fixture.to_str().unwrap(), "--policy", "arm", "--checkpoint", "c1"]);
-    let admin = t.json(&["token", "create", "--name", "ops", "--role", "admin", "--json"]);
-    let auth = format!("Bearer {}", admin["token"].as_str().unwrap());
+    let auth = t.bearer("ops", "admin");
     let server = t.serve(&[]);
     let url = server.url.clone();
     let listed = http(&url, "GET", "/v1/episodes?limit=2", &[("Authorization", &auth)], None);

@@ -53,14 +53,8 @@ fn serve_survives_a_mixed_and_hostile_load() {
         .iter()
         .map(|e| (e["id"].as_str().unwrap().to_string(), e["policy"] == "arm"))
         .collect();
-    let token = |name: &str, role: &str| -> String {
-        format!(
-            "Bearer {}",
-            t.json(&["token", "create", "--name", name, "--role", role, "--json"])["token"].as_str().unwrap()
-        )
-    };
-    let labelers: Vec<String> = (0..4).map(|i| token(&format!("labeler-{i}"), "labeler")).collect();
-    let viewer = token("reader", "viewer");
+    let labelers: Vec<String> = (0..4).map(|i| t.bearer(&format!("labeler-{i}"), "labeler")).collect();
+    let viewer = t.bearer("reader", "viewer");
     let mut server = t.serve(&["--no-worker"]);
     let url = server.url.clone();
     let pid = server.child_mut().id();

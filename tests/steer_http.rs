@@ -43,24 +43,10 @@ fn verifier_loads_over_http_like_from_the_store() {
     let t = Target::sqlite(dir.path());
     t.ok(&["init"]);
     t.ok(&["dev", "synth", "--episodes", "40", "--steps", "30", "--seed", "3"]);
-    let split = t.json(&["split", "create", "--policy", "synth", "--checkpoint", "ckpt-0", "--json"]);
-    let cfg = dir.path().join("train.json");
-    std::fs::write(&cfg, r#"{"epochs": 2}"#).unwrap();
-    t.ok(&[
-        "train",
-        "--split",
-        split["id"].as_str().unwrap(),
-        "--kind",
-        "classifier",
-        "--chunk-len",
-        "16",
-        "--config",
-        cfg.to_str().unwrap(),
-    ]);
+    t.train("synth", "ckpt-0", "classifier", r#"{"epochs": 2}"#, &["--chunk-len", "16"]);
     let local = dir.path().join("local");
     t.ok(&["artifacts", "download", "synth/ckpt-0/classifier@latest", local.to_str().unwrap()]);
-    let token = t.json(&["token", "create", "--name", "robot-7", "--role", "viewer", "--json"]);
-    let token = token["token"].as_str().unwrap_or_else(|| panic!("no token in {token}")).to_string();
+    let token = t.token("robot-7", "viewer");
 
     let (_server, url) = start_server(&t);
     let src = steer::http::ApiSource::new(&url, &token);

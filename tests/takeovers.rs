@@ -194,18 +194,7 @@ fn takeovers_survive_ingest_export_ingest_and_bound_on_policy_samples() {
     assert_eq!(exported_flags(&ds).0, expected_flags);
 
     let a = Target::sqlite(&dir.path().join("a"));
-    let l = labels.to_str().unwrap();
-    a.json(&[
-        "ingest",
-        ds.to_str().unwrap(),
-        "--policy",
-        "so101",
-        "--checkpoint",
-        "c1",
-        "--success-file",
-        l,
-        "--json",
-    ]);
+    ingest_dagger(&a, &ds, &labels);
     assert_eq!(catalog_takeovers(&a, "so101"), expected_catalog());
 
     // Export, ingest the export into a second store, export again: the same flags each time.
@@ -247,6 +236,7 @@ fn takeovers_survive_ingest_export_ingest_and_bound_on_policy_samples() {
             && err.contains("human_correction"),
         "{err}"
     );
+    let l = labels.to_str().unwrap();
     c.json(&[
         "ingest",
         renamed.to_str().unwrap(),
@@ -263,10 +253,7 @@ fn takeovers_survive_ingest_export_ingest_and_bound_on_policy_samples() {
     assert_eq!(catalog_takeovers(&c, "p"), expected_catalog());
 
     // The API: the episode detail and its steps carry the takeovers.
-    let admin = a.json(&["token", "create", "--name", "admin", "--role", "admin", "--json"])["token"]
-        .as_str()
-        .unwrap()
-        .to_string();
+    let admin = a.token("admin", "admin");
     let srv = a.serve(&["--no-worker"]);
     let (_, page) = api(&srv.url, "/v1/episodes?policy=so101", &admin);
     let listed = page["episodes"].as_array().unwrap();
@@ -387,6 +374,12 @@ fn rename_feature(root: &Path, from: &str, to: &str) {
     parquet(&data, RecordBatch::try_from_iter(cols).unwrap());
 }
 
+/// The DAgger dataset and its labels ingested as `so101/c1`.
+fn ingest_dagger(t: &Target, ds: &Path, labels: &Path) {
+    let (ds, labels) = (ds.to_str().unwrap(), labels.to_str().unwrap());
+    t.json(&["ingest", ds, "--policy", "so101", "--checkpoint", "c1", "--success-file", labels, "--json"]);
+}
+
 fn api(url: &str, path: &str, token: &str) -> (u16, Value) {
     let auth = format!("Bearer {token}");
     let r = common::http(url, "GET", path, &[("Authorization", &auth), ("Accept", "application/json")], None);
@@ -397,31 +390,15 @@ fn api(url: &str, path: &str, token: &str) -> (u16, Value) {
 /// in headless Chromium (`tests/web/takeovers_e2e.mjs`); screenshot `takeovers_timeline.png`.
 #[test]
 fn takeover_strip_in_the_labeling_page() {
-    use crate::web_labeling::{artifacts_dir, chromium, missing_prerequisites, repo};
-    let missing = missing_prerequisites();
-    let probe = if missing.is_empty() { Ok(()) } else { Err(missing.join("; ")) };
-    if !store::test_support::require(store::test_support::Tool::Browser, probe) {
+    use crate::common::browser;
+    if !browser::available() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
     let (ds, labels) = dagger_source(dir.path());
     let t = Target::sqlite(&dir.path().join("store"));
-    let l = labels.to_str().unwrap();
-    t.json(&[
-        "ingest",
-        ds.to_str().unwrap(),
-        "--policy",
-        "so101",
-        "--checkpoint",
-        "c1",
-        "--success-file",
-        l,
-        "--json",
-    ]);
-    let labeler = t.json(&["token", "create", "--name", "alice", "--role", "labeler", "--json"])["token"]
-        .as_str()
-        .unwrap()
-        .to_string();
+    ingest_dagger(&t, &ds, &labels);
+    let labeler = t.token("alice", "labeler");
     let eps = t.json(&["episodes", "--policy", "so101", "--json"]);
     let id_of = |e: usize| {
         eps.as_array().unwrap().iter().find(|x| x["source_name"] == json!(format!("episode_{e:06}"))).unwrap()
@@ -434,33 +411,23 @@ fn takeover_strip_in_the_labeling_page() {
     let expect: serde_json::Map<String, Value> =
         [0, 2, 3].iter().map(|&e| (id_of(e), json!(TAKEOVERS[e]))).collect();
     let srv = t.serve(&["--no-worker"]);
-    let artifacts = artifacts_dir();
-    let _ = std::fs::remove_file(artifacts.join("takeovers_timeline.png"));
-    let out = std::process::Command::new("node")
-        .arg(repo().join("tests/web/takeovers_e2e.mjs"))
-        .current_dir(repo().join("tests/web"))
-        .env("UFOPS_URL", &srv.url)
-        .env("UFOPS_TOKEN_A", &labeler)
-        .env("UFOPS_EXPECT", Value::Object(expect).to_string())
-        .env("UFOPS_SHOT", id_of(2))
-        .env("UFOPS_ARTIFACTS", &artifacts)
-        .env("CHROMIUM", chromium().unwrap())
-        .stderr(std::process::Stdio::inherit())
-        .output()
-        .expect("run node tests/web/takeovers_e2e.mjs");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    println!("{stdout}");
-    assert!(out.status.success(), "the browser test failed (screenshots in {})", artifacts.display());
-    let line = stdout.lines().find_map(|l| l.strip_prefix("E2E_RESULT ")).expect("E2E_RESULT line");
-    let result: Value = serde_json::from_str(line).unwrap();
+    browser::forget_screenshot("takeovers_timeline.png");
+    let result = browser::run_script(
+        "takeovers_e2e.mjs",
+        &srv.url,
+        &[
+            ("UFOPS_TOKEN_A", labeler),
+            ("UFOPS_EXPECT", Value::Object(expect).to_string()),
+            ("UFOPS_SHOT", id_of(2)),
+        ],
+    );
     assert_eq!(
         result[id_of(2)]["seeked"],
         json!(15),
         "the click on the second takeover seeks to step 15: {result}"
     );
     assert_eq!(result[id_of(0)]["spans"], json!([]), "{result}");
-    let shot = artifacts.join("takeovers_timeline.png");
-    assert!(std::fs::metadata(&shot).map(|m| m.len() > 10_000).unwrap_or(false), "{}", shot.display());
+    browser::assert_screenshot("takeovers_timeline.png");
 }
 
 /// The flags in the HDF5 layouts: the DAgger dataset exported as robomimic and as ALOHA keeps
@@ -470,7 +437,6 @@ fn takeover_strip_in_the_labeling_page() {
 fn takeovers_round_trip_through_robomimic_and_aloha() {
     let dir = tempfile::tempdir().unwrap();
     let (ds, labels) = dagger_source(dir.path());
-    let l = labels.to_str().unwrap();
     for format in ["robomimic", "aloha"] {
         let src = if format == "aloha" {
             let d = dir.path().join("dagger-qpos");
@@ -481,17 +447,7 @@ fn takeovers_round_trip_through_robomimic_and_aloha() {
             ds.clone()
         };
         let a = Target::sqlite(&dir.path().join(format!("a-{format}")));
-        a.json(&[
-            "ingest",
-            src.to_str().unwrap(),
-            "--policy",
-            "so101",
-            "--checkpoint",
-            "c1",
-            "--success-file",
-            l,
-            "--json",
-        ]);
+        ingest_dagger(&a, &src, &labels);
         let out = dir.path().join(format!("out-{format}"));
         let out = if format == "robomimic" { out.with_extension("hdf5") } else { out };
         a.json(&["export", out.to_str().unwrap(), "--format", format, "--json"]);

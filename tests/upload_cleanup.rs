@@ -42,8 +42,7 @@ fn finished_uploads_are_deleted_and_stale_ones_swept() {
         std::fs::write(d.join("x.hdf5"), b"x").unwrap();
     }
     assert!(Command::new("touch").args(["-d", "3 hours ago"]).arg(&old).status().unwrap().success());
-    let admin = t.json(&["token", "create", "--name", "ops", "--role", "admin", "--json"]);
-    let auth = format!("Bearer {}", admin["token"].as_str().unwrap());
+    let auth = t.bearer("ops", "admin");
     let server = t.serve(&[]);
     let url = server.url.as_str();
     let t0 = Instant::now();

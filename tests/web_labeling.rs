@@ -9,144 +9,20 @@
 //! test does the same for the scoreboard page (`tests/web/scoreboard_e2e.mjs`), the third the
 //! verifier-ordered review queue and its score on the timeline (`tests/web/review_e2e.mjs`).
 //!
-//! Needs `chromium` (or `$CHROMIUM`), `node` and `tests/web/node_modules` (`npm ci` there);
-//! `scripts/test.sh` installs them (`ensure_browser`) and sets `UFOPS_REQUIRE_BROWSER=1`, which
-//! turns a missing browser into a failure instead of a skip. Screenshots land in
-//! `<target dir>/web-artifacts/`.
-//!
-//! One file past 700 lines: every browser test shares the one server and store set-up at the top.
+//! The harness (prerequisites, running a script, screenshots) is `common::browser`.
 
-use crate::common;
-
-use common::Target;
+use crate::common::browser::{self, api};
+use crate::common::{self, Target};
 use serde_json::Value;
-use std::io::{BufRead, BufReader, Read, Write};
-use std::net::TcpStream;
-use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
-pub(crate) fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-pub(crate) fn chromium() -> Option<PathBuf> {
-    if let Ok(p) = std::env::var("CHROMIUM") {
-        return Some(PathBuf::from(p)).filter(|p| p.is_file());
-    }
-    ["/usr/bin/chromium", "/usr/bin/chromium-browser"].iter().map(PathBuf::from).find(|p| p.is_file())
-}
-
-/// What is missing to run the browser test, if anything.
-pub(crate) fn missing_prerequisites() -> Vec<String> {
-    let mut missing = Vec::new();
-    if chromium().is_none() {
-        missing.push(
-            "chromium (apt-get install -y --no-install-recommends chromium, or set CHROMIUM)".to_string(),
-        );
-    }
-    if Command::new("node").arg("--version").output().map(|o| !o.status.success()).unwrap_or(true) {
-        missing.push("node (Node.js >= 20)".to_string());
-    }
-    if !repo().join("tests/web/node_modules/playwright-core/package.json").is_file() {
-        missing.push("tests/web/node_modules (run `npm ci --no-audit --no-fund` in tests/web)".to_string());
-    }
-    missing
-}
-
-pub(crate) fn artifacts_dir() -> PathBuf {
-    // <target>/debug/deps/web_labeling-HASH → <target>
-    let target = std::env::var("CARGO_TARGET_DIR").map(PathBuf::from).unwrap_or_else(|_| {
-        std::env::current_exe()
-            .ok()
-            .and_then(|p| p.ancestors().nth(3).map(PathBuf::from))
-            .unwrap_or_else(|| repo().join("target"))
-    });
-    target.join("web-artifacts")
-}
-
-/// A child process killed when dropped.
-struct Server {
-    child: Child,
-    addr: String,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn serve(t: &Target) -> Server {
-    serve_with(t, &["--no-worker"])
-}
-
-/// `ufops serve` with `extra` arguments (without `--no-worker` it runs jobs too).
-fn serve_with(t: &Target, extra: &[&str]) -> Server {
-    let mut child = t
-        .command()
-        .args(["serve", "--addr", "127.0.0.1:0"])
-        .args(extra)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("start ufops serve");
-    let stdout = child.stdout.take().expect("stdout");
-    let mut lines = BufReader::new(stdout).lines();
-    let addr = loop {
-        match lines.next() {
-            Some(Ok(l)) => {
-                if let Some(a) = l.trim().strip_prefix("listening on http://") {
-                    break a.to_string();
-                }
-            }
-            _ => {
-                let _ = child.kill();
-                panic!("ufops serve exited before listening");
-            }
-        }
-    };
-    // Keep draining stdout so the server never blocks on a full pipe.
-    std::thread::spawn(move || for _ in lines {});
-    Server { child, addr }
-}
-
-/// A minimal HTTP/1.1 client (one request per connection) for checking through the API.
-fn http(addr: &str, method: &str, path: &str, token: &str, body: Option<&str>) -> (u16, Value) {
-    let mut s = TcpStream::connect(addr).expect("connect");
-    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
-    let body = body.unwrap_or("");
-    let req = format!(
-        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {token}\r\nAccept: application/json\r\n\
-         Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        body.len()
-    );
-    s.write_all(req.as_bytes()).unwrap();
-    let mut raw = Vec::new();
-    s.read_to_end(&mut raw).unwrap();
-    let text = String::from_utf8_lossy(&raw).into_owned();
-    let (head, rest) = text.split_once("\r\n\r\n").expect("an HTTP response");
-    let status: u16 = head.split_whitespace().nth(1).and_then(|c| c.parse().ok()).expect("status");
-    let chunked = head
-        .lines()
-        .any(|l| l.to_ascii_lowercase().starts_with("transfer-encoding:") && l.contains("chunked"));
-    let body = if chunked {
-        let mut out = String::new();
-        let mut r = rest;
-        while let Some((size, tail)) = r.split_once("\r\n") {
-            let n = usize::from_str_radix(size.trim(), 16).unwrap_or(0);
-            if n == 0 {
-                break;
-            }
-            out.push_str(&tail[..n]);
-            r = &tail[n + 2..];
-        }
-        out
-    } else {
-        rest.to_string()
-    };
-    (status, serde_json::from_str(&body).unwrap_or(Value::String(body)))
+/// The two cameras of [`write_robomimic_images`]'s file, stored as `kind`.
+fn two_cameras(kind: &str) -> Vec<(String, String)> {
+    ["agentview_image", "robot0_eye_in_hand_image"]
+        .iter()
+        .map(|c| (c.to_string(), kind.to_string()))
+        .collect()
 }
 
 /// A robomimic rollout file with two image observations (`agentview_image`,
@@ -192,16 +68,9 @@ with h5py.File(path, "w") as f:
     assert!(out.status.success(), "writing the robomimic file: {}", String::from_utf8_lossy(&out.stderr));
 }
 
-fn token(t: &Target, name: &str, role: &str) -> String {
-    let v = t.json(&["token", "create", "--name", name, "--role", role, "--json"]);
-    v["token"].as_str().expect("token secret").to_string()
-}
-
 #[test]
 fn labeling_page_in_headless_chromium() {
-    let missing = missing_prerequisites();
-    let probe = if missing.is_empty() { Ok(()) } else { Err(missing.join("; ")) };
-    if !store::test_support::require(store::test_support::Tool::Browser, probe) {
+    if !browser::available() {
         return;
     }
     let fixtures = common::fixtures().join("lerobot");
@@ -251,38 +120,30 @@ fn labeling_page_in_headless_chromium() {
             "to be judged by people",
         ]);
     }
-    let admin = token(&t, "admin", "admin");
-    let alice = token(&t, "alice", "labeler");
-    let bob = token(&t, "bob", "labeler");
-    let srv = serve(&t);
-    let url = format!("http://{}", srv.addr);
+    let admin = t.token("admin", "admin");
+    let alice = t.token("alice", "labeler");
+    let bob = t.token("bob", "labeler");
+    let srv = t.serve(&["--no-worker"]);
 
     // The page and its assets are served from the binary, with types and cache headers.
-    let (st, _) = http(&srv.addr, "GET", "/", "", None);
+    let (st, _) = api(&srv, "GET", "/", "", None);
     assert_eq!(st, 303, "GET / redirects to the page");
-    let (st, _) = http(&srv.addr, "GET", "/ui/", "", None);
+    let (st, _) = api(&srv, "GET", "/ui/", "", None);
     assert_eq!(st, 200, "GET /ui/");
-    let (st, _) = http(&srv.addr, "GET", "/ui/nope.js", "", None);
+    let (st, _) = api(&srv, "GET", "/ui/nope.js", "", None);
     assert_eq!(st, 404);
 
     if images.is_some() {
         // The episode lists both image cameras; a frame is a PNG, cached for good.
-        let (_, page) = http(&srv.addr, "GET", "/v1/episodes?policy=robomimic-img", &admin, None);
+        let (_, page) = api(&srv, "GET", "/v1/episodes?policy=robomimic-img", &admin, None);
         let id = page["episodes"][0]["id"].as_str().expect("an image episode").to_string();
-        let (st, d) = http(&srv.addr, "GET", &format!("/v1/episodes/{id}"), &admin, None);
+        let (st, d) = api(&srv, "GET", &format!("/v1/episodes/{id}"), &admin, None);
         assert_eq!(st, 200, "{d}");
-        let cams: Vec<(&str, &str)> = d["cameras"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|c| (c["name"].as_str().unwrap(), c["kind"].as_str().unwrap()))
-            .collect();
-        assert_eq!(cams, [("agentview_image", "image"), ("robot0_eye_in_hand_image", "image")], "{d}");
-        let (st, _) =
-            http(&srv.addr, "GET", &format!("/v1/episodes/{id}/frames/agentview_image/3"), &admin, None);
+        assert_eq!(browser::cameras(&d), two_cameras("image"), "{d}");
+        let (st, _) = api(&srv, "GET", &format!("/v1/episodes/{id}/frames/agentview_image/3"), &admin, None);
         assert_eq!(st, 200);
-        let (st, v) = http(
-            &srv.addr,
+        let (st, v) = api(
+            &srv,
             "GET",
             &format!("/v1/episodes/{id}/frames/agentview_image/{image_steps}"),
             &admin,
@@ -290,36 +151,24 @@ fn labeling_page_in_headless_chromium() {
         );
         assert_eq!(st, 404, "past the last step: {v}");
     }
-    let _ = std::fs::remove_file(artifacts_dir().join("robomimic_cameras.png"));
-
-    let artifacts = artifacts_dir();
-    std::fs::create_dir_all(&artifacts).unwrap();
-    let out = Command::new("node")
-        .arg(repo().join("tests/web/label_e2e.mjs"))
-        .current_dir(repo().join("tests/web"))
-        .env("UFOPS_URL", &url)
-        .env("UFOPS_TOKEN_A", &alice)
-        .env("UFOPS_TOKEN_B", &bob)
-        .env("UFOPS_ARTIFACTS", &artifacts)
-        .env("UFOPS_IMAGE_POLICY", images.unwrap_or(""))
-        .env("UFOPS_IMAGE_STEPS", image_steps.to_string())
-        .env("CHROMIUM", chromium().unwrap())
-        .stderr(Stdio::inherit())
-        .output()
-        .expect("run node tests/web/label_e2e.mjs");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    println!("{stdout}");
-    assert!(out.status.success(), "the browser test failed (screenshots in {})", artifacts.display());
-    let line = stdout.lines().find_map(|l| l.strip_prefix("E2E_RESULT ")).expect("E2E_RESULT line");
-    let result: Value = serde_json::from_str(line).expect("E2E_RESULT json");
+    browser::forget_screenshot("robomimic_cameras.png");
+    let result = browser::run_script(
+        "label_e2e.mjs",
+        &srv.url,
+        &[
+            ("UFOPS_TOKEN_A", alice),
+            ("UFOPS_TOKEN_B", bob),
+            ("UFOPS_IMAGE_POLICY", images.unwrap_or("").to_string()),
+            ("UFOPS_IMAGE_STEPS", image_steps.to_string()),
+        ],
+    );
     if images.is_some() {
         let c = &result["image_cameras"];
         assert_eq!(c["cameras"], 2, "{c}");
         // On demand: a window around the frames shown, never the episode's every frame.
         let fetched = c["frame_requests"].as_u64().unwrap();
         assert!(fetched > 0 && fetched < 2 * image_steps as u64 / 2, "{fetched} frame requests: {c}");
-        let shot = artifacts.join("robomimic_cameras.png");
-        assert!(std::fs::metadata(&shot).map(|m| m.len() > 10_000).unwrap_or(false), "{}", shot.display());
+        browser::assert_screenshot("robomimic_cameras.png");
     }
 
     // Every label the browser set, checked through the API.
@@ -327,7 +176,7 @@ fn labeling_page_in_headless_chromium() {
     assert!(labeled.len() >= 6, "3 keyboard + 1 conflict + 2 bulk: {labeled:?}");
     for l in labeled {
         let id = l["episode_id"].as_str().unwrap();
-        let (st, v) = http(&srv.addr, "GET", &format!("/v1/episodes/{id}"), &admin, None);
+        let (st, v) = api(&srv, "GET", &format!("/v1/episodes/{id}"), &admin, None);
         assert_eq!(st, 200, "{v}");
         assert_eq!(v["episode"]["label"], l["label"], "episode {id}: {v}");
         assert_eq!(v["episode"]["label_source"], "human");
@@ -339,7 +188,7 @@ fn labeling_page_in_headless_chromium() {
     // The conflict: bob's failure, then alice's success applied knowingly over it.
     let c = &result["conflict"];
     let id = c["episode_id"].as_str().expect("conflict episode");
-    let (_, v) = http(&srv.addr, "GET", &format!("/v1/episodes/{id}"), &admin, None);
+    let (_, v) = api(&srv, "GET", &format!("/v1/episodes/{id}"), &admin, None);
     let hist: Vec<(String, String)> = v["history"]
         .as_array()
         .unwrap()
@@ -351,7 +200,7 @@ fn labeling_page_in_headless_chromium() {
     assert_eq!(hist[n - 2], ("bob".to_string(), "failure".to_string()), "{hist:?}");
     assert_eq!(hist[n - 1], ("alice".to_string(), "success".to_string()), "{hist:?}");
     // Nothing else was touched: the remaining video episodes are still unknown.
-    let (_, page) = http(&srv.addr, "GET", "/v1/episodes?policy=toy-dp&label=unknown", &admin, None);
+    let (_, page) = api(&srv, "GET", "/v1/episodes?policy=toy-dp&label=unknown", &admin, None);
     assert_eq!(page["episodes"].as_array().unwrap().len(), 8 - labeled.len(), "{page}");
 
     println!(
@@ -371,9 +220,7 @@ fn labeling_page_in_headless_chromium() {
 /// pixels drawn from each video are the file's), screenshot `robomimic_video_cameras.png`.
 #[test]
 fn robomimic_video_cameras_in_headless_chromium() {
-    let missing = missing_prerequisites();
-    let probe = if missing.is_empty() { Ok(()) } else { Err(missing.join("; ")) };
-    if !store::test_support::require(store::test_support::Tool::Browser, probe) {
+    if !browser::available() {
         return;
     }
     if !store::test_support::require_python(&["h5py", "numpy"]) {
@@ -397,49 +244,28 @@ fn robomimic_video_cameras_in_headless_chromium() {
         "--json",
     ]);
     assert_eq!(r["media_files"], 4, "one video per episode and camera: {r}");
-    let admin = token(&t, "admin", "admin");
-    let alice = token(&t, "alice", "labeler");
-    let srv = serve(&t);
-    let (_, page) = http(&srv.addr, "GET", "/v1/episodes?policy=robomimic-vid", &admin, None);
+    let admin = t.token("admin", "admin");
+    let alice = t.token("alice", "labeler");
+    let srv = t.serve(&["--no-worker"]);
+    let (_, page) = api(&srv, "GET", "/v1/episodes?policy=robomimic-vid", &admin, None);
     let id = page["episodes"][0]["id"].as_str().expect("an episode").to_string();
-    let (st, d) = http(&srv.addr, "GET", &format!("/v1/episodes/{id}"), &admin, None);
+    let (st, d) = api(&srv, "GET", &format!("/v1/episodes/{id}"), &admin, None);
     assert_eq!(st, 200, "{d}");
-    let cams: Vec<(&str, &str)> = d["cameras"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|c| (c["name"].as_str().unwrap(), c["kind"].as_str().unwrap()))
-        .collect();
-    assert_eq!(cams, [("agentview_image", "video"), ("robot0_eye_in_hand_image", "video")], "{d}");
-    let (st, v) =
-        http(&srv.addr, "GET", &format!("/v1/episodes/{id}/frames/agentview_image/7"), &admin, None);
+    assert_eq!(browser::cameras(&d), two_cameras("video"), "{d}");
+    let (st, v) = api(&srv, "GET", &format!("/v1/episodes/{id}/frames/agentview_image/7"), &admin, None);
     assert_eq!(st, 200, "a video camera's frame, decoded: {v}");
     let (st, v) =
-        http(&srv.addr, "GET", &format!("/v1/episodes/{id}/frames/agentview_image/{steps}"), &admin, None);
+        api(&srv, "GET", &format!("/v1/episodes/{id}/frames/agentview_image/{steps}"), &admin, None);
     assert_eq!(st, 404, "past the last step: {v}");
 
-    let artifacts = artifacts_dir();
-    std::fs::create_dir_all(&artifacts).unwrap();
-    let _ = std::fs::remove_file(artifacts.join("robomimic_video_cameras.png"));
-    let out = Command::new("node")
-        .arg(repo().join("tests/web/video_e2e.mjs"))
-        .current_dir(repo().join("tests/web"))
-        .env("UFOPS_URL", format!("http://{}", srv.addr))
-        .env("UFOPS_TOKEN", &alice)
-        .env("UFOPS_POLICY", "robomimic-vid")
-        .env("UFOPS_ARTIFACTS", &artifacts)
-        .env("CHROMIUM", chromium().unwrap())
-        .stderr(Stdio::inherit())
-        .output()
-        .expect("run node tests/web/video_e2e.mjs");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    println!("{stdout}");
-    assert!(out.status.success(), "the browser test failed (screenshots in {})", artifacts.display());
-    let line = stdout.lines().find_map(|l| l.strip_prefix("E2E_RESULT ")).expect("E2E_RESULT line");
-    let result: Value = serde_json::from_str(line).expect("E2E_RESULT json");
+    browser::forget_screenshot("robomimic_video_cameras.png");
+    let result = browser::run_script(
+        "video_e2e.mjs",
+        &srv.url,
+        &[("UFOPS_TOKEN", alice), ("UFOPS_POLICY", "robomimic-vid".to_string())],
+    );
     assert_eq!(result["cameras"], 2, "{result}");
-    let shot = artifacts.join("robomimic_video_cameras.png");
-    assert!(std::fs::metadata(&shot).map(|m| m.len() > 10_000).unwrap_or(false), "{}", shot.display());
+    browser::assert_screenshot("robomimic_video_cameras.png");
 }
 
 /// The scoreboard page (`/ui/scoreboard.html`) in headless Chromium: synthetic evaluation runs of
@@ -451,9 +277,7 @@ fn robomimic_video_cameras_in_headless_chromium() {
 /// directory. The rows the page shows are checked against `ufops scoreboard --format json`.
 #[test]
 fn scoreboard_page_in_headless_chromium() {
-    let missing = missing_prerequisites();
-    let probe = if missing.is_empty() { Ok(()) } else { Err(missing.join("; ")) };
-    if !store::test_support::require(store::test_support::Tool::Browser, probe) {
+    if !browser::available() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
@@ -488,18 +312,7 @@ fn scoreboard_page_in_headless_chromium() {
     synth("c1", "1", "120", "0.5", Some(("base", "base")), None);
     // A classifier trained on the base run: its quality on the split's held-out episodes is what
     // the page's verifier column and calibration plot show.
-    let split = t.json(&["split", "create", "--policy", "synth", "--checkpoint", "c1", "--json"]);
-    let cfg = dir.path().join("train.json");
-    std::fs::write(&cfg, r#"{"epochs": 3, "chunk_len": 16}"#).unwrap();
-    t.ok(&[
-        "train",
-        "--split",
-        split["id"].as_str().unwrap(),
-        "--kind",
-        "classifier",
-        "--config",
-        cfg.to_str().unwrap(),
-    ]);
+    t.train("synth", "c1", "classifier", r#"{"epochs": 3, "chunk_len": 16}"#, &[]);
     let arts = t.json(&["artifacts", "--policy", "synth", "--json"]);
     let art = arts[0]["id"].as_str().unwrap().to_string();
     assert!(
@@ -517,34 +330,13 @@ fn scoreboard_page_in_headless_chromium() {
     }
     t.ok(&["snapshot"]);
     let want = t.json(&["scoreboard", "--policy", "synth", "--format", "json"]);
-    let viewer = token(&t, "vera", "viewer");
-    let srv = serve(&t);
-    let (st, _) = http(&srv.addr, "GET", "/ui/scoreboard.html", "", None);
+    let viewer = t.token("vera", "viewer");
+    let srv = t.serve(&["--no-worker"]);
+    let (st, _) = api(&srv, "GET", "/ui/scoreboard.html", "", None);
     assert_eq!(st, 200, "the scoreboard page is served");
-    let artifacts = artifacts_dir();
-    std::fs::create_dir_all(&artifacts).unwrap();
-    let shot = artifacts.join("scoreboard.png");
-    let _ = std::fs::remove_file(&shot);
-    let out = Command::new("node")
-        .arg(repo().join("tests/web/scoreboard_e2e.mjs"))
-        .current_dir(repo().join("tests/web"))
-        .env("UFOPS_URL", format!("http://{}", srv.addr))
-        .env("UFOPS_TOKEN", &viewer)
-        .env("UFOPS_ARTIFACTS", &artifacts)
-        .env("CHROMIUM", chromium().unwrap())
-        .stderr(Stdio::inherit())
-        .output()
-        .expect("run node tests/web/scoreboard_e2e.mjs");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    println!("{stdout}");
-    assert!(out.status.success(), "the browser test failed (screenshots in {})", artifacts.display());
-    let line = stdout.lines().find_map(|l| l.strip_prefix("E2E_RESULT ")).expect("E2E_RESULT line");
-    let result: Value = serde_json::from_str(line).expect("E2E_RESULT json");
-    assert!(
-        std::fs::metadata(&shot).map(|m| m.len() > 10_000).unwrap_or(false),
-        "screenshot {}",
-        shot.display()
-    );
+    browser::forget_screenshot("scoreboard.png");
+    let result = browser::run_script("scoreboard_e2e.mjs", &srv.url, &[("UFOPS_TOKEN", viewer)]);
+    browser::assert_screenshot("scoreboard.png");
 
     // The page's rows are the store's: same runs and checkpoints, same counts and intervals.
     let want = want["rows"].as_array().unwrap();
@@ -592,9 +384,7 @@ fn scoreboard_page_in_headless_chromium() {
 /// each episode's label and source, and κ recomputed from the verdicts the script reports.
 #[test]
 fn consensus_page_in_headless_chromium() {
-    let missing = missing_prerequisites();
-    let probe = if missing.is_empty() { Ok(()) } else { Err(missing.join("; ")) };
-    if !store::test_support::require(store::test_support::Tool::Browser, probe) {
+    if !browser::available() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
@@ -620,15 +410,15 @@ fn consensus_page_in_headless_chromium() {
     for e in eps.as_array().unwrap() {
         t.ok(&["label", e["id"].as_str().unwrap(), "unknown", "--actor", "campaign"]);
     }
-    let admin = token(&t, "admin", "admin");
-    let alice = token(&t, "alice", "labeler");
-    let bob = token(&t, "bob", "labeler");
-    let srv = serve(&t);
+    let admin = t.token("admin", "admin");
+    let alice = t.token("alice", "labeler");
+    let bob = t.token("bob", "labeler");
+    let srv = t.serve(&["--no-worker"]);
     let (st, v) =
-        http(&srv.addr, "PUT", "/v1/campaigns/synth", &admin, Some(r#"{"labels_needed": 2, "blind": true}"#));
+        api(&srv, "PUT", "/v1/campaigns/synth", &admin, Some(r#"{"labels_needed": 2, "blind": true}"#));
     assert_eq!(st, 200, "{v}");
-    let (st, v) = http(
-        &srv.addr,
+    let (st, v) = api(
+        &srv,
         "PUT",
         "/v1/tasks/*/failure-causes",
         &admin,
@@ -636,32 +426,18 @@ fn consensus_page_in_headless_chromium() {
     );
     assert_eq!(st, 200, "{v}");
 
-    let artifacts = artifacts_dir();
-    std::fs::create_dir_all(&artifacts).unwrap();
-    let out = Command::new("node")
-        .arg(repo().join("tests/web/consensus_e2e.mjs"))
-        .current_dir(repo().join("tests/web"))
-        .env("UFOPS_URL", format!("http://{}", srv.addr))
-        .env("UFOPS_TOKEN_A", &alice)
-        .env("UFOPS_TOKEN_B", &bob)
-        .env("UFOPS_TOKEN_ADMIN", &admin)
-        .env("UFOPS_ARTIFACTS", &artifacts)
-        .env("CHROMIUM", chromium().unwrap())
-        .stderr(Stdio::inherit())
-        .output()
-        .expect("run node tests/web/consensus_e2e.mjs");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    println!("{stdout}");
-    assert!(out.status.success(), "the browser test failed (screenshots in {})", artifacts.display());
-    let line = stdout.lines().find_map(|l| l.strip_prefix("E2E_RESULT ")).expect("E2E_RESULT line");
-    let result: Value = serde_json::from_str(line).expect("E2E_RESULT json");
+    let result = browser::run_script(
+        "consensus_e2e.mjs",
+        &srv.url,
+        &[("UFOPS_TOKEN_A", alice), ("UFOPS_TOKEN_B", bob), ("UFOPS_TOKEN_ADMIN", admin.clone())],
+    );
 
     let alice_v = result["alice"].as_object().unwrap();
     let bob_v = result["bob"].as_object().unwrap();
     assert_eq!(alice_v.len(), 4);
     let disputed = result["disputed"].as_str().unwrap();
     for (id, a) in alice_v {
-        let (st, v) = http(&srv.addr, "GET", &format!("/v1/episodes/{id}"), &admin, None);
+        let (st, v) = api(&srv, "GET", &format!("/v1/episodes/{id}"), &admin, None);
         assert_eq!(st, 200, "{v}");
         let (label, source) = (&v["episode"]["label"], &v["episode"]["label_source"]);
         if id == disputed {
@@ -672,14 +448,14 @@ fn consensus_page_in_headless_chromium() {
         }
     }
     let span_ep = result["span_episode"].as_str().unwrap();
-    let (_, v) = http(&srv.addr, "GET", &format!("/v1/episodes/{span_ep}"), &admin, None);
+    let (_, v) = api(&srv, "GET", &format!("/v1/episodes/{span_ep}"), &admin, None);
     let last = v["history"].as_array().unwrap().last().unwrap().clone();
     assert_eq!(
         last["data"]["spans"][0]["end_step"], 3,
         "the span alice marked is in the label event: {last}"
     );
     // The two episodes nobody labeled are still unknown.
-    let (_, page) = http(&srv.addr, "GET", "/v1/episodes?policy=synth&label=unknown", &admin, None);
+    let (_, page) = api(&srv, "GET", "/v1/episodes?policy=synth&label=unknown", &admin, None);
     assert_eq!(page["episodes"].as_array().unwrap().len(), 2, "{page}");
     // κ once more, from the reported verdicts, against the API.
     let n = alice_v.len() as f64;
@@ -688,7 +464,7 @@ fn consensus_page_in_headless_chromium() {
         |m: &serde_json::Map<String, Value>, c: &str| m.values().filter(|v| *v == c).count() as f64 / n;
     let pe: f64 = ["success", "failure"].iter().map(|c| share(alice_v, c) * share(bob_v, c)).sum();
     let kappa = (po - pe) / (1.0 - pe);
-    let (_, ag) = http(&srv.addr, "GET", "/v1/agreement?policy=synth", &admin, None);
+    let (_, ag) = api(&srv, "GET", "/v1/agreement?policy=synth", &admin, None);
     assert!((ag["pairs"][0]["kappa"].as_f64().unwrap() - kappa).abs() < 1e-12, "{ag} vs {kappa}");
     assert_eq!(
         (ag["agreed"].as_u64(), ag["settled"].as_u64(), ag["disputed"].as_u64()),
@@ -707,30 +483,23 @@ fn consensus_page_in_headless_chromium() {
 /// `review-uncertain-score-timeline.png`).
 #[test]
 fn review_queue_in_headless_chromium() {
-    let missing = missing_prerequisites();
-    let probe = if missing.is_empty() { Ok(()) } else { Err(missing.join("; ")) };
-    if !store::test_support::require(store::test_support::Tool::Browser, probe) {
+    if !browser::available() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
     let t = Target::sqlite(dir.path());
     t.ok(&["init"]);
     common::lift_with_classifier(&t);
-    let trainer = token(&t, "curator", "trainer");
-    let alice = token(&t, "alice", "labeler");
-    let srv = serve_with(&t, &[]);
-    let (st, job) = http(
-        &srv.addr,
-        "POST",
-        "/v1/review/score",
-        &trainer,
-        Some(r#"{"policy": "bc", "checkpoint": "e600"}"#),
-    );
+    let trainer = t.token("curator", "trainer");
+    let alice = t.token("alice", "labeler");
+    let srv = t.serve(&[]);
+    let (st, job) =
+        api(&srv, "POST", "/v1/review/score", &trainer, Some(r#"{"policy": "bc", "checkpoint": "e600"}"#));
     assert_eq!(st, 201, "{job}");
     let job_id = job["id"].as_str().unwrap().to_string();
     let t0 = std::time::Instant::now();
     loop {
-        let (_, j) = http(&srv.addr, "GET", &format!("/v1/jobs/{job_id}"), &trainer, None);
+        let (_, j) = api(&srv, "GET", &format!("/v1/jobs/{job_id}"), &trainer, None);
         match j["state"].as_str() {
             Some("succeeded") => break,
             Some("failed") | Some("cancelled") => panic!("score job: {j}"),
@@ -738,8 +507,7 @@ fn review_queue_in_headless_chromium() {
         }
         std::thread::sleep(Duration::from_millis(200));
     }
-    let (st, page) =
-        http(&srv.addr, "GET", "/v1/episodes?policy=bc&order=uncertain&limit=1000", &alice, None);
+    let (st, page) = api(&srv, "GET", "/v1/episodes?policy=bc&order=uncertain&limit=1000", &alice, None);
     assert_eq!(st, 200, "{page}");
     let expect: Vec<&str> =
         page["episodes"].as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap()).collect();
@@ -747,21 +515,9 @@ fn review_queue_in_headless_chromium() {
         page["review"].as_array().unwrap().iter().map(|r| r["score"].as_f64().unwrap()).collect();
     assert!(scores.windows(2).all(|w| (w[0] - 0.5).abs() <= (w[1] - 0.5).abs()), "{scores:?}");
 
-    let artifacts = artifacts_dir();
-    std::fs::create_dir_all(&artifacts).unwrap();
-    let out = Command::new("node")
-        .arg(repo().join("tests/web/review_e2e.mjs"))
-        .current_dir(repo().join("tests/web"))
-        .env("UFOPS_URL", format!("http://{}", srv.addr))
-        .env("UFOPS_TOKEN_A", &alice)
-        .env("UFOPS_EXPECT", expect.join(","))
-        .env("UFOPS_ARTIFACTS", &artifacts)
-        .env("CHROMIUM", chromium().unwrap())
-        .stderr(Stdio::inherit())
-        .output()
-        .expect("run node tests/web/review_e2e.mjs");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    println!("{stdout}");
-    assert!(out.status.success(), "the review page test failed (screenshots in {})", artifacts.display());
-    assert!(stdout.contains("E2E_RESULT "), "{stdout}");
+    browser::run_script(
+        "review_e2e.mjs",
+        &srv.url,
+        &[("UFOPS_TOKEN_A", alice), ("UFOPS_EXPECT", expect.join(","))],
+    );
 }

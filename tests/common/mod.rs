@@ -1,6 +1,7 @@
 //! Helpers for the end-to-end tests: run the real `ufops` binary against a store.
 #![allow(dead_code)]
 
+pub mod browser;
 pub mod seaweedfs;
 
 use std::path::{Path, PathBuf};
@@ -61,6 +62,38 @@ impl Target {
         let out = self.run(args);
         assert!(out.status.success(), "ufops {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
         String::from_utf8_lossy(&out.stdout).into_owned()
+    }
+
+    /// The secret of a new token for user `name` with `role`.
+    pub fn token(&self, name: &str, role: &str) -> String {
+        let v = self.json(&["token", "create", "--name", name, "--role", role, "--json"]);
+        v["token"].as_str().unwrap_or_else(|| panic!("no token in {v}")).to_string()
+    }
+
+    /// [`Target::token`] as an `Authorization` header's value.
+    pub fn bearer(&self, name: &str, role: &str) -> String {
+        format!("Bearer {}", self.token(name, role))
+    }
+
+    /// A split of `policy`/`checkpoint` and a `kind` verifier trained on it with `recipe` (the
+    /// JSON of a `--config` file) and the `extra` flags; returns the artifact `train --json`
+    /// prints.
+    pub fn train(
+        &self,
+        policy: &str,
+        checkpoint: &str,
+        kind: &str,
+        recipe: &str,
+        extra: &[&str],
+    ) -> serde_json::Value {
+        let split = self.json(&["split", "create", "--policy", policy, "--checkpoint", checkpoint, "--json"]);
+        let cfg = self.data_dir.join(format!("recipe-{}.json", &store::sha256_hex(recipe.as_bytes())[..12]));
+        std::fs::write(&cfg, recipe).unwrap();
+        let split = split["id"].as_str().expect("a split id");
+        let mut args =
+            vec!["train", "--split", split, "--kind", kind, "--config", cfg.to_str().unwrap(), "--json"];
+        args.extend_from_slice(extra);
+        self.json(&args)
     }
 }
 
@@ -227,10 +260,6 @@ pub fn http_bytes(
     }
 }
 
-/// The robomimic low-dim Lift rollouts (12, 7 successes) ingested as `bc/e600` with their
-/// success labels, and a classifier trained on them; returns the artifact's alias reference.
-/// Real rollouts give a classifier that separates successes from failures (random synthetic
-/// episodes do not), so score thresholds such as 0.5 split them.
 /// `ufops rank`'s score of each of the `bc` episodes by `artifact` (the scores the review
 /// queue must store: one scoring definition).
 #[allow(dead_code)]
@@ -244,6 +273,10 @@ pub fn rank_scores(t: &Target, artifact: &str) -> std::collections::HashMap<Stri
         .collect()
 }
 
+/// The robomimic low-dim Lift rollouts (12, 7 successes) ingested as `bc/e600` with their
+/// success labels, and a classifier trained on them; returns the artifact's alias reference.
+/// Real rollouts give a classifier that separates successes from failures (random synthetic
+/// episodes do not), so score thresholds such as 0.5 split them.
 pub fn lift_with_classifier(t: &Target) -> (&'static str, usize) {
     let f = fixtures().join("robomimic");
     t.ok(&[
@@ -256,19 +289,6 @@ pub fn lift_with_classifier(t: &Target) -> (&'static str, usize) {
         "--success-file",
         f.join("lift_rollouts_lowdim.success.json").to_str().unwrap(),
     ]);
-    let split = t.json(&["split", "create", "--policy", "bc", "--checkpoint", "e600", "--json"]);
-    let cfg = t.data_dir.join("train.json");
-    std::fs::write(&cfg, r#"{"epochs": 60, "batch_size": 256}"#).unwrap();
-    t.ok(&[
-        "train",
-        "--split",
-        split["id"].as_str().unwrap(),
-        "--kind",
-        "classifier",
-        "--chunk-len",
-        "16",
-        "--config",
-        cfg.to_str().unwrap(),
-    ]);
+    t.train("bc", "e600", "classifier", r#"{"epochs": 60, "batch_size": 256}"#, &["--chunk-len", "16"]);
     ("bc/e600/classifier@latest", 12)
 }
