@@ -8,7 +8,8 @@
 # Small sizes of the same path run in CI (tests/export_cli.rs, ingest/tests/aloha).
 #
 # usage: scripts/aloha_full_size.sh [OUT_DIR]   (default target/aloha_full; ~11 GB raw source +
-#        store + export for the raw variant: check `df -h`; needs a built ufops: cargo build --bin ufops)
+#        store + export for the raw variant: check `df -h`; needs a built ufops: cargo build --bin ufops,
+#        and GNU time, Debian's `time`, for the peak RSS)
 #   EPISODES / STEPS  override the size (default 10 x 400)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -18,11 +19,12 @@ UFOPS=${UFOPS_BIN:-$CARGO_TARGET_DIR/debug/ufops}
 EPISODES=${EPISODES:-10}
 STEPS=${STEPS:-400}
 size() { du -sb "$1" | awk '{ printf "%.1f MB", $1 / 1e6 }'; }
-stage() { # name, command...: runs it and prints its wall time
+stage() { # name, command...: runs it and prints its wall time and peak RSS (GNU time's %M)
   local name=$1; shift
-  local t0=$(date +%s.%N)
-  "$@" >"$OUT/$variant.$name.log" 2>&1 || { cat "$OUT/$variant.$name.log"; exit 1; }
-  printf '%-8s %-9s %6.1f s\n' "$variant" "$name" "$(echo "$(date +%s.%N) - $t0" | bc)"
+  local t0=$(date +%s.%N) rss="$OUT/$variant.$name.rss"
+  /usr/bin/time -f %M -o "$rss" "$@" >"$OUT/$variant.$name.log" 2>&1 || { cat "$OUT/$variant.$name.log"; exit 1; }
+  printf '%-10s %-9s %6.1f s  peak RSS %5d MB\n' "$variant" "$name" "$(echo "$(date +%s.%N) - $t0" | bc)" \
+    "$(( $(tail -1 "$rss") / 1024 ))"
 }
 rm -rf "$OUT" && mkdir -p "$OUT"
 for variant in raw compressed; do
