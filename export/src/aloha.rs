@@ -33,9 +33,9 @@ use serde_json::Value;
 use store::steps::{IMAGE_PREFIX, OBS_PREFIX};
 use store::{EpisodeRecord, Store};
 
+use crate::cameras::{png_frames, Frames, VideoDecoder};
 use crate::{
-    count_label, disk_size, for_each_episode_with_layers, ExportError, ExportReport, Progress, Result,
-    Selected, Staged,
+    count_label, disk_size, EpisodeReader, ExportError, ExportReport, Progress, Result, Selected, Staged,
 };
 
 fn bad(e: &EpisodeRecord, what: impl std::fmt::Display) -> ExportError {
@@ -284,35 +284,6 @@ fn attr_value(t: &Value) -> Option<AttrValue> {
     })
 }
 
-fn decode_png(bytes: &[u8]) -> std::result::Result<(Vec<u8>, [usize; 3]), String> {
-    let mut dec = png::Decoder::new(std::io::Cursor::new(bytes));
-    dec.set_transformations(png::Transformations::EXPAND);
-    let mut r = dec.read_info().map_err(|e| e.to_string())?;
-    let mut buf = vec![0; r.output_buffer_size().ok_or("PNG too large")?];
-    let info = r.next_frame(&mut buf).map_err(|e| e.to_string())?;
-    buf.truncate(info.buffer_size());
-    if info.bit_depth != png::BitDepth::Eight {
-        return Err(format!("{:?}-bit PNG (expected 8-bit)", info.bit_depth));
-    }
-    Ok((buf, [info.height as usize, info.width as usize, info.color_type.samples()]))
-}
-
-/// A PNG image column's frames as `(T, H, W, C)` uint8.
-fn raw_frames(e: &EpisodeRecord, name: &str, col: &ArrayRef) -> Result<(Vec<u8>, Vec<u64>)> {
-    let bin = col.as_binary_opt::<i32>().ok_or_else(|| bad(e, format!("{name} is not a binary column")))?;
-    let mut values = Vec::new();
-    let mut shape = [0; 3];
-    for r in 0..bin.len() {
-        let (px, s) = decode_png(bin.value(r)).map_err(|err| bad(e, format!("{name} row {r}: {err}")))?;
-        if r > 0 && s != shape {
-            return Err(bad(e, format!("{name}: frames of different sizes")));
-        }
-        shape = s;
-        values.extend_from_slice(&px);
-    }
-    Ok((values, vec![bin.len() as u64, shape[0] as u64, shape[1] as u64, shape[2] as u64]))
-}
-
 /// A JPEG image column as `(T, padded)` rows: each frame, then its kept padding or zeros.
 fn padded_rows(
     e: &EpisodeRecord,
@@ -342,15 +313,17 @@ fn padded_rows(
     Ok((out, vec![bin.len() as u64, width as u64], lens))
 }
 
-/// Builds one episode file from its steps (and the manifest of an ALOHA source).
+/// Builds one episode file from its steps, its video cameras' frames (decoded by the caller)
+/// and the manifest of an ALOHA source.
 fn episode_file(
     e: &EpisodeRecord,
     steps: &RecordBatch,
+    videos: BTreeMap<String, Frames>,
     manifest: Option<&Value>,
 ) -> Result<(Node, Vec<String>)> {
     match manifest {
-        Some(m) => episode_from_manifest(e, steps, m),
-        None => Ok((episode_from_columns(e, steps)?, Vec::new())),
+        Some(m) => episode_from_manifest(e, steps, videos, m),
+        None => Ok((episode_from_columns(e, steps, videos)?, Vec::new())),
     }
 }
 
@@ -360,7 +333,11 @@ fn need<'a>(e: &EpisodeRecord, steps: &'a RecordBatch, name: &str) -> Result<&'a
 }
 
 /// ALOHA's layout from the store's columns (an episode whose source was not ALOHA).
-fn episode_from_columns(e: &EpisodeRecord, steps: &RecordBatch) -> Result<Node> {
+fn episode_from_columns(
+    e: &EpisodeRecord,
+    steps: &RecordBatch,
+    videos: BTreeMap<String, Frames>,
+) -> Result<Node> {
     let t = steps.num_rows();
     let mut root = Node::default();
     let schema = steps.schema();
@@ -380,10 +357,14 @@ fn episode_from_columns(e: &EpisodeRecord, steps: &RecordBatch) -> Result<Node> 
             if f.metadata().get("ufops.encoding").is_some_and(|x| x == "jpeg") {
                 jpeg.push((k.to_string(), c.clone()));
             } else {
-                let (v, shape) = raw_frames(e, f.name(), c)?;
-                root.dataset(&format!("/observations/images/{k}"), Values::U8(v), shape);
+                let (v, dims) = png_frames(e, f.name(), c)?.into_dataset();
+                root.dataset(&format!("/observations/images/{k}"), Values::U8(v), dims);
             }
         }
+    }
+    for (k, frames) in videos {
+        let (v, dims) = frames.into_dataset();
+        root.dataset(&format!("/observations/images/{k}"), Values::U8(v), dims);
     }
     let (d, v) = Values::from_list(need(e, steps, "action")?)
         .ok_or_else(|| bad(e, "has no actions: ALOHA needs one per step"))?;
@@ -407,7 +388,12 @@ fn episode_from_columns(e: &EpisodeRecord, steps: &RecordBatch) -> Result<Node> 
 
 /// The ALOHA source's file as its manifest describes it: groups, datasets and attributes, with
 /// warnings for what could not be written back.
-fn episode_from_manifest(e: &EpisodeRecord, steps: &RecordBatch, m: &Value) -> Result<(Node, Vec<String>)> {
+fn episode_from_manifest(
+    e: &EpisodeRecord,
+    steps: &RecordBatch,
+    mut videos: BTreeMap<String, Frames>,
+    m: &Value,
+) -> Result<(Node, Vec<String>)> {
     let mut root = Node::default();
     let mut warnings = Vec::new();
     for g in m.get("groups").and_then(Value::as_array).into_iter().flatten() {
@@ -416,7 +402,7 @@ fn episode_from_manifest(e: &EpisodeRecord, steps: &RecordBatch, m: &Value) -> R
         }
     }
     for d in m.get("datasets").and_then(Value::as_array).into_iter().flatten() {
-        if let Some((path, values, shape)) = manifest_dataset(e, steps, d, &mut warnings)? {
+        if let Some((path, values, shape)) = manifest_dataset(e, steps, &mut videos, d, &mut warnings)? {
             root.dataset(path, values, shape);
         }
     }
@@ -436,10 +422,12 @@ fn episode_from_manifest(e: &EpisodeRecord, steps: &RecordBatch, m: &Value) -> R
 }
 
 /// One dataset of the manifest as (path, values, shape): its inline values, or its column's
-/// checked against the source's shape; `None` (and a warning) when it was not ingested.
+/// checked against the source's shape; `None` (and a warning) when it was not ingested, `None`
+/// for a camera stored as a video that was not decoded (the caller warns about those).
 fn manifest_dataset<'m>(
     e: &EpisodeRecord,
     steps: &RecordBatch,
+    videos: &mut BTreeMap<String, Frames>,
     d: &'m Value,
     warnings: &mut Vec<String>,
 ) -> Result<Option<(&'m str, Values, Vec<u64>)>> {
@@ -460,12 +448,28 @@ fn manifest_dataset<'m>(
             .ok_or_else(|| bad(e, format!("manifest: {path} has values that are not {dtype}")))?;
         return Ok(Some((path, v, shape)));
     }
-    let values = column_values(e, steps, d, path, &shape)?;
+    let values = match video_camera(steps, d) {
+        Some(k) => match videos.remove(k) {
+            Some(frames) => Values::U8(frames.values),
+            None => return Ok(None),
+        },
+        None => column_values(e, steps, d, path, &shape)?,
+    };
     let expected: u64 = shape.iter().product();
     if values.len() as u64 != expected {
         return Err(bad(e, format!("{path}: {} values for the source's shape {shape:?}", values.len())));
     }
     Ok(Some((path, values, shape)))
+}
+
+/// The camera a manifest dataset names (`image.<camera>`) when the steps hold it as a video
+/// (`--images video`: a `media.<camera>` column instead of the image column).
+fn video_camera<'m>(steps: &RecordBatch, d: &'m Value) -> Option<&'m str> {
+    let column = d.get("column").and_then(Value::as_str)?;
+    let k = column.strip_prefix(IMAGE_PREFIX)?;
+    (steps.column_by_name(column).is_none()
+        && steps.column_by_name(&format!("{}{k}.path", store::steps::MEDIA_PREFIX)).is_some())
+    .then_some(k)
 }
 
 /// A manifest dataset's values from the steps: a camera's frames (JPEG rows padded as the
@@ -493,7 +497,7 @@ fn column_values(
             }
             Values::U8(rows)
         } else {
-            let (v, s) = raw_frames(e, column, c)?;
+            let (v, s) = png_frames(e, column, c)?.into_dataset();
             if s != shape {
                 return Err(bad(e, format!("{path}: frames of shape {s:?}, the source's were {shape:?}")));
             }
@@ -522,6 +526,33 @@ fn success_attr(root: &mut Node, label: Option<bool>, manifest: Option<&Value>) 
         .unwrap_or(AttrValue::I8(ok as i8));
     root.attrs.retain(|(k, _)| k != "success");
     root.attrs.push(("success".into(), v));
+}
+
+/// Writes one episode's file at `path`, with the selection's label and curation attributes;
+/// returns what could not be written back.
+fn write_episode(
+    sel: &Selected,
+    e: &EpisodeRecord,
+    steps: &RecordBatch,
+    videos: BTreeMap<String, Frames>,
+    manifest: Option<&Value>,
+    path: &Path,
+) -> Result<Vec<String>> {
+    let (mut root, warnings) = episode_file(e, steps, videos, manifest)?;
+    success_attr(&mut root, e.label.as_bool(), manifest);
+    if let Some(score) = sel.scores.get(&e.id) {
+        root.attrs.push(("verifier_score".into(), AttrValue::F64(*score)));
+    }
+    if let Some(c) = crate::failure_cause(sel.label_data.get(&e.id)) {
+        root.attrs.push(("failure_cause".into(), AttrValue::VarLenString(c)));
+    }
+    if let Some(spans) = crate::label_spans(sel.label_data.get(&e.id)) {
+        root.attrs.push(("label_spans".into(), AttrValue::VarLenString(spans)));
+    }
+    let mut fb = FileBuilder::new();
+    root.emit_file(&mut fb);
+    fb.write(path).map_err(|err| ExportError::write(path, err))?;
+    Ok(warnings)
 }
 
 /// Writes the selected episodes as an ALOHA folder at `out` (a new folder).
@@ -558,56 +589,28 @@ pub async fn export(
         warnings: Vec::new(),
     };
     let total = sel.episodes.len();
-    let mut videos_left_out = 0;
+    let mut decoder = VideoDecoder::default();
     for (i, name) in names.iter().enumerate() {
-        let tmp = staged.tmp.clone();
-        let mut warnings = Vec::new();
-        for_each_episode_with_layers(
-            store,
-            &sel.episodes[i..=i],
-            &sel.selection.layers,
-            Some(sel.version),
-            |_, e, steps| {
-                if steps.schema().fields().iter().any(|f| f.name().starts_with(store::steps::MEDIA_PREFIX)) {
-                    videos_left_out += 1;
+        // One episode read at a time: a file with raw cameras is 0.5-2 GB.
+        let mut reader =
+            EpisodeReader::new(store, &sel.episodes[i..=i], &sel.selection.layers, Some(sel.version));
+        while let Some((_, e, steps)) = reader.next().await? {
+            let videos = decoder.episode(store, e, &steps).await?;
+            let manifest = if is_aloha(e) { e.metadata.get("aloha") } else { None };
+            let path = staged.tmp.join(format!("{name}.hdf5"));
+            for w in write_episode(sel, e, &steps, videos, manifest, &path)? {
+                if !report.warnings.contains(&w) {
+                    report.warnings.push(w);
                 }
-                let manifest = if is_aloha(e) { e.metadata.get("aloha") } else { None };
-                let (mut root, w) = episode_file(e, &steps, manifest)?;
-                warnings.extend(w);
-                success_attr(&mut root, e.label.as_bool(), manifest);
-                if let Some(score) = sel.scores.get(&e.id) {
-                    root.attrs.push(("verifier_score".into(), AttrValue::F64(*score)));
-                }
-                if let Some(c) = crate::failure_cause(sel.label_data.get(&e.id)) {
-                    root.attrs.push(("failure_cause".into(), AttrValue::VarLenString(c)));
-                }
-                if let Some(spans) = crate::label_spans(sel.label_data.get(&e.id)) {
-                    root.attrs.push(("label_spans".into(), AttrValue::VarLenString(spans)));
-                }
-                let mut fb = FileBuilder::new();
-                root.emit_file(&mut fb);
-                let path = tmp.join(format!("{name}.hdf5"));
-                fb.write(&path).map_err(|err| ExportError::write(&path, err))?;
-                report.frames += steps.num_rows() as u64;
-                count_label(&mut report.labels, e.label);
-                Ok(())
-            },
-        )
-        .await?;
-        for w in warnings {
-            if !report.warnings.contains(&w) {
-                report.warnings.push(w);
             }
+            report.frames += steps.num_rows() as u64;
+            count_label(&mut report.labels, e.label);
         }
         if let Some(p) = progress {
             p(i + 1, total);
         }
     }
-    if videos_left_out > 0 {
-        report.warnings.push(format!(
-            "left out the video frames of {videos_left_out} episode(s): ALOHA files hold images, not videos (export them as LeRobot)"
-        ));
-    }
+    report.warnings.extend(decoder.warnings("ALOHA"));
     report.episodes = total;
     report.bytes = disk_size(&staged.tmp);
     staged.commit()?;

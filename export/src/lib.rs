@@ -8,6 +8,7 @@
 //! through its public read path (`Store::read_episodes`).
 
 pub mod aloha;
+mod cameras;
 pub mod job;
 pub mod lerobot;
 pub mod robomimic;
@@ -301,8 +302,52 @@ pub async fn for_each_episode_with_layers(
     version: Option<i64>,
     mut f: impl FnMut(usize, &EpisodeRecord, RecordBatch) -> Result<()>,
 ) -> Result<()> {
-    let mut start = 0;
-    while start < episodes.len() {
+    let mut reader = EpisodeReader::new(store, episodes, layers, version);
+    while let Some((i, e, steps)) = reader.next().await? {
+        f(i, e, steps)?;
+    }
+    Ok(())
+}
+
+/// The steps of episodes in order, read in groups as [`for_each_episode_with_layers`] reads them,
+/// handed out one episode at a time: for writers that await between episodes (a video camera's
+/// object is fetched from the store once its episode's steps name it).
+pub(crate) struct EpisodeReader<'a> {
+    store: &'a Store,
+    episodes: &'a [EpisodeRecord],
+    layers: &'a [String],
+    version: Option<i64>,
+    /// The first episode of the next group.
+    next_group: usize,
+    /// The steps of the group read last, not handed out yet.
+    ready: std::vec::IntoIter<(usize, RecordBatch)>,
+}
+
+impl<'a> EpisodeReader<'a> {
+    pub fn new(
+        store: &'a Store,
+        episodes: &'a [EpisodeRecord],
+        layers: &'a [String],
+        version: Option<i64>,
+    ) -> Self {
+        EpisodeReader { store, episodes, layers, version, next_group: 0, ready: Vec::new().into_iter() }
+    }
+
+    /// The next episode's index, record and steps; `None` after the last.
+    pub async fn next(&mut self) -> Result<Option<(usize, &'a EpisodeRecord, RecordBatch)>> {
+        if let Some((i, steps)) = self.ready.next() {
+            return Ok(Some((i, &self.episodes[i], steps)));
+        }
+        if self.next_group >= self.episodes.len() {
+            return Ok(None);
+        }
+        self.ready = self.read_group().await?.into_iter();
+        Ok(self.ready.next().map(|(i, steps)| (i, &self.episodes[i], steps)))
+    }
+
+    /// Reads the next group: at most [`GROUP_ROWS`] rows (or one episode) and [`GROUP_EPISODES`].
+    async fn read_group(&mut self) -> Result<Vec<(usize, RecordBatch)>> {
+        let (episodes, start) = (self.episodes, self.next_group);
         let mut end = start;
         let mut rows = 0;
         while end < episodes.len()
@@ -312,30 +357,33 @@ pub async fn for_each_episode_with_layers(
             rows += episodes[end].row_count;
             end += 1;
         }
+        self.next_group = end;
         let locations =
             episodes[start..end].iter().map(EpisodeLocation::try_from).collect::<Result<Vec<_>, _>>()?;
         let mut slots: Vec<Option<RecordBatch>> = vec![None; end - start];
-        let mut stream = if layers.is_empty() {
-            store.read_episodes(locations)
+        let mut stream = if self.layers.is_empty() {
+            self.store.read_episodes(locations)
         } else {
             let ids: Vec<String> = episodes[start..end].iter().map(|e| e.id.clone()).collect();
-            let at = store.locate_layers(&ids, layers, version).await?;
-            store.read_episodes_with_layers(locations, layers.to_vec(), at)
+            let at = self.store.locate_layers(&ids, self.layers, self.version).await?;
+            self.store.read_episodes_with_layers(locations, self.layers.to_vec(), at)
         };
         while let Some(item) = stream.next().await {
             let item = item.map_err(StoreError::from)?;
             slots[item.index] = Some(item.steps);
         }
-        for (k, steps) in slots.into_iter().enumerate() {
-            let e = &episodes[start + k];
-            let steps = steps.ok_or_else(|| {
-                ExportError::invalid(format!("episode {}: the store returned no steps", e.id))
-            })?;
-            f(start + k, e, steps)?;
-        }
-        start = end;
+        slots
+            .into_iter()
+            .enumerate()
+            .map(|(k, steps)| {
+                let e = &episodes[start + k];
+                let steps = steps.ok_or_else(|| {
+                    ExportError::invalid(format!("episode {}: the store returned no steps", e.id))
+                })?;
+                Ok((start + k, steps))
+            })
+            .collect()
     }
-    Ok(())
 }
 
 /// A destination written under a temporary name next to it and renamed into place by

@@ -27,9 +27,9 @@ use serde_json::Value;
 use store::steps::{EXTRA_PREFIX, IMAGE_PREFIX, OBS_PREFIX};
 use store::{EpisodeRecord, Store};
 
+use crate::cameras::{png_frames, Frames, VideoDecoder};
 use crate::{
-    count_label, disk_size, for_each_episode_with_layers, ExportError, ExportReport, Progress, Result,
-    Selected, Staged,
+    count_label, disk_size, EpisodeReader, ExportError, ExportReport, Progress, Result, Selected, Staged,
 };
 
 fn bad(e: &EpisodeRecord, what: impl std::fmt::Display) -> ExportError {
@@ -44,24 +44,16 @@ fn f32_rows(col: &ArrayRef) -> Option<(usize, Vec<f32>)> {
     Some((d, v.values()[l.offset() * d..(l.offset() + l.len()) * d].to_vec()))
 }
 
-fn decode_png(bytes: &[u8]) -> std::result::Result<(Vec<u8>, [usize; 3]), String> {
-    let mut dec = png::Decoder::new(std::io::Cursor::new(bytes));
-    dec.set_transformations(png::Transformations::EXPAND);
-    let mut r = dec.read_info().map_err(|e| e.to_string())?;
-    let mut buf = vec![0; r.output_buffer_size().ok_or("PNG too large")?];
-    let info = r.next_frame(&mut buf).map_err(|e| e.to_string())?;
-    buf.truncate(info.buffer_size());
-    let c = info.color_type.samples();
-    if info.bit_depth != png::BitDepth::Eight {
-        return Err(format!("{:?}-bit PNG (expected 8-bit)", info.bit_depth));
-    }
-    Ok((buf, [info.height as usize, info.width as usize, c]))
-}
-
 /// One observation of every step, as written to `obs/<key>` (and shifted into `next_obs`).
 enum Obs {
     F32 { dim: usize, values: Vec<f32> },
     U8 { shape: [usize; 3], values: Vec<u8> },
+}
+
+impl From<Frames> for Obs {
+    fn from(f: Frames) -> Obs {
+        Obs::U8 { shape: f.shape, values: f.values }
+    }
 }
 
 impl Obs {
@@ -183,16 +175,17 @@ fn put_extra(
     Ok(())
 }
 
-/// Builds one `demo_<i>` group from an episode's steps.
+/// Builds one `demo_<i>` group from an episode's steps and its video cameras' frames.
 fn demo_group(
     fb: &mut FileBuilder,
     name: &str,
     e: &EpisodeRecord,
     steps: &RecordBatch,
+    videos: BTreeMap<String, Frames>,
     robomimic_source: bool,
 ) -> Result<GroupBuilder> {
     let mut g = fb.create_group(name);
-    put_observations(&mut g, e, steps)?;
+    put_observations(&mut g, e, steps, videos)?;
     put_step_datasets(&mut g, e, steps)?;
     let mut attrs = put_extras(&mut g, e, steps)?;
     // The source's demo attributes (robomimic sources keep them as episode metadata).
@@ -208,24 +201,31 @@ fn demo_group(
     Ok(g)
 }
 
-/// `obs/<key>` and `next_obs/<key>` of every observation and image column (images decoded from
-/// PNG), float64 where the source's were.
-fn put_observations(g: &mut GroupBuilder, e: &EpisodeRecord, steps: &RecordBatch) -> Result<()> {
+/// `obs/<key>` and `next_obs/<key>` of every observation, image column (decoded from PNG) and
+/// video camera (`videos`: decoded by the caller), float64 where the source's were.
+fn put_observations(
+    g: &mut GroupBuilder,
+    e: &EpisodeRecord,
+    steps: &RecordBatch,
+    videos: BTreeMap<String, Frames>,
+) -> Result<()> {
     let t = steps.num_rows();
     let schema = steps.schema();
-    let mut obs_g = g.create_group("obs");
-    let mut next_g = g.create_group("next_obs");
+    let mut obs: Vec<(String, Obs)> = Vec::new();
     for f in schema.fields() {
         let col = steps.column_by_name(f.name()).expect("field of the batch");
-        let (key, o) = if let Some(k) = f.name().strip_prefix(OBS_PREFIX) {
+        if let Some(k) = f.name().strip_prefix(OBS_PREFIX) {
             let (dim, values) =
                 f32_rows(col).ok_or_else(|| bad(e, format!("{} is not a float32 list column", f.name())))?;
-            (k, Obs::F32 { dim, values })
+            obs.push((k.to_string(), Obs::F32 { dim, values }));
         } else if let Some(k) = f.name().strip_prefix(IMAGE_PREFIX) {
-            (k, png_frames(e, f.name(), col, t)?)
-        } else {
-            continue;
-        };
+            obs.push((k.to_string(), png_frames(e, f.name(), col)?.into()));
+        }
+    }
+    obs.extend(videos.into_iter().map(|(k, f)| (k, f.into())));
+    let mut obs_g = g.create_group("obs");
+    let mut next_g = g.create_group("next_obs");
+    for (key, o) in obs {
         // The source's dtype is recorded on the kept `next_obs` column (robomimic writes obs and
         // next_obs alike).
         let kept_name = format!("{EXTRA_PREFIX}next_obs/{key}");
@@ -233,28 +233,12 @@ fn put_observations(g: &mut GroupBuilder, e: &EpisodeRecord, steps: &RecordBatch
         let wide = schema
             .field_with_name(&kept_name)
             .is_ok_and(|f| f.metadata().get("ufops.dtype").is_some_and(|d| d == "float64"));
-        put_obs(&mut obs_g, key, &o, t, wide);
-        put_obs(&mut next_g, key, &next_obs(&o, kept, t), t, wide);
+        put_obs(&mut obs_g, &key, &o, t, wide);
+        put_obs(&mut next_g, &key, &next_obs(&o, kept, t), t, wide);
     }
     g.add_group(obs_g.finish());
     g.add_group(next_g.finish());
     Ok(())
-}
-
-/// A PNG image column's `t` frames decoded to uint8 (all of one size).
-fn png_frames(e: &EpisodeRecord, name: &str, col: &ArrayRef, t: usize) -> Result<Obs> {
-    let bin = col.as_binary_opt::<i32>().ok_or_else(|| bad(e, format!("{name} is not a binary column")))?;
-    let mut values = Vec::new();
-    let mut shape = [0; 3];
-    for r in 0..t {
-        let (px, s) = decode_png(bin.value(r)).map_err(|err| bad(e, format!("{name} row {r}: {err}")))?;
-        if r > 0 && s != shape {
-            return Err(bad(e, format!("{name}: frames of different sizes")));
-        }
-        shape = s;
-        values.extend_from_slice(&px);
-    }
-    Ok(Obs::U8 { shape, values })
 }
 
 /// `actions` (float32), `rewards` (float64), `dones` (uint8) and, when the steps have them,
@@ -426,49 +410,36 @@ pub async fn export(
     let mut fb = FileBuilder::new();
     let mut data = fb.create_group("data");
     let total = sel.episodes.len();
-    let mut videos_left_out = 0;
-    for_each_episode_with_layers(
-        store,
-        &sel.episodes,
-        &sel.selection.layers,
-        Some(sel.version),
-        |i, e, steps| {
-            let name = format!("demo_{i}");
-            let robomimic_source = sources.get(&e.source_sha256).is_some_and(|(f, _)| f == "robomimic");
-            if steps.schema().fields().iter().any(|f| f.name().starts_with(store::steps::MEDIA_PREFIX)) {
-                videos_left_out += 1;
+    let mut decoder = VideoDecoder::default();
+    let mut reader = EpisodeReader::new(store, &sel.episodes, &sel.selection.layers, Some(sel.version));
+    while let Some((i, e, steps)) = reader.next().await? {
+        let name = format!("demo_{i}");
+        let robomimic_source = sources.get(&e.source_sha256).is_some_and(|(f, _)| f == "robomimic");
+        let videos = decoder.episode(store, e, &steps).await?;
+        let mut g = demo_group(&mut fb, &name, e, &steps, videos, robomimic_source)?;
+        set_curation_attrs(&mut g, sel, e);
+        data.add_group(g.finish());
+        for tag in &e.tags {
+            if filters.contains(tag) {
+                masks.entry(tag.clone()).or_default().push(name.clone());
             }
-            let mut g = demo_group(&mut fb, &name, e, &steps, robomimic_source)?;
-            set_curation_attrs(&mut g, sel, e);
-            data.add_group(g.finish());
-            for tag in &e.tags {
-                if filters.contains(tag) {
-                    masks.entry(tag.clone()).or_default().push(name.clone());
-                }
-            }
-            if let Some(part) = sel.parts.get(&e.id) {
-                let key = if part == "val" { "valid" } else { part.as_str() };
-                masks.entry(key.to_string()).or_default().push(name.clone());
-            }
-            report.frames += steps.num_rows() as u64;
-            count_label(&mut report.labels, e.label);
-            if let Some(p) = progress {
-                p(i + 1, total);
-            }
-            Ok(())
-        },
-    )
-    .await?;
+        }
+        if let Some(part) = sel.parts.get(&e.id) {
+            let key = if part == "val" { "valid" } else { part.as_str() };
+            masks.entry(key.to_string()).or_default().push(name.clone());
+        }
+        report.frames += steps.num_rows() as u64;
+        count_label(&mut report.labels, e.label);
+        if let Some(p) = progress {
+            p(i + 1, total);
+        }
+    }
     data.set_attr("total", AttrValue::I64(report.frames as i64));
     data.set_attr("env_args", AttrValue::VarLenString(env_args.to_string()));
     data.set_attr("ufops", AttrValue::VarLenString(sel.provenance("robomimic").to_string()));
     fb.add_group(data.finish());
     add_masks(&mut fb, &masks, out)?;
-    if videos_left_out > 0 {
-        report.warnings.push(format!(
-            "left out the video frames of {videos_left_out} episode(s): robomimic holds images, not videos (export them as LeRobot)"
-        ));
-    }
+    report.warnings.extend(decoder.warnings("robomimic"));
     fb.write(&staged.tmp).map_err(|err| ExportError::write(out, err))?;
     report.episodes = total;
     report.bytes = disk_size(&staged.tmp);

@@ -7,8 +7,11 @@
 //! so the cost of one frame is bounded by the group of pictures (ingest writes a key frame every
 //! [`KEY_FRAME_INTERVAL`] frames). Other codecs (LeRobot's AV1) and reordered frames are refused
 //! with an error that says so; malformed files are errors, never panics.
+//!
+//! [`Store::video_codec`] names a stored video's codec from its `moov` box alone (a few range
+//! requests), so a writer can tell an AV1 video it will not decode without fetching it whole.
 
-use crate::StoreError;
+use crate::{Store, StoreError};
 use openh264::decoder::Decoder;
 use openh264::formats::YUVSource;
 use std::io::Cursor;
@@ -222,6 +225,94 @@ pub fn decode_all(mp4_bytes: Vec<u8>, mut each: impl FnMut(f64, RgbFrame)) -> Re
         track.decode(0, n - 1, |i, f| each(starts[i] as f64 / scale, f))?;
         Ok(n)
     })
+}
+
+/// Top-level boxes looked at for `moov` before giving up (an MP4 has a handful).
+const MAX_TOP_LEVEL_BOXES: usize = 64;
+
+/// The largest `moov` box read to name a codec (it holds the sample tables: a few MB for hours).
+const MAX_MOOV_BYTES: u64 = 64 << 20;
+
+/// A box header at the start of `b` with `left` bytes up to its parent's end: its type, its total
+/// size and its header's size; `None` when it is cut short or overruns its parent.
+fn box_header(b: &[u8], left: u64) -> Option<([u8; 4], u64, u64)> {
+    let size = u32::from_be_bytes(b.get(0..4)?.try_into().ok()?) as u64;
+    let kind: [u8; 4] = b.get(4..8)?.try_into().ok()?;
+    let (total, header) = match size {
+        0 => (left, 8),
+        1 => (u64::from_be_bytes(b.get(8..16)?.try_into().ok()?), 16),
+        n => (n, 8),
+    };
+    (total >= header && total <= left).then_some((kind, total, header))
+}
+
+/// The boxes inside a box's payload, as (type, payload).
+fn boxes(mut buf: &[u8]) -> impl Iterator<Item = ([u8; 4], &[u8])> {
+    std::iter::from_fn(move || {
+        let (kind, total, header) = box_header(buf, buf.len() as u64)?;
+        let payload = &buf[header as usize..total as usize];
+        buf = &buf[total as usize..];
+        Some((kind, payload))
+    })
+}
+
+fn child<'a>(payload: &'a [u8], kind: &[u8; 4]) -> Option<&'a [u8]> {
+    boxes(payload).find(|(k, _)| k == kind).map(|(_, p)| p)
+}
+
+/// The sample entry type of the first video track (one whose `minf` has a `vmhd`) in a `moov`
+/// payload: `avc1` (H.264), `av01` (AV1), `hvc1` / `hev1` (H.265), `vp09` (VP9).
+pub fn video_sample_entry(moov: &[u8]) -> Option<String> {
+    boxes(moov).filter(|(k, _)| k == b"trak").find_map(|(_, trak)| {
+        let minf = child(child(trak, b"mdia")?, b"minf")?;
+        child(minf, b"vmhd")?;
+        let stsd = child(child(minf, b"stbl")?, b"stsd")?;
+        // version and flags, entry count, then the first entry's size and type.
+        Some(String::from_utf8_lossy(stsd.get(12..16)?).into_owned())
+    })
+}
+
+/// Whether a sample entry type is what [`decode_all`] decodes (H.264 in `avc1`).
+pub fn is_h264(sample_entry: &str) -> bool {
+    sample_entry == "avc1"
+}
+
+/// A codec's common name from its sample entry type (the type itself when unknown).
+pub fn codec_name(sample_entry: &str) -> String {
+    match sample_entry {
+        "avc1" | "avc3" => "H.264".into(),
+        "av01" => "AV1".into(),
+        "hvc1" | "hev1" => "H.265".into(),
+        "vp09" => "VP9".into(),
+        "vp08" => "VP8".into(),
+        other => other.into(),
+    }
+}
+
+impl Store {
+    /// The sample entry type of a stored MP4's video track ([`video_sample_entry`]), from its
+    /// top-level box headers and its `moov` box: the media data is not read.
+    pub async fn video_codec(&self, path: &str) -> Result<String, StoreError> {
+        let size = self.object_size(path).await?;
+        let mut at = 0u64;
+        for _ in 0..MAX_TOP_LEVEL_BOXES {
+            if at + 8 > size {
+                break;
+            }
+            let head = self.get_object_range(path, at..(at + 16).min(size)).await?;
+            let (kind, total, header) = box_header(&head, size - at)
+                .ok_or_else(|| bad(format!("{path}: a box overruns the file")))?;
+            if &kind == b"moov" {
+                if total > MAX_MOOV_BYTES {
+                    return Err(bad(format!("{path}: a moov box of {total} bytes")));
+                }
+                let moov = self.get_object_range(path, at + header..at + total).await?;
+                return video_sample_entry(&moov).ok_or_else(|| bad(format!("{path}: no video track")));
+            }
+            at += total;
+        }
+        Err(bad(format!("{path}: no moov box")))
+    }
 }
 
 /// Peak signal-to-noise ratio of `b` against `a` (8-bit samples), in dB; infinite when equal.
