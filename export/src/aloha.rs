@@ -6,19 +6,21 @@
 //! An episode ingested from ALOHA carries a manifest in its metadata (`aloha`: every group,
 //! dataset — dtype, shape, where it is kept — and typed attribute), and is written back as it
 //! was: observations and actions from their float32 columns (or the exact values kept beside them
-//! when the source's dtype was another), raw cameras decoded from PNG, compressed cameras as their
-//! JPEG bytes padded to the source's row length (the source's non-zero padding where ingest kept
-//! it), `compress_len` as it was, small datasets from the manifest. The version's frozen label
-//! is the `success` attribute (in the source's type when it had one). Boolean attributes are
-//! written as int8 0/1 (`hdf5-pure` writes no enumerated attribute type; h5py reads them as
+//! when the source's dtype was another), raw cameras decoded from PNG (or from their H.264 video
+//! when ingested with `--images video`: within a PSNR bound, see [`crate::cameras`]), compressed
+//! cameras as their JPEG bytes padded to the source's row length (the source's non-zero padding
+//! where ingest kept it), `compress_len` as it was, small datasets from the manifest. The
+//! version's frozen label is the `success` attribute (in the source's type when it had one).
+//! Boolean attributes are written as int8 0/1 (`hdf5-pure` writes no enumerated attribute type; h5py reads them as
 //! `np.int8`, which compares equal to the bool).
 //!
 //! Other episodes get ALOHA's layout from the store's columns: `obs.<key>` as
-//! `/observations/<key>` (float32), `action`, PNG image columns as raw cameras and JPEG ones as
-//! compressed cameras with `compress_len`, `sim` false.
+//! `/observations/<key>` (float32), `action`, PNG image columns and video cameras as raw
+//! cameras, JPEG ones as compressed cameras with `compress_len`, `sim` false.
 //!
 //! Episodes are read and written one at a time (an ALOHA episode with raw cameras is 0.5-2 GB),
-//! each file under the staged folder, renamed into place at the end.
+//! each file under the staged folder, renamed into place at the end; an episode's video cameras
+//! are fetched and decoded one after the other into that episode's file.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;

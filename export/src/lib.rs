@@ -5,7 +5,8 @@
 //! it came from. This crate owns the selection of episodes ([`Selection`]), reading their steps
 //! in order with bounded memory ([`for_each_episode`]), the provenance record, and writing to a
 //! temporary name renamed at the end (a crash leaves no half dataset). It reads the store only
-//! through its public read path (`Store::read_episodes`).
+//! through its public read path (`Store::read_episodes`, and the media objects of video cameras,
+//! which the HDF5 writers decode back into image arrays: `cameras`).
 
 pub mod aloha;
 mod cameras;

@@ -4,7 +4,8 @@
 //! * `data@total` (frames), `data@env_args` (JSON: the source's when it was robomimic), and
 //!   `data@ufops` (JSON: where the export came from);
 //! * `data/demo_<i>/obs/<key>` (float32 `T x dim`, float64 where the source's were; PNG image
-//!   columns decoded to uint8 `T x H x W x C`), `next_obs/<key>` (the next step's obs, or the source's own value where it
+//!   columns and H.264 video cameras decoded to uint8 `T x H x W x C`, see [`crate::cameras`]),
+//!   `next_obs/<key>` (the next step's obs, or the source's own value where it
 //!   differed: ingest keeps those rows), `actions` (float32), `rewards` (float64), `dones`
 //!   (uint8), `states` and every other per-step array ingest kept (`extra.*` columns, in their
 //!   source dtype and shape);
