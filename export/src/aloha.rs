@@ -7,7 +7,7 @@
 //! dataset — dtype, shape, where it is kept — and typed attribute), and is written back as it
 //! was: observations and actions from their float32 columns (or the exact values kept beside them
 //! when the source's dtype was another), raw cameras decoded from PNG (or from their H.264 video
-//! when ingested with `--images video`: within a PSNR bound, see [`crate::cameras`]), compressed
+//! when ingested with `--images video`: within a PSNR bound, see `cameras.rs`), compressed
 //! cameras as their JPEG bytes padded to the source's row length (the source's non-zero padding
 //! where ingest kept it), `compress_len` as it was, small datasets from the manifest. The
 //! version's frozen label is the `success` attribute (in the source's type when it had one).

@@ -4,7 +4,7 @@
 //! * `data@total` (frames), `data@env_args` (JSON: the source's when it was robomimic), and
 //!   `data@ufops` (JSON: where the export came from);
 //! * `data/demo_<i>/obs/<key>` (float32 `T x dim`, float64 where the source's were; PNG image
-//!   columns and H.264 video cameras decoded to uint8 `T x H x W x C`, see [`crate::cameras`]),
+//!   columns and H.264 video cameras decoded to uint8 `T x H x W x C`, see `cameras.rs`),
 //!   `next_obs/<key>` (the next step's obs, or the source's own value where it
 //!   differed: ingest keeps those rows), `actions` (float32), `rewards` (float64), `dones`
 //!   (uint8), `states` and every other per-step array ingest kept (`extra.*` columns, in their
