@@ -34,7 +34,8 @@ use hdf5_pure::{AttrValue, DType, Dataset, File, Group};
 use serde_json::{json, Map, Value};
 
 use crate::error::{IngestError, Result};
-use crate::model::{EpisodeInput, ExtraColumn, FrameStream, Frames, ImageColumn, Label, VectorColumn};
+use crate::h5rows::{raw_camera, read_rows_windowed};
+use crate::model::{EpisodeInput, ExtraColumn, Frames, ImageColumn, Label, VectorColumn};
 use crate::options::ReadOptions;
 use crate::robomimic::{
     check_signature_file, dtype_name, group_attrs, h5err, info, is_numeric, PositionedFile, Src,
@@ -47,18 +48,6 @@ pub const LABEL_SOURCE: &str = "aloha:success";
 
 /// ALOHA's control period (50 Hz, `DT` in its constants): step times are `t * DT`.
 pub const DT: f64 = 0.02;
-
-/// Decoded bytes of camera frames read at once (raw frames are PNG-encoded, JPEG rows sliced, a
-/// window at a time: a camera's dataset is never held whole).
-const WINDOW_BYTES: u64 = 32 << 20;
-
-/// A raw camera is streamed to the store (PNG-encoded as the writer pulls it): this many raw
-/// bytes (at most [`STREAM_WINDOW_FRAMES`] frames) are read and encoded at once, and at most
-/// [`STREAM_AHEAD`] encoded frames wait ahead of the writer. With the writer's page of frames,
-/// memory per camera is about 20 MB whatever the episode's length.
-const STREAM_WINDOW_BYTES: u64 = 8 << 20;
-const STREAM_WINDOW_FRAMES: u64 = 32;
-const STREAM_AHEAD: usize = 16;
 
 /// Most objects (groups + datasets) one episode file may hold, and how deep groups may nest.
 const MAX_OBJECTS: usize = 4096;
@@ -337,7 +326,7 @@ fn extra(
     for (k, v) in more {
         metadata.insert(k.to_string(), v.clone());
     }
-    ExtraColumn { name: name.to_string(), values, metadata }
+    ExtraColumn { name: name.to_string(), values: values.into(), metadata }
 }
 
 /// `[H, W, C]` from a JPEG's frame header (SOFn), without decoding it; `None` when the bytes are
@@ -462,110 +451,6 @@ fn transpose_rows(full: &ArrayRef, rows: usize, cols: usize) -> std::result::Res
         .map_err(|e| e.to_string())
 }
 
-/// A raw camera: a stream of its frames, read a window at a time and PNG-encoded on a thread
-/// of its own as the store's writer pulls them (never the whole camera in memory). A window that
-/// reads short (frames the file declares but does not hold) fails the stream with a message
-/// naming the dataset.
-fn raw_camera(ds: &Dataset, src: &Src, what: &str, name: &str, shape: &[u64]) -> Result<ImageColumn> {
-    let (t, h, w, c) = (shape[0] as usize, shape[1] as usize, shape[2] as usize, shape[3] as usize);
-    if !(1..=4).contains(&c) || h == 0 || w == 0 || h > 1 << 15 || w > 1 << 15 {
-        return Err(IngestError::invalid(
-            src,
-            format!("{what}: unsupported image shape {shape:?} (expected T x H x W x C, C in 1..=4)"),
-        ));
-    }
-    let frames = RawFrames {
-        ds: ds.clone(),
-        path: src.path.to_path_buf(),
-        what: what.to_string(),
-        rows: t as u64,
-        next_row: 0,
-        shape: [h, w, c],
-        encoded: std::collections::VecDeque::new(),
-    };
-    let stream = FrameStream::new(name, t, "png", frames).prefetched(STREAM_AHEAD);
-    Ok(ImageColumn { name: name.to_string(), shape: [h, w, c], frames: Frames::Stream(stream) })
-}
-
-/// The PNG frames of a raw camera, read [`STREAM_WINDOW_BYTES`] at a time.
-struct RawFrames {
-    ds: Dataset,
-    path: PathBuf,
-    what: String,
-    rows: u64,
-    next_row: u64,
-    shape: [usize; 3],
-    encoded: std::collections::VecDeque<Vec<u8>>,
-}
-
-impl RawFrames {
-    fn read_window(&mut self) -> Result<()> {
-        let [h, w, c] = self.shape;
-        let row_bytes = (h * w * c) as u64;
-        let n =
-            (STREAM_WINDOW_BYTES / row_bytes).clamp(1, STREAM_WINDOW_FRAMES).min(self.rows - self.next_row);
-        let src = Src::new(&self.path, 0);
-        let bytes = read_window(&self.ds, &src, &self.what, self.next_row, n, row_bytes)?;
-        let enc = crate::robomimic::encode_png_frames(&bytes, n as usize, h, w, c)
-            .map_err(|e| IngestError::invalid(&self.path, format!("{}: {e}", self.what)))?;
-        self.encoded.extend(enc);
-        self.next_row += n;
-        Ok(())
-    }
-}
-
-impl Iterator for RawFrames {
-    type Item = store::FrameResult;
-    fn next(&mut self) -> Option<store::FrameResult> {
-        if self.encoded.is_empty() && self.next_row < self.rows {
-            if let Err(e) = self.read_window() {
-                self.next_row = self.rows;
-                return Some(Err(store::StoreError::invalid(e.to_string())));
-            }
-        }
-        self.encoded.pop_front().map(Ok)
-    }
-}
-
-/// Rows `start..start + n` of `row_bytes` bytes each of a uint8 dataset, checked to be all there.
-fn read_window(ds: &Dataset, src: &Src, what: &str, start: u64, n: u64, row_bytes: u64) -> Result<Vec<u8>> {
-    let bytes = ds.read_u8_rows(start, n).map_err(h5err(src, format!("cannot read {what}")))?;
-    if bytes.len() as u64 != n * row_bytes {
-        return Err(IngestError::invalid(
-            src,
-            format!(
-                "{what}: read {} bytes for frames {start}..{}, expected {}",
-                bytes.len(),
-                start + n,
-                n * row_bytes
-            ),
-        ));
-    }
-    Ok(bytes)
-}
-
-/// Reads the `rows` rows of `row_bytes` bytes each of a uint8 dataset in windows of about
-/// [`WINDOW_BYTES`], checking each window's length, and hands each window to `f` with its first
-/// row and row count: memory is bounded by a window, not by the camera.
-fn read_rows_windowed(
-    ds: &Dataset,
-    src: &Src,
-    what: &str,
-    rows: u64,
-    row_bytes: u64,
-    mut f: impl FnMut(u64, usize, &[u8]) -> Result<()>,
-) -> Result<()> {
-    let window = (WINDOW_BYTES / row_bytes.max(1)).max(1);
-    let mut start = 0u64;
-    while start < rows {
-        let n = window.min(rows - start);
-        let bytes = read_window(ds, src, what, start, n, row_bytes)?;
-        f(start, n as usize, &bytes)?;
-        start += n;
-    }
-    Ok(())
-}
-
 /// A compressed camera: each row's first `lens[t]` bytes (a JPEG, kept as it is), and the rest
 /// of the row where it is not all zeros (an extra column, null where it is).
 fn jpeg_camera(
@@ -606,7 +491,7 @@ fn jpeg_camera(
         let arr: ArrayRef = Arc::new(BinaryArray::from_iter(tails.iter().map(|t| t.as_deref())));
         ExtraColumn {
             name: format!("pad/{name}"),
-            values: arr,
+            values: arr.into(),
             metadata: HashMap::from([(
                 "ufops.null_means".to_string(),
                 format!("the rest of the row of {what} after the JPEG is zeros"),

@@ -21,6 +21,7 @@ pub mod error;
 /// Fuzz target bodies for `cargo fuzz` (ingest/fuzz) and the mutation tests (feature `testing`).
 #[cfg(any(test, feature = "testing"))]
 pub mod fuzzing;
+mod h5rows;
 pub mod hashing;
 /// The hostile-input corpus of the tests (feature `testing`).
 #[cfg(any(test, feature = "testing"))]

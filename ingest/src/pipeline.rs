@@ -15,7 +15,6 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-use arrow::array::Array as _;
 use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
 
 use crate::error::{IngestError, Result};
@@ -119,7 +118,7 @@ impl EpisodeSink for ChannelSink {
         self.send(Msg::Media(file))
     }
     fn episode_with_extras(&mut self, episode: EpisodeInput, extras: Vec<ExtraColumn>) -> Result<()> {
-        let extra_bytes: usize = extras.iter().map(|x| x.values.get_array_memory_size()).sum();
+        let extra_bytes: usize = extras.iter().map(|x| x.values.memory_size()).sum();
         let kib = ((approx_bytes(&episode) + extra_bytes) / 1024 + 1).min(self.budget_kib as usize) as u32;
         // Blocks this (blocking-pool) thread until enough earlier episodes were encoded; fails
         // once the writer's side gave up (the semaphore is closed).

@@ -443,7 +443,7 @@ pub(crate) fn dtype_name(d: &DType) -> String {
 
 fn extra(
     name: String,
-    values: ArrayRef,
+    values: impl Into<store::ExtraValues>,
     dtype: &DType,
     row_shape: &[u64],
     extra_meta: &[(&str, String)],
@@ -455,7 +455,7 @@ fn extra(
     for (k, v) in extra_meta {
         metadata.insert(k.to_string(), v.clone());
     }
-    ExtraColumn { name, values, metadata }
+    ExtraColumn { name, values: values.into(), metadata }
 }
 
 /// A per-step dataset (`T` rows) as an extra column: u8 kept as u8, floats of 32 bits as f32,
@@ -517,13 +517,18 @@ fn read_next_obs(
     };
     let meta = [("ufops.null_means", format!("obs/{key} of the next step"))];
     let values = if inf.dtype == DType::U8 {
-        let v = ds.read_u8().map_err(h5err(path, format!("cannot read {what}")))?;
         let valid = match obs {
-            Some(ObsValues::U8(o)) if o.len() == v.len() => {
-                keep(&|t| v[t * dim..(t + 1) * dim] == o[(t + 1) * dim..(t + 2) * dim])
+            Some(ObsValues::U8(o, owhat, row_bytes)) if *row_bytes == dim as u64 => {
+                crate::h5rows::rows_differ_from_shift((ds, what), (o, owhat), path, dim as u64, steps as u64)?
             }
             _ => vec![true; steps],
         };
+        if inf.shape.len() == 4 {
+            // An image (as large as a camera): the store reads it a page of rows at a time.
+            let pages = crate::h5rows::u8_rows_paged(ds, path, what, dim, valid);
+            return Ok(Some(extra(format!("next_obs/{key}"), pages, &inf.dtype, &inf.shape[1..], &meta)));
+        }
+        let v = ds.read_u8().map_err(h5err(path, format!("cannot read {what}")))?;
         fsl_column::<UInt8Type>(dim, v, Some(valid))
     } else if is_numeric(&inf.dtype) {
         let v = ds.read_f32().map_err(h5err(path, format!("cannot read {what}")))?;
@@ -544,10 +549,11 @@ fn read_next_obs(
     Ok(Some(extra(format!("next_obs/{key}"), values, &inf.dtype, &inf.shape[1..], &meta)))
 }
 
-/// An observation's values as stored (to compare `next_obs` with).
+/// An observation's values as stored (to compare `next_obs` with): low-dim values in memory, an
+/// image's dataset (its name and bytes a row), read a window at a time.
 enum ObsValues {
     F32(Vec<f32>),
-    U8(Vec<u8>),
+    U8(Dataset, String, u64),
 }
 
 /// A demo's rewards (zeros when it has none) and dones (the last step when it has none).
@@ -594,7 +600,8 @@ fn read_observations(g: &Group, path: &Src, name: &str, steps: usize) -> Result<
     let mut images = Vec::new();
     let mut extras = Vec::new();
     let mut skipped = Vec::new();
-    let mut raw_images: HashMap<String, Vec<u8>> = HashMap::new();
+    // Each image observation's dataset, to compare `next_obs` with window by window.
+    let mut image_obs: HashMap<String, (Dataset, String, u64)> = HashMap::new();
     if let Ok(obs) = g.group("obs") {
         let mut keys = obs.datasets().map_err(h5err(path, format!("cannot list data/{name}/obs")))?;
         keys.sort();
@@ -603,9 +610,9 @@ fn read_observations(g: &Group, path: &Src, name: &str, steps: usize) -> Result<
             let ds = obs.dataset(&key).map_err(h5err(path, format!("cannot open {what}")))?;
             let inf = info(&ds, path, &what)?;
             if inf.dtype == DType::U8 && inf.shape.len() == 4 {
-                let (im, raw) = read_images(&ds, path, &what, &key, &inf.shape, steps)?;
-                images.push(im);
-                raw_images.insert(key, raw);
+                images.push(read_images(&ds, path, &what, &key, &inf.shape, steps)?);
+                let row_bytes = inf.shape[1..].iter().product();
+                image_obs.insert(key, (ds, what, row_bytes));
             } else {
                 let (_, dim, values) = read_matrix(&ds, path, &what, Some(steps))?;
                 observations.push(VectorColumn { name: key, dim, values });
@@ -618,8 +625,8 @@ fn read_observations(g: &Group, path: &Src, name: &str, steps: usize) -> Result<
         for key in keys {
             let what = format!("data/{name}/next_obs/{key}");
             let ds = next.dataset(&key).map_err(h5err(path, format!("cannot open {what}")))?;
-            let o = match raw_images.remove(&key) {
-                Some(raw) => Some(ObsValues::U8(raw)),
+            let o = match image_obs.remove(&key) {
+                Some((ds, what, row_bytes)) => Some(ObsValues::U8(ds, what, row_bytes)),
                 None => observations.iter().find(|o| o.name == key).map(|o| ObsValues::F32(o.values.clone())),
             };
             match read_next_obs(&ds, path, &what, &key, o.as_ref(), steps)? {
@@ -669,7 +676,7 @@ fn long_attribute_columns(
                 let col: ArrayRef =
                     Arc::new(StringArray::from_iter((0..steps).map(|t| (t == 0).then_some(text))));
                 let meta = HashMap::from([("ufops.attribute".to_string(), k.clone())]);
-                extras.push(ExtraColumn { name: format!("attr/{k}"), values: col, metadata: meta });
+                extras.push(ExtraColumn { name: format!("attr/{k}"), values: col.into(), metadata: meta });
             }
         }
     }
@@ -856,31 +863,16 @@ fn read_images(
     key: &str,
     shape: &[u64],
     steps: usize,
-) -> Result<(ImageColumn, Vec<u8>)> {
-    let (t, h, w, c) = (shape[0] as usize, shape[1] as usize, shape[2] as usize, shape[3] as usize);
+) -> Result<ImageColumn> {
+    let t = shape[0] as usize;
     if t != steps {
         return Err(IngestError::invalid(
             path,
             format!("{what} has {t} frames but the demo has {steps} steps"),
         ));
     }
-    if !(1..=4).contains(&c) || h == 0 || w == 0 || h > 1 << 15 || w > 1 << 15 {
-        return Err(IngestError::invalid(
-            path,
-            format!("{what}: unsupported image shape {shape:?} (expected T x H x W x C, C in 1..=4)"),
-        ));
-    }
-    let bytes = ds.read_u8().map_err(h5err(path, format!("cannot read {what}")))?;
-    let frame = h * w * c;
-    if bytes.len() != frame * t {
-        return Err(IngestError::invalid(
-            path,
-            format!("{what}: read {} bytes, shape says {}", bytes.len(), frame * t),
-        ));
-    }
-    let png_frames = encode_png_frames(&bytes, t, h, w, c)
-        .map_err(|e| IngestError::invalid(path, format!("{what}: {e}")))?;
-    Ok((ImageColumn { name: key.to_string(), shape: [h, w, c], frames: png_frames.into() }, bytes))
+    // Streamed: read and PNG-encoded a window of frames at a time as the store pulls them.
+    crate::h5rows::raw_camera(ds, path, what, key, shape)
 }
 
 /// PNG-encodes `t` frames of `h x w x c` u8 (fast compression), on two threads when it pays.

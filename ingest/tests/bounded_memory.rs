@@ -335,53 +335,139 @@ fn write_aloha_raw(path: &Path, steps: usize) {
     b.write(path).unwrap();
 }
 
-/// One ALOHA episode of 200 and one of 800 steps (raw cameras, 22 and 88 MB of frames): the
-/// cameras stream to the store a page at a time, so the longer episode's peak heap is about the
-/// shorter one's (within 50%), not four times it, and far below its frames. A reader that
-/// collects an episode's frames, or a writer that keeps an episode's encoded row group in
-/// memory, fails here.
-#[test]
-fn peak_memory_does_not_grow_with_an_episodes_length() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+/// Ingests one episode of 200 and one of 800 steps (written by `write`, `frame_bytes` of raw
+/// frames a step), checks each with `check(steps batch, steps)`, and holds the longer episode's
+/// peak heap to about the shorter one's (within 50%), not four times it, and far below its
+/// frames. A reader that collects an episode's frames, or a writer that keeps an episode's
+/// encoded row group in memory, fails here.
+fn check_episode_length_bounded(
+    what: &str,
+    format: Format,
+    frame_bytes: usize,
+    write: impl Fn(&Path, usize),
+    check: impl Fn(&arrow::array::RecordBatch, usize),
+) {
     let dir = tempfile::tempdir().unwrap();
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
     let mut peaks = Vec::new();
     for steps in [200, 800] {
-        let file = dir.path().join(format!("episode_{steps}.hdf5"));
-        write_aloha_raw(&file, steps);
+        let source = dir.path().join(format!("episode_{steps}.hdf5"));
+        write(&source, steps);
         let store_dir = dir.path().join(format!("store_{steps}"));
-        let (peak, episodes) = peak_while_ingesting(&rt, &file, Format::Aloha, &store_dir);
+        let (peak, episodes) = peak_while_ingesting(&rt, &source, format, &store_dir);
         assert_eq!(episodes, 1);
-        let frames = steps * 3 * 96 * 128 * 3;
+        let frames = steps * frame_bytes;
         eprintln!(
-            "aloha: one episode of {steps} steps ({:.1} MB of frames) peak heap {:.1} MB",
+            "{what}: one episode of {steps} steps ({:.1} MB of frames) peak heap {:.1} MB",
             frames as f64 / 1e6,
             peak as f64 / 1e6
         );
-        // Every frame is there, in order, as PNG.
         let store = rt.block_on(store::Store::open(&store::StoreConfig::local(&store_dir))).unwrap();
         let eps = rt.block_on(store.episodes(&store::EpisodeFilter::default())).unwrap();
         let steps_batch = rt.block_on(store.read_steps(&eps[0].id, None)).unwrap();
         assert_eq!(steps_batch.num_rows(), steps);
-        let cam = steps_batch.column_by_name("image.cam_left_wrist").unwrap();
-        let cam = cam.as_any().downcast_ref::<BinaryArray>().unwrap();
-        for t in [0, steps / 2, steps - 1] {
-            let mut r = png::Decoder::new(std::io::Cursor::new(cam.value(t))).read_info().unwrap();
-            let mut buf = vec![0; r.output_buffer_size().unwrap()];
-            r.next_frame(&mut buf).unwrap();
-            let raw = noise(1000 + steps as u64, steps * 96 * 128 * 3);
-            let at = t * 96 * 128 * 3;
-            assert_eq!(buf, raw[at..at + 96 * 128 * 3], "frame {t} of {steps}");
-        }
+        check(&steps_batch, steps);
         peaks.push((peak, frames));
     }
     let ((short, _), (long, long_frames)) = (peaks[0], peaks[1]);
     assert!(
         (long as f64) < short as f64 * 1.5,
-        "peak heap grew with the episode: {short} bytes for 200 steps, {long} for 800"
+        "{what}: peak heap grew with the episode: {short} bytes for 200 steps, {long} for 800"
     );
     assert!(
         long < long_frames / 3,
-        "peak heap {long} bytes is not far below the episode's {long_frames} bytes of frames"
+        "{what}: peak heap {long} bytes is not far below the episode's {long_frames} bytes of frames"
     );
+}
+
+/// The PNG of frame `t` of column `name` decodes to `raw`'s frame `t` (`frame` bytes each).
+fn assert_png_frame(batch: &arrow::array::RecordBatch, name: &str, t: usize, raw: &[u8], frame: usize) {
+    let cam = batch.column_by_name(name).unwrap();
+    let cam = cam.as_any().downcast_ref::<BinaryArray>().unwrap();
+    let mut r = png::Decoder::new(std::io::Cursor::new(cam.value(t))).read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size().unwrap()];
+    r.next_frame(&mut buf).unwrap();
+    assert_eq!(buf, raw[t * frame..(t + 1) * frame], "{name}: frame {t}");
+}
+
+/// One ALOHA episode of 200 and one of 800 steps (three raw cameras, 22 and 88 MB of frames):
+/// the cameras stream to the store a page at a time.
+#[test]
+fn peak_memory_does_not_grow_with_an_episodes_length() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    const FRAME: usize = 96 * 128 * 3;
+    check_episode_length_bounded("aloha", Format::Aloha, 3 * FRAME, write_aloha_raw, |batch, steps| {
+        // Every frame is there, in order, as PNG.
+        let raw = noise(1000 + steps as u64, steps * FRAME);
+        for t in [0, steps / 2, steps - 1] {
+            assert_png_frame(batch, "image.cam_left_wrist", t, &raw, FRAME);
+        }
+    });
+}
+
+/// A robomimic file of one image demo: `data/demo_0/{obs, next_obs}/{pos, agentview_image,
+/// robot0_eye_in_hand_image}`, each camera `(steps, 96, 128, 3)` uint8 chunked 16 frames a
+/// chunk, `next_obs` the next step's `obs` but for the last step (as robomimic writes it),
+/// frames of noise (camera `k`'s from seed `2000 * (k + 1) + steps`, its last `next_obs` frame
+/// from seed `3000 * (k + 1) + steps`).
+fn write_robomimic_image_demo(path: &Path, steps: usize) {
+    const SHAPE: [u64; 3] = [96, 128, 3];
+    let frame = (SHAPE[0] * SHAPE[1] * SHAPE[2]) as usize;
+    let t = steps as u64;
+    let pos: Vec<f64> = (0..steps * 3).map(|k| k as f64 * 0.01).collect();
+    let mut next_pos = pos[3..].to_vec();
+    next_pos.extend([9.0, 9.0, 9.0]);
+    let mut b = FileBuilder::new();
+    let mut data = b.create_group("data");
+    let mut g = data.create_group("demo_0");
+    let (mut obs, mut next_obs) = (g.create_group("obs"), g.create_group("next_obs"));
+    obs.create_dataset("pos").with_f64_data(&pos).with_shape(&[t, 3]);
+    next_obs.create_dataset("pos").with_f64_data(&next_pos).with_shape(&[t, 3]);
+    for (k, camera) in ["agentview_image", "robot0_eye_in_hand_image"].iter().enumerate() {
+        let seed = (k as u64 + 1, steps as u64);
+        let frames = noise(2000 * seed.0 + seed.1, steps * frame);
+        let mut next = frames[frame..].to_vec();
+        next.extend(noise(3000 * seed.0 + seed.1, frame));
+        for (group, values) in [(&mut obs, &frames), (&mut next_obs, &next)] {
+            group
+                .create_dataset(camera)
+                .with_u8_data(values)
+                .with_shape(&[t, SHAPE[0], SHAPE[1], SHAPE[2]])
+                .with_chunks(&[16, SHAPE[0], SHAPE[1], SHAPE[2]]);
+        }
+    }
+    g.add_group(obs.finish());
+    g.add_group(next_obs.finish());
+    let act: Vec<f64> = (0..steps * 7).map(|k| (k % 13) as f64 / 13.0).collect();
+    g.create_dataset("actions").with_f64_data(&act).with_shape(&[t, 7]);
+    g.create_dataset("rewards").with_f64_data(&vec![0.0; steps]);
+    g.set_attr("num_samples", AttrValue::I64(steps as i64));
+    data.add_group(g.finish());
+    data.set_attr("total", AttrValue::I64(steps as i64));
+    data.set_attr("env_args", AttrValue::String(r#"{"env_name": "Lift"}"#.into()));
+    b.add_group(data.finish());
+    b.write(path).unwrap();
+}
+
+/// One robomimic image demo of 200 and one of 800 steps (two 96x128 cameras and their
+/// `next_obs`, 29.5 and 118 MB of frames): the cameras stream to the store, `next_obs` is
+/// compared with the shifted `obs` a window at a time and written a page at a time.
+#[test]
+fn robomimic_peak_memory_does_not_grow_with_a_demos_length() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    const FRAME: usize = 96 * 128 * 3;
+    let write = write_robomimic_image_demo;
+    check_episode_length_bounded("robomimic", Format::Robomimic, 4 * FRAME, write, |batch, steps| {
+        use arrow::array::{Array, AsArray};
+        let raw = noise(2000 + steps as u64, steps * FRAME);
+        for t in [0, steps / 2, steps - 1] {
+            assert_png_frame(batch, "image.agentview_image", t, &raw, FRAME);
+        }
+        // next_obs: null (the next step's obs) but for the last step, kept exactly.
+        let next = batch.column_by_name("extra.next_obs/agentview_image").unwrap().as_fixed_size_list();
+        assert_eq!(next.null_count(), steps - 1);
+        let last = next.value(steps - 1);
+        let last = last.as_primitive::<arrow::datatypes::UInt8Type>().values();
+        assert_eq!(&last[..], &noise(3000 + steps as u64, FRAME)[..]);
+    });
 }

@@ -433,15 +433,129 @@ impl EpisodeInput {
 #[derive(Debug, Clone)]
 pub struct ExtraColumn {
     pub name: String,
-    pub values: arrow::array::ArrayRef,
+    pub values: ExtraValues,
     pub metadata: std::collections::HashMap<String, String>,
 }
 
 impl PartialEq for ExtraColumn {
     fn eq(&self, other: &Self) -> bool {
-        self.name == other.name
-            && self.metadata == other.metadata
-            && self.values.to_data() == other.values.to_data()
+        self.name == other.name && self.metadata == other.metadata && self.values == other.values
+    }
+}
+
+/// An extra column's rows: in memory, or read a page of rows at a time as the store's writer
+/// writes them ([`ExtraPages`]: a column as large as a camera, robomimic's `next_obs` images,
+/// never sits in memory whole).
+#[derive(Clone)]
+pub enum ExtraValues {
+    Array(arrow::array::ArrayRef),
+    Pages(ExtraPages),
+}
+
+impl From<arrow::array::ArrayRef> for ExtraValues {
+    fn from(a: arrow::array::ArrayRef) -> Self {
+        ExtraValues::Array(a)
+    }
+}
+
+impl From<ExtraPages> for ExtraValues {
+    fn from(p: ExtraPages) -> Self {
+        ExtraValues::Pages(p)
+    }
+}
+
+impl ExtraValues {
+    pub fn len(&self) -> usize {
+        match self {
+            ExtraValues::Array(a) => a.len(),
+            ExtraValues::Pages(p) => p.len,
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn data_type(&self) -> &arrow::datatypes::DataType {
+        match self {
+            ExtraValues::Array(a) => a.data_type(),
+            ExtraValues::Pages(p) => &p.data_type,
+        }
+    }
+
+    /// Heap bytes held now (a paged column holds none until it is read).
+    pub fn memory_size(&self) -> usize {
+        match self {
+            ExtraValues::Array(a) => a.get_array_memory_size(),
+            ExtraValues::Pages(_) => 0,
+        }
+    }
+
+    /// Every row in memory (reads a paged column whole: tests, small columns).
+    pub fn to_array(&self) -> Result<arrow::array::ArrayRef, crate::StoreError> {
+        match self {
+            ExtraValues::Array(a) => Ok(a.clone()),
+            ExtraValues::Pages(p) => p.read(0, p.len),
+        }
+    }
+}
+
+impl std::fmt::Debug for ExtraValues {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ExtraValues::Array(a) => write!(f, "ExtraValues::Array({} rows of {})", a.len(), a.data_type()),
+            ExtraValues::Pages(p) => write!(f, "ExtraValues::Pages({} rows of {})", p.len, p.data_type),
+        }
+    }
+}
+
+/// In-memory columns compare by content; a paged one equals nothing (comparing would read it).
+impl PartialEq for ExtraValues {
+    fn eq(&self, other: &Self) -> bool {
+        match (self, other) {
+            (ExtraValues::Array(a), ExtraValues::Array(b)) => a.to_data() == b.to_data(),
+            _ => false,
+        }
+    }
+}
+
+/// Rows read `(first, count)` at a time.
+pub type ReadRows = dyn Fn(usize, usize) -> Result<arrow::array::ArrayRef, crate::StoreError> + Send + Sync;
+
+/// An extra column of `len` rows of `data_type`, read on demand by `read(first, count)`. The
+/// writer cuts it into pages where it would cut the whole column, which would occupy
+/// `slice_bytes` (its `get_slice_memory_size`), so the stored file is the same either way.
+#[derive(Clone)]
+pub struct ExtraPages {
+    pub(crate) data_type: arrow::datatypes::DataType,
+    pub(crate) len: usize,
+    pub(crate) slice_bytes: usize,
+    read: std::sync::Arc<ReadRows>,
+}
+
+impl ExtraPages {
+    pub fn new(
+        data_type: arrow::datatypes::DataType,
+        len: usize,
+        slice_bytes: usize,
+        read: impl Fn(usize, usize) -> Result<arrow::array::ArrayRef, crate::StoreError> + Send + Sync + 'static,
+    ) -> Self {
+        ExtraPages { data_type, len, slice_bytes, read: std::sync::Arc::new(read) }
+    }
+
+    /// Rows `first..first + count`, checked to be that many of the declared type.
+    pub fn read(&self, first: usize, count: usize) -> Result<arrow::array::ArrayRef, crate::StoreError> {
+        let a = (self.read)(first, count)?;
+        if a.len() != count || a.data_type() != &self.data_type {
+            return Err(crate::StoreError::invalid(format!(
+                "extra column rows {first}..{}: read {} rows of {}, expected {count} of {}",
+                first + count,
+                a.len(),
+                a.data_type(),
+                self.data_type
+            )));
+        }
+        Ok(a)
     }
 }
 

@@ -7,7 +7,7 @@
 //! in it, the label rows) is read as one; the page spilling lives in spill.rs.
 
 use crate::spill::{SpillColumn, SpilledChunk};
-use crate::{EpisodeInput, ExtraColumn, Frames, Label, StoreError};
+use crate::{EpisodeInput, ExtraColumn, ExtraPages, ExtraValues, Frames, Label, StoreError};
 use arrow::array::{
     Array, ArrayRef, BinaryArray, BooleanArray, FixedSizeListArray, Float32Array, Float64Array, Int32Array,
     RecordBatch, StringArray,
@@ -240,17 +240,19 @@ pub fn episode_batch(
                 let frames = f.collect_encoded()?;
                 Arc::new(BinaryArray::from_iter_values(frames.iter()))
             }
+            StepColumn::Pages(p) => ExtraValues::Pages(p).to_array()?,
         });
     }
     Ok(RecordBatch::try_new(schema, cols)?)
 }
 
-/// One column of an episode as [`StepsFileWriter::write_episode`] takes it: values in memory, or
-/// a camera's frames, which the writer pulls a page at a time (a stream's frames are never all
-/// in memory).
+/// One column of an episode as [`StepsFileWriter::write_episode`] takes it: values in memory, a
+/// camera's frames, which the writer pulls a page at a time (a stream's frames are never all in
+/// memory), or an extra column read a page of rows at a time.
 pub enum StepColumn {
     Values(ArrayRef),
     Frames(Frames),
+    Pages(ExtraPages),
 }
 
 impl StepColumn {
@@ -258,6 +260,7 @@ impl StepColumn {
         match self {
             StepColumn::Values(a) => a.len(),
             StepColumn::Frames(f) => f.len(),
+            StepColumn::Pages(p) => p.len,
         }
     }
 }
@@ -319,17 +322,23 @@ pub fn episode_columns_with_extras(
         cols.push(Arc::new(StringArray::from(vec![path.as_str(); n])));
         cols.push(Arc::new(Float64Array::from(m.timestamps)));
     }
-    cols.extend(extras.into_iter().map(|x| x.values));
-    cols.push(Arc::new(StringArray::from(vec![policy; n])));
-    cols.push(Arc::new(StringArray::from(vec![checkpoint; n])));
-    cols.push(Arc::new(StringArray::from(vec![ep.task.as_deref(); n])));
-    cols.push(Arc::new(BooleanArray::from(vec![label; n])));
-    cols.push(Arc::new(StringArray::from(vec![ep.label_source.as_str(); n])));
-    let mut out: Vec<StepColumn> = Vec::with_capacity(cols.len() + frames.len());
+    let mut out: Vec<StepColumn> = Vec::with_capacity(cols.len() + frames.len() + extras.len() + 5);
     let mut cols = cols.into_iter();
     out.extend(cols.by_ref().take(image_at).map(StepColumn::Values));
     out.extend(frames.into_iter().map(StepColumn::Frames));
     out.extend(cols.map(StepColumn::Values));
+    out.extend(extras.into_iter().map(|x| match x.values {
+        ExtraValues::Array(a) => StepColumn::Values(a),
+        ExtraValues::Pages(p) => StepColumn::Pages(p),
+    }));
+    let tail: [ArrayRef; 5] = [
+        Arc::new(StringArray::from(vec![policy; n])),
+        Arc::new(StringArray::from(vec![checkpoint; n])),
+        Arc::new(StringArray::from(vec![ep.task.as_deref(); n])),
+        Arc::new(BooleanArray::from(vec![label; n])),
+        Arc::new(StringArray::from(vec![ep.label_source.as_str(); n])),
+    ];
+    out.extend(tail.into_iter().map(StepColumn::Values));
     Ok(out)
 }
 
@@ -396,8 +405,14 @@ fn page_cuts(col: &dyn Array) -> Vec<(usize, usize)> {
         }
         return cuts;
     }
-    let bytes = col.to_data().get_slice_memory_size().unwrap_or(n * 8);
+    fixed_cuts(n, col.to_data().get_slice_memory_size().unwrap_or(n * 8))
+}
+
+/// [`page_cuts`] of a fixed-width column of `n` rows occupying `bytes`: as many rows a page as
+/// [`PAGE_MAX_BYTES`] holds (at least one).
+fn fixed_cuts(n: usize, bytes: usize) -> Vec<(usize, usize)> {
     let rows = (PAGE_MAX_BYTES / (bytes / n.max(1)).max(1)).max(1);
+    let mut cuts = Vec::new();
     let mut start = 0;
     while start < n {
         let len = rows.min(n - start);
@@ -566,8 +581,24 @@ impl StepsFileWriter {
         // fields to leaves in order anyway. Each `write` is one page (see steps_writer_properties).
         let mut leaf = 1;
         for (field, col) in fields.iter().skip(1).zip(columns) {
-            let col = match col {
-                StepColumn::Values(a) => a,
+            let (rows_of, data_type) = match &col {
+                StepColumn::Values(a) => (a.len(), a.data_type()),
+                StepColumn::Pages(p) => (p.len, &p.data_type),
+                StepColumn::Frames(_) => (n, field.data_type()),
+            };
+            if rows_of != n || data_type != field.data_type() {
+                return Err(StoreError::invalid(format!(
+                    "column {:?}: {rows_of} rows of {data_type}, expected {n} of {}",
+                    field.name(),
+                    field.data_type()
+                )));
+            }
+            // A paged column is cut where the whole column would be, so the file is the same.
+            let (cuts, page): (_, Box<dyn Fn(usize, usize) -> Result<ArrayRef, StoreError>>) = match col {
+                StepColumn::Values(a) => (page_cuts(a.as_ref()), Box::new(move |f, r| Ok(a.slice(f, r)))),
+                StepColumn::Pages(p) => {
+                    (fixed_cuts(p.len, p.slice_bytes), Box::new(move |f, r| p.read(f, r)))
+                }
                 StepColumn::Frames(frames) => {
                     let spill = rg.spills.get_mut(leaf).and_then(Option::as_mut).ok_or_else(|| {
                         StoreError::invalid(format!("column {:?} is not an image column", field.name()))
@@ -577,18 +608,9 @@ impl StepsFileWriter {
                     continue;
                 }
             };
-            if col.len() != n || col.data_type() != field.data_type() {
-                return Err(StoreError::invalid(format!(
-                    "column {:?}: {} rows of {}, expected {n} of {}",
-                    field.name(),
-                    col.len(),
-                    col.data_type(),
-                    field.data_type()
-                )));
-            }
             let mut leaves = 0;
-            for (first, rows) in page_cuts(col.as_ref()) {
-                let page = col.slice(first, rows);
+            for (first, rows) in cuts {
+                let page = page(first, rows)?;
                 for (k, l) in compute_leaves(field, &page)?.into_iter().enumerate() {
                     let w = rg
                         .writers
