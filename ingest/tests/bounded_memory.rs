@@ -119,9 +119,13 @@ fn write_robomimic(path: &Path, demos: usize) {
 }
 
 fn parquet(path: &Path, batch: RecordBatch) {
+    parquet_with(path, batch, None)
+}
+
+fn parquet_with(path: &Path, batch: RecordBatch, props: Option<parquet::file::properties::WriterProperties>) {
     std::fs::create_dir_all(path.parent().unwrap()).unwrap();
     let f = std::fs::File::create(path).unwrap();
-    let mut w = parquet::arrow::ArrowWriter::try_new(f, batch.schema(), None).unwrap();
+    let mut w = parquet::arrow::ArrowWriter::try_new(f, batch.schema(), props).unwrap();
     w.write(&batch).unwrap();
     w.close().unwrap();
 }
@@ -164,22 +168,10 @@ fn write_lerobot_v3(root: &Path, episodes: usize) {
         &root.join("meta/episodes/chunk-000/file-000.parquet"),
         RecordBatch::try_from_iter(cols).unwrap(),
     );
-    let pngs: Vec<Vec<u8>> = (0..n)
-        .map(|r| ingest::robomimic::encode_png(&noise(r as u64, IMG * IMG * 3), IMG, IMG, 3).unwrap())
-        .collect();
-    let image = StructArray::from(vec![
-        (
-            Arc::new(Field::new("bytes", DataType::Binary, true)),
-            Arc::new(BinaryArray::from_iter_values(pngs.iter())) as ArrayRef,
-        ),
-        (
-            Arc::new(Field::new("path", DataType::Utf8, true)),
-            Arc::new(StringArray::from(vec![Some(""); n])) as ArrayRef,
-        ),
-    ]);
+    let image = png_column(&(0..n).map(|r| noise(r as u64, IMG * IMG * 3)).collect::<Vec<_>>(), IMG, IMG);
     let cols: Vec<(&str, ArrayRef)> = vec![
         ("observation.state", f32_list((0..n * 6).map(|k| k as f32 * 1e-3).collect(), 6)),
-        ("observation.images.front", Arc::new(image)),
+        ("observation.images.front", image),
         ("action", f32_list((0..n * 6).map(|k| (k % 11) as f32).collect(), 6)),
         ("timestamp", Arc::new(Float32Array::from_iter_values((0..n).map(|r| (r % STEPS) as f32 / 10.0)))),
         ("frame_index", Arc::new(Int64Array::from_iter_values((0..n).map(|r| (r % STEPS) as i64)))),
@@ -188,6 +180,22 @@ fn write_lerobot_v3(root: &Path, episodes: usize) {
         ("task_index", Arc::new(Int64Array::from(vec![0i64; n]))),
     ];
     parquet(&root.join("data/chunk-000/file-000.parquet"), RecordBatch::try_from_iter(cols).unwrap());
+}
+
+/// A LeRobot `image` column (`struct<bytes, path>`) of `frames` (`h x w x 3` each) as PNGs.
+fn png_column(frames: &[Vec<u8>], h: usize, w: usize) -> ArrayRef {
+    let pngs: Vec<Vec<u8>> =
+        frames.iter().map(|f| ingest::robomimic::encode_png(f, h, w, 3).unwrap()).collect();
+    Arc::new(StructArray::from(vec![
+        (
+            Arc::new(Field::new("bytes", DataType::Binary, true)),
+            Arc::new(BinaryArray::from_iter_values(pngs.iter())) as ArrayRef,
+        ),
+        (
+            Arc::new(Field::new("path", DataType::Utf8, true)),
+            Arc::new(StringArray::from(vec![Some(""); frames.len()])) as ArrayRef,
+        ),
+    ]))
 }
 
 /// Peak heap growth (bytes above what was live before) while `path` is ingested into a fresh
@@ -343,6 +351,7 @@ fn write_aloha_raw(path: &Path, steps: usize) {
 fn check_episode_length_bounded(
     what: &str,
     format: Format,
+    file_name: &str,
     frame_bytes: usize,
     write: impl Fn(&Path, usize),
     check: impl Fn(&arrow::array::RecordBatch, usize),
@@ -351,7 +360,7 @@ fn check_episode_length_bounded(
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
     let mut peaks = Vec::new();
     for steps in [200, 800] {
-        let source = dir.path().join(format!("episode_{steps}.hdf5"));
+        let source = dir.path().join(format!("{steps}_{file_name}"));
         write(&source, steps);
         let store_dir = dir.path().join(format!("store_{steps}"));
         let (peak, episodes) = peak_while_ingesting(&rt, &source, format, &store_dir);
@@ -380,14 +389,14 @@ fn check_episode_length_bounded(
     );
 }
 
-/// The PNG of frame `t` of column `name` decodes to `raw`'s frame `t` (`frame` bytes each).
-fn assert_png_frame(batch: &arrow::array::RecordBatch, name: &str, t: usize, raw: &[u8], frame: usize) {
+/// The PNG of frame `t` of column `name` decodes to `expected`.
+fn assert_png_frame(batch: &arrow::array::RecordBatch, name: &str, t: usize, expected: &[u8]) {
     let cam = batch.column_by_name(name).unwrap();
     let cam = cam.as_any().downcast_ref::<BinaryArray>().unwrap();
     let mut r = png::Decoder::new(std::io::Cursor::new(cam.value(t))).read_info().unwrap();
     let mut buf = vec![0; r.output_buffer_size().unwrap()];
     r.next_frame(&mut buf).unwrap();
-    assert_eq!(buf, raw[t * frame..(t + 1) * frame], "{name}: frame {t}");
+    assert_eq!(buf, expected, "{name}: frame {t}");
 }
 
 /// One ALOHA episode of 200 and one of 800 steps (three raw cameras, 22 and 88 MB of frames):
@@ -396,13 +405,21 @@ fn assert_png_frame(batch: &arrow::array::RecordBatch, name: &str, t: usize, raw
 fn peak_memory_does_not_grow_with_an_episodes_length() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     const FRAME: usize = 96 * 128 * 3;
-    check_episode_length_bounded("aloha", Format::Aloha, 3 * FRAME, write_aloha_raw, |batch, steps| {
-        // Every frame is there, in order, as PNG.
-        let raw = noise(1000 + steps as u64, steps * FRAME);
-        for t in [0, steps / 2, steps - 1] {
-            assert_png_frame(batch, "image.cam_left_wrist", t, &raw, FRAME);
-        }
-    });
+    let write = write_aloha_raw;
+    check_episode_length_bounded(
+        "aloha",
+        Format::Aloha,
+        "episode_0.hdf5",
+        3 * FRAME,
+        write,
+        |batch, steps| {
+            // Every frame is there, in order, as PNG.
+            let raw = noise(1000 + steps as u64, steps * FRAME);
+            for t in [0, steps / 2, steps - 1] {
+                assert_png_frame(batch, "image.cam_left_wrist", t, &raw[t * FRAME..(t + 1) * FRAME]);
+            }
+        },
+    );
 }
 
 /// A robomimic file of one image demo: `data/demo_0/{obs, next_obs}/{pos, agentview_image,
@@ -457,11 +474,12 @@ fn robomimic_peak_memory_does_not_grow_with_a_demos_length() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     const FRAME: usize = 96 * 128 * 3;
     let write = write_robomimic_image_demo;
-    check_episode_length_bounded("robomimic", Format::Robomimic, 4 * FRAME, write, |batch, steps| {
+    let format = Format::Robomimic;
+    check_episode_length_bounded("robomimic", format, "image.hdf5", 4 * FRAME, write, |batch, steps| {
         use arrow::array::{Array, AsArray};
         let raw = noise(2000 + steps as u64, steps * FRAME);
         for t in [0, steps / 2, steps - 1] {
-            assert_png_frame(batch, "image.agentview_image", t, &raw, FRAME);
+            assert_png_frame(batch, "image.agentview_image", t, &raw[t * FRAME..(t + 1) * FRAME]);
         }
         // next_obs: null (the next step's obs) but for the last step, kept exactly.
         let next = batch.column_by_name("extra.next_obs/agentview_image").unwrap().as_fixed_size_list();
@@ -470,4 +488,79 @@ fn robomimic_peak_memory_does_not_grow_with_a_demos_length() {
         let last = last.as_primitive::<arrow::datatypes::UInt8Type>().values();
         assert_eq!(&last[..], &noise(3000 + steps as u64, FRAME)[..]);
     });
+}
+
+/// A LeRobot v2.1 dataset of one episode (`data/chunk-000/episode_000000.parquet`) with a 6-D
+/// state and action and two PNG `image` features of 128x192 frames of noise (camera `k`'s frame
+/// `t` from seed `4000 * (k + 1) + t`), pages of 16 rows.
+fn write_lerobot_v21_images(root: &Path, steps: usize) {
+    const CAMERAS: [&str; 2] = ["observation.images.front", "observation.images.wrist"];
+    let image = serde_json::json!({"dtype": "image", "shape": [128, 192, 3]});
+    let info = serde_json::json!({
+        "codebase_version": "v2.1", "fps": 10, "robot_type": "toy", "total_episodes": 1,
+        "data_path": "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet",
+        "features": {
+            "observation.state": {"dtype": "float32", "shape": [6]},
+            CAMERAS[0]: image, CAMERAS[1]: image,
+            "action": {"dtype": "float32", "shape": [6]},
+            "timestamp": {"dtype": "float32", "shape": [1]},
+            "frame_index": {"dtype": "int64", "shape": [1]},
+            "episode_index": {"dtype": "int64", "shape": [1]},
+            "index": {"dtype": "int64", "shape": [1]},
+            "task_index": {"dtype": "int64", "shape": [1]}
+        }
+    });
+    std::fs::create_dir_all(root.join("meta")).unwrap();
+    std::fs::write(root.join("meta/info.json"), info.to_string()).unwrap();
+    let episode = serde_json::json!({"episode_index": 0, "tasks": ["reach"], "length": steps});
+    std::fs::write(root.join("meta/episodes.jsonl"), format!("{episode}\n")).unwrap();
+    std::fs::write(root.join("meta/tasks.jsonl"), "{\"task_index\": 0, \"task\": \"reach\"}\n").unwrap();
+    let mut cols: Vec<(&str, ArrayRef)> =
+        vec![("observation.state", f32_list((0..steps * 6).map(|k| k as f32 * 1e-3).collect(), 6))];
+    for (k, camera) in CAMERAS.iter().enumerate() {
+        let frames: Vec<Vec<u8>> =
+            (0..steps).map(|t| noise(4000 * (k as u64 + 1) + t as u64, 128 * 192 * 3)).collect();
+        cols.push((camera, png_column(&frames, 128, 192)));
+    }
+    cols.extend([
+        ("action", f32_list((0..steps * 6).map(|k| (k % 11) as f32).collect(), 6)),
+        (
+            "timestamp",
+            Arc::new(Float32Array::from_iter_values((0..steps).map(|t| t as f32 / 10.0))) as ArrayRef,
+        ),
+        ("frame_index", Arc::new(Int64Array::from_iter_values(0..steps as i64))),
+        ("episode_index", Arc::new(Int64Array::from(vec![0i64; steps]))),
+        ("index", Arc::new(Int64Array::from_iter_values(0..steps as i64))),
+        ("task_index", Arc::new(Int64Array::from(vec![0i64; steps]))),
+    ]);
+    // Pages of 16 rows (1.2 MB of PNGs): a reader holds a page at a time, not the column.
+    let props = parquet::file::properties::WriterProperties::builder()
+        .set_write_batch_size(16)
+        .set_data_page_row_count_limit(16)
+        .build();
+    let batch = RecordBatch::try_from_iter(cols).unwrap();
+    parquet_with(&root.join("data/chunk-000/episode_000000.parquet"), batch, Some(props));
+}
+
+/// One LeRobot v2.1 episode of 200 and one of 800 steps (two 128x192 PNG image columns, 29.5
+/// and 118 MB of frames): the frames are read from the Parquet file a batch at a time as the
+/// store's writer pulls them.
+#[test]
+fn lerobot_v21_peak_memory_does_not_grow_with_an_episodes_length() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    const FRAME: usize = 128 * 192 * 3;
+    let write = write_lerobot_v21_images;
+    check_episode_length_bounded(
+        "lerobot v2.1",
+        Format::Lerobot,
+        "dataset",
+        2 * FRAME,
+        write,
+        |batch, steps| {
+            // Every frame is there, in order, the PNG as written.
+            for t in [0, steps / 2, steps - 1] {
+                assert_png_frame(batch, "image.images.wrist", t, &noise(8000 + t as u64, FRAME));
+            }
+        },
+    );
 }

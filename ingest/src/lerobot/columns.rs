@@ -1,16 +1,20 @@
 //! The Parquet files (opened only after their footer and pages are checked, decoder panics
 //! turned into errors) and their Arrow columns read as plain vectors (image columns as PNG bytes).
 
-use std::path::Path;
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 
 use arrow::array::{Array, ArrayRef, AsArray, RecordBatch};
 use arrow::datatypes::{DataType, Float32Type, Float64Type, Int64Type};
 use parquet::arrow::arrow_reader::{
-    ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReaderBuilder,
+    ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder,
 };
+use parquet::arrow::ProjectionMask;
 use parquet::file::reader::ChunkReader;
 
 use crate::error::{IngestError, Result};
+use crate::model::{FrameResult, FrameStream};
 
 pub(super) fn open_parquet(path: &Path) -> Result<Vec<RecordBatch>> {
     let f = std::fs::File::open(path).map_err(|e| IngestError::io(path, e))?;
@@ -23,7 +27,14 @@ pub(super) fn checked_builder<R: ChunkReader + 'static>(
     path: &Path,
     r: R,
 ) -> Result<ParquetRecordBatchReaderBuilder<R>> {
-    guarded(path, || checked_builder_inner(path, r))
+    let meta = checked_metadata(path, &r)?;
+    Ok(ParquetRecordBatchReaderBuilder::new_with_metadata(r, meta))
+}
+
+/// The reader metadata of a Parquet file, checked as [`checked_builder`] checks it (once per
+/// file: the readers of its image columns reuse it).
+pub(super) fn checked_metadata<R: ChunkReader + 'static>(path: &Path, r: &R) -> Result<ArrowReaderMetadata> {
+    guarded(path, || checked_metadata_inner(path, r))
 }
 
 /// The parquet crate still panics on some corrupt pages (e.g. "Decoder for dict should have been
@@ -41,26 +52,21 @@ pub(crate) fn guarded<T>(path: &Path, f: impl FnOnce() -> Result<T>) -> Result<T
     }
 }
 
-fn checked_builder_inner<R: ChunkReader + 'static>(
-    path: &Path,
-    r: R,
-) -> Result<ParquetRecordBatchReaderBuilder<R>> {
+fn checked_metadata_inner<R: ChunkReader + 'static>(path: &Path, r: &R) -> Result<ArrowReaderMetadata> {
     let bad = |e: String| IngestError::invalid(path, format!("not a readable Parquet file: {e}"));
     // The parquet crate trusts the element counts in the footer when it allocates: check them first.
-    crate::pqfooter::check(&r).map_err(bad)?;
+    crate::pqfooter::check(r).map_err(bad)?;
     let meta = parquet::file::metadata::ParquetMetaDataReader::new()
-        .parse_and_finish(&r)
+        .parse_and_finish(r)
         .map_err(|e| bad(e.to_string()))?;
     // ... and the page sizes the page headers declare (the decompression buffers' sizes); this
     // also checks that every column chunk lies inside the file.
-    crate::pqfooter::check_pages(&r, &meta)
+    crate::pqfooter::check_pages(r, &meta)
         .map_err(|e| IngestError::invalid(path, format!("corrupt Parquet data: {e}")))?;
     // The embedded Arrow schema (IPC flatbuffer in the footer) is skipped: the schema derived from
     // the Parquet types is enough here, and arrow-ipc panics on some corrupt ones (fuzzing).
     let opts = ArrowReaderOptions::new().with_skip_arrow_metadata(true);
-    let meta =
-        ArrowReaderMetadata::try_new(std::sync::Arc::new(meta), opts).map_err(|e| bad(e.to_string()))?;
-    Ok(ParquetRecordBatchReaderBuilder::new_with_metadata(r, meta))
+    ArrowReaderMetadata::try_new(std::sync::Arc::new(meta), opts).map_err(|e| bad(e.to_string()))
 }
 
 /// All record batches of a (small) Parquet file.
@@ -238,4 +244,112 @@ pub(super) fn png_shape(png: &[u8]) -> Option<[usize; 3]> {
         _ => return None,
     };
     Some([h, w, c])
+}
+
+/// Rows of an image column read at once when it is streamed (PNG frames are KBs to MBs each).
+const IMAGE_BATCH_ROWS: usize = 64;
+
+/// How many PNG frames a streamed image column reads ahead of the store's writer.
+const IMAGE_AHEAD: usize = 16;
+
+/// The image column `column` of a data file, read front to back [`IMAGE_BATCH_ROWS`] at a time
+/// (no row selection: the parquet crate then fetches the whole column chunk at once), shared by
+/// the frame streams of the file's episodes ([`episode_frames`]), which the store's writer pulls
+/// in episode order.
+pub(super) fn png_column<R: ChunkReader + 'static>(
+    path: &Path,
+    r: R,
+    meta: &ArrowReaderMetadata,
+    column: &str,
+) -> Result<Arc<Mutex<PngColumn>>> {
+    let root = meta
+        .schema()
+        .index_of(column)
+        .map_err(|_| IngestError::invalid(path, format!("no `{column}` column")))?;
+    let reader = guarded(path, || {
+        ParquetRecordBatchReaderBuilder::new_with_metadata(r, meta.clone())
+            .with_projection(ProjectionMask::roots(meta.parquet_schema(), [root]))
+            .with_batch_size(IMAGE_BATCH_ROWS)
+            .build()
+            .map_err(|e| IngestError::invalid(path, format!("not a readable Parquet file: {e}")))
+    })?;
+    let rows =
+        PngRows { path: path.to_path_buf(), what: column.to_string(), reader, pending: VecDeque::new() };
+    Ok(Arc::new(Mutex::new(PngColumn { rows, next_row: 0 })))
+}
+
+/// An image column read front to back, and the file row its next frame is.
+pub(super) struct PngColumn {
+    rows: PngRows,
+    next_row: usize,
+}
+
+/// The frames of rows `first..first + rows` of a shared image column (camera `name`), pulled
+/// from it as the store's writer asks. Rows before `first` (an episode whose frames nobody
+/// pulled) are skipped; rows already taken are an error.
+pub(super) fn episode_frames(
+    column: &Arc<Mutex<PngColumn>>,
+    name: &str,
+    first: usize,
+    rows: usize,
+) -> FrameStream {
+    let column = column.clone();
+    let mut next = first;
+    let frames = std::iter::from_fn(move || {
+        if next == first + rows {
+            return None;
+        }
+        let mut c = match column.lock() {
+            Ok(c) => c,
+            Err(_) => return Some(Err(store::StoreError::invalid("image column reader poisoned"))),
+        };
+        loop {
+            if c.next_row > next {
+                let what = c.rows.what.clone();
+                return Some(Err(store::StoreError::invalid(format!(
+                    "image column {what}: row {next} was read before its episode asked for it"
+                ))));
+            }
+            let f = c.rows.next()?;
+            c.next_row += 1;
+            if c.next_row > next {
+                next += 1;
+                return Some(f);
+            }
+        }
+    });
+    FrameStream::new(name, rows, "png", frames).prefetched(IMAGE_AHEAD)
+}
+
+/// An image column's PNG frames, a record batch at a time.
+struct PngRows {
+    path: PathBuf,
+    what: String,
+    reader: ParquetRecordBatchReader,
+    pending: VecDeque<Vec<u8>>,
+}
+
+impl PngRows {
+    /// Reads batches until a frame is pending or the rows end.
+    fn fill(&mut self) -> Result<()> {
+        let path = self.path.as_path();
+        while self.pending.is_empty() {
+            let Some(b) = guarded(path, || Ok(self.reader.next()))? else { return Ok(()) };
+            let b = b.map_err(|e| IngestError::invalid(path, format!("corrupt Parquet data: {e}")))?;
+            self.pending.extend(image_bytes(path, b.column(0), &self.what)?);
+        }
+        Ok(())
+    }
+}
+
+impl Iterator for PngRows {
+    type Item = FrameResult;
+    fn next(&mut self) -> Option<FrameResult> {
+        if let Err(e) = self.fill() {
+            self.pending.clear();
+            // Nothing after an error: FrameStream stops at the first one.
+            return Some(Err(store::StoreError::invalid(e.to_string())));
+        }
+        self.pending.pop_front().map(Ok)
+    }
 }

@@ -1,18 +1,23 @@
 //! The data Parquet files: which columns become what ([`Plan`]), and the rows streamed batch by
-//! batch into one buffer per episode ([`EpBuf`]).
+//! batch into one buffer per episode ([`EpBuf`]). Image columns are checked there but only each
+//! episode's first frame is kept: the frames are read again, by one reader per column and file,
+//! as the store's writer pulls them (an episode's frames never sit in memory together).
 
 use std::path::Path;
 
 use arrow::array::RecordBatch;
 use arrow::datatypes::DataType;
+use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use parquet::file::reader::ChunkReader;
 
 use super::columns::{
-    bools, checked_builder, col, flatten_single, floats64, guarded, image_bytes, ints, list_f32, opt_bools,
+    bools, checked_metadata, col, episode_frames, flatten_single, floats64, guarded, image_bytes, ints,
+    list_f32, opt_bools, png_column, png_shape, PngColumn,
 };
 use super::info::Info;
 use super::VALIDITY_KEY;
 use crate::error::{IngestError, Result};
+use crate::model::FrameStream;
 use crate::options::ReadOptions;
 
 /// Which data columns become what.
@@ -67,6 +72,8 @@ pub(super) fn plan(info: &Info, opts: &ReadOptions) -> Result<Plan> {
 #[derive(Default)]
 pub(super) struct EpBuf {
     pub(super) episode_index: u64,
+    /// The episode's first row in its data file.
+    pub(super) first_row: usize,
     pub(super) rows: usize,
     pub(super) timestamps: Vec<f64>,
     pub(super) frame_index: Vec<i64>,
@@ -78,7 +85,11 @@ pub(super) struct EpBuf {
     pub(super) done: Vec<bool>,
     /// `next.success` per row; null rows (an unlabeled episode in a ufops export) are `None`.
     pub(super) success: Vec<Option<bool>>,
-    pub(super) images: Vec<Vec<Vec<u8>>>,
+    /// Each image column's first frame.
+    first_frames: Vec<Vec<u8>>,
+    /// Each image column's frames (with the first frame's shape, `None` when it is not a PNG),
+    /// filled in when the episode's rows end.
+    pub(super) images: Vec<(Option<[usize; 3]>, FrameStream)>,
     pub(super) intervention: Vec<bool>,
     /// GR00T validity per row: a bool, or a task index (resolved when the episode ends).
     pub(super) validity: Vec<Validity>,
@@ -96,9 +107,23 @@ pub(super) enum Validity {
 struct DataReader<'a> {
     plan: &'a Plan,
     cur: Option<EpBuf>,
+    /// The file row of the next batch's first row.
+    row: usize,
+    /// Each image column of the file, read a second time for the frame streams.
+    columns: Vec<std::sync::Arc<std::sync::Mutex<PngColumn>>>,
 }
 
-impl<'a> DataReader<'a> {
+impl DataReader<'_> {
+    /// Ends the current episode: its image columns become streams over its rows, then `emit`.
+    fn close(&mut self, emit: &mut dyn FnMut(EpBuf) -> Result<()>) -> Result<()> {
+        let Some(mut b) = self.cur.take() else { return Ok(()) };
+        for (((_, short), column), first) in self.plan.images.iter().zip(&self.columns).zip(&b.first_frames) {
+            let shape = png_shape(first);
+            b.images.push((shape, episode_frames(column, short, b.first_row, b.rows)));
+        }
+        emit(b)
+    }
+
     fn push_batch(
         &mut self,
         path: &Path,
@@ -121,7 +146,7 @@ impl<'a> DataReader<'a> {
             reward,
             done,
             success,
-            mut imgs,
+            imgs,
             intervention,
             validity,
         } = self.columns(path, b)?;
@@ -131,12 +156,10 @@ impl<'a> DataReader<'a> {
             let e = u64::try_from(ep[r])
                 .map_err(|_| IngestError::invalid(path, format!("negative episode_index {}", ep[r])))?;
             if self.cur.as_ref().map(|c| c.episode_index) != Some(e) {
-                if let Some(prev) = self.cur.take() {
-                    emit(prev)?;
-                }
-                let mut nb = EpBuf { episode_index: e, ..Default::default() };
+                self.close(emit)?;
+                let mut nb = EpBuf { episode_index: e, first_row: self.row + r, ..Default::default() };
                 nb.obs = vec![(0, Vec::new()); obs.len()];
-                nb.images = vec![Vec::new(); imgs.len()];
+                nb.first_frames = imgs.iter().map(|im| im[r].clone()).collect();
                 nb.action.0 = alens[r];
                 for (k, (l, _)) in obs.iter().enumerate() {
                     nb.obs[k].0 = l[r];
@@ -183,9 +206,6 @@ impl<'a> DataReader<'a> {
             if let Some(s) = &success {
                 cur.success.push(s[r]);
             }
-            for (k, im) in imgs.iter_mut().enumerate() {
-                cur.images[k].push(std::mem::take(&mut im[r]));
-            }
             if let Some(i) = &intervention {
                 cur.intervention.push(i[r]);
             }
@@ -193,6 +213,7 @@ impl<'a> DataReader<'a> {
                 cur.validity.push(v[r]);
             }
         }
+        self.row += n;
         Ok(())
     }
 
@@ -296,32 +317,40 @@ struct BatchColumns {
     reward: Option<(Vec<usize>, Vec<f32>)>,
     done: Option<Vec<bool>>,
     success: Option<Vec<Option<bool>>>,
+    /// Each image column's PNG bytes per row (checked; only an episode's first is kept).
     imgs: Vec<Vec<Vec<u8>>>,
     intervention: Option<Vec<bool>>,
     validity: Option<Vec<Validity>>,
 }
 
+/// Streams the data file `path` (`open` opens it: once for the rows, once more per image
+/// column for the frame streams) into episodes.
 pub(super) fn stream_data<R: ChunkReader + 'static>(
     path: &Path,
-    r: R,
+    open: &dyn Fn() -> Result<R>,
     plan: &Plan,
     emit: &mut dyn FnMut(EpBuf) -> Result<()>,
 ) -> Result<()> {
+    let meta = checked_metadata(path, &open()?)?;
     // Rows are decoded a batch at a time, page by page from the file (the sync reader reads
     // pages, not whole row groups); PNG image columns make a row KBs, so their batches are small.
     let batch_rows = if plan.images.is_empty() { 4096 } else { 64 };
-    let reader = checked_builder(path, r)?
-        .with_batch_size(batch_rows)
-        .build()
-        .map_err(|e| IngestError::invalid(path, format!("not a readable Parquet file: {e}")))?;
-    let mut dr = DataReader { plan, cur: None };
-    let mut reader = reader;
+    let mut reader = guarded(path, || {
+        ParquetRecordBatchReaderBuilder::new_with_metadata(open()?, meta.clone())
+            .with_batch_size(batch_rows)
+            .build()
+            .map_err(|e| IngestError::invalid(path, format!("not a readable Parquet file: {e}")))
+    })?;
+    let mut columns = Vec::with_capacity(plan.images.len());
+    for (c, _) in &plan.images {
+        if meta.schema().index_of(c).is_ok() {
+            columns.push(png_column(path, open()?, &meta, c)?);
+        }
+    }
+    let mut dr = DataReader { plan, cur: None, row: 0, columns };
     while let Some(b) = guarded(path, || Ok(reader.next()))? {
         let b = b.map_err(|e| IngestError::invalid(path, format!("corrupt Parquet data: {e}")))?;
         dr.push_batch(path, &b, emit)?;
     }
-    if let Some(last) = dr.cur.take() {
-        emit(last)?;
-    }
-    Ok(())
+    dr.close(emit)
 }

@@ -6,13 +6,12 @@ use std::path::{Path, PathBuf};
 
 use serde_json::{json, Map, Value};
 
-use super::columns::png_shape;
 use super::data::{EpBuf, Plan, Validity};
 use super::info::Info;
 use super::meta::EpisodeMeta;
 use super::VALIDITY_KEY;
 use crate::error::{IngestError, Result};
-use crate::model::{EpisodeInput, ImageColumn, Label, MediaFile, StepFlags, VectorColumn};
+use crate::model::{EpisodeInput, Frames, ImageColumn, Label, MediaFile, StepFlags, VectorColumn};
 use crate::options::ReadOptions;
 use crate::sink::EpisodeSink;
 
@@ -55,11 +54,11 @@ impl Ctx<'_> {
             .map(|((_, short), (dim, values))| VectorColumn { name: short.clone(), dim, values })
             .collect();
         let mut images = Vec::new();
-        for ((_, short), frames) in self.plan.images.iter().zip(b.images) {
-            let shape = frames.first().and_then(|f| png_shape(f)).ok_or_else(|| {
+        for ((_, short), (shape, frames)) in self.plan.images.iter().zip(b.images) {
+            let shape = shape.ok_or_else(|| {
                 IngestError::invalid(path, format!("episode {e}: image {short} is not a valid PNG"))
             })?;
-            images.push(ImageColumn { name: short.clone(), shape, frames: frames.into() });
+            images.push(ImageColumn { name: short.clone(), shape, frames: Frames::Stream(frames) });
         }
         let (media, video_md) = self.video_columns(e, &meta, &b.timestamps, sink)?;
         let reward = if self.plan.has_reward { b.reward } else { vec![0.0; steps] };

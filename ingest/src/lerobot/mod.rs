@@ -133,8 +133,8 @@ pub fn read_dir(root: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> 
         if !file.is_file() {
             return Err(IngestError::invalid(file, "missing data file"));
         }
-        let f = std::fs::File::open(file).map_err(|e| IngestError::io(file, e))?;
-        stream_data(file, f, &plan, &mut |b| ctx.finish(file, b, sink))?;
+        let open = || std::fs::File::open(file).map_err(|e| IngestError::io(file, e));
+        stream_data(file, &open, &plan, &mut |b| ctx.finish(file, b, sink))?;
     }
     for ep in &episodes {
         if !ctx.seen.contains(&ep.episode_index) {
@@ -156,10 +156,13 @@ pub fn fuzz_entry(info_json: &[u8], parquet: &[u8]) -> Result<usize> {
     let plan = plan(&info, &ReadOptions::default())?;
     let mut n = 0usize;
     let data = bytes::Bytes::copy_from_slice(parquet);
-    stream_data(Path::new("fuzz/data.parquet"), data, &plan, &mut |b| {
+    stream_data(Path::new("fuzz/data.parquet"), &|| Ok(data.clone()), &plan, &mut |b| {
         n += b.rows;
-        for im in b.images.iter().flatten() {
-            let _ = columns::png_shape(im);
+        for (_, frames) in b.images {
+            // Every frame pulled (as the store's writer would), each checked to be a PNG.
+            for f in frames {
+                f.map_err(|e| IngestError::Frames(e.to_string()))?;
+            }
         }
         Ok(())
     })?;
