@@ -3,7 +3,8 @@
 //! `demo@model_file`, and `mask/<filter>` lists of demo names.
 //!
 //! Read with `hdf5-pure` (no system library) through positioned reads of the file, one demo at
-//! a time: memory is bounded by a demo, not by the file.
+//! a time: memory is bounded by a demo's low-dim datasets, not by the file; image observations
+//! (and their `next_obs`) are read a window of rows at a time as the store pulls them (`h5rows`).
 //!
 //! Lossless: what the step model has no place for is kept as extra columns (`states`,
 //! `next_obs/<key>` where it differs from the next step's `obs/<key>`, any other per-step

@@ -594,7 +594,7 @@ impl StepsFileWriter {
                 )));
             }
             // A paged column is cut where the whole column would be, so the file is the same.
-            let (cuts, page): (_, Box<dyn Fn(usize, usize) -> Result<ArrayRef, StoreError>>) = match col {
+            let (cuts, page): (_, Box<crate::ReadRows>) = match col {
                 StepColumn::Values(a) => (page_cuts(a.as_ref()), Box::new(move |f, r| Ok(a.slice(f, r)))),
                 StepColumn::Pages(p) => {
                     (fixed_cuts(p.len, p.slice_bytes), Box::new(move |f, r| p.read(f, r)))

@@ -5,7 +5,8 @@
 //! * episodes: v2.1 `meta/episodes.jsonl`; v3.0 `meta/episodes/chunk-*/file-*.parquet` with
 //!   `dataset_from_index` / `dataset_to_index` and `videos/<key>/{chunk,file}_index,from_timestamp`.
 //! * data Parquet (fixed-size or variable lists, or scalars) is streamed batch by batch, page by
-//!   page: memory is bounded by an episode and a batch, not by the file.
+//!   page: memory is bounded by an episode's low-dim columns and a batch, not by the file; image
+//!   frames are read again as the store's writer pulls them (`data.rs`), never an episode's whole.
 //! * `video` features become [`MediaColumn`] references (each frame's time inside the shared
 //!   mp4) plus one [`MediaFile`] per mp4 (content-addressed, emitted once); `image` features
 //!   (PNG bytes in a `struct<bytes, path>` column) become [`ImageColumn`]s.
