@@ -312,7 +312,8 @@ pub(super) fn episode_frames(
             }
             let f = c.rows.next()?;
             c.next_row += 1;
-            if c.next_row > next {
+            // A row skipped over that cannot be read fails this episode's frames too.
+            if c.next_row > next || f.is_err() {
                 next += 1;
                 return Some(f);
             }
