@@ -137,19 +137,28 @@ fn f32_list(values: Vec<f32>, dim: i32) -> ArrayRef {
 
 /// A LeRobot v3.0 dataset: every episode in one data file (`data/chunk-000/file-000.parquet`),
 /// with a 6-D state, a 6-D action and a PNG `image` feature stored in the Parquet.
+/// A LeRobot `info.json`'s features: a 6-D state and action, the bookkeeping columns, and
+/// image features `cameras` of `shape`.
+fn features(cameras: &[&str], shape: [usize; 3]) -> serde_json::Value {
+    let mut f = serde_json::json!({
+        "observation.state": {"dtype": "float32", "shape": [6]},
+        "action": {"dtype": "float32", "shape": [6]},
+        "timestamp": {"dtype": "float32", "shape": [1]},
+        "frame_index": {"dtype": "int64", "shape": [1]},
+        "episode_index": {"dtype": "int64", "shape": [1]},
+        "index": {"dtype": "int64", "shape": [1]},
+        "task_index": {"dtype": "int64", "shape": [1]}
+    });
+    for camera in cameras {
+        f[*camera] = serde_json::json!({"dtype": "image", "shape": shape});
+    }
+    f
+}
+
 fn write_lerobot_v3(root: &Path, episodes: usize) {
     let info = serde_json::json!({
         "codebase_version": "v3.0", "fps": 10, "robot_type": "toy", "total_episodes": episodes,
-        "features": {
-            "observation.state": {"dtype": "float32", "shape": [6]},
-            "observation.images.front": {"dtype": "image", "shape": [IMG, IMG, 3]},
-            "action": {"dtype": "float32", "shape": [6]},
-            "timestamp": {"dtype": "float32", "shape": [1]},
-            "frame_index": {"dtype": "int64", "shape": [1]},
-            "episode_index": {"dtype": "int64", "shape": [1]},
-            "index": {"dtype": "int64", "shape": [1]},
-            "task_index": {"dtype": "int64", "shape": [1]}
-        }
+        "features": features(&["observation.images.front"], [IMG, IMG, 3]),
     });
     std::fs::create_dir_all(root.join("meta")).unwrap();
     std::fs::write(root.join("meta/info.json"), info.to_string()).unwrap();
@@ -495,20 +504,10 @@ fn robomimic_peak_memory_does_not_grow_with_a_demos_length() {
 /// `t` from seed `4000 * (k + 1) + t`), pages of 16 rows.
 fn write_lerobot_v21_images(root: &Path, steps: usize) {
     const CAMERAS: [&str; 2] = ["observation.images.front", "observation.images.wrist"];
-    let image = serde_json::json!({"dtype": "image", "shape": [128, 192, 3]});
     let info = serde_json::json!({
         "codebase_version": "v2.1", "fps": 10, "robot_type": "toy", "total_episodes": 1,
         "data_path": "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet",
-        "features": {
-            "observation.state": {"dtype": "float32", "shape": [6]},
-            CAMERAS[0]: image, CAMERAS[1]: image,
-            "action": {"dtype": "float32", "shape": [6]},
-            "timestamp": {"dtype": "float32", "shape": [1]},
-            "frame_index": {"dtype": "int64", "shape": [1]},
-            "episode_index": {"dtype": "int64", "shape": [1]},
-            "index": {"dtype": "int64", "shape": [1]},
-            "task_index": {"dtype": "int64", "shape": [1]}
-        }
+        "features": features(&CAMERAS, [128, 192, 3]),
     });
     std::fs::create_dir_all(root.join("meta")).unwrap();
     std::fs::write(root.join("meta/info.json"), info.to_string()).unwrap();
