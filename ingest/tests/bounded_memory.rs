@@ -352,11 +352,15 @@ fn write_aloha_raw(path: &Path, steps: usize) {
     b.write(path).unwrap();
 }
 
-/// Ingests one episode of 200 and one of 800 steps (written by `write`, `frame_bytes` of raw
+/// Ingests one episode of 200 and one of [`LONG`] steps (written by `write`, `frame_bytes` of raw
 /// frames a step), checks each with `check(steps batch, steps)`, and holds the longer episode's
-/// peak heap to about the shorter one's (within 50%), not four times it, and far below its
+/// peak heap to about the shorter one's (within 50%), not eight times it, and far below its
 /// frames. A reader that collects an episode's frames, or a writer that keeps an episode's
 /// encoded row group in memory, fails here.
+/// The long episode's steps: 8× the short one's, so that a peak that does not depend on the length
+/// sits far below a third of its frames (the peak moves by ~8 MB between runs of one source).
+const LONG: usize = 1600;
+
 fn check_episode_length_bounded(
     what: &str,
     format: Format,
@@ -368,7 +372,7 @@ fn check_episode_length_bounded(
     let dir = tempfile::tempdir().unwrap();
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
     let mut peaks = Vec::new();
-    for steps in [200, 800] {
+    for steps in [200, LONG] {
         let source = dir.path().join(format!("{steps}_{file_name}"));
         write(&source, steps);
         let store_dir = dir.path().join(format!("store_{steps}"));
@@ -390,7 +394,7 @@ fn check_episode_length_bounded(
     let ((short, _), (long, long_frames)) = (peaks[0], peaks[1]);
     assert!(
         (long as f64) < short as f64 * 1.5,
-        "{what}: peak heap grew with the episode: {short} bytes for 200 steps, {long} for 800"
+        "{what}: peak heap grew with the episode: {short} bytes for 200 steps, {long} for {LONG}"
     );
     assert!(
         long < long_frames / 3,
@@ -408,7 +412,7 @@ fn assert_png_frame(batch: &arrow::array::RecordBatch, name: &str, t: usize, exp
     assert_eq!(buf, expected, "{name}: frame {t}");
 }
 
-/// One ALOHA episode of 200 and one of 800 steps (three raw cameras, 22 and 88 MB of frames):
+/// One ALOHA episode of 200 and one of 1,600 steps (three raw cameras, 22 and 177 MB of frames):
 /// the cameras stream to the store a page at a time.
 #[test]
 fn peak_memory_does_not_grow_with_an_episodes_length() {
@@ -475,8 +479,8 @@ fn write_robomimic_image_demo(path: &Path, steps: usize) {
     b.write(path).unwrap();
 }
 
-/// One robomimic image demo of 200 and one of 800 steps (two 96x128 cameras and their
-/// `next_obs`, 29.5 and 118 MB of frames): the cameras stream to the store, `next_obs` is
+/// One robomimic image demo of 200 and one of 1,600 steps (two 96x128 cameras and their
+/// `next_obs`, 29.5 and 236 MB of frames): the cameras stream to the store, `next_obs` is
 /// compared with the shifted `obs` a window at a time and written a page at a time.
 #[test]
 fn robomimic_peak_memory_does_not_grow_with_a_demos_length() {
@@ -541,8 +545,8 @@ fn write_lerobot_v21_images(root: &Path, steps: usize) {
     parquet_with(&root.join("data/chunk-000/episode_000000.parquet"), batch, Some(props));
 }
 
-/// One LeRobot v2.1 episode of 200 and one of 800 steps (two 128x192 PNG image columns, 29.5
-/// and 118 MB of frames): the frames are read from the Parquet file a batch at a time as the
+/// One LeRobot v2.1 episode of 200 and one of 1,600 steps (two 128x192 PNG image columns, 29.5
+/// and 236 MB of frames): the frames are read from the Parquet file a batch at a time as the
 /// store's writer pulls them.
 #[test]
 fn lerobot_v21_peak_memory_does_not_grow_with_an_episodes_length() {
