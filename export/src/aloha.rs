@@ -565,12 +565,8 @@ pub async fn export(
     progress: Progress<'_>,
 ) -> Result<ExportReport> {
     let staged = Staged::for_selection(sel, out, true)?;
-    let mut formats: HashMap<String, String> = HashMap::new();
-    for e in &sel.episodes {
-        if !formats.contains_key(&e.source_sha256) {
-            formats.insert(e.source_sha256.clone(), store.source(&e.source_sha256).await?.format);
-        }
-    }
+    let formats: HashMap<String, String> =
+        sel.sources(store).await?.into_iter().map(|s| (s.sha256, s.format)).collect();
     let is_aloha = |e: &EpisodeRecord| formats.get(&e.source_sha256).is_some_and(|f| f == "aloha");
     // The source's own file names when they are ALOHA's and unique, else episode_<i>.
     let mut names: Vec<String> = sel.episodes.iter().map(|e| e.source_name.clone()).collect();
@@ -579,17 +575,7 @@ pub async fn export(
     if !own {
         names = (0..sel.episodes.len()).map(|i| format!("episode_{i}")).collect();
     }
-    let mut report = ExportReport {
-        path: out.to_path_buf(),
-        format: "aloha".into(),
-        version: sel.version,
-        episodes: 0,
-        frames: 0,
-        labels: Default::default(),
-        media_files: 0,
-        bytes: 0,
-        warnings: Vec::new(),
-    };
+    let mut report = ExportReport::empty(out, "aloha", sel.version);
     let total = sel.episodes.len();
     let mut decoder = VideoDecoder::default();
     for (i, name) in names.iter().enumerate() {

@@ -467,6 +467,38 @@ pub struct ExportReport {
     pub warnings: Vec<String>,
 }
 
+impl Selected {
+    /// The sources of the selected episodes, each read once, in order of first use (keyed by
+    /// sha256): their formats and metadata shape what a writer gives back.
+    pub(crate) async fn sources(&self, store: &Store) -> Result<Vec<store::SourceRecord>> {
+        let mut seen = std::collections::HashSet::new();
+        let mut sources = Vec::new();
+        for e in &self.episodes {
+            if seen.insert(e.source_sha256.as_str()) {
+                sources.push(store.source(&e.source_sha256).await?);
+            }
+        }
+        Ok(sources)
+    }
+}
+
+impl ExportReport {
+    /// Nothing written yet: an export of `version` as `format` to `path`.
+    pub(crate) fn empty(path: &Path, format: &str, version: i64) -> ExportReport {
+        ExportReport {
+            path: path.to_path_buf(),
+            format: format.to_string(),
+            version,
+            episodes: 0,
+            frames: 0,
+            labels: Default::default(),
+            media_files: 0,
+            bytes: 0,
+            warnings: Vec::new(),
+        }
+    }
+}
+
 pub(crate) fn count_label(c: &mut store::LabelCounts, l: Label) {
     c.total += 1;
     match l {

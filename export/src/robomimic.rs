@@ -326,14 +326,7 @@ fn add_source_attrs(attrs: &mut BTreeMap<String, AttrValue>, e: &EpisodeRecord) 
 
 /// Each selected source's format and metadata, by its sha256.
 async fn source_formats(store: &Store, sel: &Selected) -> Result<HashMap<String, (String, Value)>> {
-    let mut sources: HashMap<String, (String, Value)> = HashMap::new();
-    for e in &sel.episodes {
-        if !sources.contains_key(&e.source_sha256) {
-            let s = store.source(&e.source_sha256).await?;
-            sources.insert(e.source_sha256.clone(), (s.format, s.metadata));
-        }
-    }
-    Ok(sources)
+    Ok(sel.sources(store).await?.into_iter().map(|s| (s.sha256, (s.format, s.metadata))).collect())
 }
 
 /// `data@env_args`: a robomimic source's own, else one naming the episodes' task.
@@ -397,17 +390,7 @@ pub async fn export(
     // The source's filter keys came in as tags: they go back as masks.
     let filters = mask_filters(&sources);
     let mut masks: BTreeMap<String, Vec<String>> = BTreeMap::new();
-    let mut report = ExportReport {
-        path: out.to_path_buf(),
-        format: "robomimic".into(),
-        version: sel.version,
-        episodes: 0,
-        frames: 0,
-        labels: Default::default(),
-        media_files: 0,
-        bytes: 0,
-        warnings: Vec::new(),
-    };
+    let mut report = ExportReport::empty(out, "robomimic", sel.version);
     let mut fb = FileBuilder::new();
     let mut data = fb.create_group("data");
     let total = sel.episodes.len();

@@ -128,14 +128,7 @@ fn source_feature(sources: &[Value], key: &str) -> Option<Value> {
 
 /// The metadata of the selected episodes' sources, each once, in order of first use.
 async fn source_metadata(store: &Store, sel: &Selected) -> Result<Vec<Value>> {
-    let mut sources: Vec<Value> = Vec::new();
-    let mut seen = std::collections::HashSet::new();
-    for e in &sel.episodes {
-        if seen.insert(e.source_sha256.clone()) {
-            sources.push(store.source(&e.source_sha256).await?.metadata);
-        }
-    }
-    Ok(sources)
+    Ok(sel.sources(store).await?.into_iter().map(|s| s.metadata).collect())
 }
 
 /// Task text → `task_index`, numbered in order of first use ([`NO_TASK`] for episodes without).
@@ -184,17 +177,7 @@ pub async fn export(
     // A GR00T-style source's validity indexes its tasks `valid` / `invalid`: keep them so.
     let validity_tasks = validity_task_indexes(&sources, &mut tasks);
     let labeled = sel.episodes.iter().any(|e| e.label != Label::Unknown);
-    let mut report = ExportReport {
-        path: out.to_path_buf(),
-        format: "lerobot".into(),
-        version: sel.version,
-        episodes: 0,
-        frames: 0,
-        labels: Default::default(),
-        media_files: 0,
-        bytes: 0,
-        warnings: Vec::new(),
-    };
+    let mut report = ExportReport::empty(out, "lerobot", sel.version);
 
     let total = sel.episodes.len();
     let mut writer: Option<Writer> = None;
