@@ -200,16 +200,7 @@ impl Assembler<'_> {
             Some("start") => {
                 let i = idx.unwrap_or(self.next_index);
                 let mut meta = BTreeMap::new();
-                if let DValue::Msg(fields) = v {
-                    for (k, x) in fields {
-                        if k != "event" {
-                            meta.insert(
-                                k.clone(),
-                                x.as_str().map(str::to_string).unwrap_or_else(|| x.to_json().to_string()),
-                            );
-                        }
-                    }
-                }
+                event_fields(v, &mut meta);
                 self.open_events.insert(i, (t, meta));
                 self.saw_episode_markers = true;
             }
@@ -223,16 +214,7 @@ impl Assembler<'_> {
                         ),
                     ));
                 };
-                if let DValue::Msg(fields) = v {
-                    for (k, x) in fields {
-                        if k != "event" {
-                            meta.insert(
-                                k.clone(),
-                                x.as_str().map(str::to_string).unwrap_or_else(|| x.to_json().to_string()),
-                            );
-                        }
-                    }
-                }
+                event_fields(v, &mut meta);
                 let success = v.get_path("success").and_then(|x| x.as_bool());
                 self.add_pending(PendingEp {
                     index: Some(i),
@@ -246,5 +228,15 @@ impl Assembler<'_> {
             _ => {}
         }
         Ok(())
+    }
+}
+
+/// An episode event's fields other than `event` into `meta`, as text (a field that is not text as
+/// its JSON).
+fn event_fields(v: &DValue, meta: &mut BTreeMap<String, String>) {
+    if let DValue::Msg(fields) = v {
+        for (k, x) in fields.iter().filter(|(k, _)| k != "event") {
+            meta.insert(k.clone(), x.as_str().map(str::to_string).unwrap_or_else(|| x.to_json().to_string()));
+        }
     }
 }
