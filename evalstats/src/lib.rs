@@ -5,10 +5,18 @@
 //! evaluation needs for that difference's interval to exclude 0 at given rates, and how many
 //! unlabeled episodes could change whether it does. The sim's summaries, the demo's report and the
 //! store's scoreboard all call it, so their numbers agree to the last bit. It also owns the
-//! agreement between labelers (Cohen's κ, Krippendorff's α; [`agreement`]). No dependencies.
+//! agreement between labelers (Cohen's κ, Krippendorff's α; [`agreement`]), and the
+//! anytime-valid sequential comparison of two arms that stays correct when people look after every
+//! rollout ([`sequential`]: betting confidence sequences, pairing, Fisher's exact test as the
+//! fixed-n reference). No dependencies.
 
 pub mod agreement;
+pub mod sequential;
 pub use agreement::{cohen_kappa, krippendorff_alpha_nominal};
+pub use sequential::{
+    compare_pairs, pair_by_key, Decision, Pair, PairedCounts, SequentialConfig, SequentialResult,
+    SequentialTest,
+};
 
 /// z for a two-sided 95% interval (the 0.975 quantile of the standard normal).
 pub const Z95: f64 = 1.959963984540054;
