@@ -27,24 +27,33 @@ def planned_stake(pa, effect, mu0, up, cap):
 
 
 def capital_path(z, a, m, up, plan):
-    """log K_t for t = 1..n of the bettor against m, in direction up."""
+    """ln K_t for t = 1..n of the process against m in direction up. Where the claim is that the
+    difference lies on the side of m nearer 0, K is the average of two gamblers' capitals: the
+    adaptive (or planned) one and one who bets as if the arms were equal (X's mean 1/2)."""
     mu0 = (m + 1) / 2
     room = 1 / mu0 if up else 1 / (1 - mu0)
+    mixed = (up and m < 0) or ((not up) and m > 0)
     x = (np.asarray(z) + 1) / 2
-    logk, out = 0.0, []
+    logs = [0.0, 0.0]
+    out = []
     sum_x = sum_sq = sum_a = 0.0
     for t in range(len(x)):
         mean = (0.5 + sum_x) / (t + 1)
         var = (0.25 + sum_sq) / (t + 1)
-        if plan is None:
-            d = mean - mu0
+
+        def towards(target):
+            d = target - mu0
             lam = d / (var + d * d)
-            lam = min(max(lam if up else -lam, 0.0), 0.5 * room)
+            return min(max(lam if up else -lam, 0.0), 0.5 * room)
+
+        if plan is None:
+            first = towards(mean)
         else:
-            lam = planned_stake((0.5 + sum_a) / (t + 1), plan, mu0, up, 0.9 * room)
+            first = planned_stake((0.5 + sum_a) / (t + 1), plan, mu0, up, 0.9 * room)
+        stakes = [first, towards(0.5) if mixed else 0.0]
         gain = (x[t] - mu0) if up else (mu0 - x[t])
-        logk += math.log1p(lam * gain)
-        out.append(logk)
+        logs = [k + math.log1p(s * gain) for k, s in zip(logs, stakes)]
+        out.append(float(np.logaddexp(logs[0], logs[1]) - math.log(2)) if mixed else logs[0])
         sum_x += x[t]
         sum_a += a[t]
         sum_sq += (x[t] - (0.5 + sum_x) / (t + 2)) ** 2
