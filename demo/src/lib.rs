@@ -115,7 +115,9 @@ fn stage(msg: &str) -> ProgressBar {
 }
 
 /// The rollouts of a policy as store episodes: obs `pos` (2), `action` (2), the executed chunk.
-fn to_episodes(eps: &[sim::Episode], horizon: usize) -> Vec<EpisodeInput> {
+/// `pair_key` names the initial condition (the seed that drew the starts and the noise, and the
+/// episode's index): rows rolled out with the same seed pair up in `ufops compare`.
+fn to_episodes(eps: &[sim::Episode], horizon: usize, seed: u64) -> Vec<EpisodeInput> {
     eps.iter()
         .enumerate()
         .map(|(i, e)| {
@@ -127,7 +129,10 @@ fn to_episodes(eps: &[sim::Episode], horizon: usize) -> Vec<EpisodeInput> {
                 label: if e.success { Label::Success } else { Label::Failure },
                 label_source: "sim".into(),
                 tags: vec![format!("{:?}", e.outcome).to_lowercase()],
-                metadata: serde_json::json!({ "gap": e.gap.map(|g| format!("{g:?}").to_lowercase()) }),
+                metadata: serde_json::json!({
+                    "gap": e.gap.map(|g| format!("{g:?}").to_lowercase()),
+                    "pair_key": format!("seed{seed}/{i}"),
+                }),
                 timestamps: (0..n).map(|t| t as f64 * 0.1).collect(),
                 observations: vec![VectorColumn {
                     name: "pos".into(),
@@ -164,8 +169,9 @@ async fn ingest_rollouts(
     horizon: usize,
     seed: u64,
 ) -> Result<i64> {
-    let inputs = to_episodes(eps, horizon);
-    let mut bytes = Vec::new();
+    let inputs = to_episodes(eps, horizon, seed);
+    // The run's name too: two runs whose rollouts happened to be identical stay two sources.
+    let mut bytes = run.name.as_bytes().to_vec();
     for e in &inputs {
         for v in e.observations[0].values.iter().chain(&e.action.values) {
             bytes.extend_from_slice(&v.to_le_bytes());
@@ -325,7 +331,12 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         train_verifier(store, &off_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir)
             .await?;
 
-    // 4. Steer the unchanged base policy. Every row has its own seed (independent samples).
+    // 4. Steer the unchanged base policy. Common random numbers: every row of the base policy (and
+    // the flow twin) faces the base rollouts' starts and environment noise (`crn`, the base
+    // seed), so rows pair by initial condition (`pair_key`) and `ufops compare` needs fewer
+    // rollouts; rows are positively correlated, which makes the report's Newcombe intervals (for
+    // independent rows) conservative.
+    let crn = cfg.seed + 100;
     let mut report = Report::new(&base_eps);
     report.meta = serde_json::json!({
         "episodes_per_row": n,
@@ -337,7 +348,6 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         "alt_checkpoint_success": sim::success_rate(&alt_eps).2,
         "fast_path": clf.backend_name(),
     });
-    let mut seed = cfg.seed + 1000;
     let mut keep_for_plot = None;
     let verifiers: [(&str, &steer::Verifier); 2] = [("C", &clf), ("Q", &q)];
     let artifact_of = |name: &str| if name == "C" { c_rec.id.as_str() } else { q_rec.id.as_str() };
@@ -347,16 +357,15 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     }
     for (name, v) in verifiers {
         for &nn in &cfg.bon_n {
-            seed += 1;
             let label = format!("{name} x BoN (N={nn})");
-            let eps = eval(&base, ChunkChoice::BestOfN { scorer: v, n: nn }, &label, seed)?;
+            let eps = eval(&base, ChunkChoice::BestOfN { scorer: v, n: nn }, &label, crn)?;
             let r = demo_run(
                 &format!("{}-bon{nn}", name.to_lowercase()),
                 Steering::Bon { n: nn as u32 },
                 Some(artifact_of(name)),
                 &["on-policy"],
             );
-            record(store, &mut report, &eps, BASE, r, &label, "on-policy", pc.horizon, seed).await?;
+            record(store, &mut report, &eps, BASE, r, &label, "on-policy", pc.horizon, crn).await?;
             report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, &norm, env.max_speed, None)?);
             if name == "C" && keep_for_plot.is_none() {
                 keep_for_plot = Some(eps);
@@ -365,19 +374,18 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     }
     for (name, v) in verifiers {
         for &lambda in &cfg.lambdas {
-            seed += 1;
             let label = format!("{name} x CG (lambda={lambda})");
             // Every guided row records what guidance did to x̂0 per denoising step (the report's
             // diagnostics table explains a collapse or a gain from them).
             let trace = diagnose::TracingScorer::new(v, pc.diffusion_steps, lambda);
-            let eps = eval(&base, ChunkChoice::Guided { scorer: &trace, lambda }, &label, seed)?;
+            let eps = eval(&base, ChunkChoice::Guided { scorer: &trace, lambda }, &label, crn)?;
             let r = demo_run(
                 &format!("{}-cg{}", name.to_lowercase(), lambda_name(lambda)),
                 Steering::Cg { lambda: lambda_f64(lambda) },
                 Some(artifact_of(name)),
                 &["on-policy"],
             );
-            record(store, &mut report, &eps, BASE, r, &label, "on-policy", pc.horizon, seed).await?;
+            record(store, &mut report, &eps, BASE, r, &label, "on-policy", pc.horizon, crn).await?;
             report.diagnostics.push(diagnose::run_diagnostics(
                 &label,
                 &eps,
@@ -389,13 +397,11 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         }
     }
     // Flow twin: same verifier, guidance from the second Euler step on.
-    seed += 1;
-    let flow_base = eval(&flow, ChunkChoice::None, "flow twin, unsteered", seed)?;
+    let flow_base = eval(&flow, ChunkChoice::None, "flow twin, unsteered", crn)?;
     let r = demo_run(BASE, Steering::Base, None, &[]);
-    record(store, &mut report, &flow_base, FLOW, r, "flow twin, unsteered", "-", pc.horizon, seed).await?;
-    seed += 1;
+    record(store, &mut report, &flow_base, FLOW, r, "flow twin, unsteered", "-", pc.horizon, crn).await?;
     let nn = cfg.bon_n[0];
-    let eps = eval(&flow, ChunkChoice::BestOfN { scorer: &clf, n: nn }, "flow twin, C x BoN", seed)?;
+    let eps = eval(&flow, ChunkChoice::BestOfN { scorer: &clf, n: nn }, "flow twin, C x BoN", crn)?;
     let r = demo_run(
         &format!("c-bon{nn}"),
         Steering::Bon { n: nn as u32 },
@@ -403,10 +409,9 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         &["on-policy", "ddpm-rollouts"],
     );
     let label = format!("flow twin, C x BoN (N={nn})");
-    record(store, &mut report, &eps, FLOW, r, &label, "on-policy (DDPM rollouts)", pc.horizon, seed).await?;
+    record(store, &mut report, &eps, FLOW, r, &label, "on-policy (DDPM rollouts)", pc.horizon, crn).await?;
     // 6. Off-policy ablation: the verifier trained on the alt checkpoint's rollouts.
-    seed += 1;
-    let eps = eval(&base, ChunkChoice::BestOfN { scorer: &off_clf, n: nn }, "off-policy C x BoN", seed)?;
+    let eps = eval(&base, ChunkChoice::BestOfN { scorer: &off_clf, n: nn }, "off-policy C x BoN", crn)?;
     let r = demo_run(
         &format!("off-c-bon{nn}"),
         Steering::Bon { n: nn as u32 },
@@ -414,10 +419,9 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         &["off-policy"],
     );
     let label = format!("C x BoN (N={nn})");
-    record(store, &mut report, &eps, BASE, r, &label, "off-policy (alt rollouts)", pc.horizon, seed).await?;
-    seed += 1;
+    record(store, &mut report, &eps, BASE, r, &label, "off-policy (alt rollouts)", pc.horizon, crn).await?;
     let lambda = cfg.lambdas[cfg.lambdas.len() / 2];
-    let eps = eval(&base, ChunkChoice::Guided { scorer: &off_clf, lambda }, "off-policy C x CG", seed)?;
+    let eps = eval(&base, ChunkChoice::Guided { scorer: &off_clf, lambda }, "off-policy C x CG", crn)?;
     let r = demo_run(
         &format!("off-c-cg{}", lambda_name(lambda)),
         Steering::Cg { lambda: lambda_f64(lambda) },
@@ -425,7 +429,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         &["off-policy"],
     );
     let label = format!("C x CG (lambda={lambda})");
-    record(store, &mut report, &eps, BASE, r, &label, "off-policy (alt rollouts)", pc.horizon, seed).await?;
+    record(store, &mut report, &eps, BASE, r, &label, "off-policy (alt rollouts)", pc.horizon, crn).await?;
 
     // 7. The verifier's learning curve: classifiers on nested samples of the on-policy rollouts.
     let nn_ablation = cfg.bon_n.iter().copied().min().unwrap_or(10);
@@ -436,13 +440,12 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         let (rec, v) =
             train_verifier(store, &split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir)
                 .await?;
-        seed += 1;
         let label = format!("C x BoN (N={nn_ablation})");
         let eps = eval(
             &base,
             ChunkChoice::BestOfN { scorer: &v, n: nn_ablation },
             &format!("{label}, {size} rollouts"),
-            seed,
+            crn,
         )?;
         let tag = format!("trained-on-{size}");
         let r = demo_run(
@@ -460,7 +463,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
             &label,
             &format!("on-policy, {size} rollouts"),
             pc.horizon,
-            seed,
+            crn,
         )
         .await?;
     }
