@@ -118,6 +118,26 @@ fn quick_demo_rows_go_the_way_the_method_says() {
     assert!(table.contains("| base | two-gap-navigation | c-bon10 (on-policy) | bon:10 |"), "{table}");
     let csv = t.ok(&["scoreboard", "--policy", "nav-dp", "--format", "csv"]);
     assert_eq!(csv.lines().count(), sb_rows.len() + 1, "{csv}");
+    // `ufops compare` on the stored runs: the rows share initial conditions (`pair_key`), best-of-N
+    // is decided better than the base run within the 200 rollouts, the off-policy one worse, and
+    // the exit status says so.
+    let compare = |b: &str| {
+        let out = t.run(&["compare", "--policy", "nav-dp", "--a", "base/base", "--b", b, "--format", "json"]);
+        let c: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(out.status.code(), Some(c["exit_code"].as_i64().unwrap() as i32), "{c}");
+        c
+    };
+    let better = compare("base/c-bon10");
+    assert_eq!(better["pairing"], "key:pair_key");
+    assert_eq!(
+        (&better["pooled"]["decision"], &better["exit_code"]),
+        (&"better".into(), &0.into()),
+        "{better}"
+    );
+    assert_eq!(better["pooled"]["pairs"], 200);
+    assert!(better["pooled"]["decided_at_pairs"].as_u64().unwrap() < 200, "{better}");
+    let worse = compare("base/off-c-bon10");
+    assert_eq!((&worse["pooled"]["decision"], &worse["exit_code"]), (&"worse".into(), &1.into()), "{worse}");
     // The split of a later `split create` holds the base run's rollouts, not the steered ones.
     let split = t.json(&["split", "create", "--policy", "nav-dp", "--checkpoint", "base", "--json"]);
     assert_eq!(split["train_episodes"].as_i64().unwrap() + split["val_episodes"].as_i64().unwrap(), 200);

@@ -4,6 +4,7 @@
 
 mod cli_pipes;
 mod common;
+mod compare_cli;
 mod concurrent_writers;
 mod crash_safety;
 mod demo_quick;

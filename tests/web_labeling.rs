@@ -329,6 +329,9 @@ fn scoreboard_page_in_headless_chromium() {
         t.ok(&["label", e["id"].as_str().unwrap(), "unknown"]);
     }
     t.ok(&["snapshot"]);
+    // A protected alias moved to the steered run on a decided comparison (the page lists it).
+    t.ok(&["alias", "move", "--policy", "synth", "--alias", "prod", "--to", "c1/base", "--protect"]);
+    t.ok(&["alias", "move", "--policy", "synth", "--alias", "prod", "--to", "c1/c-bon10"]);
     let want = t.json(&["scoreboard", "--policy", "synth", "--format", "json"]);
     let viewer = t.token("vera", "viewer");
     let srv = t.serve(&["--no-worker"]);
@@ -363,6 +366,26 @@ fn scoreboard_page_in_headless_chromium() {
             assert_eq!(cells[8], format!("{} pp [{}, {}]", pp(&b["diff"]), pp(&ci[0]), pp(&ci[1])));
         }
     }
+    // Each badge is `ufops compare`'s decision for the row against its baseline (the pooled one:
+    // the synthetic runs have one task).
+    let mut badges = 0;
+    for (s, w) in shown.iter().zip(want) {
+        let Some(b) = w["baseline"].as_object() else { continue };
+        let (a, bb) = (
+            format!("{}/{}", b["checkpoint"].as_str().unwrap(), b["run_name"].as_str().unwrap()),
+            format!("{}/{}", w["checkpoint"].as_str().unwrap(), w["run_name"].as_str().unwrap()),
+        );
+        let out = t.run(&["compare", "--policy", "synth", "--a", &a, "--b", &bb, "--format", "json"]);
+        let c: Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(out.status.code(), Some(c["exit_code"].as_i64().unwrap() as i32));
+        assert_eq!(s["sequential"], c["pooled"]["decision"], "{a} vs {bb}: {}", s["sequential_text"]);
+        badges += 1;
+    }
+    assert_eq!(badges, 3, "c-bon10, c-cg3 and c2's rows without a run have a baseline");
+    let aliases = result["first"]["aliases"].as_array().unwrap();
+    assert_eq!(aliases.len(), 1);
+    let text = aliases[0]["text"].as_str().unwrap();
+    assert!(text.starts_with("prod → c1/c-bon10 (protected)") && text.contains("against c1/base"), "{text}");
     let unlabeled: u64 = want.iter().map(|w| w["unlabeled"].as_u64().unwrap()).sum();
     assert_eq!(unlabeled, 6, "the labels taken back are unlabeled at the snapshot");
     assert_eq!(result["download"]["csv_lines"].as_u64().unwrap() as usize, want.len() + 1);

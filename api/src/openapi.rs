@@ -36,6 +36,7 @@ use utoipa::{Modify, OpenApi};
         routes::resolve_verifier, routes::resolve_verifier_file,
         routes::create_export, routes::list_exports, routes::get_export, routes::export_file, routes::delete_export,
         routes::get_scoreboard, routes::list_runs,
+        routes::get_compare, routes::list_policy_aliases, routes::move_policy_alias, routes::policy_alias_history,
         routes::get_episode_scores, routes::get_review_artifact, routes::put_review_artifact,
         routes::delete_review_artifact, routes::create_score_job,
         upload::ingest, routes::gc, routes::create_token, routes::list_tokens, routes::revoke_token,
@@ -64,6 +65,12 @@ pub const ID_PATTERN: &str = r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}$";
 /// whitespace at either end.
 pub const NAME_PATTERN: &str =
     r"^[^/\s\x00-\x1f\x7f-\x9f]([^/\x00-\x1f\x7f-\x9f]{0,198}[^/\s\x00-\x1f\x7f-\x9f])?$";
+
+/// An arm of a comparison: `CHECKPOINT` or `CHECKPOINT/RUN` (a checkpoint name, then a run name).
+pub const ARM_PATTERN: &str = concat!(
+    r"^[^/\s\x00-\x1f\x7f-\x9f]([^/\x00-\x1f\x7f-\x9f]{0,198}[^/\s\x00-\x1f\x7f-\x9f])?",
+    r"(/[^\s\x00-\x1f\x7f-\x9f]([^\x00-\x1f\x7f-\x9f]{0,198}[^\s\x00-\x1f\x7f-\x9f])?)?$"
+);
 
 /// A token or run name (`store::writer::check_name`): printable, no whitespace at either end.
 pub const TOKEN_NAME_PATTERN: &str =
@@ -94,6 +101,10 @@ const CHECKED_QUERY: &[(&str, &str, &str)] = &[
     ("/v1/scoreboard", "baseline", NAME_PATTERN),
     ("/v1/scoreboard", "baseline_checkpoint", NAME_PATTERN),
     ("/v1/runs", "name", NAME_PATTERN),
+    ("/v1/compare", "policy", NAME_PATTERN),
+    ("/v1/compare", "task", NAME_PATTERN),
+    ("/v1/compare", "a", ARM_PATTERN),
+    ("/v1/compare", "b", ARM_PATTERN),
     ("/v1/ingest", "policy", NAME_PATTERN),
     ("/v1/ingest", "checkpoint", NAME_PATTERN),
     ("/v1/ingest", "format", ID_PATTERN),
@@ -124,6 +135,7 @@ const CHECKED_FIELDS: &[(&str, &str, &str)] = &[
     ("ScoreJobCreate", "checkpoint", NAME_PATTERN),
     ("ScoreJobCreate", "artifact", ARTIFACT_REF_PATTERN),
     ("ReviewArtifactUpdate", "artifact", ARTIFACT_REF_PATTERN),
+    ("PolicyAliasMoveBody", "to", ARM_PATTERN),
     // Array fields: the pattern goes on their items.
     ("FailureCauses", "causes", TOKEN_NAME_PATTERN),
 ];

@@ -69,6 +69,46 @@ async fn scoreboard_over_http(db: Db) {
         let body = r.text().await.unwrap();
         assert!(body.contains(says), "{path}: {body}");
     }
+    // The anytime-valid comparison: the store's, as JSON; bad arms and settings are 4xx.
+    let want = srv
+        .store
+        .compare(&CompareRequest::new("pol", "c1/base".parse().unwrap(), "c1/c-bon10".parse().unwrap()))
+        .await
+        .unwrap();
+    let got = srv.get_json("/v1/compare?policy=pol&a=c1/base&b=c1/c-bon10", "viewer").await;
+    assert_eq!(got, serde_json::to_value(&want).unwrap());
+    assert_eq!(got["pooled"]["pairs"], 40);
+    for (path, status, says) in [
+        ("/v1/compare?policy=pol&a=c1/base", 400, "b"),
+        ("/v1/compare?policy=pol&a=c1/base&b=c1/base", 400, "both"),
+        ("/v1/compare?policy=pol&a=c1/base&b=c1/nope", 404, "c1/nope"),
+        ("/v1/compare?policy=pol&a=c1/base&b=c1/c-bon10&alpha=2", 400, "alpha"),
+        ("/v1/compare?policy=pol&a=c1/base&b=c1/c-bon10&margin=-1", 400, "margin"),
+        ("/v1/compare?policy=pol&a=%20c1&b=c1/c-bon10", 400, "a"),
+    ] {
+        let r = srv.req(Method::GET, path, "viewer").send().await.unwrap();
+        assert_eq!(r.status().as_u16(), status, "{path}");
+        let body = r.text().await.unwrap();
+        assert!(body.contains(says), "{path}: {body}");
+    }
+    // A protected policy alias: set, refused (409) without a decided comparison, the refusal
+    // changes nothing; a viewer may not move it.
+    let put = |body: serde_json::Value, role: &'static str| {
+        srv.req(Method::PUT, "/v1/policies/pol/aliases/prod", role).json(&body).send()
+    };
+    let r = put(serde_json::json!({"to": "c1/base", "protect": true}), "trainer").await.unwrap();
+    assert_eq!(r.status(), 200);
+    let set: serde_json::Value = r.json().await.unwrap();
+    assert_eq!((&set["target"], &set["protected"]), (&"c1/base".into(), &true.into()), "{set}");
+    let r = put(serde_json::json!({"to": "c1/flow-g"}), "trainer").await.unwrap();
+    assert_eq!(r.status(), 409);
+    assert!(r.text().await.unwrap().contains("undecided"));
+    assert_eq!(put(serde_json::json!({"to": "c1/c-bon10"}), "viewer").await.unwrap().status(), 403);
+    assert_eq!(put(serde_json::json!({"to": "c1/nope"}), "trainer").await.unwrap().status(), 404);
+    assert_eq!(put(serde_json::json!({"to": "c1/base", "extra": 1}), "trainer").await.unwrap().status(), 422);
+    assert_eq!(srv.get_json("/v1/policies/pol/aliases", "viewer").await, serde_json::json!([set]));
+    let history = srv.get_json("/v1/policies/pol/aliases/prod/history", "viewer").await;
+    assert_eq!(history.as_array().unwrap().len(), 1);
     // An ingest upload naming a bad steering or a missing artifact is refused before anything is stored.
     for (q, says) in [
         ("run=r&steering=bon:0", "bon:0"),

@@ -198,6 +198,14 @@ pub async fn artifacts(args: &StoreArgs, a: ArtifactsArgs) -> Result<()> {
                     num(&f["val_calibration"]["ece"]),
                 );
             }
+            // The policy's aliases (`prod`) and the evidence of their last move.
+            if let Some(policy) = &a.policy {
+                let aliases = store.policy_aliases(policy).await?;
+                if !aliases.is_empty() {
+                    println!();
+                    super::compare_cmd::print_aliases(&aliases);
+                }
+            }
         }
         Some(ArtifactCommand::Alias { name, artifact }) => {
             let id = store.resolve_artifact(&artifact).await?.id;

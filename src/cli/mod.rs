@@ -1,6 +1,7 @@
 //! Argument definitions and dispatch of every subcommand.
 
 mod catalog_cmds;
+mod compare_cmd;
 mod dev;
 mod export_cmd;
 mod review_cmds;
@@ -196,6 +197,14 @@ pub enum Command {
     /// Success per checkpoint × task × run at a version, with Wilson intervals and Newcombe
     /// intervals against a baseline run.
     Scoreboard(scoreboard_cmd::ScoreboardArgs),
+    /// Is B better than A yet? An anytime-valid comparison of two checkpoints or runs, per task
+    /// and pooled; exits 0 (B not worse), 1 (B worse) or 2 (undecided) for CI pipelines.
+    Compare(compare_cmd::CompareArgs),
+    /// A policy's aliases (`prod`): list, move (protected ones only on a decided comparison), history.
+    Alias {
+        #[command(subcommand)]
+        command: compare_cmd::AliasCommand,
+    },
     /// Write a rerun recording (.rrd) of success vs failure trajectories and verifier scores.
     View(view_cmd::ViewArgs),
     /// Developer tools used by the tests.
@@ -246,6 +255,8 @@ pub async fn run(cli: Cli) -> Result<()> {
             run_cmds::demo(&cli.store, quick, lambdas, ablation_sizes).await
         }
         Command::Scoreboard(a) => scoreboard_cmd::scoreboard(&cli.store, a).await,
+        Command::Compare(a) => compare_cmd::compare(&cli.store, a).await,
+        Command::Alias { command } => compare_cmd::alias(&cli.store, command).await,
         Command::View(a) => view_cmd::view(&cli.store, a).await,
         Command::Dev { command } => dev::run(&cli.store, command).await,
     }

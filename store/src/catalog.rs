@@ -40,6 +40,7 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (9, "label_campaigns", include_str!("../../migrations/sqlite/0009_label_campaigns.sql")),
     (10, "layers", include_str!("../../migrations/sqlite/0010_layers.sql")),
     (11, "episode_takeovers", include_str!("../../migrations/sqlite/0011_episode_takeovers.sql")),
+    (12, "policy_aliases", include_str!("../../migrations/sqlite/0012_policy_aliases.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
@@ -57,6 +58,7 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (9, "label_campaigns", include_str!("../../migrations/postgres/0009_label_campaigns.sql")),
     (10, "layers", include_str!("../../migrations/postgres/0010_layers.sql")),
     (11, "episode_takeovers", include_str!("../../migrations/postgres/0011_episode_takeovers.sql")),
+    (12, "policy_aliases", include_str!("../../migrations/postgres/0012_policy_aliases.sql")),
 ];
 
 fn migrator(backend: Backend) -> Migrator {

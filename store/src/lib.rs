@@ -7,6 +7,7 @@
 
 mod artifacts;
 mod catalog;
+mod compare;
 mod consensus;
 mod counts;
 mod episodes_arrow;
@@ -22,6 +23,7 @@ mod lru;
 mod media;
 pub mod model;
 mod objects;
+mod policy_aliases;
 mod query;
 mod read;
 mod review;
@@ -39,6 +41,9 @@ pub mod video;
 
 pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
 pub use catalog::{migration_names, Backend};
+pub use compare::{
+    ArmSpec, CompareRequest, Comparison, ComparisonSlice, EValues, PairTable, DEFAULT_PAIR_KEY,
+};
 pub use consensus::{
     Agreement, Campaign, ConsensusState, Dispute, EpisodeVotes, LabelerCounts, NewVote, PairAgreement, Span,
     VerdictData, Vote, VoteOutcome, MAX_FAILURE_CAUSES, MAX_LABELS_NEEDED, MAX_SPANS,
@@ -59,6 +64,7 @@ pub use layers::{
 pub use media::EpisodeMedia;
 pub use model::*;
 pub use objects::FetchCounts;
+pub use policy_aliases::{MoveAlias, PolicyAlias, PolicyAliasMove};
 pub use query::{EpisodeFilter, EpisodeRecord, VersionDiff, VersionInfo};
 pub use read::{EpisodeLocation, EpisodeSteps, StepsReadError, StepsStream};
 pub use review::{

@@ -3,6 +3,7 @@
 //! global allocator to measure memory stays a binary of its own (see Cargo.toml).
 
 mod catalog_lists;
+mod compare;
 mod gc_in_flight;
 mod job_fencing;
 mod scoreboard;

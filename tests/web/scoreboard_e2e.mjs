@@ -52,7 +52,10 @@ try {
       cells: [...tr.children].map((td) => (td.querySelector('.num') || td).textContent),
       bars: tr.querySelectorAll('svg.ci').length,
       bar_width: [...tr.querySelectorAll('svg.ci rect.ci-bar')].map((r) => Number(r.getAttribute('width'))),
+      sequential: tr.querySelector('td.sequential .badge')?.dataset.decision ?? null,
+      sequential_text: tr.querySelector('td.sequential')?.textContent ?? null,
     })),
+    aliases: [...document.querySelectorAll('#aliases-list li')].map((li) => ({ alias: li.dataset.alias, text: li.textContent })),
     csv: document.getElementById('dl-csv').getAttribute('href'),
     calibration: [...document.querySelectorAll('#verifiers svg.reliability')].map((s) => ({
       artifact: s.dataset.artifact, points: s.querySelectorAll('circle').length,
@@ -65,6 +68,9 @@ try {
   check(first.calibration.length >= 1 && first.calibration.every((c) => c.points > 0), `a reliability diagram: ${JSON.stringify(first.calibration)}`);
   check(first.rows.every((r) => r.bars >= 1 && r.bar_width.every((w) => w > 0)), 'every row has its interval bar');
   check(first.rows.filter((r) => !r.baseline && r.run !== '-').every((r) => r.bars === 2) , 'compared rows have a Δ bar');
+  // Every row compared with a baseline has its sequential-test badge (decided, or how many more).
+  check(first.rows.filter((r) => r.bars === 2).every((r) => r.sequential && r.sequential !== 'error'), `sequential badges: ${JSON.stringify(first.rows.map((r) => r.sequential_text))}`);
+  check(first.aliases.length >= 1, 'the aliases panel lists the policy\'s aliases');
   await page.screenshot({ path: join(OUT, 'scoreboard.png'), fullPage: true });
   log('screenshot', join(OUT, 'scoreboard.png'));
   // The download links return the same query as CSV and JSON (with the session cookie).

@@ -1,5 +1,7 @@
 // The scoreboard page: GET /v1/scoreboard for a policy (and a baseline run), drawn as a table with
-// small SVG interval bars, and the same query's CSV and JSON as download links. It only reads.
+// small SVG interval bars, each row's anytime-valid comparison with its baseline as a badge
+// (GET /v1/compare), the policy's aliases with their evidence, and the same query's CSV and JSON as
+// download links. It only reads.
 
 import { call, ApiError } from './api.js';
 import { $, el } from './dom.js';
@@ -40,6 +42,7 @@ const pp = (x) => `${x >= 0 ? '+' : ''}${(100 * x).toFixed(1)}`;
 function render(sb) {
   const body = $('rows').querySelector('tbody');
   body.replaceChildren();
+  const badges = [];
   for (const r of sb.rows) {
     const tr = el('tr', { 'data-run': r.run_name, 'data-checkpoint': r.checkpoint });
     if (r.is_baseline) tr.classList.add('baseline');
@@ -73,9 +76,48 @@ function render(sb) {
     const vq = r.verifier_quality;
     const num = (x) => (typeof x === 'number' ? x.toFixed(3) : '-');
     tr.appendChild(el('td', {}, vq ? `${num(vq.auroc)} / ${num(vq.ece)}` : '-'));
+    const seq = tr.appendChild(el('td', { class: 'sequential' }, b ? '…' : '-'));
+    if (b) badges.push({ td: seq, row: r, base: b });
     body.appendChild(tr);
   }
   renderVerifiers(sb);
+  return badges;
+}
+
+/** The anytime-valid comparison of a row with its baseline (GET /v1/compare): a badge saying
+ * whether it is decided (and after how many rollouts) or how many more it needs at these rates. */
+async function fillBadge({ td, row, base }, sb) {
+  const params = { policy: sb.policy, a: `${base.checkpoint}/${base.run_name}`, b: `${row.checkpoint}/${row.run_name}`, version: sb.version, task: row.task || '' };
+  try {
+    const c = await call('GET', `/v1/compare?${q(params)}`);
+    const s = row.task ? (c.tasks.find((t) => t.task === row.task) || c.pooled) : c.pooled;
+    const decided = s.decision !== 'undecided';
+    const text = decided
+      ? `${s.decision.replaceAll('_', ' ')} · decided after ${2 * s.decided_at_pairs} rollouts`
+      : s.more_pairs !== null ? `undecided · ~${2 * s.more_pairs} more rollouts` : 'undecided · no decision in sight';
+    const badge = el('span', { class: `badge ${decided ? s.decision : 'undecided'}`, 'data-decision': s.decision,
+      title: `${c.method}; ${s.pairs} pairs (${c.pairing}); confidence sequence of Δ [${pp(s.confidence_sequence[0])}, ${pp(s.confidence_sequence[1])}] pp at alpha ${s.alpha}` }, text);
+    td.replaceChildren(badge);
+  } catch (e) {
+    td.replaceChildren(el('span', { class: 'badge error', 'data-decision': 'error' }, e instanceof ApiError ? e.message : String(e)));
+  }
+}
+
+/** The policy's aliases (`prod`) and the evidence of their last move. */
+async function renderAliases(policy) {
+  const list = $('aliases-list');
+  list.replaceChildren();
+  const aliases = await call('GET', `/v1/policies/${encodeURIComponent(policy)}/aliases`);
+  for (const a of aliases) {
+    const ev = a.evidence;
+    const why = ev ? `${ev.gate.replaceAll('_', ' ')} against ${ev.a.checkpoint}${ev.a.run ? '/' + ev.a.run : ''} at version ${ev.version} (${ev.pooled.pairs} pairs, Δ [${pp(ev.pooled.confidence_sequence[0])}, ${pp(ev.pooled.confidence_sequence[1])}] pp)`
+      : 'no comparison (first or unprotected move)';
+    list.appendChild(el('li', { 'data-alias': a.alias }, `${a.alias} → ${a.target}${a.protected ? ' (protected)' : ''} · moved by ${a.actor} · evidence: ${why}`));
+  }
+  $('aliases').hidden = aliases.length === 0;
+}
+
+function summary(sb) {
   $('summary').textContent = `${sb.policy} at version ${sb.version}: ${sb.rows.length} rows, baseline run ${sb.baseline}` +
     (sb.baseline_checkpoint ? ` of ${sb.baseline_checkpoint}` : ' of each row\'s checkpoint');
 }
@@ -151,7 +193,9 @@ async function load() {
     const ckpts = [...new Set(sb.rows.map((r) => r.checkpoint))].sort();
     fill($('f-baseline'), runs, sb.baseline);
     fill($('f-baseline-checkpoint'), ckpts, sb.baseline_checkpoint || '', "each row's own");
-    render(sb);
+    const badges = render(sb);
+    summary(sb);
+    await Promise.all([...badges.map((x) => fillBadge(x, sb)), renderAliases(sb.policy)]);
     window.ufopsScoreboard = sb;
     document.body.dataset.ready = String(sb.version);
   } catch (e) {

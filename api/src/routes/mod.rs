@@ -12,6 +12,7 @@ macro_rules! need {
 mod admin;
 mod artifacts;
 mod catalog;
+mod compare;
 mod consensus;
 mod episodes;
 mod exports;
@@ -27,6 +28,7 @@ mod splits;
 pub use admin::*;
 pub use artifacts::*;
 pub use catalog::*;
+pub use compare::*;
 pub use consensus::*;
 pub use episodes::*;
 pub use exports::*;
@@ -77,6 +79,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
         .merge(artifacts::router())
         .merge(exports::router())
         .merge(catalog::router())
+        .merge(compare::router())
         .merge(consensus::router())
         .merge(episodes::router())
         .merge(frames::router())
