@@ -71,13 +71,13 @@ function render(sb) {
       d.appendChild(intervalBar(lo, hi, b.diff, -1, 1, color, `vs ${b.checkpoint}/${b.run_name}: Newcombe 95% ${pp(lo)} to ${pp(hi)} pp`));
     } else d.textContent = r.is_baseline ? 'baseline' : '-';
     tr.appendChild(dTd);
+    const seq = tr.appendChild(el('td', { class: 'sequential' }, b ? '…' : '-'));
+    if (b) badges.push({ td: seq, row: r, base: b });
     tr.appendChild(el('td', {}, b ? (b.rollouts_to_separate ?? '-').toString() : '-'));
     tr.appendChild(el('td', {}, b ? (b.unlabeled_to_flip ?? 'none').toString() : '-'));
     const vq = r.verifier_quality;
     const num = (x) => (typeof x === 'number' ? x.toFixed(3) : '-');
     tr.appendChild(el('td', {}, vq ? `${num(vq.auroc)} / ${num(vq.ece)}` : '-'));
-    const seq = tr.appendChild(el('td', { class: 'sequential' }, b ? '…' : '-'));
-    if (b) badges.push({ td: seq, row: r, base: b });
     body.appendChild(tr);
   }
   renderVerifiers(sb);
@@ -93,8 +93,8 @@ async function fillBadge({ td, row, base }, sb) {
     const s = row.task ? (c.tasks.find((t) => t.task === row.task) || c.pooled) : c.pooled;
     const decided = s.decision !== 'undecided';
     const text = decided
-      ? `${s.decision.replaceAll('_', ' ')} · decided after ${2 * s.decided_at_pairs} rollouts`
-      : s.more_pairs !== null ? `undecided · ~${2 * s.more_pairs} more rollouts` : 'undecided · no decision in sight';
+      ? `${s.decision.replaceAll('_', ' ')} after ${2 * s.decided_at_pairs} rollouts`
+      : s.more_pairs !== null ? `undecided · ~${2 * s.more_pairs} more` : 'undecided';
     const badge = el('span', { class: `badge ${decided ? s.decision : 'undecided'}`, 'data-decision': s.decision,
       title: `${c.method}; ${s.pairs} pairs (${c.pairing}); confidence sequence of Δ [${pp(s.confidence_sequence[0])}, ${pp(s.confidence_sequence[1])}] pp at alpha ${s.alpha}` }, text);
     td.replaceChildren(badge);
