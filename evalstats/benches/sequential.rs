@@ -45,30 +45,13 @@
 //! `cargo bench -p evalstats --bench sequential` (about a minute on 2 cores).
 
 use evalstats::sequential::{fisher_exact_two_sided, ln_choose};
+use evalstats::splitmix::SplitMix64 as Rng;
 use evalstats::{newcombe_diff, separates, wilson, Decision, Pair, SequentialConfig, SequentialTest};
 use std::fmt::Write as _;
 use std::time::Instant;
 
 const ALPHA: f64 = 0.05;
 const TARGET_POWER: f64 = 0.8;
-
-/// A small deterministic generator (SplitMix64), so the bench needs no dependency.
-struct Rng(u64);
-impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    fn next_f64(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn bernoulli(&mut self, p: f64) -> f64 {
-        f64::from(self.next_f64() < p)
-    }
-}
 
 /// `f` over `runs` runs, each with its own generator seeded from `seed`'s stream, on all cores;
 /// results in run order.

@@ -12,6 +12,7 @@
 
 pub mod agreement;
 pub mod sequential;
+pub mod splitmix;
 pub use agreement::{cohen_kappa, krippendorff_alpha_nominal};
 pub use sequential::{
     compare_pairs, pair_by_key, Decision, Pair, PairedCounts, SequentialConfig, SequentialResult,

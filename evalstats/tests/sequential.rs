@@ -7,20 +7,7 @@ use evalstats::{compare_pairs, pair_by_key, Decision, Pair, PairedCounts, Sequen
 use std::io::Write;
 use std::process::{Command, Stdio};
 
-/// A small deterministic generator (SplitMix64), so the simulations need no dependency.
-struct Rng(u64);
-impl Rng {
-    fn next_f64(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn bernoulli(&mut self, p: f64) -> f64 {
-        f64::from(self.next_f64() < p)
-    }
-}
+use evalstats::splitmix::SplitMix64 as Rng;
 
 /// Agresti, Categorical Data Analysis (3rd ed., 2013), Table 11.1: approval of the US president's
 /// performance in two surveys of the same 1,600 people (794 approve both times, 150 approve then

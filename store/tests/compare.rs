@@ -21,17 +21,7 @@ async fn open(db: Backend, dir: &std::path::Path) -> Store {
     Store::open(&cfg).await.unwrap()
 }
 
-/// SplitMix64: the tests' outcomes, reproducible.
-struct Rng(u64);
-impl Rng {
-    fn next_f64(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
+use evalstats::splitmix::SplitMix64 as Rng;
 
 /// A run's rollouts: per initial condition i (`pair_key` "ic{i}"), a difficulty u_i shared by
 /// every run, and success when u_i + noise < rate (so runs correlate through u_i). Episode i of
