@@ -395,3 +395,112 @@ fn layers_over_the_api_on_postgres_and_s3() {
     assert_eq!(keys[0]["producer"].as_str(), Some(hash));
     assert_eq!(art["config"]["input"]["chunk_len"], 4, "the recipe file's chunk_len");
 }
+
+/// A signed request to SeaweedFS's S3 API with curl (`--aws-sigv4`): the independent view of
+/// the bucket that the multipart test checks ufops against.
+fn s3_api(s3: &seaweedfs::SeaweedFs, path_and_query: &str) -> String {
+    let out = std::process::Command::new("curl")
+        .args(["-sS", "--fail-with-body", "--aws-sigv4", "aws:amz:us-east-1:s3"])
+        .arg("--user")
+        .arg(format!("{}:{}", seaweedfs::ACCESS_KEY, seaweedfs::SECRET_KEY))
+        .args(["-H", "x-amz-content-sha256: UNSIGNED-PAYLOAD"])
+        .arg(format!("{}/{}{path_and_query}", s3.s3_endpoint, seaweedfs::BUCKET))
+        .output()
+        .unwrap_or_else(|e| panic!("this test lists the bucket with curl, which did not run: {e}"));
+    let body = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(out.status.success(), "curl {path_and_query}: {body} {}", String::from_utf8_lossy(&out.stderr));
+    body
+}
+
+/// The texts of every `<tag>` element of an XML answer.
+fn xml_values(xml: &str, tag: &str) -> Vec<String> {
+    let (open, close) = (format!("<{tag}>"), format!("</{tag}>"));
+    xml.split(&open).skip(1).filter_map(|s| s.split_once(&close).map(|(v, _)| v.to_string())).collect()
+}
+
+/// Incomplete multipart uploads in the bucket, by S3's own ListMultipartUploads.
+fn incomplete_uploads(s3: &seaweedfs::SeaweedFs) -> Vec<String> {
+    xml_values(&s3_api(s3, "?uploads="), "UploadId")
+}
+
+/// Starts `dev synth` writing one steps file of about 100 MB (parts of 8 MB) and stops it
+/// (SIGSTOP) as soon as its multipart upload is recorded under `<prefix>/_uploads/`, where
+/// `recorded` records were before.
+fn writer_stopped_mid_upload(
+    t: &Target,
+    s3: &seaweedfs::SeaweedFs,
+    prefix: &str,
+    seed: &str,
+    lease_seconds: &str,
+    recorded: usize,
+) -> std::process::Child {
+    let child = t
+        .command()
+        .env("UFOPS_WRITER_LEASE_SECONDS", lease_seconds)
+        .args(["dev", "synth", "--seed", seed, "--episodes", "10", "--steps", "300000"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let records =
+        || xml_values(&s3_api(s3, &format!("?list-type=2&prefix={prefix}%2F_uploads%2F")), "Key").len();
+    let t0 = std::time::Instant::now();
+    while records() <= recorded {
+        assert!(t0.elapsed() < std::time::Duration::from_secs(180), "no multipart upload started");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    signal(&child, "-STOP");
+    child
+}
+
+fn signal(child: &std::process::Child, sig: &str) {
+    let ok = std::process::Command::new("kill").arg(sig).arg(child.id().to_string()).status().unwrap();
+    assert!(ok.success(), "kill {sig}");
+}
+
+/// gc aborts the multipart upload of a writer killed mid-upload (S3 lists the upload before and
+/// not after) and leaves alone the upload of a writer in flight, which then completes.
+#[test]
+fn gc_aborts_a_killed_writers_multipart_upload_and_spares_one_in_flight() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some(s3) = seaweedfs::SeaweedFs::start_if_available() else { return };
+    let mut t = Target::sqlite(dir.path());
+    t.object_store = Some(format!("s3://{}/mp", seaweedfs::BUCKET));
+    t.env = s3.env();
+    t.ok(&["init"]);
+    assert!(incomplete_uploads(&s3).is_empty());
+
+    // Writer A renews its records every third of a 1 s lease: killed, they lapse at once.
+    let mut a = writer_stopped_mid_upload(&t, &s3, "mp", "1", "1", 0);
+    let killed = incomplete_uploads(&s3);
+    assert_eq!(killed.len(), 1, "the killed writer's upload is listed by S3");
+    a.kill().unwrap();
+    a.wait().unwrap();
+    // Writer B (the default 60 s lease) is stopped mid-upload, alive.
+    let mut b = writer_stopped_mid_upload(&t, &s3, "mp", "2", "60", 1);
+    assert_eq!(incomplete_uploads(&s3).len(), 2);
+    std::thread::sleep(std::time::Duration::from_millis(1500)); // A's lease lapses
+
+    let dry = t.json(&["gc", "--grace-seconds", "0", "--dry-run", "--json"]);
+    assert_eq!(dry["uploads_aborted"].as_array().unwrap().len(), 1, "{dry}");
+    assert_eq!(incomplete_uploads(&s3).len(), 2, "a dry run aborts nothing");
+    let gc = t.json(&["gc", "--grace-seconds", "0", "--json"]);
+    let aborted = gc["uploads_aborted"].as_array().unwrap();
+    assert_eq!(aborted.len(), 1, "{gc}");
+    assert!(aborted[0].as_str().unwrap().contains(&killed[0]), "{gc}");
+    assert_eq!(gc["uploads_in_flight"].as_u64(), Some(1), "{gc}");
+    let left = incomplete_uploads(&s3);
+    assert_eq!(left.len(), 1, "{left:?}");
+    assert_ne!(left[0], killed[0], "the killed writer's upload is gone, the live one's is not");
+
+    // B goes on: its upload completes and its version commits.
+    signal(&b, "-CONT");
+    assert!(b.wait().unwrap().success());
+    assert!(incomplete_uploads(&s3).is_empty());
+    let report = t.json(&["dev", "verify"]);
+    assert!(report["problems"].as_array().unwrap().is_empty(), "{report}");
+    assert_eq!(report["versions"].as_u64(), Some(1), "{report}");
+    let after = t.json(&["gc", "--grace-seconds", "0", "--dry-run", "--json"]);
+    assert!(after["uploads_aborted"].as_array().unwrap().is_empty(), "{after}");
+    assert_eq!(after["uploads_in_flight"].as_u64(), Some(0), "{after}");
+}

@@ -191,5 +191,13 @@ pub async fn gc(args: &StoreArgs, grace_seconds: u64, dry_run: bool, json: bool)
         r.kept_recent,
         r.kept_pending
     );
+    if !r.uploads_aborted.is_empty() || r.uploads_in_flight > 0 {
+        println!(
+            "{} incomplete multipart uploads {}, {} in flight left alone",
+            r.uploads_aborted.len(),
+            if dry_run { "would be aborted" } else { "aborted" },
+            r.uploads_in_flight
+        );
+    }
     Ok(())
 }

@@ -26,6 +26,12 @@ pub struct GcReport {
     pub kept_recent: usize,
     /// Unreferenced but recorded by a writer in flight (`pending_objects`).
     pub kept_pending: usize,
+    /// Incomplete multipart uploads aborted (S3: their writer died mid-upload), as
+    /// `path (upload id)`.
+    pub uploads_aborted: Vec<String>,
+    /// Multipart uploads in flight left alone: their writer renews their record, or they are
+    /// younger than the grace period.
+    pub uploads_in_flight: usize,
 }
 
 /// What one locked batch of [`Store::gc`] did.
@@ -84,7 +90,12 @@ impl Store {
             })?;
         // List first, then read the references: an object committed in between is then
         // seen as referenced, never deleted.
-        let objects = self.objects().list_all().await?;
+        let (records, objects): (Vec<_>, Vec<_>) = self
+            .objects()
+            .list_all()
+            .await?
+            .into_iter()
+            .partition(|o| o.path.starts_with(&format!("{}/", crate::objects::UPLOADS_PREFIX)));
         let referenced = self.referenced_objects().await?;
         // An export's files are referenced by its job (store/src/exports.rs).
         let live_exports = self.live_export_ids().await?;
@@ -100,7 +111,10 @@ impl Store {
             deleted: Vec::new(),
             kept_recent: 0,
             kept_pending: 0,
+            uploads_aborted: Vec::new(),
+            uploads_in_flight: 0,
         };
+        self.abort_lapsed_uploads(records, cutoff, dry_run, &mut report).await?;
         let mut candidates = Vec::new();
         for o in objects {
             if referenced.contains(&o.path) || export_is_live(&o.path) {
@@ -128,6 +142,46 @@ impl Store {
             report.deleted.push(path.display().to_string());
         }
         Ok(report)
+    }
+
+    /// Aborts the multipart uploads whose record lapsed (its writer stopped renewing it) and
+    /// that are older than the grace period; a record that does not parse is removed once it is
+    /// older than the grace period.
+    async fn abort_lapsed_uploads(
+        &self,
+        records: Vec<crate::objects::ObjectEntry>,
+        cutoff_ms: i64,
+        dry_run: bool,
+        report: &mut GcReport,
+    ) -> Result<(), StoreError> {
+        let now = crate::now_ms();
+        for entry in records {
+            let bytes = match self.objects().get(&entry.path).await {
+                Ok(b) => b,
+                Err(StoreError::NotFound { .. }) => continue, // finished meanwhile
+                Err(e) => return Err(e),
+            };
+            let Ok(record) = serde_json::from_slice::<crate::objects::UploadRecord>(&bytes) else {
+                if entry.last_modified_ms <= cutoff_ms {
+                    if !dry_run {
+                        self.objects().delete(&entry.path).await?;
+                    }
+                    report.deleted.push(entry.path);
+                } else {
+                    report.kept_recent += 1;
+                }
+                continue;
+            };
+            if record.expires_ms > now || record.created_ms > cutoff_ms {
+                report.uploads_in_flight += 1;
+                continue;
+            }
+            if !dry_run {
+                self.objects().abort_recorded_upload(&entry.path, &record).await?;
+            }
+            report.uploads_aborted.push(format!("{} ({})", record.path, record.upload_id));
+        }
+        Ok(())
     }
 
     /// Re-checks `paths` under the version write lock (and, on Postgres, with writers' new

@@ -5,7 +5,8 @@
 
 use crate::{StoreConfig, StoreError};
 use bytes::Bytes;
-use futures::TryStreamExt;
+use futures::{StreamExt, TryStreamExt};
+use object_store::multipart::{MultipartStore, PartId};
 use object_store::path::Path as ObjPath;
 use object_store::{GetOptions, GetRange, ObjectStore, PutMode, PutOptions, PutPayload, WriteMultipart};
 use sha2::Digest;
@@ -26,7 +27,42 @@ pub(crate) struct Objects {
     desc: String,
     /// For a local directory: its root (to find staging files a killed writer left).
     local_root: Option<std::path::PathBuf>,
+    /// For S3: the bucket's multipart API, so each upload's id can be recorded and a killed
+    /// writer's upload aborted by gc (S3 keeps, and bills, an incomplete upload's parts forever).
+    multipart: Option<S3Multipart>,
     counters: Counters,
+}
+
+/// Multipart uploads in flight on S3 are recorded as one small JSON object each under this
+/// prefix ([`UploadRecord`]): written when the upload starts, renewed while it runs, deleted
+/// when it completes or aborts. gc aborts the uploads whose record lapsed (their writer died).
+pub(crate) const UPLOADS_PREFIX: &str = "_uploads";
+
+/// The record of one multipart upload in flight (S3).
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub(crate) struct UploadRecord {
+    /// The object being uploaded (relative to the store's prefix).
+    pub path: String,
+    pub upload_id: String,
+    pub created_ms: i64,
+    /// The writer renews this while it uploads; past it, the writer is taken as dead.
+    pub expires_ms: i64,
+}
+
+/// The bucket behind an S3 store, with the store's prefix (multipart calls take full paths).
+struct S3Multipart {
+    s3: object_store::aws::AmazonS3,
+    prefix: String,
+}
+
+impl S3Multipart {
+    fn full(&self, path: &str) -> ObjPath {
+        if self.prefix.is_empty() {
+            ObjPath::from(path)
+        } else {
+            ObjPath::from(format!("{}/{path}", self.prefix))
+        }
+    }
 }
 
 /// Ranges of one object closer than this are fetched in one request (the gap is fetched too).
@@ -109,11 +145,17 @@ impl Objects {
                     .build()
                     .map_err(|e| StoreError::invalid(format!("cannot configure S3 store {u:?}: {e}")))?;
                 let store: Arc<dyn ObjectStore> = if prefix.is_empty() {
-                    Arc::new(s3)
+                    Arc::new(s3.clone())
                 } else {
-                    Arc::new(object_store::prefix::PrefixStore::new(s3, prefix))
+                    Arc::new(object_store::prefix::PrefixStore::new(s3.clone(), prefix))
                 };
-                Ok(Objects { store, desc: u.to_string(), local_root: None, counters: Counters::default() })
+                Ok(Objects {
+                    store,
+                    desc: u.to_string(),
+                    local_root: None,
+                    multipart: Some(S3Multipart { s3, prefix: prefix.to_string() }),
+                    counters: Counters::default(),
+                })
             }
             Some(u) if u.contains("://") && !u.starts_with("file://") => Err(StoreError::invalid(format!(
                 "unsupported object store URL {u:?}: use a local path, file:///PATH or s3://BUCKET/PREFIX"
@@ -132,6 +174,7 @@ impl Objects {
                     store: Arc::new(local),
                     desc: dir.display().to_string(),
                     local_root: Some(dir),
+                    multipart: None,
                     counters: Counters::default(),
                 })
             }
@@ -270,6 +313,9 @@ impl Objects {
         io: impl Fn(std::io::Error) -> StoreError,
         mut check: impl FnMut(Option<&[u8]>) -> Result<(), StoreError>,
     ) -> Result<u64, StoreError> {
+        if let Some(mp) = &self.multipart {
+            return self.upload_parts_recorded(mp, path, f, io, check).await;
+        }
         let upload = self.store.put_multipart(&ObjPath::from(path)).await?;
         let mut w = WriteMultipart::new_with_chunk_size(upload, FILE_PART_BYTES);
         let mut total = 0u64;
@@ -293,6 +339,102 @@ impl Objects {
                 Err(e)
             }
         }
+    }
+
+    /// [`Self::upload_parts`] on S3: the upload's id is recorded (an [`UploadRecord`]) before
+    /// the first part and the record renewed every third of the writer lease, so that gc can
+    /// abort the upload of a writer that died mid-way. The window between starting the upload
+    /// and writing its record is not covered: the bucket's lifecycle rule is the second line of
+    /// defence (ARCHITECTURE.md).
+    async fn upload_parts_recorded(
+        &self,
+        mp: &S3Multipart,
+        path: &str,
+        f: &mut tokio::fs::File,
+        io: impl Fn(std::io::Error) -> StoreError,
+        mut check: impl FnMut(Option<&[u8]>) -> Result<(), StoreError>,
+    ) -> Result<u64, StoreError> {
+        let full = mp.full(path);
+        let id = mp.s3.create_multipart(&full).await?;
+        let lease = crate::gc::writer_lease_ms();
+        let now = crate::now_ms();
+        let mut record = UploadRecord {
+            path: path.to_string(),
+            upload_id: id.clone(),
+            created_ms: now,
+            expires_ms: now + lease,
+        };
+        let record_path = format!("{UPLOADS_PREFIX}/{}.json", uuid::Uuid::new_v4());
+        if let Err(e) = self.put_record(&record_path, &record).await {
+            let _ = mp.s3.abort_multipart(&full, &id).await;
+            return Err(e);
+        }
+        let uploaded: Result<u64, StoreError> = async {
+            let mut parts: Vec<Option<PartId>> = Vec::new();
+            let mut in_flight = futures::stream::FuturesUnordered::new();
+            let mut total = 0u64;
+            let mut part = read_part(f).await.map_err(&io)?;
+            // An empty file is one empty part (S3 completes no upload without parts).
+            if part.is_none() {
+                part = Some(Vec::new());
+            }
+            while let Some(bytes) = part {
+                check(Some(&bytes))?;
+                total += bytes.len() as u64;
+                while in_flight.len() >= FILE_PARTS_IN_FLIGHT {
+                    let (i, r): (usize, object_store::Result<PartId>) =
+                        in_flight.next().await.expect("a part in flight");
+                    parts[i] = Some(r?);
+                }
+                let idx = parts.len();
+                parts.push(None);
+                let (s3, full, id) = (&mp.s3, &full, &id);
+                in_flight
+                    .push(async move { (idx, s3.put_part(full, id, idx, PutPayload::from(bytes)).await) });
+                if crate::now_ms() > record.expires_ms - lease * 2 / 3 {
+                    record.expires_ms = crate::now_ms() + lease;
+                    self.put_record(&record_path, &record).await?;
+                }
+                part = read_part(f).await.map_err(&io)?;
+            }
+            check(None)?;
+            while let Some((i, r)) = in_flight.next().await {
+                parts[i] = Some(r?);
+            }
+            let parts = parts.into_iter().map(|p| p.expect("every part was awaited")).collect();
+            mp.s3.complete_multipart(&full, &id, parts).await?;
+            Ok(total)
+        }
+        .await;
+        if uploaded.is_err() {
+            let _ = mp.s3.abort_multipart(&full, &id).await;
+        }
+        // A record left behind (this delete failed) names a finished upload: gc's abort of it
+        // finds nothing to abort and removes the record.
+        let _ = self.delete(&record_path).await;
+        uploaded
+    }
+
+    async fn put_record(&self, record_path: &str, record: &UploadRecord) -> Result<(), StoreError> {
+        let body = serde_json::to_vec(record).expect("a record serializes");
+        self.store.put(&ObjPath::from(record_path), PutPayload::from(body)).await?;
+        Ok(())
+    }
+
+    /// Aborts the multipart upload a lapsed [`UploadRecord`] names (nothing to abort is fine),
+    /// then deletes the record.
+    pub async fn abort_recorded_upload(
+        &self,
+        record_path: &str,
+        record: &UploadRecord,
+    ) -> Result<(), StoreError> {
+        if let Some(mp) = &self.multipart {
+            match mp.s3.abort_multipart(&mp.full(&record.path), &record.upload_id).await {
+                Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
+                Err(e) => return Err(e.into()),
+            }
+        }
+        self.delete(record_path).await
     }
 
     /// Objects under `prefix` (a folder: `a/b`), with their sizes.

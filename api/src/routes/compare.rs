@@ -27,11 +27,14 @@ pub struct CompareQuery {
     /// Only this task.
     task: Option<String>,
     /// The probability of ever making a false claim (default 0.05).
+    #[param(exclusive_minimum = 0.0, exclusive_maximum = 1.0)]
     alpha: Option<f64>,
     /// δ in rate units (default 0): "worse" is worse by more than δ; δ > 0 allows "no practical
     /// difference" and "not worse".
+    #[param(minimum = 0.0, exclusive_maximum = 1.0)]
     margin: Option<f64>,
     /// The difference the evaluation is planned to detect (bets sized for it).
+    #[param(exclusive_minimum = 0.0, maximum = 1.0)]
     plan_effect: Option<f64>,
     /// The episode metadata field that pairs rollouts (default `pair_key`; empty: arrival order).
     pair_key: Option<String>,
