@@ -20,7 +20,8 @@ use crate::labels::apply_one;
 use crate::{now_rfc3339, Backend, Label, LabelChange, LabelUpdate, Store, StoreError};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashSet};
+use std::sync::Arc;
 
 /// The most labelers a campaign may require per episode.
 pub const MAX_LABELS_NEEDED: i64 = 10;
@@ -339,6 +340,26 @@ async fn votes_in(tx: &mut Tx, id: &str) -> Result<Vec<Vote>, StoreError> {
     rows.iter().map(vote_from_row).collect()
 }
 
+/// How long the set of multi-labeler policies is trusted without reading `campaigns` again.
+pub const CAMPAIGN_CACHE_TTL: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// The policies whose campaign needs several labelers, and when they were read.
+#[derive(Default)]
+pub(crate) struct MultiLabelerCache(std::sync::Mutex<Option<(std::time::Instant, Arc<HashSet<String>>)>>);
+
+impl MultiLabelerCache {
+    fn fresh(&self) -> Option<Arc<HashSet<String>>> {
+        let g = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        g.as_ref().filter(|(at, _)| at.elapsed() < CAMPAIGN_CACHE_TTL).map(|(_, p)| p.clone())
+    }
+    fn store(&self, policies: Arc<HashSet<String>>) {
+        *self.0.lock().unwrap_or_else(|e| e.into_inner()) = Some((std::time::Instant::now(), policies));
+    }
+    fn clear(&self) {
+        *self.0.lock().unwrap_or_else(|e| e.into_inner()) = None;
+    }
+}
+
 /// Whether the latest label event of the episode is an adjudication newer than its latest vote.
 async fn adjudicated_after_votes(tx: &mut Tx, id: &str) -> Result<bool, StoreError> {
     let r = sqlx::query(
@@ -367,8 +388,13 @@ impl Store {
     }
 
     /// Whether the episode's campaign needs several labelers (a plain label write would bypass
-    /// their votes).
+    /// their votes). Asks the catalog only when some campaign does (the policies whose
+    /// campaigns do are cached for [`CAMPAIGN_CACHE_TTL`]; this process's own campaign changes
+    /// are seen at once, another server's within that time).
     pub async fn votes_required(&self, episode_id: &str) -> Result<bool, StoreError> {
+        if self.multi_labeler_policies().await?.is_empty() {
+            return Ok(false);
+        }
         let r = sqlx::query(
             "SELECT c.labels_needed FROM episodes e JOIN campaigns c ON c.policy = e.policy WHERE e.id = $1",
         )
@@ -412,12 +438,23 @@ impl Store {
         Ok(out)
     }
 
-    /// Whether any campaign needs several labelers.
+    /// Whether any campaign needs several labelers (cached as [`Store::votes_required`] says).
     pub async fn any_multi_labeler_campaign(&self) -> Result<bool, StoreError> {
-        let r = sqlx::query("SELECT COUNT(*) AS n FROM campaigns WHERE labels_needed > 1")
-            .fetch_one(&self.db().pool)
+        Ok(!self.multi_labeler_policies().await?.is_empty())
+    }
+
+    /// The policies whose campaign needs several labelers, from the cache when it is fresh.
+    async fn multi_labeler_policies(&self) -> Result<Arc<HashSet<String>>, StoreError> {
+        let cache = &self.inner.multi_labeler;
+        if let Some(p) = cache.fresh() {
+            return Ok(p);
+        }
+        let rows = sqlx::query("SELECT policy FROM campaigns WHERE labels_needed > 1")
+            .fetch_all(&self.db().pool)
             .await?;
-        Ok(r.i("n")? > 0)
+        let policies = Arc::new(rows.iter().map(|r| r.s("policy")).collect::<Result<HashSet<_>, _>>()?);
+        cache.store(policies.clone());
+        Ok(policies)
     }
 
     /// Sets a policy's campaign settings.
@@ -450,6 +487,7 @@ impl Store {
         .await?;
         let c = campaign_in(&mut tx, policy).await?;
         tx.commit().await?;
+        self.inner.multi_labeler.clear();
         Ok(c)
     }
 

@@ -46,7 +46,7 @@ pub use compare::{
 };
 pub use consensus::{
     Agreement, Campaign, ConsensusState, Dispute, EpisodeVotes, LabelerCounts, NewVote, PairAgreement, Span,
-    VerdictData, Vote, VoteOutcome, MAX_FAILURE_CAUSES, MAX_LABELS_NEEDED, MAX_SPANS,
+    VerdictData, Vote, VoteOutcome, CAMPAIGN_CACHE_TTL, MAX_FAILURE_CAUSES, MAX_LABELS_NEEDED, MAX_SPANS,
 };
 pub use counts::{CountFilter, LabelCounts};
 pub use episodes_arrow::{episodes_batch, episodes_schema};
@@ -108,6 +108,9 @@ struct Inner {
     meta_cache: read::MetaCache,
     /// Decoded pages of image columns (frames served one at a time).
     frame_pages: frames::PageCache,
+    /// The policies whose campaign needs several labelers, read at most once a second (every
+    /// label PUT asks: `consensus.rs`).
+    multi_labeler: consensus::MultiLabelerCache,
 }
 
 impl Store {
@@ -133,6 +136,7 @@ impl Store {
                 data_dir: config.data_dir.clone(),
                 meta_cache,
                 frame_pages,
+                multi_labeler: Default::default(),
             }),
         })
     }
