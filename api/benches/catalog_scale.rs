@@ -3,7 +3,8 @@
 //! campaign at a different stage per checkpoint: 0 % to 95 % labeled by the simulator or people),
 //! then, over loopback HTTP against a real server (`api::spawn`), measures p50/p99 of the first
 //! page `GET /v1/episodes?label=unknown&limit=100`, the following pages by cursor, the counts
-//! endpoint, and the labeling page's own queries, on SQLite and on Postgres. A labeler writes
+//! endpoint, the labeling page's own queries and the review orders (every episode scored by its
+//! checkpoint's `classifier@latest`), on SQLite and on Postgres. A labeler writes
 //! labels through the API all along (one write every 20 ms), as in a running campaign. The
 //! reference in the same run: the same counts by `COUNT(*) … GROUP BY` over the rows.
 //!
@@ -23,7 +24,7 @@ const POLICIES: usize = 4;
 const CHECKPOINTS: usize = 5;
 const PER_SOURCE: usize = 1000;
 /// Bump when the fill changes: the cached SQLite catalog is refilled.
-const FILL_FORMAT: u32 = 1;
+const FILL_FORMAT: u32 = 2;
 
 struct Runner;
 impl api::JobRunner for Runner {
@@ -124,6 +125,37 @@ fn fill_sql(backend: Backend, sources: usize) -> Vec<String> {
         sources * PER_SOURCE
     ));
     v.push("UPDATE store_head SET version = 1 WHERE id = 1".into());
+    // The review queue: a classifier per checkpoint, its `latest` alias, a score for every
+    // episode (in 1/1000 steps, so the orders have ties), and the episodes' review scores as
+    // the writes that store scores keep them (store/src/review.rs).
+    let arts: Vec<String> = (0..POLICIES)
+        .flat_map(|p| (0..CHECKPOINTS).map(move |c| (p, c)))
+        .map(|(p, c)| {
+            format!("('bench-{p}-{c}', 'policy-{p}', 'ckpt-{c}', 'classifier', NULL, NULL, 'artifacts/bench-{p}-{c}', '[]', '{{}}', '{now}')")
+        })
+        .collect();
+    v.push(format!(
+        "INSERT INTO artifacts (id, policy, checkpoint, kind, split_id, job_id, prefix, files, config, created_at) VALUES {}",
+        arts.join(", ")
+    ));
+    v.push(format!(
+        "INSERT INTO artifact_aliases (policy, checkpoint, kind, alias, artifact_id, updated_at) \
+         SELECT policy, checkpoint, 'classifier', 'latest', id, '{now}' FROM artifacts"
+    ));
+    v.push(format!(
+        "INSERT INTO episode_scores (artifact_id, episode_id, score, step_scores, job_id, created_at) \
+         SELECT 'bench-' || substr(policy, 8) || '-' || substr(checkpoint, 6), id, \
+         ((source_index * 7919 + length(id) * 31 + unicode_sum) % 1000) / 1000.0, '[]', NULL, '{now}' \
+         FROM (SELECT policy, checkpoint, id, source_index, {ascii} AS unicode_sum FROM episodes) e",
+        ascii = match backend {
+            Backend::Sqlite => "unicode(substr(id, 1, 1)) + unicode(substr(id, 2, 1)) * 3",
+            Backend::Postgres => "ascii(substr(id, 1, 1)) + ascii(substr(id, 2, 1)) * 3",
+        }
+    ));
+    v.push(
+        "UPDATE episodes SET review_score = (SELECT s.score FROM episode_scores s WHERE s.episode_id = episodes.id)"
+            .into(),
+    );
     v
 }
 
@@ -248,7 +280,7 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
             (store, url, Some(schema))
         }
     };
-    let _ = url;
+    let reference_pool = sqlx::any::AnyPoolOptions::new().max_connections(1).connect(&url).await.unwrap();
     let mut cfg = api::ServeConfig::new(tmp.path());
     cfg.addr = "127.0.0.1:0".parse().unwrap();
     cfg.run_worker_in_process = false;
@@ -324,6 +356,30 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
         )
         .await,
         c.repeat("counts  version=1", "/v1/episodes/counts?version=1", requests).await,
+        c.repeat(
+            "review first page  order=uncertain&policy&limit=100",
+            "/v1/episodes?order=uncertain&policy=policy-0&limit=100",
+            requests,
+        )
+        .await,
+        c.walk(
+            "review next page by cursor  order=uncertain&policy&limit=100",
+            "/v1/episodes?order=uncertain&policy=policy-0&limit=100",
+            requests,
+        )
+        .await,
+        c.repeat(
+            "review first page  order=disagreement&policy&limit=100",
+            "/v1/episodes?order=disagreement&policy=policy-0&limit=100",
+            requests,
+        )
+        .await,
+        c.walk(
+            "review next page by cursor  order=disagreement&policy&limit=100",
+            "/v1/episodes?order=disagreement&policy=policy-0&limit=100",
+            requests,
+        )
+        .await,
     ];
     stop.store(true, Ordering::Relaxed);
     labeler.await.unwrap();
@@ -357,6 +413,29 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
     stats.push(Stat {
         what: "reference: COUNT(*) GROUP BY recount (all; policy&checkpoint), no HTTP".into(),
         ms: recount,
+    });
+    // The reference of the review orders: their query before the index (the score joined per
+    // episode, every matching episode sorted), ids only, no HTTP.
+    let mut sorted = Vec::new();
+    for _ in 0..5 {
+        let t = Instant::now();
+        let rows = sqlx::query(
+            "SELECT e.id FROM episodes e LEFT JOIN review_artifacts ra ON ra.policy = e.policy \
+             LEFT JOIN artifact_aliases aa ON aa.policy = e.policy AND aa.checkpoint = e.checkpoint \
+             AND aa.kind = 'classifier' AND aa.alias = 'latest' \
+             LEFT JOIN episode_scores s ON s.episode_id = e.id AND s.artifact_id = COALESCE(ra.artifact_id, aa.artifact_id) \
+             WHERE e.version_removed IS NULL AND e.policy = 'policy-0' \
+             ORDER BY COALESCE(ABS(s.score - 0.5), 9.0), e.id LIMIT 101",
+        )
+        .fetch_all(&reference_pool)
+        .await
+        .unwrap();
+        assert_eq!(rows.len(), 101);
+        sorted.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    stats.push(Stat {
+        what: "reference: review first page by a sort of the policy's episodes, no HTTP".into(),
+        ms: sorted,
     });
     server.shutdown().await.unwrap();
     if let Some(schema) = schema {

@@ -267,6 +267,11 @@ async fn upsert_alias(
     .bind(now)
     .execute(&mut **tx)
     .await?;
+    // The checkpoint's review queue is scored by its `classifier@latest` (unless its policy has
+    // a setting): its episodes' review scores follow the alias.
+    if kind == crate::review::DEFAULT_REVIEW_KIND && alias == crate::review::DEFAULT_REVIEW_ALIAS {
+        crate::review::refresh_review_scores_where(tx, policy, Some(checkpoint)).await?;
+    }
     Ok(())
 }
 

@@ -41,6 +41,8 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (10, "layers", include_str!("../../migrations/sqlite/0010_layers.sql")),
     (11, "episode_takeovers", include_str!("../../migrations/sqlite/0011_episode_takeovers.sql")),
     (12, "policy_aliases", include_str!("../../migrations/sqlite/0012_policy_aliases.sql")),
+    (13, "episode_tags", include_str!("../../migrations/sqlite/0013_episode_tags.sql")),
+    (14, "review_score_index", include_str!("../../migrations/sqlite/0014_review_score_index.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
@@ -59,6 +61,8 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (10, "layers", include_str!("../../migrations/postgres/0010_layers.sql")),
     (11, "episode_takeovers", include_str!("../../migrations/postgres/0011_episode_takeovers.sql")),
     (12, "policy_aliases", include_str!("../../migrations/postgres/0012_policy_aliases.sql")),
+    (13, "episode_tags", include_str!("../../migrations/postgres/0013_episode_tags.sql")),
+    (14, "review_score_index", include_str!("../../migrations/postgres/0014_review_score_index.sql")),
 ];
 
 fn migrator(backend: Backend) -> Migrator {
@@ -433,5 +437,39 @@ mod tests {
         let v1 =
             read("SELECT task, label, n FROM version_counts WHERE version = 1 ORDER BY task, label").await;
         assert_eq!(v1, [s("", "failure", 1), s("reach", "success", 1), s("reach", "unknown", 2)]);
+    }
+
+    /// Migration 0013 indexes the tags of the episodes already stored (each tag once per episode).
+    #[tokio::test]
+    async fn migration_0013_backfills_the_tag_index() {
+        let dir = tempfile::tempdir().unwrap();
+        let url = format!("sqlite://{}/catalog.sqlite?mode=rwc", dir.path().display());
+        sqlx::any::install_default_drivers();
+        let pool = AnyPoolOptions::new().max_connections(1).connect(&url).await.unwrap();
+        migrator_of(&SQLITE_MIGRATIONS[..12]).run(&pool).await.unwrap();
+        sqlx::query("PRAGMA foreign_keys = OFF").execute(&pool).await.unwrap();
+        for (id, tags) in [("e-1", r#"["a","b"]"#), ("e-2", "[]"), ("e-3", r#"["a","a","c d"]"#)] {
+            sqlx::query(
+                "INSERT INTO episodes (id, policy, checkpoint, task, source_sha256, source_name, source_index, length, \
+                 tags, metadata, data_file, row_group, row_offset, row_count, version_added, label, label_source, \
+                 label_revision, label_actor, label_updated_at, created_at) VALUES ($1, 'p', 'c', NULL, 'x', 'demo', \
+                 0, 1, $2, '{}', 'steps/a.parquet', 0, 0, 1, 1, 'unknown', '', 1, 'ingest', 'now', 'now')",
+            )
+            .bind(id)
+            .bind(tags)
+            .execute(&pool)
+            .await
+            .unwrap();
+        }
+        pool.close().await;
+        let cat = Catalog::connect(&url).await.unwrap();
+        let rows = sqlx::query("SELECT tag, episode_id FROM episode_tags ORDER BY tag, episode_id")
+            .fetch_all(&cat.pool)
+            .await
+            .unwrap();
+        let got: Vec<(String, String)> =
+            rows.iter().map(|r| (r.try_get("tag").unwrap(), r.try_get("episode_id").unwrap())).collect();
+        let want = [("a", "e-1"), ("a", "e-3"), ("b", "e-1"), ("c d", "e-3")];
+        assert_eq!(got, want.map(|(t, e)| (t.to_string(), e.to_string())));
     }
 }

@@ -604,6 +604,13 @@ impl IngestWriter {
             "",
         )
         .await?;
+        // The tag index (`tag=` filters).
+        let mut tag_rows: Vec<Vec<Val>> = Vec::new();
+        for (e, id) in self.episodes.iter().zip(ids) {
+            let tags: std::collections::BTreeSet<String> = serde_json::from_str(&e.tags)?;
+            tag_rows.extend(tags.into_iter().map(|t| vec![t.into(), id.as_str().into()]));
+        }
+        insert_rows(tx, "episode_tags", &["tag", "episode_id"], tag_rows, "").await?;
         Ok(())
     }
 

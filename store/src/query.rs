@@ -144,8 +144,10 @@ pub(crate) fn episode_conds(filter: &EpisodeFilter, args: &mut Vec<Val>) -> Resu
         conds.push(format!("e.task = {}", push_arg(args, Val::S(t.clone()))));
     }
     if let Some(t) = &filter.tag {
-        let pat = format!("%{}%", serde_json::to_string(t)?);
-        conds.push(format!("e.tags LIKE {}", push_arg(args, Val::S(pat))));
+        conds.push(format!(
+            "e.id IN (SELECT episode_id FROM episode_tags WHERE tag = {})",
+            push_arg(args, Val::S(t.clone()))
+        ));
     }
     Ok(conds)
 }

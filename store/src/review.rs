@@ -2,7 +2,7 @@
 //! per artifact and episode: the mean step score and the per-step series), the artifact that
 //! scores each policy's queue, and the queue itself ordered by those stored scores.
 
-use crate::catalog::{bind_val, insert_rows, RowExt, Val};
+use crate::catalog::{bind_val, insert_rows, RowExt, Tx, Val};
 use crate::query::{
     episode_conds, episode_from_row, label_conds, push_arg, EpisodeFilter, EpisodeRecord, EPISODE_SELECT,
 };
@@ -44,12 +44,15 @@ impl ReviewOrder {
     /// The SQL sort key (lower first) over the label columns of table alias `lab`. Numeric keys
     /// stay below 8 for scored episodes; 8 marks a scored but unlabeled episode (disagreement)
     /// and 9 an unscored one.
+    ///
+    /// Over the current labels (`lab` = `e`) these are, to the character, the expressions of
+    /// migration 0014's indexes, which is what lets a policy's page walk them.
     fn key_sql(self, lab: &str) -> String {
         match self {
-            ReviewOrder::Uncertain => "COALESCE(ABS(s.score - 0.5), 9.0)".into(),
+            ReviewOrder::Uncertain => "COALESCE(ABS(e.review_score - 0.5), 9.0)".into(),
             ReviewOrder::Disagreement => format!(
-                "CASE WHEN s.score IS NULL THEN 9.0 WHEN {lab}.label = 'success' THEN s.score - 1.0 \
-                 WHEN {lab}.label = 'failure' THEN 0.0 - s.score ELSE 8.0 END"
+                "CASE WHEN e.review_score IS NULL THEN 9.0 WHEN {lab}.label = 'success' THEN e.review_score - 1.0 \
+                 WHEN {lab}.label = 'failure' THEN 0.0 - e.review_score ELSE 8.0 END"
             ),
             ReviewOrder::Source => format!("{lab}.label_source"),
         }
@@ -93,11 +96,50 @@ pub struct ReviewArtifact {
 }
 
 /// The artifact each episode row `e` is scored by: its policy's override, else its checkpoint's
-/// default alias.
+/// default alias (its score by it is `e.review_score`, see [`REFRESH_REVIEW_SCORE`]).
 const REVIEW_JOINS: &str = "LEFT JOIN review_artifacts ra ON ra.policy = e.policy \
      LEFT JOIN artifact_aliases aa ON aa.policy = e.policy AND aa.checkpoint = e.checkpoint \
-     AND aa.kind = 'classifier' AND aa.alias = 'latest' \
-     LEFT JOIN episode_scores s ON s.episode_id = e.id AND s.artifact_id = COALESCE(ra.artifact_id, aa.artifact_id)";
+     AND aa.kind = 'classifier' AND aa.alias = 'latest'";
+
+/// Sets `episodes.review_score` to the episode's stored score by its review artifact (the
+/// policy's setting, else its checkpoint's `classifier@latest`), NULL without one, for the rows
+/// a condition appended to this statement picks. Every write that can change that score runs it
+/// in its own transaction: scores stored, the policy's setting, the `latest` classifier alias
+/// moving (a new episode has no stored score: its id is new). The same rule as
+/// [`REVIEW_JOINS`] and migration 0014's backfill.
+pub(crate) const REFRESH_REVIEW_SCORE: &str = "UPDATE episodes SET review_score = (\
+     SELECT s.score FROM episode_scores s WHERE s.episode_id = episodes.id AND s.artifact_id = COALESCE(\
+     (SELECT ra.artifact_id FROM review_artifacts ra WHERE ra.policy = episodes.policy), \
+     (SELECT aa.artifact_id FROM artifact_aliases aa WHERE aa.policy = episodes.policy \
+     AND aa.checkpoint = episodes.checkpoint AND aa.kind = 'classifier' AND aa.alias = 'latest'))) WHERE ";
+
+/// [`REFRESH_REVIEW_SCORE`] for the episodes `ids` (in statements of at most 500 ids).
+pub(crate) async fn refresh_review_scores_of(tx: &mut Tx, ids: &[String]) -> Result<(), StoreError> {
+    for chunk in ids.chunks(500) {
+        let marks: Vec<String> = (1..=chunk.len()).map(|i| format!("${i}")).collect();
+        let sql = format!("{REFRESH_REVIEW_SCORE}id IN ({})", marks.join(", "));
+        let mut q = sqlx::query(&sql);
+        for id in chunk {
+            q = q.bind(id);
+        }
+        q.execute(&mut **tx).await?;
+    }
+    Ok(())
+}
+
+/// [`REFRESH_REVIEW_SCORE`] for a policy's episodes, or one checkpoint's.
+pub(crate) async fn refresh_review_scores_where(
+    tx: &mut Tx,
+    policy: &str,
+    checkpoint: Option<&str>,
+) -> Result<(), StoreError> {
+    let sql = match checkpoint {
+        Some(_) => format!("{REFRESH_REVIEW_SCORE}policy = $1 AND checkpoint = $2"),
+        None => format!("{REFRESH_REVIEW_SCORE}policy = $1"),
+    };
+    sqlx::query(&sql).bind(policy).bind(checkpoint).execute(&mut **tx).await?;
+    Ok(())
+}
 
 impl Store {
     /// Stores episode scores of `artifact_id` (replacing earlier ones): `(episode, mean step
@@ -113,6 +155,7 @@ impl Store {
         }
         let now = now_rfc3339();
         let mut vals = Vec::with_capacity(rows.len());
+        let ids: Vec<String> = rows.iter().map(|(e, _, _)| e.clone()).collect();
         for (episode, score, steps) in rows {
             if !score.is_finite() || steps.iter().any(|x| !x.is_finite()) {
                 return Err(StoreError::invalid(format!("episode {episode}: a score is not finite")));
@@ -136,6 +179,7 @@ impl Store {
              step_scores = excluded.step_scores, job_id = excluded.job_id, created_at = excluded.created_at",
         )
         .await?;
+        refresh_review_scores_of(&mut tx, &ids).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -169,6 +213,7 @@ impl Store {
     ) -> Result<ReviewArtifact, StoreError> {
         let a = self.resolve_artifact(reference).await?;
         let now = now_rfc3339();
+        let mut tx = self.db().begin_write().await?;
         sqlx::query(
             "INSERT INTO review_artifacts (policy, artifact_id, updated_by, updated_at) VALUES ($1, $2, $3, $4) \
              ON CONFLICT (policy) DO UPDATE SET artifact_id = excluded.artifact_id, updated_by = excluded.updated_by, \
@@ -178,8 +223,10 @@ impl Store {
         .bind(&a.id)
         .bind(actor)
         .bind(&now)
-        .execute(&self.db().pool)
+        .execute(&mut *tx)
         .await?;
+        refresh_review_scores_where(&mut tx, policy, None).await?;
+        tx.commit().await?;
         Ok(ReviewArtifact {
             policy: policy.into(),
             artifact_id: a.id,
@@ -190,10 +237,15 @@ impl Store {
 
     /// Back to the default (each checkpoint's `classifier@latest`); false when none was set.
     pub async fn clear_review_artifact(&self, policy: &str) -> Result<bool, StoreError> {
+        let mut tx = self.db().begin_write().await?;
         let r = sqlx::query("DELETE FROM review_artifacts WHERE policy = $1")
             .bind(policy)
-            .execute(&self.db().pool)
+            .execute(&mut *tx)
             .await?;
+        if r.rows_affected() > 0 {
+            refresh_review_scores_where(&mut tx, policy, None).await?;
+        }
+        tx.commit().await?;
         Ok(r.rows_affected() > 0)
     }
 
@@ -273,9 +325,10 @@ impl Store {
     /// The episodes matching `filter` (its `id` and `after` must be unset), now or as a past
     /// `version` froze them (its episodes and labels), in review `order` by the current scores, a
     /// keyset page after `cursor` (an entry's `cursor`). Any text is a position: one that is not
-    /// a position of this order lies past its end (an empty page). Sorting needs every matching
-    /// episode's key, so a page costs a scan of the filtered episodes (fine for a campaign's
-    /// thousands; the filters narrow it).
+    /// a position of this order lies past its end (an empty page). A policy's `uncertain` and
+    /// `disagreement` pages of the current labels walk an index on the order's key (migration
+    /// 0014: a page costs its rows, plus those the other filters skip); without a policy, at a
+    /// past version or in `source` order, a page sorts the filtered episodes.
     pub async fn review_queue(
         &self,
         filter: &EpisodeFilter,
@@ -312,7 +365,7 @@ impl Store {
         let (lab, labels_from) = self.review_labels_from(filter.version, &mut args).await?;
         let key = order.key_sql(lab);
         let mut sql = format!(
-            "{EPISODE_SELECT}s.score AS review_score, COALESCE(ra.artifact_id, aa.artifact_id) AS review_artifact, {}",
+            "{EPISODE_SELECT}e.review_score AS review_score, COALESCE(ra.artifact_id, aa.artifact_id) AS review_artifact, {}",
             labels_from.replace("{key}", &format!("{key} AS review_key"))
         );
         let mut conds = label_conds(filter, lab, &mut args);
@@ -379,8 +432,9 @@ fn cursor_cond(order: ReviewOrder, key: &str, cursor: &str, args: &mut Vec<Val>)
     } else {
         Val::S(k.to_string())
     };
-    let (pk, pk2, pid) = (push_arg(args, kv.clone()), push_arg(args, kv), push_arg(args, Val::S(id.into())));
-    Some(format!("({key} > {pk} OR ({key} = {pk2} AND e.id > {pid}))"))
+    // A row value: both catalogs walk an index on (…, key, id) from it.
+    let (pk, pid) = (push_arg(args, kv), push_arg(args, Val::S(id.into())));
+    Some(format!("({key}, e.id) > ({pk}, {pid})"))
 }
 
 /// One queue entry from a row of [`Store::review_queue`]'s statement.
@@ -394,4 +448,41 @@ fn review_entry_from_row(r: &sqlx::any::AnyRow, order: ReviewOrder) -> Result<Re
         score: r.try_get::<Option<f64>, _>("review_score")?,
         episode,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::StoreConfig;
+
+    /// A policy's page of either order, first or after a cursor, walks the order's index of
+    /// migration 0014: SQLite's plan names it and sorts nothing.
+    #[tokio::test]
+    async fn a_policys_page_walks_its_orders_index() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(&StoreConfig::local(dir.path())).await.unwrap();
+        let filter = EpisodeFilter { policy: Some("p".into()), ..Default::default() };
+        for (order, index) in [
+            (ReviewOrder::Uncertain, "episodes_review_uncertain"),
+            (ReviewOrder::Disagreement, "episodes_review_disagreement"),
+        ] {
+            for cursor in [None, Some("0.25|e-1")] {
+                let (sql, args) = store.review_queue_sql(&filter, order, cursor, 50).await.unwrap().unwrap();
+                let explain = format!("EXPLAIN QUERY PLAN {sql}");
+                let mut q = sqlx::query(&explain);
+                for a in args {
+                    q = bind_val(q, a);
+                }
+                let plan: Vec<String> = q
+                    .fetch_all(&store.db().pool)
+                    .await
+                    .unwrap()
+                    .iter()
+                    .map(|r| r.s("detail").unwrap())
+                    .collect();
+                assert!(plan.iter().any(|d| d.contains(index)), "{order:?} {cursor:?}: {plan:?}");
+                assert!(!plan.iter().any(|d| d.contains("TEMP B-TREE")), "{order:?} {cursor:?}: {plan:?}");
+            }
+        }
+    }
 }

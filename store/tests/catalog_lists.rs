@@ -384,3 +384,44 @@ async fn pages_cover_every_episode_once_sqlite() {
 async fn pages_cover_every_episode_once_postgres() {
     pages_cover_every_episode_once(Backend::Postgres).await;
 }
+
+/// `tag=` matches whole tags, through the tag index: not a tag that merely contains it, nor JSON
+/// punctuation; an episode with a tag twice is listed once; pages and versions filter alike.
+async fn tag_filter_matches_whole_tags(db: Backend) {
+    let dir = tempfile::tempdir().unwrap();
+    let store = open(db, dir.path()).await;
+    let tag_sets: [&[&str]; 6] =
+        [&["eval"], &["eval", "night"], &["evaluation"], &[], &["a\"b", "100%"], &["eval", "eval"]];
+    let mut w = store.begin_ingest(test_support::source("tags"), "pol", "c1").await.unwrap();
+    let mut ids = Vec::new();
+    for (i, tags) in tag_sets.iter().enumerate() {
+        let mut ep = test_support::two_step_episode(i as u32, Some("reach"), Label::Success);
+        ep.tags = tags.iter().map(|t| t.to_string()).collect();
+        ids.push(w.add_episode(ep).await.unwrap());
+    }
+    w.commit("tagged").await.unwrap();
+    let listed = |tag: &str, version: Option<i64>, limit: Option<i64>| {
+        let store = store.clone();
+        let f = EpisodeFilter { tag: Some(tag.to_string()), version, limit, ..Default::default() };
+        async move { store.episodes(&f).await.unwrap().into_iter().map(|e| e.id).collect::<BTreeSet<_>>() }
+    };
+    let want = |ix: &[usize]| ix.iter().map(|&i| ids[i].clone()).collect::<BTreeSet<_>>();
+    assert_eq!(listed("eval", None, None).await, want(&[0, 1, 5]));
+    assert_eq!(listed("eval", Some(1), None).await, want(&[0, 1, 5]));
+    assert_eq!(listed("night", None, None).await, want(&[1]));
+    assert_eq!(listed("a\"b", None, None).await, want(&[4]));
+    assert_eq!(listed("100%", None, None).await, want(&[4]));
+    for none in ["eva", "val", "%", "\"", ","] {
+        assert!(listed(none, None, None).await.is_empty(), "{none:?}");
+    }
+    assert_eq!(listed("eval", None, Some(2)).await.len(), 2);
+}
+
+#[tokio::test]
+async fn tag_filter_matches_whole_tags_sqlite() {
+    tag_filter_matches_whole_tags(Backend::Sqlite).await;
+}
+#[tokio::test]
+async fn tag_filter_matches_whole_tags_postgres() {
+    tag_filter_matches_whole_tags(Backend::Postgres).await;
+}

@@ -7,6 +7,7 @@ mod catalog_lists;
 mod compare;
 mod gc_in_flight;
 mod job_fencing;
+mod review_index;
 mod scoreboard;
 mod split_sample;
 mod store;
