@@ -409,15 +409,17 @@ fn scoreboard_rows(
             }
         })
         .collect();
-    // The baseline first within each checkpoint and task, then by run name.
+    // The baseline first within each checkpoint and task, then by run name. Checkpoints and runs
+    // sort naturally, numbers by value: `e100, e600, e1000` and `bon4, bon8, bon16`.
+    fn natural(a: &str, b: &str) -> std::cmp::Ordering {
+        alphanumeric_sort::compare_str(a, b)
+    }
     rows.sort_by(|a, b| {
-        (&a.checkpoint, &a.task, !a.is_baseline, &a.run_name, a.run.as_ref().map(|r| &r.id)).cmp(&(
-            &b.checkpoint,
-            &b.task,
-            !b.is_baseline,
-            &b.run_name,
-            b.run.as_ref().map(|r| &r.id),
-        ))
+        natural(&a.checkpoint, &b.checkpoint)
+            .then_with(|| a.task.cmp(&b.task))
+            .then_with(|| b.is_baseline.cmp(&a.is_baseline))
+            .then_with(|| natural(&a.run_name, &b.run_name))
+            .then_with(|| a.run.as_ref().map(|r| &r.id).cmp(&b.run.as_ref().map(|r| &r.id)))
     });
     rows
 }

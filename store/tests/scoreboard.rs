@@ -279,3 +279,27 @@ async fn postgres_runs_and_scoreboard() {
     let dir = tempfile::tempdir().unwrap();
     runs_and_scoreboard(open(Backend::Postgres, dir.path()).await).await;
 }
+
+/// Checkpoints and runs sort by their numbers' values, the baseline first in each checkpoint.
+#[tokio::test]
+async fn rows_sort_naturally() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = open(Backend::Sqlite, dir.path()).await;
+    for ckpt in ["e1000", "e600"] {
+        for (k, run) in ["bon16", "bon4", "base", "bon8"].into_iter().enumerate() {
+            let steering = if run == "base" { Steering::Base } else { Steering::Bon { n: 4 } };
+            let tag = format!("{ckpt}-{run}");
+            ingest(&store, &tag, ckpt, Some(RunInput::new(run, steering)), 1 + k as u32, &[Label::Success])
+                .await
+                .unwrap();
+        }
+    }
+    let req = ScoreboardRequest { policy: "pol".into(), task: Some("push".into()), ..Default::default() };
+    let rows: Vec<(String, String)> =
+        store.scoreboard(&req).await.unwrap().rows.into_iter().map(|r| (r.checkpoint, r.run_name)).collect();
+    let want: Vec<(String, String)> = ["e600", "e1000"]
+        .into_iter()
+        .flat_map(|c| ["base", "bon4", "bon8", "bon16"].map(|r| (c.to_string(), r.to_string())))
+        .collect();
+    assert_eq!(rows, want);
+}
