@@ -97,6 +97,20 @@ pub fn require_postgres() -> bool {
     require(Tool::Postgres, postgres_reachable())
 }
 
+/// A store in `dir` on `db`: its SQLite catalog there, or a fresh Postgres schema named after
+/// `schema_prefix` (the test Postgres must answer: callers that may skip ask [`require_postgres`]
+/// first).
+pub async fn open_test_store(db: crate::Backend, dir: &std::path::Path, schema_prefix: &str) -> crate::Store {
+    let database_url = match db {
+        crate::Backend::Sqlite => None,
+        crate::Backend::Postgres => {
+            Some(crate::create_test_schema(schema_prefix).await.expect("the Postgres tests need a server"))
+        }
+    };
+    let cfg = crate::StoreConfig { data_dir: dir.into(), database_url, object_store_url: None };
+    crate::Store::open(&cfg).await.expect("open the test store")
+}
+
 /// Ok when `python3` imports every module in `modules`.
 pub fn python_modules(modules: &[&str]) -> Result<(), String> {
     let what = format!("python3 with {}", modules.join(", "));

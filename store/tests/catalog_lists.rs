@@ -23,18 +23,6 @@ impl Rng {
     }
 }
 
-async fn open(db: Backend, dir: &std::path::Path) -> Store {
-    let cfg = match db {
-        Backend::Sqlite => StoreConfig::local(dir),
-        Backend::Postgres => StoreConfig {
-            data_dir: dir.into(),
-            database_url: Some(create_test_schema("lists").await.expect("the Postgres tests need a server")),
-            object_store_url: None,
-        },
-    };
-    Store::open(&cfg).await.unwrap()
-}
-
 /// Ingests `n` episodes of `policy/ckpt` with a mix of tasks (one in five has none) and labels.
 async fn ingest(store: &Store, tag: &str, policy: &str, ckpt: &str, n: u32) -> Vec<String> {
     let src = SourceInput {
@@ -98,7 +86,7 @@ fn upd(id: &str, label: Label) -> LabelUpdate {
 
 async fn counts_follow_every_write(db: Backend) {
     let dir = tempfile::tempdir().unwrap();
-    let store = open(db, dir.path()).await;
+    let store = test_support::open_test_store(db, dir.path(), "lists").await;
     let c = store.episode_counts(&CountFilter::default()).await.unwrap();
     assert_eq!(c, LabelCounts::default(), "an empty store counts nothing");
     let a = ingest(&store, "lists-a", "pol", "c1", 40).await;
@@ -172,7 +160,7 @@ async fn counts_follow_every_write(db: Backend) {
 /// rows, and the counts still equal a recount.
 async fn counts_under_concurrent_writers(db: Backend) {
     let dir = tempfile::tempdir().unwrap();
-    let store = open(db, dir.path()).await;
+    let store = test_support::open_test_store(db, dir.path(), "lists").await;
     let mut ids = ingest(&store, "conc-a", "pol", "c1", 12).await;
     ids.extend(ingest(&store, "conc-b", "pol", "c2", 12).await);
     let mut tasks = Vec::new();
@@ -236,7 +224,7 @@ async fn walk(
 
 async fn pages_cover_every_episode_once(db: Backend) {
     let dir = tempfile::tempdir().unwrap();
-    let store = open(db, dir.path()).await;
+    let store = test_support::open_test_store(db, dir.path(), "lists").await;
     let mut ids = ingest(&store, "pages-a", "pol", "c1", 45).await;
     ids.extend(ingest(&store, "pages-b", "pol", "c2", 38).await);
     ids.extend(ingest(&store, "pages-o", "other", "c1", 20).await);
@@ -389,7 +377,7 @@ async fn pages_cover_every_episode_once_postgres() {
 /// punctuation; an episode with a tag twice is listed once; pages and versions filter alike.
 async fn tag_filter_matches_whole_tags(db: Backend) {
     let dir = tempfile::tempdir().unwrap();
-    let store = open(db, dir.path()).await;
+    let store = test_support::open_test_store(db, dir.path(), "lists").await;
     let tag_sets: [&[&str]; 6] =
         [&["eval"], &["eval", "night"], &["evaluation"], &[], &["a\"b", "100%"], &["eval", "eval"]];
     let mut w = store.begin_ingest(test_support::source("tags"), "pol", "c1").await.unwrap();

@@ -7,20 +7,6 @@
 use evalstats::{compare_pairs, Pair, SequentialConfig};
 use store::*;
 
-async fn open(db: Backend, dir: &std::path::Path) -> Store {
-    let cfg = match db {
-        Backend::Sqlite => StoreConfig::local(dir),
-        Backend::Postgres => StoreConfig {
-            data_dir: dir.into(),
-            database_url: Some(
-                create_test_schema("compare").await.expect("the Postgres tests need a server"),
-            ),
-            object_store_url: None,
-        },
-    };
-    Store::open(&cfg).await.unwrap()
-}
-
 use evalstats::splitmix::SplitMix64 as Rng;
 
 /// A run's rollouts: per initial condition i (`pair_key` "ic{i}"), a difficulty u_i shared by
@@ -261,7 +247,7 @@ fn close(a: &serde_json::Value, b: &serde_json::Value, at: &str) {
 #[tokio::test]
 async fn sqlite_compare_and_gate() {
     let dir = tempfile::tempdir().unwrap();
-    compare_and_gate(open(Backend::Sqlite, dir.path()).await).await;
+    compare_and_gate(test_support::open_test_store(Backend::Sqlite, dir.path(), "compare").await).await;
 }
 
 #[tokio::test]
@@ -270,5 +256,5 @@ async fn postgres_compare_and_gate() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    compare_and_gate(open(Backend::Postgres, dir.path()).await).await;
+    compare_and_gate(test_support::open_test_store(Backend::Postgres, dir.path(), "compare").await).await;
 }

@@ -8,33 +8,15 @@
 use std::collections::HashMap;
 use store::*;
 
-struct Rng(u64);
+struct Rng(evalstats::splitmix::SplitMix64);
 impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        self.0
-    }
     fn below(&mut self, n: usize) -> usize {
-        (self.next() % n as u64) as usize
+        (self.0.next_u64() % n as u64) as usize
     }
     /// Scores with ties and the exact midpoint, so the tie-break by id is exercised.
     fn score(&mut self) -> f64 {
         [0.5, 0.25, 0.75, 0.9, 0.1, 0.5, 0.625][self.below(7)]
     }
-}
-
-async fn open(db: Backend, dir: &std::path::Path) -> Store {
-    let cfg = match db {
-        Backend::Sqlite => StoreConfig::local(dir),
-        Backend::Postgres => StoreConfig {
-            data_dir: dir.into(),
-            database_url: Some(create_test_schema("review").await.expect("the Postgres tests need a server")),
-            object_store_url: None,
-        },
-    };
-    Store::open(&cfg).await.unwrap()
 }
 
 /// Publishes a classifier for `policy/checkpoint` (distinct bytes per `n`: a new artifact).
@@ -124,7 +106,7 @@ async fn check(store: &Store, step: &str) {
 
 async fn review_orders_follow_every_write(db: Backend) {
     let dir = tempfile::tempdir().unwrap();
-    let store = open(db, dir.path()).await;
+    let store = test_support::open_test_store(db, dir.path(), "review").await;
     let mut ids = Vec::new();
     for (n, (policy, ckpt)) in [("pol", "c1"), ("pol", "c2"), ("other", "c1")].into_iter().enumerate() {
         let mut w = store.begin_ingest(test_support::source(&format!("src{n}")), policy, ckpt).await.unwrap();
@@ -137,7 +119,7 @@ async fn review_orders_follow_every_write(db: Backend) {
         }
         w.commit("episodes").await.unwrap();
     }
-    let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+    let mut rng = Rng(evalstats::splitmix::SplitMix64(0x9e37_79b9_7f4a_7c15));
     let mut artifacts = vec![publish(&store, "pol", "c1", 0).await];
     check(&store, "no scores").await;
     let mut published = 1;

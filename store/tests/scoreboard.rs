@@ -7,20 +7,6 @@
 use std::collections::BTreeMap;
 use store::*;
 
-async fn open(db: Backend, dir: &std::path::Path) -> Store {
-    let cfg = match db {
-        Backend::Sqlite => StoreConfig::local(dir),
-        Backend::Postgres => StoreConfig {
-            data_dir: dir.into(),
-            database_url: Some(
-                create_test_schema("scoreboard").await.expect("the Postgres tests need a server"),
-            ),
-            object_store_url: None,
-        },
-    };
-    Store::open(&cfg).await.unwrap()
-}
-
 /// Ingests `n` episodes of `pol/ckpt` as `run`; episode i's label is `labels[i % len]`.
 async fn ingest(
     store: &Store,
@@ -268,7 +254,7 @@ async fn runs_and_scoreboard(store: Store) {
 #[tokio::test]
 async fn sqlite_runs_and_scoreboard() {
     let dir = tempfile::tempdir().unwrap();
-    runs_and_scoreboard(open(Backend::Sqlite, dir.path()).await).await;
+    runs_and_scoreboard(test_support::open_test_store(Backend::Sqlite, dir.path(), "scoreboard").await).await;
 }
 
 #[tokio::test]
@@ -277,14 +263,15 @@ async fn postgres_runs_and_scoreboard() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    runs_and_scoreboard(open(Backend::Postgres, dir.path()).await).await;
+    runs_and_scoreboard(test_support::open_test_store(Backend::Postgres, dir.path(), "scoreboard").await)
+        .await;
 }
 
 /// Checkpoints and runs sort by their numbers' values, the baseline first in each checkpoint.
 #[tokio::test]
 async fn rows_sort_naturally() {
     let dir = tempfile::tempdir().unwrap();
-    let store = open(Backend::Sqlite, dir.path()).await;
+    let store = test_support::open_test_store(Backend::Sqlite, dir.path(), "scoreboard").await;
     for ckpt in ["e1000", "e600"] {
         for (k, run) in ["bon16", "bon4", "base", "bon8"].into_iter().enumerate() {
             let steering = if run == "base" { Steering::Base } else { Steering::Bon { n: 4 } };
