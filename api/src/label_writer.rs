@@ -1,8 +1,9 @@
-//! Group commit of single-label PUTs on SQLite.
+//! Group commit of single-label PUTs, on both catalogs.
 //!
-//! SQLite has one writer, and a label write is a few microseconds of SQL wrapped in a
-//! transaction whose fixed costs (BEGIN IMMEDIATE, COMMIT, the hand-offs to sqlx's connection
-//! thread) dominate. So concurrent `PUT /v1/episodes/{id}/label` requests are queued to one writer
+//! A label write is a few microseconds of SQL wrapped in a transaction whose fixed costs
+//! dominate: on SQLite its one writer (BEGIN IMMEDIATE, COMMIT, the hand-offs to sqlx's connection
+//! thread), on Postgres the commit's WAL flush, during which the write holds the row locks of the
+//! maintained counts every other write of that checkpoint needs. So concurrent `PUT /v1/episodes/{id}/label` requests are queued to one writer
 //! task, which takes everything waiting (up to [`MAX_BATCH`]) and commits it in ONE transaction
 //! with [`store::Store::set_labels_each`]: each request keeps its own outcome — its If-Match check
 //! against the revision at the moment its item runs, its 409 with the current label and who set
@@ -12,13 +13,13 @@
 //! retried one transaction each, so every request gets its own answer.
 //!
 //! The writer takes the API's SQLite write gate for each batch, so it queues behind bulk label
-//! writes and snapshots instead of spinning in SQLite's busy handler. On Postgres, PUTs keep one
-//! transaction each (row locks let them run in parallel over the pool); see api/README.md for
-//! the measurement.
+//! writes and snapshots instead of spinning in SQLite's busy handler. On Postgres (no gate) the
+//! batch locks its episodes in id order, so batches of several servers cannot deadlock; one
+//! transaction per PUT was measured slower there (api/README.md).
 
 use crate::{AppState, Inner};
 use std::sync::{Arc, OnceLock, Weak};
-use store::{Backend, LabelChange, LabelUpdate, StoreError};
+use store::{LabelChange, LabelUpdate, StoreError};
 use tokio::sync::{mpsc, oneshot};
 
 /// The most label writes committed in one transaction.
@@ -42,15 +43,12 @@ pub(crate) struct LabelWriter {
 }
 
 /// Sets one label (source `human`) with the semantics of [`store::Store::set_label`], through
-/// the group-commit writer on SQLite.
+/// the group-commit writer.
 pub(crate) async fn set_label(
     state: &AppState,
     update: LabelUpdate,
     actor: &str,
 ) -> Result<LabelChange, StoreError> {
-    if state.store().backend() != Backend::Sqlite {
-        return state.store().set_label(update, actor, "human").await;
-    }
     let queue = state.inner.label_writer.queue.get_or_init(|| {
         let (tx, rx) = mpsc::channel(QUEUE_DEPTH);
         tokio::spawn(run(Arc::downgrade(&state.inner), rx));

@@ -65,7 +65,7 @@ pub async fn put_label(
         expect_revision: Some(expect),
         note: body.note,
     };
-    // SQLite: group-committed with concurrent PUTs (one transaction per batch, one outcome each).
+    // Group-committed with concurrent PUTs (one transaction per batch, one outcome each).
     let change = crate::label_writer::set_label(&s, update, &caller.name).await;
     let change = s.count_label_result(change)?;
     let rev = change.revision;
