@@ -1,9 +1,10 @@
 //! Group commit of single-label PUTs, on both catalogs.
 //!
 //! A label write is a few microseconds of SQL wrapped in a transaction whose fixed costs
-//! dominate: on SQLite its one writer (BEGIN IMMEDIATE, COMMIT, the hand-offs to sqlx's connection
-//! thread), on Postgres the commit's WAL flush, during which the write holds the row locks of the
-//! maintained counts every other write of that checkpoint needs. So concurrent `PUT /v1/episodes/{id}/label` requests are queued to one writer
+//! dominate: on SQLite its one writer (BEGIN IMMEDIATE, COMMIT, the hand-offs to sqlx's
+//! connection thread), on Postgres the commit's WAL flush, during which the write holds the row
+//! locks of the maintained counts every other write of that checkpoint needs. So concurrent
+//! `PUT /v1/episodes/{id}/label` requests are queued to one writer
 //! task, which takes everything waiting (up to [`MAX_BATCH`]) and commits it in ONE transaction
 //! with [`store::Store::set_labels_each`]: each request keeps its own outcome — its If-Match check
 //! against the revision at the moment its item runs, its 409 with the current label and who set

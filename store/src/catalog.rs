@@ -275,6 +275,11 @@ pub(crate) fn bind_val<'q>(
     }
 }
 
+/// `$1, $2, …, $n`: the parameters of an `IN (…)` list of `n` values.
+pub(crate) fn placeholders(n: usize) -> String {
+    (1..=n).map(|i| format!("${i}")).collect::<Vec<_>>().join(", ")
+}
+
 /// Inserts many rows in batches of multi-row `INSERT`s (`suffix` may add `ON CONFLICT DO NOTHING`).
 pub(crate) async fn insert_rows(
     tx: &mut Tx,

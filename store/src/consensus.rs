@@ -415,10 +415,9 @@ impl Store {
     ) -> Result<std::collections::HashMap<String, Value>, StoreError> {
         let mut out = std::collections::HashMap::new();
         for chunk in keys.chunks(500) {
-            let marks: Vec<String> = (1..=chunk.len()).map(|i| format!("${i}")).collect();
             let sql = format!(
                 "SELECT episode_id, revision, data FROM label_events WHERE data IS NOT NULL AND episode_id IN ({})",
-                marks.join(", ")
+                crate::catalog::placeholders(chunk.len())
             );
             let mut q = sqlx::query(&sql);
             for (id, _) in chunk {

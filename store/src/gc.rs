@@ -90,12 +90,10 @@ impl Store {
             })?;
         // List first, then read the references: an object committed in between is then
         // seen as referenced, never deleted.
-        let (records, objects): (Vec<_>, Vec<_>) = self
-            .objects()
-            .list_all()
-            .await?
-            .into_iter()
-            .partition(|o| o.path.starts_with(&format!("{}/", crate::objects::UPLOADS_PREFIX)));
+        // Upload records (S3 multipart uploads in flight) are not data objects: handled apart.
+        let record_prefix = format!("{}/", crate::objects::UPLOADS_PREFIX);
+        let (records, objects): (Vec<_>, Vec<_>) =
+            self.objects().list_all().await?.into_iter().partition(|o| o.path.starts_with(&record_prefix));
         let referenced = self.referenced_objects().await?;
         // An export's files are referenced by its job (store/src/exports.rs).
         let live_exports = self.live_export_ids().await?;

@@ -236,12 +236,11 @@ impl Store {
         }
         let mut found: HashMap<String, EpisodeLocation> = HashMap::with_capacity(ids.len());
         for chunk in ids.chunks(IDS_PER_QUERY) {
-            let marks: Vec<String> = (1..=chunk.len()).map(|i| format!("${i}")).collect();
             let sql = format!(
                 "SELECT id, data_file, row_group, COALESCE(row_offset, 0) AS row_offset, \
                  COALESCE(row_count, length) AS row_count, version_added, version_removed \
                  FROM episodes WHERE id IN ({})",
-                marks.join(", ")
+                crate::catalog::placeholders(chunk.len())
             );
             let mut q = sqlx::query(&sql);
             for id in chunk {

@@ -116,8 +116,7 @@ pub(crate) const REFRESH_REVIEW_SCORE: &str = "UPDATE episodes SET review_score 
 /// [`REFRESH_REVIEW_SCORE`] for the episodes `ids` (in statements of at most 500 ids).
 pub(crate) async fn refresh_review_scores_of(tx: &mut Tx, ids: &[String]) -> Result<(), StoreError> {
     for chunk in ids.chunks(500) {
-        let marks: Vec<String> = (1..=chunk.len()).map(|i| format!("${i}")).collect();
-        let sql = format!("{REFRESH_REVIEW_SCORE}id IN ({})", marks.join(", "));
+        let sql = format!("{REFRESH_REVIEW_SCORE}id IN ({})", crate::catalog::placeholders(chunk.len()));
         let mut q = sqlx::query(&sql);
         for id in chunk {
             q = q.bind(id);
