@@ -3,7 +3,8 @@
 //! It owns the policy traits a user implements for their own model ([`NoisePredictor`] for
 //! DDPM, [`VelocityField`] for flow matching) with the [`DdpmSchedule`], the [`Scorer`]
 //! abstraction over verifiers, and the steering strategies of the paper: best-of-N
-//! (Algorithm 1), classifier guidance for DDPM (Algorithm 2) and guidance for flow policies.
+//! (Algorithm 1), classifier guidance for DDPM (Algorithm 2) and guidance for flow policies,
+//! and the failure alarm that runs beside them ([`Monitor`]).
 //! With the `http` feature it also loads a verifier from a `ufops serve` API ([`http`]).
 //!
 //! Loading, checking and running a verifier (the forward pass and its gradient) is the
@@ -13,11 +14,13 @@
 pub mod error;
 #[cfg(feature = "http")]
 pub mod http;
+pub mod monitor;
 pub mod policy;
 pub mod sample;
 pub mod schedule;
 
 pub use error::{Result, SteerError};
+pub use monitor::Monitor;
 pub use policy::{ActionAffine, NoisePredictor, VelocityField};
 pub use sample::{
     best_of_n, best_of_n_raw, ddpm_sample, ddpm_sample_guided, flow_sample, flow_sample_guided, select_best,

@@ -9,7 +9,9 @@
 //! and a portable fallback ([`kernels`], which the trainer's fused training path shares). It
 //! also builds the files the trainer writes ([`ArtifactFiles`]), and the verifier's inputs from
 //! episodes ([`samples`]: what the trainer trains on and scorers query), from the store's steps
-//! with feature `steps` (`steps::StepScorer`: how anything scores a stored episode).
+//! with feature `steps` (`steps::StepScorer`: how anything scores a stored episode). The failure
+//! monitor's record, running statistic and conformal threshold are here too ([`monitor`]), so the
+//! offline evaluation, the robot and Python raise the same alarm at the same step.
 //!
 //! It has no heavy dependencies: `steer` (on the robot) and the Python package bind it. It does
 //! not train (the `trainer` crate), sample policies or steer them (the `steer` crate).
@@ -28,6 +30,7 @@ pub mod error;
 pub mod format;
 pub mod kernels;
 mod math;
+pub mod monitor;
 mod net;
 pub mod samples;
 /// Verifier inputs from the store's steps batches and [`steps::StepScorer`] (feature `steps`).
@@ -46,6 +49,7 @@ pub use format::{
     Variant, CONFIG_FILE, MANIFEST_FILE, MODEL_FILE, SCHEMA_VERSION,
 };
 pub use math::{sigmoid, time_embedding_into};
+pub use monitor::{MonitorRecord, MonitorState, MonitorStep};
 pub use net::Verifier;
 pub use samples::{build_samples, EpisodeSeries, ObsSeries, Samples};
 #[cfg(feature = "steps")]

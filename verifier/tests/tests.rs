@@ -4,3 +4,4 @@
 
 mod artifact;
 mod forward;
+mod monitor_conformal;
