@@ -54,11 +54,12 @@ fn quick_demo_rows_go_the_way_the_method_says() {
     assert!(dir.path().join("demo/trajectories.png").exists());
 
     // Every row's rollouts are in the store as a run of nav-dp/base (the flow twin's of
-    // nav-dp/flow-twin) with the simulator's labels: 200 of the base run, 200 per steered row.
+    // nav-dp/flow-twin) with the simulator's labels: 200 of the base run, 200 per steered row,
+    // and 200 fresh base rollouts the failure monitor is measured on (run `base-fresh`).
     let eps = t.json(&["episodes", "--policy", "nav-dp", "--checkpoint", "base", "--json"]);
     let eps = eps.as_array().unwrap();
     let base_rows = rows.iter().filter(|r| r["checkpoint"] == "base").count();
-    assert_eq!(eps.len(), 200 * base_rows);
+    assert_eq!(eps.len(), 200 * (base_rows + 1));
     assert!(eps.iter().all(|e| e["label_source"] == "sim" && e["run_id"].is_string()));
 
     // The scoreboard gives the demo's table back from the store alone: every row's counts, rate,
@@ -72,8 +73,8 @@ fn quick_demo_rows_go_the_way_the_method_says() {
     let sb_rows = sb["rows"].as_array().unwrap();
     assert_eq!(
         sb_rows.len(),
-        rows.len() + 1,
-        "one scoreboard row per report row, and the alt checkpoint's base run"
+        rows.len() + 2,
+        "one scoreboard row per report row, the alt checkpoint's base run and the monitor's fresh base run"
     );
     for r in rows {
         let s = sb_rows
@@ -113,6 +114,17 @@ fn quick_demo_rows_go_the_way_the_method_says() {
         assert!((0.0..=1.0).contains(&v), "{k} = {v}");
     }
     assert_eq!(q["reliability"].as_array().unwrap().len(), 10);
+    // The failure alarm calibrated from the same classifier, stored and shown with its quality.
+    let monitor = &report["monitor"];
+    assert_eq!(monitor["artifact_id"], report["meta"]["artifacts"]["classifier"]);
+    assert_eq!(q["monitor"]["id"], monitor["id"]);
+    assert_eq!(q["monitor"]["alpha"], 0.1);
+    let e = &monitor["evaluation"];
+    assert!(e["successes"].as_u64().unwrap() >= 50 && e["failures"].as_u64().unwrap() > 0, "{e}");
+    let listed = t.json(&["monitor", "list", "--policy", "nav-dp", "--json"]);
+    assert_eq!(listed[0]["id"], monitor["id"]);
+    assert_eq!(&listed[0]["evaluation"], e, "the store keeps what the calibration measured");
+    assert!(out.contains("Failure alarm (monitor "), "{out}");
     // The default table and CSV.
     let table = t.ok(&["scoreboard", "--policy", "nav-dp"]);
     assert!(table.contains("| base | two-gap-navigation | c-bon10 (on-policy) | bon:10 |"), "{table}");
@@ -138,9 +150,10 @@ fn quick_demo_rows_go_the_way_the_method_says() {
     assert!(better["pooled"]["decided_at_pairs"].as_u64().unwrap() < 200, "{better}");
     let worse = compare("base/off-c-bon10");
     assert_eq!((&worse["pooled"]["decision"], &worse["exit_code"]), (&"worse".into(), &1.into()), "{worse}");
-    // The split of a later `split create` holds the base run's rollouts, not the steered ones.
+    // The split of a later `split create` holds the unsteered runs' rollouts (`base` and the
+    // monitor's `base-fresh`), not the steered ones.
     let split = t.json(&["split", "create", "--policy", "nav-dp", "--checkpoint", "base", "--json"]);
-    assert_eq!(split["train_episodes"].as_i64().unwrap() + split["val_episodes"].as_i64().unwrap(), 200);
+    assert_eq!(split["train_episodes"].as_i64().unwrap() + split["val_episodes"].as_i64().unwrap(), 400);
     let arts = t.json(&["artifacts", "--policy", "nav-dp", "--json"]);
     assert_eq!(
         arts.as_array().unwrap().len(),

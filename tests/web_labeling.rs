@@ -320,6 +320,8 @@ fn scoreboard_page_in_headless_chromium() {
         "{}",
         arts[0]["config"]["metrics"]
     );
+    // A failure monitor calibrated from it: the verifier column shows its held-out figures.
+    let monitor = t.json(&["monitor", "calibrate", "--artifact", &art, "--alpha", "0.25", "--json"]);
     synth("c1", "2", "120", "0.9", Some(("c-bon10", "bon:10")), Some(&art));
     synth("c1", "3", "60", "0.55", Some(("c-cg3", "cg:3")), Some(&art));
     synth("c2", "4", "60", "0.6", Some(("base", "base")), None);
@@ -397,6 +399,12 @@ fn scoreboard_page_in_headless_chromium() {
     let bins = arts[0]["config"]["metrics"]["final"]["val_calibration"]["bins"].as_array().unwrap();
     let nonempty = bins.iter().filter(|b| b["count"].as_u64().unwrap() > 0).count();
     assert_eq!(plots[0]["points"].as_u64().unwrap() as usize, nonempty);
+    // The monitor under the verifier's AUROC / ECE, on the two rows steered by its artifact.
+    let monitors = result["first"]["monitors"].as_array().unwrap();
+    assert_eq!(monitors.len(), 2, "{monitors:?}");
+    assert!(monitors.iter().all(|m| m["id"] == monitor["id"]), "{monitors:?}");
+    let text = monitors[0]["text"].as_str().unwrap();
+    assert!(text.starts_with("alarm α 0.25: false ") && text.contains(" · caught "), "{text}");
 }
 
 /// Several labelers in headless Chromium: six synthetic episodes of

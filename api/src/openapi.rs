@@ -34,6 +34,7 @@ use utoipa::{Modify, OpenApi};
         routes::create_job, routes::list_jobs, routes::get_job, routes::cancel_job,
         routes::list_artifacts, routes::get_artifact, routes::artifact_file, routes::set_alias,
         routes::resolve_verifier, routes::resolve_verifier_file,
+        routes::list_monitors, routes::get_monitor, routes::resolve_monitor,
         routes::create_export, routes::list_exports, routes::get_export, routes::export_file, routes::delete_export,
         routes::get_scoreboard, routes::list_runs,
         routes::get_compare, routes::list_policy_aliases, routes::move_policy_alias, routes::policy_alias_history,

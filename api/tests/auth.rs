@@ -110,6 +110,9 @@ async fn authorization_matrix() {
         (Method::GET, "/v1/artifacts/0123456789abcdef".into(), None, Need::Viewer),
         (Method::GET, "/v1/artifacts/0123456789abcdef/files/config.json".into(), None, Need::Viewer),
         (Method::PUT, "/v1/artifacts/0123456789abcdef/aliases/prod".into(), None, Need::Trainer),
+        (Method::GET, "/v1/monitors".into(), None, Need::Viewer),
+        (Method::GET, "/v1/monitors/0123456789abcdef".into(), None, Need::Viewer),
+        (Method::GET, "/v1/policies/pol/checkpoints/c1/monitors/latest".into(), None, Need::Viewer),
         (
             Method::GET,
             "/v1/policies/pol/checkpoints/c1/verifiers/classifier@latest".into(),
@@ -240,6 +243,9 @@ fn templatize(p: &str) -> String {
             "versions" => "{version}",
             "diff" => "{to}",
             "splits" | "jobs" | "artifacts" | "tokens" | "exports" if !s.is_empty() => "{id}",
+            // /v1/monitors/{id}, and a checkpoint's /monitors/{alias}
+            "monitors" if segs[i - 2] == "v1" => "{id}",
+            "monitors" => "{alias}",
             "media" => "{key}",
             "frames" => "{camera}",
             _ if i >= 2 && segs[i - 2] == "frames" => "{t}",

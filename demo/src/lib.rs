@@ -10,7 +10,7 @@ pub mod diagnose;
 mod report;
 pub mod review_campaign;
 
-pub use report::{Report, Row};
+pub use report::{MonitorSummary, Report, Row};
 
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -470,6 +470,41 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
 
     // The learning-curve classifiers were published last: `latest` names the main one again.
     store.set_alias("latest", &c_rec.id).await?;
+
+    // A failure alarm from the same classifier: a threshold on its per-step scores calibrated on
+    // half of the base policy's unsteered successes it did not train on (α = 0.1), measured on
+    // the other half and on the failures, stored as the checkpoint's `latest` monitor. Fresh
+    // base rollouts (run `base-fresh`) join the split's held-out ones, so the false-alarm rate is
+    // measured on hundreds of successes.
+    let fresh_seed = cfg.seed + 300;
+    let fresh = eval(&base, ChunkChoice::None, "fresh base rollouts for the failure monitor", fresh_seed)?;
+    let fresh_run = demo_run("base-fresh", Steering::Base, None, &["monitor"]);
+    ingest_rollouts(store, &fresh, BASE, fresh_run, pc.horizon, fresh_seed).await?;
+    let pb = stage("calibrating a failure monitor (alpha 0.1) on the base rollouts");
+    let cal = monitor::calibrate(store, &clf, &c_rec, &monitor::CalibrateSpec::default()).await?;
+    let record_json = serde_json::to_vec(&cal.record)?;
+    let evaluation = serde_json::to_value(&cal.evaluation)?;
+    let m = store
+        .put_monitor(store::NewMonitor {
+            record_json: &record_json,
+            policy: POLICY,
+            checkpoint: BASE,
+            artifact_id: &c_rec.id,
+            alpha: cal.record.alpha,
+            threshold: cal.record.threshold,
+            evaluation: Some(&evaluation),
+            created_by: "demo",
+        })
+        .await?;
+    pb.finish_and_clear();
+    report.monitor = Some(report::MonitorSummary {
+        id: m.id,
+        artifact_id: c_rec.id.clone(),
+        alpha: cal.record.alpha,
+        threshold: cal.record.threshold,
+        calibration_episodes: cal.record.calibration_episodes.len(),
+        evaluation: cal.evaluation,
+    });
 
     // The table, read back from the store alone: every row must be what the scoreboard says.
     let sb = store

@@ -30,6 +30,19 @@ pub struct Report {
     pub diagnostics: Vec<crate::diagnose::RunDiagnostics>,
     pub seconds: f64,
     pub meta: serde_json::Value,
+    /// The failure alarm calibrated from the main classifier (`ufops monitor`).
+    pub monitor: Option<MonitorSummary>,
+}
+
+/// The demo's failure monitor: its record's headline and what it measured on held-out episodes.
+#[derive(Debug, Clone, Serialize)]
+pub struct MonitorSummary {
+    pub id: String,
+    pub artifact_id: String,
+    pub alpha: f64,
+    pub threshold: f64,
+    pub calibration_episodes: usize,
+    pub evaluation: monitor::Evaluation,
 }
 
 impl Report {
@@ -47,7 +60,13 @@ impl Report {
             diff_to_base: None,
             newcombe_95: None,
         };
-        Report { rows: vec![row], diagnostics: vec![], seconds: 0.0, meta: serde_json::Value::Null }
+        Report {
+            rows: vec![row],
+            diagnostics: vec![],
+            seconds: 0.0,
+            meta: serde_json::Value::Null,
+            monitor: None,
+        }
     }
 
     pub fn add(&mut self, method: &str, verifier: &str, checkpoint: &str, run: &str, eps: &[sim::Episode]) {
@@ -118,12 +137,39 @@ impl Report {
         s
     }
 
+    /// The failure alarm's figures in one paragraph (empty without a monitor).
+    pub fn monitor_markdown(&self) -> String {
+        let Some(m) = &self.monitor else { return String::new() };
+        let e = &m.evaluation;
+        let pct = |x: Option<f64>| x.map_or("-".into(), |x| format!("{:.1}%", 100.0 * x));
+        format!(
+            "Failure alarm (monitor {}, classifier {}, alpha {}): threshold {:.4} calibrated on {} successes; \
+             false alarms on {} held-out successes {} (Wilson 95% [{:.1}, {:.1}]%); failures caught {}/{} = {} \
+             ({} before their end), median lead {} steps.\n",
+            m.id,
+            m.artifact_id,
+            m.alpha,
+            m.threshold,
+            m.calibration_episodes,
+            e.successes,
+            pct(e.false_alarm_rate),
+            100.0 * e.false_alarm_interval.0,
+            100.0 * e.false_alarm_interval.1,
+            e.detected,
+            e.failures,
+            pct(e.detection_rate),
+            e.detected_before_onset,
+            e.lead_steps_median.map_or("-".into(), |l| format!("{l:.0}")),
+        )
+    }
+
     pub fn write(&self, dir: &Path) -> Result<()> {
         let md = format!(
             "# ufops demo: two-gap navigation\n\n{}\nEvery row's rollouts are in the store as a run (`checkpoint`/`run` in `report.json`): \
-             `ufops scoreboard --policy nav-dp --baseline-checkpoint base` gives this table back.\n\n\
+             `ufops scoreboard --policy nav-dp --baseline-checkpoint base` gives this table back.\n\n{}\n\
              ## What steering did\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
             self.markdown(),
+            self.monitor_markdown(),
             crate::diagnose::markdown(&self.diagnostics),
             self.seconds
         );

@@ -4,6 +4,7 @@ mod catalog_cmds;
 mod compare_cmd;
 mod dev;
 mod export_cmd;
+mod monitor_cmds;
 mod review_cmds;
 mod run_cmds;
 mod scoreboard_cmd;
@@ -113,6 +114,12 @@ pub enum Command {
     },
     /// List verifier artifacts, set aliases, show or download one.
     Artifacts(catalog_cmds::ArtifactsArgs),
+    /// Failure monitors: calibrate an alarm on a verifier's scores with a stated false-alarm
+    /// rate, evaluate it against labels, list, show and alias them.
+    Monitor {
+        #[command(subcommand)]
+        command: monitor_cmds::MonitorCommand,
+    },
     /// List the store's layers (derived per-step data such as a policy encoder's features, one
     /// row per layer and producer), or those one episode holds (now or at --version).
     /// Layers are written from Python (`ufops.features.compute_layer`) and read joined to the
@@ -228,6 +235,7 @@ pub async fn run(cli: Cli) -> Result<()> {
         }
         Command::Split { command } => catalog_cmds::split(&cli.store, command).await,
         Command::Artifacts(a) => catalog_cmds::artifacts(&cli.store, a).await,
+        Command::Monitor { command } => monitor_cmds::run(&cli.store, command).await,
         Command::Layers { episode, version, json } => {
             catalog_cmds::layers(&cli.store, episode, version, json).await
         }

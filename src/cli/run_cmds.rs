@@ -221,6 +221,7 @@ pub async fn demo(
     );
     let report = demo::run(&store, &cfg).await?;
     println!("{}", report.markdown());
+    print!("{}", report.monitor_markdown());
     println!(
         "runtime {:.0} s; report: {} and report.json; figure: {}",
         report.seconds,

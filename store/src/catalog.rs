@@ -43,6 +43,7 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (12, "policy_aliases", include_str!("../../migrations/sqlite/0012_policy_aliases.sql")),
     (13, "episode_tags", include_str!("../../migrations/sqlite/0013_episode_tags.sql")),
     (14, "review_score_index", include_str!("../../migrations/sqlite/0014_review_score_index.sql")),
+    (15, "monitors", include_str!("../../migrations/sqlite/0015_monitors.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
@@ -63,6 +64,7 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (12, "policy_aliases", include_str!("../../migrations/postgres/0012_policy_aliases.sql")),
     (13, "episode_tags", include_str!("../../migrations/postgres/0013_episode_tags.sql")),
     (14, "review_score_index", include_str!("../../migrations/postgres/0014_review_score_index.sql")),
+    (15, "monitors", include_str!("../../migrations/postgres/0015_monitors.sql")),
 ];
 
 fn migrator(backend: Backend) -> Migrator {

@@ -22,6 +22,7 @@ mod layers;
 mod lru;
 mod media;
 pub mod model;
+mod monitors;
 mod objects;
 mod policy_aliases;
 mod query;
@@ -63,6 +64,7 @@ pub use layers::{
 };
 pub use media::EpisodeMedia;
 pub use model::*;
+pub use monitors::{MonitorEntry, NewMonitor};
 pub use objects::FetchCounts;
 pub use policy_aliases::{MoveAlias, PolicyAlias, PolicyAliasMove};
 pub use query::{EpisodeFilter, EpisodeRecord, VersionDiff, VersionInfo};

@@ -77,7 +77,9 @@ pub struct ScoreboardRow {
     pub baseline: Option<BaselineComparison>,
     /// The quality of the run's verifier on its split's held-out episodes, from the artifact's
     /// training metrics: `{artifact_id, kind, auroc, accuracy, brier, ece, reliability, val_samples}`
-    /// (calibration for classifiers only).
+    /// (calibration for classifiers only), and its latest failure monitor's held-out figures
+    /// (`monitor`: `{id, alpha, false_alarm_rate, false_alarm_interval, successes, detection_rate,
+    /// failures, lead_steps_median}`, null when it has none).
     pub verifier_quality: Option<serde_json::Value>,
 }
 
@@ -170,6 +172,22 @@ fn verifier_quality(a: &crate::ArtifactRecord) -> serde_json::Value {
         "ece": c["ece"],
         "reliability": c["bins"],
         "val_samples": m["val_samples"],
+    })
+}
+
+/// What the scoreboard shows of the artifact's latest failure monitor: its α and what its
+/// calibration measured on held-out episodes.
+fn monitor_summary(m: &crate::MonitorEntry) -> serde_json::Value {
+    let e = m.evaluation.clone().unwrap_or(serde_json::Value::Null);
+    serde_json::json!({
+        "id": m.id,
+        "alpha": m.alpha,
+        "false_alarm_rate": e["false_alarm_rate"],
+        "false_alarm_interval": e["false_alarm_interval"],
+        "successes": e["successes"],
+        "detection_rate": e["detection_rate"],
+        "failures": e["failures"],
+        "lead_steps_median": e["lead_steps_median"],
     })
 }
 
@@ -364,7 +382,15 @@ impl Store {
             let Some(id) = r.run.as_ref().and_then(|x| x.artifact_id.clone()) else { continue };
             if !quality.contains_key(&id) {
                 let q = match self.artifact(&id).await {
-                    Ok(a) => Some(verifier_quality(&a)),
+                    Ok(a) => {
+                        let mut q = verifier_quality(&a);
+                        q["monitor"] = self
+                            .monitors(None, None, Some(&id))
+                            .await?
+                            .pop()
+                            .map_or(serde_json::Value::Null, |m| monitor_summary(&m));
+                        Some(q)
+                    }
                     Err(StoreError::NotFound { .. }) => None,
                     Err(e) => return Err(e),
                 };

@@ -61,6 +61,7 @@ try {
       artifact: s.dataset.artifact, points: s.querySelectorAll('circle').length,
     })),
     json: document.getElementById('dl-json').getAttribute('href'),
+    monitors: [...document.querySelectorAll('#rows td.verifier .monitor')].map((m) => ({ id: m.dataset.monitor, text: m.textContent })),
   }));
   const first = await read();
   log('rows', first.rows.length, first.summary);

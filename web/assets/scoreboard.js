@@ -77,11 +77,23 @@ function render(sb) {
     tr.appendChild(el('td', {}, b ? (b.unlabeled_to_flip ?? 'none').toString() : '-'));
     const vq = r.verifier_quality;
     const num = (x) => (typeof x === 'number' ? x.toFixed(3) : '-');
-    tr.appendChild(el('td', {}, vq ? `${num(vq.auroc)} / ${num(vq.ece)}` : '-'));
+    const vTd = tr.appendChild(el('td', { class: 'verifier' }, vq ? `${num(vq.auroc)} / ${num(vq.ece)}` : '-'));
+    if (vq && vq.monitor) vTd.appendChild(monitorLine(vq.monitor));
     body.appendChild(tr);
   }
   renderVerifiers(sb);
   return badges;
+}
+
+/** A verifier's failure monitor in one line: its α, the false-alarm rate it showed on held-out
+ * successes and the share of failures it caught (what `ufops monitor calibrate` measured). */
+function monitorLine(m) {
+  const p = (x) => (typeof x === 'number' ? `${(100 * x).toFixed(1)}%` : '-');
+  const fa = m.false_alarm_interval ? ` [${p(m.false_alarm_interval[0])}, ${p(m.false_alarm_interval[1])}]` : '';
+  return el('div', { class: 'monitor', 'data-monitor': m.id,
+    title: `monitor ${m.id}: false alarms on ${m.successes} held-out successes${fa} (Wilson 95%), ` +
+      `${m.failures} failures, median lead ${m.lead_steps_median ?? '-'} steps` },
+    `alarm α ${m.alpha}: false ${p(m.false_alarm_rate)} · caught ${p(m.detection_rate)}`);
 }
 
 /** The anytime-valid comparison of a row with its baseline (GET /v1/compare): a badge saying
@@ -159,6 +171,7 @@ function renderVerifiers(sb) {
     fig.appendChild(s);
     const num = (x) => (typeof x === 'number' ? x.toFixed(3) : '-');
     fig.appendChild(el('figcaption', {}, `${vq.kind} ${vq.artifact_id.slice(0, 12)}: AUROC ${num(vq.auroc)}, accuracy ${num(vq.accuracy)}, Brier ${num(vq.brier)}, ECE ${num(vq.ece)} (${vq.val_samples} samples)`));
+    if (vq.monitor) fig.appendChild(monitorLine(vq.monitor));
     box.appendChild(fig);
   }
   $('verifiers').hidden = seen.size === 0;

@@ -21,6 +21,7 @@ mod infra;
 mod jobs;
 mod labels;
 mod layers;
+mod monitors;
 mod review;
 mod scoreboard;
 mod splits;
@@ -37,6 +38,7 @@ pub use infra::*;
 pub use jobs::*;
 pub use labels::*;
 pub use layers::*;
+pub use monitors::*;
 pub use review::*;
 pub use scoreboard::*;
 pub use splits::*;
@@ -87,6 +89,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
         .merge(jobs::router())
         .merge(labels::router())
         .merge(layers::router())
+        .merge(monitors::router())
         .merge(review::router())
         .merge(scoreboard::router())
         .merge(splits::router())

@@ -1,0 +1,231 @@
+//! Calibrating and evaluating a monitor on a real store (both catalogs), and the robot's monitor
+//! (`steer::Monitor`) stepping the stored episodes' verifier inputs to the same alarms.
+
+use std::collections::HashMap;
+
+use monitor::{calibrate, evaluate, CalibrateSpec, MonitorError};
+use store::test_support::{self, open_test_store};
+use store::{
+    Backend, EpisodeRecord, Label, NewArtifact, NewMonitor, NewVote, Span, Store, VectorColumn, VerdictData,
+};
+use verifier::monitor::{conformal_threshold, peak, MonitorRecord, Statistic};
+use verifier::testutil::RandomSpec;
+use verifier::{StepScorer, Verifier};
+
+const EPISODES: u32 = 90;
+
+/// Episode i: 10–25 steps of a smooth 2-D position; one in three fails.
+fn rollout(i: u32) -> store::EpisodeInput {
+    let steps = 10 + (i as usize * 7) % 16;
+    let label = if i.is_multiple_of(3) { Label::Failure } else { Label::Success };
+    let phase = i as f32 * 0.37;
+    store::EpisodeInput {
+        observations: vec![VectorColumn {
+            name: "pos".into(),
+            dim: 2,
+            values: (0..steps * 2).map(|k| ((k / 2) as f32 * 0.2 + phase + (k % 2) as f32).sin()).collect(),
+        }],
+        action: VectorColumn {
+            name: "action".into(),
+            dim: 3,
+            values: (0..steps * 3).map(|k| (k as f32 * 0.3 + phase).cos()).collect(),
+        },
+        ..test_support::episode(i, steps, label)
+    }
+}
+
+async fn seeded_store(store: &Store, dir: &std::path::Path) -> (store::ArtifactRecord, Verifier, Verifier) {
+    let mut w = store.begin_ingest(test_support::source("monitor"), "pol", "c1").await.unwrap();
+    for i in 0..EPISODES {
+        w.add_episode(rollout(i)).await.unwrap();
+    }
+    w.commit("monitor test").await.unwrap();
+    let spec = RandomSpec {
+        obs_keys: vec![("pos".into(), 2)],
+        obs_history: 2,
+        chunk_len: 4,
+        action_dim: 3,
+        ..RandomSpec::nav()
+    };
+    let load = |seed: u64| {
+        let (cfg, w) = spec.build(seed);
+        let d = dir.join(format!("artifact-{seed}"));
+        verifier::ArtifactFiles::build(&cfg, &w).unwrap().write_dir(&d).unwrap();
+        (d.clone(), Verifier::load_dir(&d).unwrap())
+    };
+    let (d, v) = load(3);
+    let (d2, other) = load(4);
+    let rec = store
+        .publish_artifact(NewArtifact {
+            dir: &d,
+            policy: "pol",
+            checkpoint: "c1",
+            kind: "classifier",
+            split_id: None,
+            job_id: None,
+        })
+        .await
+        .unwrap();
+    store
+        .publish_artifact(NewArtifact {
+            dir: &d2,
+            policy: "pol",
+            checkpoint: "c1",
+            kind: "classifier",
+            split_id: None,
+            job_id: None,
+        })
+        .await
+        .unwrap();
+    assert_eq!(v.id(), Some(rec.id.as_str()));
+    (rec, v, other)
+}
+
+async fn episodes(store: &Store) -> Vec<EpisodeRecord> {
+    let sel = export::Selection { policy: Some("pol".into()), ..Default::default() };
+    export::select(store, &sel).await.unwrap().episodes
+}
+
+async fn calibrate_evaluate_and_step(store: Store) {
+    let dir = tempfile::tempdir().unwrap();
+    let (artifact, v, other) = seeded_store(&store, dir.path()).await;
+    // A labeler marks where failure 3 went wrong: its onset is the span's start.
+    store
+        .cast_vote(
+            NewVote {
+                episode_id: episodes(&store).await.iter().find(|e| e.source_index == 3).unwrap().id.clone(),
+                label: Label::Failure,
+                data: VerdictData { failure_cause: None, spans: vec![Span { start_step: 6, end_step: 9 }] },
+                note: None,
+                expect_revision: None,
+            },
+            "ann",
+        )
+        .await
+        .unwrap();
+    store.snapshot_labels("ann", "spans").await.unwrap();
+
+    let spec = CalibrateSpec {
+        alpha: 0.2,
+        statistic: Statistic::RiskEma { smoothing: 0.5 },
+        seed: 11,
+        calibration_fraction: 0.5,
+        version: None,
+    };
+    let cal = calibrate(&store, &v, &artifact, &spec).await.unwrap();
+    let eps = episodes(&store).await;
+    let by_id: HashMap<&str, &EpisodeRecord> = eps.iter().map(|e| (e.id.as_str(), e)).collect();
+    let successes = eps.iter().filter(|e| e.label == Label::Success).count();
+    assert_eq!(cal.record.calibration_episodes.len(), (successes as f64 * 0.5).round() as usize);
+    assert_eq!(cal.evaluation.successes as usize + cal.record.calibration_episodes.len(), successes);
+    assert_eq!(cal.evaluation.failures as usize, eps.len() - successes);
+    assert_eq!(cal.evaluation.failures_with_spans, 1);
+
+    // The threshold is the conformal order statistic of the calibration episodes' peaks, scored
+    // here through the core's StepScorer, not the crate's pool.
+    let cal_eps: Vec<EpisodeRecord> =
+        cal.record.calibration_episodes.iter().map(|id| (*by_id[id.as_str()]).clone()).collect();
+    let mut peaks = Vec::new();
+    export::for_each_episode(&store, &cal_eps, |_, _, steps| {
+        peaks.push(peak(spec.statistic, &v.score_steps(&steps).unwrap()));
+        Ok(())
+    })
+    .await
+    .unwrap();
+    assert_eq!(cal.record.threshold, conformal_threshold(&peaks, 0.2).unwrap());
+
+    // Stored and read back, the record reproduces the evaluation exactly.
+    let json = serde_json::to_vec(&cal.record).unwrap();
+    let entry = store
+        .put_monitor(NewMonitor {
+            record_json: &json,
+            policy: "pol",
+            checkpoint: "c1",
+            artifact_id: &artifact.id,
+            alpha: cal.record.alpha,
+            threshold: cal.record.threshold,
+            evaluation: Some(&serde_json::to_value(&cal.evaluation).unwrap()),
+            created_by: "test",
+        })
+        .await
+        .unwrap();
+    assert_eq!(entry.aliases, vec!["latest".to_string()]);
+    let resolved = store.resolve_monitor("pol/c1@latest").await.unwrap();
+    assert_eq!(resolved.id, entry.id);
+    let record = MonitorRecord::from_json(resolved.record.to_string().as_bytes()).unwrap();
+    assert_eq!(record, cal.record);
+    let (again, traces) = evaluate(&store, &v, &artifact, &record, None).await.unwrap();
+    assert_eq!(again, cal.evaluation);
+    let stored: monitor::Evaluation = serde_json::from_value(resolved.evaluation.clone().unwrap()).unwrap();
+    assert_eq!(stored, cal.evaluation);
+
+    // The robot's monitor, fed each stored step's verifier inputs one at a time, raises the same
+    // alarms with the same statistics as the offline evaluation.
+    let traced: Vec<EpisodeRecord> = traces.iter().map(|t| (*by_id[t.episode_id.as_str()]).clone()).collect();
+    let mut robot = steer::Monitor::for_verifier(&v, record.clone()).unwrap();
+    let (od, ad) = (v.obs_dim(), v.act_dim());
+    let mut checked = 0;
+    export::for_each_episode(&store, &traced, |i, _, steps| {
+        let inputs = verifier::steps::step_inputs(v.config(), &steps).unwrap();
+        robot.reset();
+        for (k, want) in traces[i].steps.iter().enumerate() {
+            let got = robot
+                .update(&inputs.obs[k * od..(k + 1) * od], &inputs.act[k * ad..(k + 1) * ad], inputs.t[k])
+                .unwrap();
+            assert!(
+                (got.statistic - want.statistic).abs() < 1e-5,
+                "episode {i} step {k}: {got:?} vs {want:?}"
+            );
+            assert_eq!(got.alarm, want.alarm, "episode {i} step {k}");
+            checked += 1;
+        }
+        Ok(())
+    })
+    .await
+    .unwrap();
+    assert!(checked > 500, "{checked} steps");
+
+    // Bad input: the record on another artifact is refused, by the robot and offline.
+    let e = steer::Monitor::for_verifier(&other, record.clone()).err().expect("refused").to_string();
+    assert!(e.contains(&format!("calibrated for verifier artifact {}", artifact.id)), "{e}");
+    let other_rec = store.artifact(other.id().unwrap()).await.unwrap();
+    assert!(matches!(
+        evaluate(&store, &other, &other_rec, &record, None).await,
+        Err(MonitorError::Verifier(_))
+    ));
+    assert!(evaluate(&store, &v, &other_rec, &record, None).await.is_err());
+    let refused = store
+        .put_monitor(NewMonitor {
+            record_json: &json,
+            policy: "pol",
+            checkpoint: "c1",
+            artifact_id: &other_rec.id,
+            alpha: 0.2,
+            threshold: record.threshold,
+            evaluation: None,
+            created_by: "test",
+        })
+        .await;
+    assert!(refused.unwrap_err().to_string().contains("artifact_id"));
+
+    // Too few successes for the asked α: a message naming the count, nothing stored.
+    let strict = CalibrateSpec { alpha: 0.01, ..spec };
+    let e = calibrate(&store, &v, &artifact, &strict).await.unwrap_err().to_string();
+    assert!(e.contains("needs at least 99 successful episodes"), "{e}");
+    assert_eq!(store.monitors(Some("pol"), None, None).await.unwrap().len(), 1);
+}
+
+#[tokio::test]
+async fn sqlite_calibrate_evaluate_and_step() {
+    let dir = tempfile::tempdir().unwrap();
+    calibrate_evaluate_and_step(open_test_store(Backend::Sqlite, dir.path(), "monitor").await).await;
+}
+
+#[tokio::test]
+async fn postgres_calibrate_evaluate_and_step() {
+    if !test_support::require_postgres() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    calibrate_evaluate_and_step(open_test_store(Backend::Postgres, dir.path(), "monitor").await).await;
+}
