@@ -9,7 +9,10 @@ a port of the `sim` crate):
    job queue, and the verifier is pulled by alias with `ufops.Verifier.from_server`;
 4. fresh rollouts of the unchanged policy, unsteered, with best-of-N (Algorithm 1, through
    `ufops.torch.best_of_n`) and with classifier guidance (Algorithm 2 on x̂0, through
-   `ufops.torch.ddpm_guidance` in the sampler loop), with Wilson 95% intervals.
+   `ufops.torch.ddpm_guidance` in the sampler loop), with Wilson 95% intervals;
+5. the fresh unsteered rollouts are ingested too, and `ufops monitor calibrate` turns the
+   verifier into a failure alarm at a stated false-alarm rate (α = 0.1), calibrated on half of the
+   successes the verifier did not train on and measured on the other half and on the failures.
 
     python3 examples/python/steer_torch_policy.py [--episodes 500] [--quick] [--ufops PATH] [--workdir DIR]
 
@@ -198,7 +201,8 @@ def main() -> int:
 
     seed = a.seed + 1000  # fresh starts and noise, the same for every method
     log(f"4. {a.episodes} fresh rollouts per method:")
-    base = report("base (DDPM)", rollout(policy, a.episodes, seed))
+    fresh = rollout(policy, a.episodes, seed)
+    base = report("base (DDPM)", fresh)
 
     def bon(obs: np.ndarray, t: int, gen: torch.Generator) -> torch.Tensor:
         o = torch.from_numpy(obs)
@@ -213,6 +217,21 @@ def main() -> int:
         return policy.sample(torch.from_numpy(obs), gen, hook=hook)
 
     report(f"guidance λ={a.lam:g} (Algorithm 2)", rollout(policy, a.episodes, seed, guided), base)
+    # 5. A failure alarm: the fresh base rollouts join the store, the monitor is calibrated on the
+    # successes the verifier did not train on (half of them; the other half measure it).
+    write_lerobot(fresh, work / "fresh")
+    subprocess.run([str(bin_), "--data-dir", str(data_dir), "ingest", str(work / "fresh"), "--policy", POLICY,
+                    "--checkpoint", CHECKPOINT, "--format", "lerobot", "--run", "fresh-base"],
+                   check=True, capture_output=True, text=True)
+    m = json.loads(subprocess.run(
+        [str(bin_), "--data-dir", str(data_dir), "monitor", "calibrate", "--artifact",
+         f"{POLICY}/{CHECKPOINT}/classifier@latest", "--alpha", "0.1", "--json"],
+        check=True, capture_output=True, text=True).stdout)
+    e = m["evaluation"]
+    fa_lo, fa_hi = e["false_alarm_interval"]
+    log(f"5. monitor {m['id']} at alpha 0.1 (threshold {m['threshold']:.3f}): false alarms on held-out successes "
+        f"{e['false_alarms']}/{e['successes']} = {100 * e['false_alarm_rate']:.1f}% [{100 * fa_lo:.1f}, {100 * fa_hi:.1f}], "
+        f"failures caught {e['detected']}/{e['failures']}, median lead {e['lead_steps_median']} steps")
     lift = 100 * (bon_rate - base)
     log(f"best-of-{a.bon} lifts success by {lift:+.1f} pp (goal: >= +15 pp); total {time.time() - t0:.0f} s; "
         f"store in {data_dir}")

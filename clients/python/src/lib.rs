@@ -1,12 +1,13 @@
 //! `ufops-py`: the native module `ufops._ufops` of the Python package `ufops` (clients/python).
 //!
 //! It owns the bindings only: the verifier core (`verifier`: checked loading, forward pass and
-//! gradient) and steer's HTTP loader as `ufops.Verifier`, the store's read path as
+//! gradient) and steer's HTTP loader as `ufops.Verifier`, the failure monitor as `ufops.Monitor`, the store's read path as
 //! `ufops.Store`, and the exception hierarchy. Nothing numeric is re-implemented here or in the
 //! Python layer (python/ufops), which adds types, docstrings and the PyTorch helpers.
 
 mod arrays;
 mod errors;
+mod monitor;
 mod store;
 mod verifier;
 
@@ -41,6 +42,7 @@ fn write_random_artifact(py: Python<'_>, dir: std::path::PathBuf, dims: &str, se
 fn _ufops(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
     m.add_class::<verifier::PyVerifier>()?;
+    m.add_class::<monitor::PyMonitor>()?;
     m.add_class::<store::PyStore>()?;
     m.add_function(wrap_pyfunction!(store::episodes_ipc_from_json, m)?)?;
     #[cfg(feature = "testing")]

@@ -8,12 +8,16 @@ use std::path::PathBuf;
 use std::sync::OnceLock;
 
 use arrow::ipc::writer::StreamWriter;
+use numpy::{PyArray1, PyArray2, PyArrayMethods};
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyBytes;
 
 use crate::errors::{from_store, from_verifier, NotFoundError};
 use crate::verifier::PyVerifier;
+
+/// A stored episode's verifier inputs: `(obs (T, obs_dim), t (T,), act (T, act_dim))`.
+type StepInputs<'py> = (Bound<'py, PyArray2<f32>>, Bound<'py, PyArray1<u32>>, Bound<'py, PyArray2<f32>>);
 
 /// Episode records as one Arrow IPC stream (the store's one definition of their columns).
 fn episodes_stream(records: &[store::EpisodeRecord]) -> PyResult<Vec<u8>> {
@@ -316,6 +320,77 @@ impl PyStore {
             runtime()?.block_on(self.store.artifacts(policy, checkpoint, kind)).map_err(from_store)
         })?;
         json(&v)
+    }
+
+    /// The monitor `reference` (an id or `POLICY/CHECKPOINT@ALIAS`) as JSON: its record, the
+    /// evaluation its calibration measured, its aliases.
+    fn monitor_json(&self, py: Python<'_>, reference: &str) -> PyResult<String> {
+        let m =
+            py.detach(|| runtime()?.block_on(self.store.resolve_monitor(reference)).map_err(from_store))?;
+        json(&m)
+    }
+
+    /// The monitors as a JSON list (narrowed by policy, checkpoint and artifact).
+    #[pyo3(signature = (policy=None, checkpoint=None, artifact=None))]
+    fn monitors_json(
+        &self,
+        py: Python<'_>,
+        policy: Option<&str>,
+        checkpoint: Option<&str>,
+        artifact: Option<&str>,
+    ) -> PyResult<String> {
+        let v = py.detach(|| {
+            runtime()?.block_on(self.store.monitors(policy, checkpoint, artifact)).map_err(from_store)
+        })?;
+        json(&v)
+    }
+
+    /// The verifier inputs of every step of a stored episode, built by the verifier core exactly
+    /// as training and `ufops monitor evaluate` build them: `(obs (T, obs_dim), t (T,), act
+    /// (T, act_dim))`, with the layers the verifier reads joined.
+    #[pyo3(signature = (episode_id, verifier, version=None))]
+    fn step_inputs<'py>(
+        &self,
+        py: Python<'py>,
+        episode_id: String,
+        verifier: &PyVerifier,
+        version: Option<i64>,
+    ) -> PyResult<StepInputs<'py>> {
+        let v = &verifier.v;
+        let samples = py.detach(|| -> PyResult<verifier::Samples> {
+            let ids = vec![episode_id.clone()];
+            let batch = runtime()?.block_on(async {
+                let locations = self.store.locate_episodes(&ids, version).await?;
+                let layers: Vec<String> =
+                    v.config().input.layout.required_producers().iter().map(|(k, _)| k.to_string()).collect();
+                let mut stream = if layers.is_empty() {
+                    self.store.read_episodes(locations)
+                } else {
+                    let at = self.store.locate_layers(&ids, &layers, version).await?;
+                    self.store.read_episodes_with_layers(locations, layers, at)
+                };
+                let mut out = None;
+                while let Some(item) = stream.next().await {
+                    out = Some(item?.steps);
+                }
+                Ok::<_, store::StoreError>(out)
+            });
+            let batch = batch.map_err(from_store)?.ok_or_else(|| {
+                NotFoundError::new_err(format!("episode {episode_id}: the read returned nothing"))
+            })?;
+            verifier::steps::step_inputs(v.config(), &batch).map_err(from_verifier)
+        })?;
+        let rows = samples.t.len();
+        let shaped = |data: Vec<f32>, width: usize| -> PyResult<Bound<'py, PyArray2<f32>>> {
+            PyArray1::from_vec(py, data)
+                .reshape([rows, width])
+                .map_err(|e| PyValueError::new_err(e.to_string()))
+        };
+        Ok((
+            shaped(samples.obs, v.obs_dim())?,
+            PyArray1::from_vec(py, samples.t),
+            shaped(samples.act, v.act_dim())?,
+        ))
     }
 
     /// Loads the verifier `reference` (an artifact id or `POLICY/CHECKPOINT/KIND@ALIAS`) from

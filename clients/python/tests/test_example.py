@@ -28,6 +28,9 @@ def test_the_example_runs_the_loop_and_best_of_n_helps(tmp_path: Path) -> None:
     assert set(rates) == {"base (DDPM)", "best-of-10 (Algorithm 1)", "guidance λ=3 (Algorithm 2)"}, out
     assert "95% CI [" in out and "pulled from the API" in out and "job succeeded" in out
     assert rates["best-of-10 (Algorithm 1)"] > rates["base (DDPM)"], out
+    # The failure alarm, calibrated on the fresh base rollouts the verifier did not train on.
+    m = re.search(r"^5\. monitor \w+ at alpha 0\.1 .* false alarms on held-out successes (\d+)/(\d+) = ", out, re.M)
+    assert m and int(m.group(2)) > 0, out
 
 
 def test_the_camera_example_steers_through_the_policy_encoder(tmp_path: Path) -> None:

@@ -3,6 +3,8 @@
 * :class:`Verifier` — a verifier artifact loaded from a directory, a store or ``ufops serve``
   (every file checked against its sha256); ``score`` and ``grad`` run the Rust verifier core on
   numpy arrays or torch tensors, with the GIL released.
+* :class:`Monitor` — a failure alarm calibrated for a verifier artifact (false-alarm rate at most
+  its ``alpha`` on successful episodes), stepped on the robot like ``ufops monitor evaluate`` steps it.
 * :class:`Store` — a store opened read-only: episodes, steps, splits and artifacts as polars
   DataFrames (``pip install polars``).
 * :class:`Client` — the ``ufops serve`` API: episodes, labels (with optimistic concurrency).
@@ -22,11 +24,14 @@ from ufops.errors import (
     StoreError,
     UfopsError,
 )
+from ufops.monitor import Monitor, MonitorStep
 from ufops.store import Store
 from ufops.verifier import Verifier
 
 __all__ = [
     "Verifier",
+    "Monitor",
+    "MonitorStep",
     "Store",
     "Client",
     "UfopsError",

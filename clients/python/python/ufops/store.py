@@ -9,12 +9,14 @@ from __future__ import annotations
 import io
 import json
 import os
-from typing import TYPE_CHECKING, Any, Dict, List, Mapping, Optional, Sequence, Union
+from typing import TYPE_CHECKING, Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 from ufops import _ufops
 from ufops.verifier import Verifier
 
 if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
     import polars as pl
 
 JsonObject = Dict[str, Any]
@@ -177,6 +179,24 @@ class Store:
     ) -> List[JsonObject]:
         """Verifier artifacts (records with files, config and aliases)."""
         return json.loads(self._native.artifacts_json(policy, checkpoint, kind))  # type: ignore[no-any-return]
+
+    def monitors(
+        self, policy: Optional[str] = None, checkpoint: Optional[str] = None, artifact: Optional[str] = None
+    ) -> List[JsonObject]:
+        """Failure monitors (records with their held-out evaluation and aliases)."""
+        return json.loads(self._native.monitors_json(policy, checkpoint, artifact))  # type: ignore[no-any-return]
+
+    def monitor(self, reference: str) -> JsonObject:
+        """The monitor ``reference`` (id or ``POLICY/CHECKPOINT@ALIAS``): ``record`` (what
+        :class:`ufops.Monitor` loads), ``evaluation``, ``aliases``..."""
+        return json.loads(self._native.monitor_json(reference))  # type: ignore[no-any-return]
+
+    def step_inputs(
+        self, episode_id: str, verifier: Verifier, version: Optional[int] = None
+    ) -> "Tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], npt.NDArray[np.float32]]":
+        """A stored episode's verifier inputs, step by step, built by the Rust core as training and
+        ``ufops monitor evaluate`` build them: ``(obs (T, obs_dim), t (T,), act (T, act_dim))``."""
+        return self._native.step_inputs(episode_id, verifier._native, version)
 
     def verifier(self, reference: str) -> Verifier:
         """The verifier ``reference`` (id or ``POLICY/CHECKPOINT/KIND@ALIAS``), checked."""
