@@ -55,28 +55,19 @@ async fn seeded_store(store: &Store, dir: &std::path::Path) -> (store::ArtifactR
     };
     let (d, v) = load(3);
     let (d2, other) = load(4);
-    let rec = store
-        .publish_artifact(NewArtifact {
-            dir: &d,
+    let mut published = Vec::new();
+    for d in [&d, &d2] {
+        let new = NewArtifact {
+            dir: d,
             policy: "pol",
             checkpoint: "c1",
             kind: "classifier",
             split_id: None,
             job_id: None,
-        })
-        .await
-        .unwrap();
-    store
-        .publish_artifact(NewArtifact {
-            dir: &d2,
-            policy: "pol",
-            checkpoint: "c1",
-            kind: "classifier",
-            split_id: None,
-            job_id: None,
-        })
-        .await
-        .unwrap();
+        };
+        published.push(store.publish_artifact(new).await.unwrap());
+    }
+    let rec = published.swap_remove(0);
     assert_eq!(v.id(), Some(rec.id.as_str()));
     (rec, v, other)
 }

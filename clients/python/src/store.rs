@@ -66,6 +66,35 @@ pub struct PyStore {
     describe: String,
 }
 
+impl PyStore {
+    /// The steps of episodes `ids` (in that order) with `layers` joined, as of `version`: one
+    /// batch per episode (`None` where the read returned nothing).
+    fn read_steps(
+        &self,
+        ids: &[String],
+        version: Option<i64>,
+        layers: Vec<String>,
+    ) -> PyResult<Vec<Option<arrow::array::RecordBatch>>> {
+        runtime()?
+            .block_on(async {
+                let locations = self.store.locate_episodes(ids, version).await?;
+                let mut batches = vec![None; locations.len()];
+                let mut stream = if layers.is_empty() {
+                    self.store.read_episodes(locations)
+                } else {
+                    let at = self.store.locate_layers(ids, &layers, version).await?;
+                    self.store.read_episodes_with_layers(locations, layers, at)
+                };
+                while let Some(item) = stream.next().await {
+                    let ep = item?;
+                    batches[ep.index] = Some(ep.steps);
+                }
+                Ok::<_, store::StoreError>(batches)
+            })
+            .map_err(from_store)
+    }
+}
+
 #[pymethods]
 impl PyStore {
     /// Opens the store in `data_dir` (its SQLite catalog and local objects), or the catalog at
@@ -158,23 +187,7 @@ impl PyStore {
         layers: Option<Vec<String>>,
     ) -> PyResult<Vec<Bound<'py, PyBytes>>> {
         let streams = py.detach(|| -> PyResult<Vec<Vec<u8>>> {
-            let batches = runtime()?.block_on(async {
-                let locations = self.store.locate_episodes(&ids, version).await?;
-                let mut batches: Vec<Option<arrow::array::RecordBatch>> = vec![None; locations.len()];
-                let layers = layers.unwrap_or_default();
-                let mut stream = if layers.is_empty() {
-                    self.store.read_episodes(locations)
-                } else {
-                    let at = self.store.locate_layers(&ids, &layers, version).await?;
-                    self.store.read_episodes_with_layers(locations, layers, at)
-                };
-                while let Some(item) = stream.next().await {
-                    let ep = item?;
-                    batches[ep.index] = Some(ep.steps);
-                }
-                Ok::<_, store::StoreError>(batches)
-            });
-            let batches = batches.map_err(from_store)?;
+            let batches = self.read_steps(&ids, version, layers.unwrap_or_default())?;
             let ipc_err =
                 |e: arrow::error::ArrowError| PyRuntimeError::new_err(format!("writing Arrow IPC: {e}"));
             let mut streams = Vec::new();
@@ -358,24 +371,10 @@ impl PyStore {
     ) -> PyResult<StepInputs<'py>> {
         let v = &verifier.v;
         let samples = py.detach(|| -> PyResult<verifier::Samples> {
-            let ids = vec![episode_id.clone()];
-            let batch = runtime()?.block_on(async {
-                let locations = self.store.locate_episodes(&ids, version).await?;
-                let layers: Vec<String> =
-                    v.config().input.layout.required_producers().iter().map(|(k, _)| k.to_string()).collect();
-                let mut stream = if layers.is_empty() {
-                    self.store.read_episodes(locations)
-                } else {
-                    let at = self.store.locate_layers(&ids, &layers, version).await?;
-                    self.store.read_episodes_with_layers(locations, layers, at)
-                };
-                let mut out = None;
-                while let Some(item) = stream.next().await {
-                    out = Some(item?.steps);
-                }
-                Ok::<_, store::StoreError>(out)
-            });
-            let batch = batch.map_err(from_store)?.ok_or_else(|| {
+            let layers: Vec<String> =
+                v.config().input.layout.required_producers().iter().map(|(k, _)| k.to_string()).collect();
+            let batch = self.read_steps(std::slice::from_ref(&episode_id), version, layers)?.pop().flatten();
+            let batch = batch.ok_or_else(|| {
                 NotFoundError::new_err(format!("episode {episode_id}: the read returned nothing"))
             })?;
             verifier::steps::step_inputs(v.config(), &batch).map_err(from_verifier)
