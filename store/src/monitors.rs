@@ -127,6 +127,20 @@ impl Store {
         Ok(out)
     }
 
+    /// The newest monitor calibrated for `artifact_id`, if any (what the scoreboard shows).
+    pub async fn latest_monitor(&self, artifact_id: &str) -> Result<Option<MonitorEntry>, StoreError> {
+        let row = sqlx::query(&format!(
+            "SELECT {MON_COLS} FROM monitors WHERE artifact_id = $1 ORDER BY created_at DESC, id DESC LIMIT 1"
+        ))
+        .bind(artifact_id)
+        .fetch_optional(&self.db().pool)
+        .await?;
+        let Some(row) = row else { return Ok(None) };
+        let mut m = monitor_from_row(&row)?;
+        m.aliases = self.monitor_aliases_of(&m.id).await?;
+        Ok(Some(m))
+    }
+
     async fn monitor_aliases_of(&self, id: &str) -> Result<Vec<String>, StoreError> {
         let rows = sqlx::query("SELECT alias FROM monitor_aliases WHERE monitor_id = $1 ORDER BY alias")
             .bind(id)

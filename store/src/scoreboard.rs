@@ -385,9 +385,8 @@ impl Store {
                     Ok(a) => {
                         let mut q = verifier_quality(&a);
                         q["monitor"] = self
-                            .monitors(None, None, Some(&id))
+                            .latest_monitor(&id)
                             .await?
-                            .pop()
                             .map_or(serde_json::Value::Null, |m| monitor_summary(&m));
                         Some(q)
                     }
