@@ -114,6 +114,29 @@ fn quick_demo_rows_go_the_way_the_method_says() {
         assert!((0.0..=1.0).contains(&v), "{k} = {v}");
     }
     assert_eq!(q["reliability"].as_array().unwrap().len(), 10);
+    // Next to the AUROC, how much the chunk matters: the verifier's AUROC among held-out samples
+    // its observation-only twin scores alike, and the twin's own, as the artifact records them.
+    let sensitivity = &report["meta"]["verifier_metrics"]["classifier"]["action_sensitivity"];
+    assert_eq!(q["action_auroc"], sensitivity["action_auc"], "{q}");
+    assert_eq!(q["obs_only_auroc"], sensitivity["obs_only_auc"], "{q}");
+    let gain = q["auroc"].as_f64().unwrap() - q["obs_only_auroc"].as_f64().unwrap();
+    assert!((sensitivity["auc_gain"].as_f64().unwrap() - gain).abs() < 1e-12);
+    // The report ranks every best-of-N row of the base policy (C and Q at N = 10, the off-policy
+    // classifier, the 50-rollout one) by each figure against the gain its steering achieved.
+    let sq = &report["steering_quality"];
+    let sq_rows = sq["rows"].as_array().unwrap();
+    let runs: Vec<&str> = sq_rows.iter().map(|r| r["run"].as_str().unwrap()).collect();
+    assert_eq!(runs, ["c-bon10", "q-bon10", "off-c-bon10", "c-bon10-n50"], "{sq}");
+    for r in sq_rows {
+        let row = rows.iter().find(|x| x["run"] == r["run"] && x["checkpoint"] == "base").unwrap();
+        assert_eq!(r["gain"], row["diff_to_base"]);
+        assert!(r["action_auroc"].is_number() && r["auroc"].is_number(), "{r}");
+    }
+    for k in ["spearman_auroc", "spearman_action_auroc"] {
+        let rho = sq[k].as_f64().unwrap_or_else(|| panic!("{k} in {sq}"));
+        assert!((-1.0..=1.0).contains(&rho), "{k} = {rho}");
+    }
+    assert!(out.contains("Rank correlation with the gain over these 4 rows (Spearman)"), "{out}");
     // The failure alarm calibrated from the same classifier, stored and shown with its quality.
     let monitor = &report["monitor"];
     assert_eq!(monitor["artifact_id"], report["meta"]["artifacts"]["classifier"]);
@@ -128,6 +151,15 @@ fn quick_demo_rows_go_the_way_the_method_says() {
     // The default table and CSV.
     let table = t.ok(&["scoreboard", "--policy", "nav-dp"]);
     assert!(table.contains("| base | two-gap-navigation | c-bon10 (on-policy) | bon:10 |"), "{table}");
+    let n = |v: &serde_json::Value| format!("{:.3}", v.as_f64().unwrap());
+    let cell = format!(
+        "| bon:10 | {} (AUROC {}, action {}, obs-only {}",
+        bon["run"]["artifact_id"].as_str().unwrap(),
+        n(&q["auroc"]),
+        n(&q["action_auroc"]),
+        n(&q["obs_only_auroc"])
+    );
+    assert!(table.contains(&cell), "the verifier column shows its figures: {cell}\n{table}");
     let csv = t.ok(&["scoreboard", "--policy", "nav-dp", "--format", "csv"]);
     assert_eq!(csv.lines().count(), sb_rows.len() + 1, "{csv}");
     // `ufops compare` on the stored runs: the rows share initial conditions (`pair_key`), best-of-N

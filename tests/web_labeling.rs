@@ -405,6 +405,19 @@ fn scoreboard_page_in_headless_chromium() {
     assert!(monitors.iter().all(|m| m["id"] == monitor["id"]), "{monitors:?}");
     let text = monitors[0]["text"].as_str().unwrap();
     assert!(text.starts_with("alarm α 0.25: false ") && text.contains(" · caught "), "{text}");
+    // How much the chunk matters (the trainer's observation-only twin), on the same two rows, as
+    // the artifact records it; a flagged verifier says so.
+    let s = &arts[0]["config"]["metrics"]["final"]["action_sensitivity"];
+    let lines = result["first"]["sensitivity"].as_array().unwrap();
+    assert_eq!(lines.len(), 2, "{lines:?}");
+    let n = |x: &Value| format!("{:.3}", x.as_f64().unwrap());
+    let text = lines[0]["text"].as_str().unwrap();
+    assert!(
+        text.starts_with(&format!("action {} · obs-only {}", n(&s["action_auc"]), n(&s["obs_only_auc"]))),
+        "{text}"
+    );
+    assert_eq!(lines[0]["flagged"], s["flagged"].to_string().as_str());
+    assert_eq!(text.contains("unlikely to steer well"), s["flagged"] == true, "{text}");
 }
 
 /// Several labelers in headless Chromium: six synthetic episodes of

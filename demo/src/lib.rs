@@ -10,7 +10,7 @@ pub mod diagnose;
 mod report;
 pub mod review_campaign;
 
-pub use report::{MonitorSummary, Report, Row};
+pub use report::{MonitorSummary, Report, Row, SteeringQuality, SteeringQualityRow};
 
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -349,8 +349,12 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         "fast_path": clf.backend_name(),
     });
     let mut keep_for_plot = None;
+    // Every best-of-N run of the base policy with its verifier: the report ranks the verifiers'
+    // figures against the gains.
+    let mut bon_runs: Vec<(String, u32, store::ArtifactRecord)> = Vec::new();
     let verifiers: [(&str, &steer::Verifier); 2] = [("C", &clf), ("Q", &q)];
-    let artifact_of = |name: &str| if name == "C" { c_rec.id.as_str() } else { q_rec.id.as_str() };
+    let record_of = |name: &str| if name == "C" { &c_rec } else { &q_rec };
+    let artifact_of = |name: &str| record_of(name).id.as_str();
     for (name, v) in verifiers {
         let label = format!("base (DDPM), scored by {name}");
         report.diagnostics.push(diagnose::run_diagnostics(&label, &base_eps, v, &norm, env.max_speed, None)?);
@@ -365,6 +369,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
                 Some(artifact_of(name)),
                 &["on-policy"],
             );
+            bon_runs.push((r.name.clone(), nn as u32, record_of(name).clone()));
             record(store, &mut report, &eps, BASE, r, &label, "on-policy", pc.horizon, crn).await?;
             report.diagnostics.push(diagnose::run_diagnostics(&label, &eps, v, &norm, env.max_speed, None)?);
             if name == "C" && keep_for_plot.is_none() {
@@ -419,6 +424,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         &["off-policy"],
     );
     let label = format!("C x BoN (N={nn})");
+    bon_runs.push((r.name.clone(), nn as u32, off_rec.clone()));
     record(store, &mut report, &eps, BASE, r, &label, "off-policy (alt rollouts)", pc.horizon, crn).await?;
     let lambda = cfg.lambdas[cfg.lambdas.len() / 2];
     let eps = eval(&base, ChunkChoice::Guided { scorer: &off_clf, lambda }, "off-policy C x CG", crn)?;
@@ -454,6 +460,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
             Some(&rec.id),
             &["on-policy", tag.as_str()],
         );
+        bon_runs.push((r.name.clone(), nn_ablation as u32, rec.clone()));
         record(
             store,
             &mut report,
@@ -467,6 +474,8 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         )
         .await?;
     }
+
+    report.steering_quality = Some(report::SteeringQuality::new(&report.rows, &bon_runs));
 
     // The learning-curve classifiers were published last: `latest` names the main one again.
     store.set_alias("latest", &c_rec.id).await?;

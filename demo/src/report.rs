@@ -32,6 +32,105 @@ pub struct Report {
     pub meta: serde_json::Value,
     /// The failure alarm calibrated from the main classifier (`ufops monitor`).
     pub monitor: Option<MonitorSummary>,
+    /// Each best-of-N row's verifier figures next to the gain its steering achieved.
+    pub steering_quality: Option<SteeringQuality>,
+}
+
+/// A best-of-N row of the base policy: its verifier's held-out figures and what steering with it
+/// gained over the base policy.
+#[derive(Debug, Clone, Serialize)]
+pub struct SteeringQualityRow {
+    pub run: String,
+    pub n: u32,
+    pub artifact_id: String,
+    pub kind: String,
+    /// Episodes the verifier trained on (its split's train part).
+    pub train_episodes: Option<u64>,
+    /// Success rate minus the base policy's.
+    pub gain: f64,
+    /// Held-out AUROC over every (obs, chunk, t) sample.
+    pub auroc: Option<f64>,
+    /// The action-sensitivity figure: the AUROC of the verifier's excess over its
+    /// observation-only twin, among held-out samples the twin scores alike.
+    pub action_auroc: Option<f64>,
+    pub obs_only_auroc: Option<f64>,
+    pub flagged: bool,
+}
+
+/// Does a verifier figure predict what best-of-N gains? Spearman's rank correlation of each
+/// figure with the gain, over the rows.
+#[derive(Debug, Clone, Serialize)]
+pub struct SteeringQuality {
+    pub rows: Vec<SteeringQualityRow>,
+    pub spearman_auroc: Option<f64>,
+    pub spearman_action_auroc: Option<f64>,
+}
+
+impl SteeringQuality {
+    /// From the report's rows and the best-of-N runs' `(run, n, artifact)` (rows of other
+    /// checkpoints than the base are left out: their gain is another policy's).
+    pub fn new(rows: &[Row], runs: &[(String, u32, store::ArtifactRecord)]) -> Self {
+        let rows: Vec<SteeringQualityRow> = runs
+            .iter()
+            .filter_map(|(run, n, a)| {
+                let row = rows.iter().find(|r| r.checkpoint == crate::BASE && &r.run == run)?;
+                let m = &a.config["metrics"];
+                let s = steer::verifier::ActionSensitivity::from_metrics(m);
+                Some(SteeringQualityRow {
+                    run: run.clone(),
+                    n: *n,
+                    artifact_id: a.id.clone(),
+                    kind: a.kind.clone(),
+                    train_episodes: a.config["lineage"]["train_episodes"].as_u64(),
+                    gain: row.diff_to_base?,
+                    auroc: m["final"]["val_auc"].as_f64(),
+                    action_auroc: s.as_ref().and_then(|s| s.action_auc),
+                    obs_only_auroc: s.as_ref().and_then(|s| s.obs_only_auc),
+                    flagged: s.is_some_and(|s| s.flagged),
+                })
+            })
+            .collect();
+        let gains: Vec<f64> = rows.iter().map(|r| r.gain).collect();
+        let figure = |f: fn(&SteeringQualityRow) -> Option<f64>| -> Option<f64> {
+            let x: Option<Vec<f64>> = rows.iter().map(f).collect();
+            evalstats::spearman(&x?, &gains)
+        };
+        SteeringQuality {
+            spearman_auroc: figure(|r| r.auroc),
+            spearman_action_auroc: figure(|r| r.action_auroc),
+            rows,
+        }
+    }
+
+    pub fn markdown(&self) -> String {
+        let n = |x: Option<f64>| x.map_or("-".into(), |v| format!("{v:.3}"));
+        let mut s = String::from(
+            "| run | N | verifier | trained on | Δ to base | held-out AUROC | action AUROC | obs-only twin AUROC | flagged |\n\
+             |---|---|---|---|---|---|---|---|---|\n",
+        );
+        for r in &self.rows {
+            s.push_str(&format!(
+                "| {} | {} | {} {} | {} | {:+.1} pp | {} | {} | {} | {} |\n",
+                r.run,
+                r.n,
+                r.kind,
+                r.artifact_id,
+                r.train_episodes.map_or("-".into(), |e| e.to_string()),
+                100.0 * r.gain,
+                n(r.auroc),
+                n(r.action_auroc),
+                n(r.obs_only_auroc),
+                if r.flagged { "yes" } else { "" },
+            ));
+        }
+        s.push_str(&format!(
+            "\nRank correlation with the gain over these {} rows (Spearman): held-out AUROC {}, action AUROC {}.\n",
+            self.rows.len(),
+            n(self.spearman_auroc),
+            n(self.spearman_action_auroc)
+        ));
+        s
+    }
 }
 
 /// The demo's failure monitor: its record's headline and what it measured on held-out episodes.
@@ -66,6 +165,7 @@ impl Report {
             seconds: 0.0,
             meta: serde_json::Value::Null,
             monitor: None,
+            steering_quality: None,
         }
     }
 
@@ -167,9 +267,14 @@ impl Report {
         let md = format!(
             "# ufops demo: two-gap navigation\n\n{}\nEvery row's rollouts are in the store as a run (`checkpoint`/`run` in `report.json`): \
              `ufops scoreboard --policy nav-dp --baseline-checkpoint base` gives this table back.\n\n{}\n\
+             ## Which verifier steers well\n\nThe held-out AUROC over every (obs, chunk, t) sample next to the \
+             action AUROC (the AUROC of the verifier's score in excess of its observation-only twin's, among held-out \
+             samples the twin scores alike), \
+             for every best-of-N row of the base policy.\n\n{}\n\
              ## What steering did\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
             self.markdown(),
             self.monitor_markdown(),
+            self.steering_quality.as_ref().map(SteeringQuality::markdown).unwrap_or_default(),
             crate::diagnose::markdown(&self.diagnostics),
             self.seconds
         );

@@ -8,12 +8,14 @@
 //! agreement between labelers (Cohen's κ, Krippendorff's α; [`agreement`]), and the
 //! anytime-valid sequential comparison of two arms that stays correct when people look after every
 //! rollout ([`sequential`]: betting confidence sequences, pairing, Fisher's exact test as the
-//! fixed-n reference). No dependencies.
+//! fixed-n reference), and Spearman's rank correlation ([`rank`]). No dependencies.
 
 pub mod agreement;
+pub mod rank;
 pub mod sequential;
 pub mod splitmix;
 pub use agreement::{cohen_kappa, krippendorff_alpha_nominal};
+pub use rank::spearman;
 pub use sequential::{
     compare_pairs, pair_by_key, Decision, Pair, PairedCounts, SequentialConfig, SequentialResult,
     SequentialTest,

@@ -225,8 +225,16 @@ def main() -> int:
     metrics = {k: final.get(k) for k in ("val_auc", "best_val_loss", "best_epoch", "epochs_run", "train_samples",
                                          "train_positive_fraction", "seconds", "backend")}
     metrics["val_accuracy"] = (final.get("val_calibration") or {}).get("accuracy")
+    # How much of that AUC the action chunk earns (the trainer's observation-only twin).
+    sensitivity = final.get("action_sensitivity") or {}
+    metrics["action_auc"] = sensitivity.get("action_auc")
+    metrics["obs_only_auc"] = sensitivity.get("obs_only_auc")
+    metrics["steering_flagged"] = sensitivity.get("flagged")
     log(f"4. split {split['id']} ({split['train_episodes']} train / {split['val_episodes']} val episodes); "
         f"verifier {art['id']}: val AUC {metrics['val_auc']:.3f}, val accuracy {metrics['val_accuracy']:.3f}, "
+        f"action AUC {sensitivity.get('action_auc') or float('nan'):.3f} "
+        f"(obs-only twin {sensitivity.get('obs_only_auc') or float('nan'):.3f}"
+        f"{', FLAGGED' if sensitivity.get('flagged') else ''}), "
         f"{metrics['train_samples']} samples, {metrics['seconds']:.1f} s")
     verifier = ufops.Verifier.from_store(store, f"{POLICY}/{CHECKPOINT}/classifier@latest")
     assert verifier.chunk_len == h and verifier.takes_policy_space, (verifier.chunk_len, verifier.takes_policy_space)

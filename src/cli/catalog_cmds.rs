@@ -183,8 +183,11 @@ pub async fn artifacts(args: &StoreArgs, a: ArtifactsArgs) -> Result<()> {
                 let num = |v: &serde_json::Value| {
                     v.as_f64().map(|x| format!("{x:.3}")).unwrap_or_else(|| "-".into())
                 };
+                let sensitivity = verifier::ActionSensitivity::from_metrics(m)
+                    .map(|s| format!("  {}", s.summary()))
+                    .unwrap_or_default();
                 println!(
-                    "{}  {:<10} {}/{}  split {}  aliases [{}]  val_loss {}  auroc {}  acc {}  brier {}  ece {}",
+                    "{}  {:<10} {}/{}  split {}  aliases [{}]  val_loss {}  auroc {}  acc {}  brier {}  ece {}{sensitivity}",
                     r.id,
                     r.kind,
                     r.policy,

@@ -140,6 +140,13 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
                 rec.aliases.join(", ")
             );
             println!("metrics: {}", rec.config["metrics"]["final"]);
+            // How much the chunk matters, next to the AUROC; a flagged verifier says so loudly.
+            if let Some(s) = verifier::ActionSensitivity::from_metrics(&rec.config["metrics"]) {
+                println!("{}", s.summary());
+                if let Some(reason) = &s.reason {
+                    eprintln!("warning: {reason}");
+                }
+            }
             Ok(())
         }
         Err(e) => {
@@ -222,6 +229,9 @@ pub async fn demo(
     let report = demo::run(&store, &cfg).await?;
     println!("{}", report.markdown());
     print!("{}", report.monitor_markdown());
+    if let Some(q) = &report.steering_quality {
+        println!("\n{}", q.markdown());
+    }
     println!(
         "runtime {:.0} s; report: {} and report.json; figure: {}",
         report.seconds,

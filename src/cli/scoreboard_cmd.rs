@@ -69,7 +69,7 @@ pub async fn scoreboard(args: &StoreArgs, a: ScoreboardArgs) -> Result<()> {
                         .map(|x| format!(" ({})", x.tags.join(", ")))
                         .unwrap_or_default(),
                     run.map(|x| x.steering.to_string()).unwrap_or_else(|| "-".into()),
-                    run.and_then(|x| x.artifact_id.as_deref()).unwrap_or("-"),
+                    verifier_cell(r),
                     r.successes,
                     labeled,
                     r.rate.map(pct).unwrap_or_else(|| "-".into()),
@@ -88,5 +88,26 @@ pub async fn scoreboard(args: &StoreArgs, a: ScoreboardArgs) -> Result<()> {
             }
             Ok(())
         }
+    }
+}
+
+/// The table's verifier cell: the artifact id with its held-out AUROC and how much of it the
+/// action chunk earns (the trainer's observation-only twin), flagged when unlikely to steer well.
+fn verifier_cell(r: &store::ScoreboardRow) -> String {
+    let Some(id) = r.run.as_ref().and_then(|x| x.artifact_id.as_deref()) else { return "-".into() };
+    let Some(q) = &r.verifier_quality else { return id.to_string() };
+    let n = |k: &str| q[k].as_f64().map(|x| format!("{x:.3}"));
+    let mut figures: Vec<String> =
+        [("AUROC", "auroc"), ("action", "action_auroc"), ("obs-only", "obs_only_auroc")]
+            .into_iter()
+            .filter_map(|(name, k)| n(k).map(|v| format!("{name} {v}")))
+            .collect();
+    if q["steering_flagged"] == true {
+        figures.push("FLAGGED: unlikely to steer well".into());
+    }
+    if figures.is_empty() {
+        id.to_string()
+    } else {
+        format!("{id} ({})", figures.join(", "))
     }
 }

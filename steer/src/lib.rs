@@ -68,6 +68,12 @@ pub trait Scorer {
     fn grad(&self, obs_history: &[f32], chunk: &[f32], t: u32) -> Result<Vec<f32>> {
         self.grad_batch(obs_history, &[t], chunk)
     }
+    /// Why steering with this scorer may not help, when its training flagged it (a verifier
+    /// artifact's action-sensitivity figure, [`verifier::ActionSensitivity`]); the best-of-N
+    /// helpers log it once per process ([`warn_if_flagged`]).
+    fn steering_warning(&self) -> Option<String> {
+        None
+    }
 }
 
 impl Scorer for Verifier {
@@ -85,6 +91,9 @@ impl Scorer for Verifier {
     }
     fn grad_batch(&self, obs: &[f32], t: &[u32], chunks: &[f32]) -> Result<Vec<f32>> {
         Ok(Verifier::grad(self, obs, t, chunks)?)
+    }
+    fn steering_warning(&self) -> Option<String> {
+        Verifier::steering_warning(self)
     }
 }
 
@@ -104,4 +113,22 @@ impl<S: Scorer + ?Sized> Scorer for &S {
     fn grad_batch(&self, obs: &[f32], t: &[u32], chunks: &[f32]) -> Result<Vec<f32>> {
         (**self).grad_batch(obs, t, chunks)
     }
+    fn steering_warning(&self) -> Option<String> {
+        (**self).steering_warning()
+    }
+}
+
+/// Logs a flagged scorer's [`Scorer::steering_warning`] (tracing, level `warn`) the first time
+/// this process steers with it; returns whether it warned now. The best-of-N helpers call it, so
+/// a verifier whose training said it is unlikely to steer well is named once, not per step.
+pub fn warn_if_flagged(scorer: &dyn Scorer) -> bool {
+    use std::sync::{Mutex, OnceLock};
+    static WARNED: OnceLock<Mutex<std::collections::HashSet<String>>> = OnceLock::new();
+    let Some(message) = scorer.steering_warning() else { return false };
+    let first =
+        WARNED.get_or_init(Default::default).lock().map(|mut w| w.insert(message.clone())).unwrap_or(false);
+    if first {
+        tracing::warn!("{message}");
+    }
+    first
 }

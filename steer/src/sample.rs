@@ -264,6 +264,7 @@ pub fn best_of_n(
     n: usize,
 ) -> Result<BestOfN> {
     check_n(n)?;
+    crate::warn_if_flagged(scorer);
     let scores = scorer.score_batch(obs, t, candidates, n)?;
     pick(scorer.act_dim(), scores, t.len(), candidates, n)
 }
@@ -280,6 +281,7 @@ pub fn best_of_n_raw(
     n: usize,
 ) -> Result<BestOfN> {
     check_n(n)?;
+    crate::warn_if_flagged(scorer);
     let scores = match affine {
         Some(a) if scorer.takes_policy_space() => {
             let mut x = raw_candidates.to_vec();

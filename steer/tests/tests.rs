@@ -4,3 +4,4 @@
 
 mod caller_mistakes;
 mod sampling;
+mod steering_warning;

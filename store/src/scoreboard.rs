@@ -77,7 +77,10 @@ pub struct ScoreboardRow {
     pub baseline: Option<BaselineComparison>,
     /// The quality of the run's verifier on its split's held-out episodes, from the artifact's
     /// training metrics: `{artifact_id, kind, auroc, accuracy, brier, ece, reliability, val_samples}`
-    /// (calibration for classifiers only), and its latest failure monitor's held-out figures
+    /// (calibration for classifiers only), how much the action chunk earns of that AUROC
+    /// (`obs_only_auroc`, `action_auroc`, `auroc_gain`, `steering_flagged`, `steering_warning`:
+    /// the trainer's observation-only twin, null for artifacts trained without it), and its
+    /// latest failure monitor's held-out figures
     /// (`monitor`: `{id, alpha, false_alarm_rate, false_alarm_interval, successes, detection_rate,
     /// failures, lead_steps_median}`, null when it has none).
     pub verifier_quality: Option<serde_json::Value>,
@@ -105,7 +108,8 @@ impl Scoreboard {
         let mut s = String::from(
             "version,policy,checkpoint,task,run,steering,artifact_id,run_tags,episodes,successes,failures,unlabeled,\
              rate,wilson_lo,wilson_hi,baseline_checkpoint,baseline_run,diff,newcombe_lo,newcombe_hi,separates,\
-             rollouts_to_separate,unlabeled_to_flip,verifier_auroc,verifier_ece\n",
+             rollouts_to_separate,unlabeled_to_flip,verifier_auroc,verifier_ece,verifier_action_auroc,\
+             verifier_obs_only_auroc,verifier_steering_flagged\n",
         );
         let q = |x: &str| {
             if x.contains([',', '"', '\n', '\r']) {
@@ -151,6 +155,13 @@ impl Scoreboard {
                 b.and_then(|b| b.unlabeled_to_flip).map(|n| n.to_string()).unwrap_or_default(),
                 vq(r, "auroc"),
                 vq(r, "ece"),
+                vq(r, "action_auroc"),
+                vq(r, "obs_only_auroc"),
+                r.verifier_quality
+                    .as_ref()
+                    .and_then(|v| v["steering_flagged"].as_bool())
+                    .map(|b| b.to_string())
+                    .unwrap_or_default(),
             ];
             s.push_str(&cells.join(","));
             s.push('\n');
@@ -172,6 +183,13 @@ fn verifier_quality(a: &crate::ArtifactRecord) -> serde_json::Value {
         "ece": c["ece"],
         "reliability": c["bins"],
         "val_samples": m["val_samples"],
+        // How much the chunk matters (the trainer's observation-only twin); absent for older
+        // artifacts.
+        "obs_only_auroc": m["action_sensitivity"]["obs_only_auc"],
+        "action_auroc": m["action_sensitivity"]["action_auc"],
+        "auroc_gain": m["action_sensitivity"]["auc_gain"],
+        "steering_flagged": m["action_sensitivity"]["flagged"],
+        "steering_warning": m["action_sensitivity"]["reason"],
     })
 }
 

@@ -62,6 +62,7 @@ try {
     })),
     json: document.getElementById('dl-json').getAttribute('href'),
     monitors: [...document.querySelectorAll('#rows td.verifier .monitor')].map((m) => ({ id: m.dataset.monitor, text: m.textContent })),
+    sensitivity: [...document.querySelectorAll('#rows td.verifier .sensitivity')].map((m) => ({ flagged: m.dataset.flagged, text: m.textContent })),
   }));
   const first = await read();
   log('rows', first.rows.length, first.summary);

@@ -146,3 +146,110 @@ mod calibration_tests {
         assert!(calibration(&[], &[], 10).is_none());
     }
 }
+
+/// The action-sensitivity figure ([`verifier::quality`]) from held-out scores of the full
+/// verifier (`full`) and its observation-only twin (`twin`) on the same samples in the same order,
+/// with their binary `labels`: the twin's AUROC, the full one's gain over it, and the AUROC of
+/// the full score's excess over the twin's (`full − twin`, what differs between candidate chunks at
+/// one observation) within `strata` equal-count bins of the twin's score (pooled, weighted by each
+/// bin's positive-negative pairs); and both AUROCs on the bins the twin leaves open. Flagged by
+/// [`verifier::ActionSensitivity::flag`].
+pub fn action_sensitivity(
+    full: &[f32],
+    twin: &[f32],
+    labels: &[f32],
+    strata: usize,
+) -> verifier::ActionSensitivity {
+    let n = full.len().min(twin.len()).min(labels.len());
+    let (full, twin, labels) = (&full[..n], &twin[..n], &labels[..n]);
+    let full_auc = roc_auc(full, labels);
+    let obs_only_auc = roc_auc(twin, labels);
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by(|&a, &b| twin[a].total_cmp(&twin[b]));
+    let strata = strata.clamp(1, n.max(1));
+    let (lo, hi) = verifier::quality::UNSURE_POSITIVE_SHARE;
+    let (mut weighted, mut pairs) = (0f64, 0f64);
+    let mut unsure: Vec<usize> = Vec::new();
+    for s in 0..strata {
+        let bin = &order[s * n / strata..(s + 1) * n / strata];
+        let y: Vec<f32> = bin.iter().map(|&i| labels[i]).collect();
+        let pos = y.iter().filter(|&&l| l > 0.5).count() as f64;
+        let neg = bin.len() as f64 - pos;
+        if bin.is_empty() {
+            continue;
+        }
+        let share = pos / bin.len() as f64;
+        if (lo..=hi).contains(&share) {
+            unsure.extend_from_slice(bin);
+        }
+        // What a steering step compares: at one observation the twin's score is shared by every
+        // candidate, so candidates differ by the full score's excess over the twin's.
+        let scores: Vec<f32> = bin.iter().map(|&i| full[i] - twin[i]).collect();
+        if let Some(a) = roc_auc(&scores, &y) {
+            weighted += a * pos * neg;
+            pairs += pos * neg;
+        }
+    }
+    let pick = |v: &[f32], idx: &[usize]| idx.iter().map(|&i| v[i]).collect::<Vec<f32>>();
+    let unsure_labels = pick(labels, &unsure);
+    verifier::ActionSensitivity {
+        obs_only_auc,
+        auc_gain: full_auc.zip(obs_only_auc).map(|(f, t)| f - t),
+        action_auc: (pairs > 0.0).then(|| weighted / pairs),
+        strata,
+        unsure_fraction: if n == 0 { 0.0 } else { unsure.len() as f64 / n as f64 },
+        unsure_auc: roc_auc(&pick(full, &unsure), &unsure_labels),
+        unsure_obs_only_auc: roc_auc(&pick(twin, &unsure), &unsure_labels),
+        flagged: false,
+        reason: None,
+        twin_seconds: 0.0,
+    }
+    .flag()
+}
+
+#[cfg(test)]
+mod action_sensitivity_tests {
+    use super::*;
+
+    /// Outcome = (observation good) and (chunk good): the twin sees only the observation.
+    fn data(chunk_matters: bool) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let (mut full, mut twin, mut labels) = (vec![], vec![], vec![]);
+        for i in 0..400u32 {
+            let obs = (i % 20) as f32 / 20.0; // observation risk, 20 levels
+            let chunk_good = (i / 20) % 2 == 0;
+            let success = obs > 0.3 && (chunk_good || !chunk_matters) || obs > 0.9;
+            twin.push(obs);
+            full.push(obs + if chunk_good && chunk_matters { 0.5 } else { 0.0 });
+            labels.push(if success { 1.0 } else { 0.0 });
+        }
+        (full, twin, labels)
+    }
+
+    #[test]
+    fn a_chunk_that_decides_scores_high_and_one_that_does_not_is_flagged() {
+        let (full, twin, labels) = data(true);
+        let s = action_sensitivity(&full, &twin, &labels, 10);
+        assert!(s.action_auc.unwrap() > 0.9, "{s:?}");
+        assert!(s.auc_gain.unwrap() > 0.1 && !s.flagged, "{s:?}");
+        assert!(s.unsure_fraction > 0.0 && s.unsure_auc.unwrap() > s.unsure_obs_only_auc.unwrap());
+
+        // The full verifier's score is the twin's plus noise unrelated to the outcome.
+        let (_, twin, labels) = data(false);
+        let full: Vec<f32> =
+            twin.iter().enumerate().map(|(i, t)| t + 0.01 * ((i * 7919) % 13) as f32).collect();
+        let s = action_sensitivity(&full, &twin, &labels, 10);
+        assert!(s.action_auc.is_none_or(|a| a < 0.6), "{s:?}");
+        assert!(s.auc_gain.unwrap().abs() < 0.05, "{s:?}");
+    }
+
+    #[test]
+    fn a_twin_that_separates_every_stratum_leaves_nothing_to_the_chunk() {
+        let s = action_sensitivity(&[0.1, 0.9], &[0.1, 0.9], &[0.0, 1.0], 2);
+        assert_eq!(s.action_auc, None);
+        assert_eq!(s.obs_only_auc, Some(1.0));
+        assert!(s.flagged, "{s:?}");
+        // One outcome only: no verdict.
+        let s = action_sensitivity(&[0.1, 0.9], &[0.1, 0.9], &[1.0, 1.0], 2);
+        assert!(s.obs_only_auc.is_none() && !s.flagged, "{s:?}");
+    }
+}

@@ -77,6 +77,11 @@ pub struct TrainConfig {
     /// Threads for the fused path (data parallel). 1 measured fastest for the low-dim model.
     pub threads: usize,
     pub backend: TrainBackend,
+    /// After the verifier, train its observation-only twin (same samples, recipe and seed; the
+    /// action input held constant) and record how much the chunk adds (`metrics.final.
+    /// action_sensitivity`, [`verifier::ActionSensitivity`]). Doubles training time; needs
+    /// validation samples.
+    pub obs_only_twin: bool,
 }
 
 /// The verifier's input spec as a recipe file may give it (see
@@ -128,6 +133,7 @@ impl Default for TrainConfig {
             std_floor: 1e-3,
             threads: 1,
             backend: TrainBackend::Auto,
+            obs_only_twin: true,
         }
     }
 }
@@ -291,6 +297,10 @@ pub struct Metrics {
     /// Data warnings (e.g. constant dimensions whose std was clamped).
     #[serde(default)]
     pub warnings: Vec<String>,
+    /// How much the action chunk matters to the held-out scores, from the observation-only twin
+    /// (absent when the recipe turns the twin off or there are no validation samples).
+    #[serde(default)]
+    pub action_sensitivity: Option<verifier::ActionSensitivity>,
 }
 
 /// The result of training: everything `artifact::write_artifact` needs.
@@ -356,19 +366,67 @@ enum Engine {
 }
 
 /// Train on prepared (raw, un-normalised) samples. The step embedding width comes from `input`
-/// and must be even (sin/cos pairs), as every client requires.
-// One function past 100 lines on purpose: the seeded stream is drawn in one fixed order
-// (initialisation, each epoch's permutation, dropout masks, observation noise), which is what
-// makes both backends and every rerun train the same model; read top to bottom, it shows that
-// order.
+/// and must be even (sin/cos pairs), as every client requires. With validation samples and
+/// `cfg.obs_only_twin`, an observation-only twin is trained after the verifier and the
+/// action-sensitivity figure recorded in the metrics.
+///
+/// The seeded stream is drawn in one fixed order (initialisation, each epoch's permutation,
+/// dropout masks, observation noise), which is what makes both backends and every rerun train the
+/// same model; `fit` reads top to bottom in that order.
 pub fn train_samples(
+    tr: Samples,
+    va: Samples,
+    input: &InputSpec,
+    cfg: &TrainConfig,
+    observer: &mut dyn FnMut(&EpochReport),
+    cancel: Option<&AtomicBool>,
+) -> Result<Trained> {
+    let twin = (cfg.obs_only_twin && !va.is_empty()).then(|| (without_actions(&tr), without_actions(&va)));
+    let (mut trained, full_val) = fit(tr, va, input, cfg, observer, cancel)?;
+    if let (Some((ttr, tva)), Some(full_val)) = (twin, full_val) {
+        let start = Instant::now();
+        // The twin's epochs are not the verifier's: the observer sees only the verifier's.
+        let (_, twin_val) =
+            fit(ttr, tva, input, cfg, &mut |_| {}, cancel).context("training the observation-only twin")?;
+        if let Some(twin_val) = twin_val {
+            let mut s = crate::metrics::action_sensitivity(&full_val.y, &twin_val.y, &full_val.labels, 10);
+            s.twin_seconds = start.elapsed().as_secs_f64();
+            if let Some(reason) = &s.reason {
+                tracing::warn!("{reason}");
+            }
+            trained.metrics.action_sensitivity = Some(s);
+        }
+    }
+    Ok(trained)
+}
+
+/// The samples with the action input held constant (zero raw actions): what the
+/// observation-only twin trains on.
+fn without_actions(s: &Samples) -> Samples {
+    let mut twin = s.clone();
+    twin.act.iter_mut().for_each(|a| *a = 0.0);
+    twin
+}
+
+/// The best epoch's outputs on the validation samples, in the fixed validation order, with their
+/// labels.
+struct BestValidation {
+    y: Vec<f32>,
+    labels: Vec<f32>,
+}
+
+/// Trains one model on the samples; with validation samples, also returns the best epoch's
+/// validation outputs.
+// One function past 100 lines on purpose: the seeded stream is drawn in one fixed order (see
+// `train_samples`).
+fn fit(
     mut tr: Samples,
     mut va: Samples,
     input: &InputSpec,
     cfg: &TrainConfig,
     observer: &mut dyn FnMut(&EpochReport),
     cancel: Option<&AtomicBool>,
-) -> Result<Trained> {
+) -> Result<(Trained, Option<BestValidation>)> {
     let start = Instant::now();
     let Prepared { spec, norm, warnings, temb } = prepare(&mut tr, &mut va, input, cfg)?;
 
@@ -401,6 +459,7 @@ pub fn train_samples(
     let mut best: Option<(f64, usize, ParamSet, EpochReport)> = None;
     // The best epoch's calibration on val (kept beside `best`, not in every epoch's report).
     let mut best_calibration: Option<Calibration> = None;
+    let mut best_val_y: Option<Vec<f32>> = None;
     let mut history = Vec::new();
     let mut since_best = 0usize;
     let mut early_stopped = false;
@@ -440,14 +499,15 @@ pub fn train_samples(
         last_train_loss = loss_sum / n as f64;
         let lr_now = cfg.optimizer.lr * linear_factor(opt.steps(), total_steps, 1.0, cfg.lr_end_factor);
 
+        let (val_y, val_scores) = if va.is_empty() {
+            (None, ValScores::default())
+        } else {
+            let (y, loss) = evaluate(&mut engine, &params, &spec, &va, &va_target, &va_order, &temb, cfg)?;
+            let scores = ValScores::of(loss, &y, &va, &va_order, cfg.kind);
+            (Some(y), scores)
+        };
         let ValScores { loss: val_loss, auc: val_auc, pearson: val_pearson, calibration: val_calibration } =
-            if va.is_empty() {
-                ValScores::default()
-            } else {
-                let (y, loss) =
-                    evaluate(&mut engine, &params, &spec, &va, &va_target, &va_order, &temb, cfg)?;
-                ValScores::of(loss, &y, &va, &va_order, cfg.kind)
-            };
+            val_scores;
         let sel = val_loss.unwrap_or(last_train_loss);
         let is_best = best.as_ref().is_none_or(|b| sel < b.0);
         let rep = EpochReport {
@@ -468,6 +528,7 @@ pub fn train_samples(
             };
             best = Some((sel, epoch, p, rep.clone()));
             best_calibration = val_calibration;
+            best_val_y = val_y;
             since_best = 0;
         } else {
             since_best += 1;
@@ -497,8 +558,11 @@ pub fn train_samples(
         samples_per_second: samples_seen as f64 / seconds.max(1e-9),
         backend: backend_name.into(),
         warnings,
+        action_sensitivity: None,
     };
-    Ok(Trained {
+    let best_validation = best_val_y
+        .map(|y| BestValidation { y, labels: va_order.iter().map(|&i| va.label[i as usize]).collect() });
+    let trained = Trained {
         spec,
         input: input.clone(),
         norm,
@@ -507,7 +571,8 @@ pub fn train_samples(
         config: cfg.clone(),
         metrics,
         history,
-    })
+    };
+    Ok((trained, best_validation))
 }
 
 /// What training needs before its first draw: the model's spec, the normalization fitted on the

@@ -83,6 +83,65 @@ fn classifier_separates_action_dependent_success() {
     assert!(seen.last().unwrap().train_loss < seen[0].train_loss);
 }
 
+/// The same episodes with the success signal moved from the actions into the observation: the
+/// outcome is visible before any chunk is chosen.
+fn observation_task(n_eps: usize, seed: u64) -> Vec<trainer::EpisodeSeries> {
+    let mut eps = common::action_task(n_eps, 30, seed);
+    for e in &mut eps {
+        let sign = if e.success { 1.0 } else { -1.0 };
+        for (i, a) in e.actions.iter_mut().enumerate() {
+            if i % 2 == 0 {
+                *a -= sign; // a[0] ~ N(0, 0.5) whatever the outcome
+            }
+        }
+        for (i, p) in e.obs[0].values.iter_mut().enumerate() {
+            if i % 3 == 0 {
+                *p = sign + 0.5 * *p; // pos[0] ~ N(±1, 0.5)
+            }
+        }
+    }
+    eps
+}
+
+/// The observation-only twin tells the two apart: where the chunk decides the outcome, the
+/// verifier ranks chunks well among samples the twin scores alike (not flagged); where the
+/// observation does, its AUROC is as high but earned by the observation, and it is flagged.
+#[test]
+fn the_twin_tells_a_chunk_that_decides_from_an_observation_that_does() {
+    let cfg = small_cfg(Kind::Classifier);
+    let spec = common::action_spec();
+    let r = trainer::train(&common::action_task(40, 30, 1), &common::action_task(12, 30, 2), &spec, &cfg)
+        .unwrap();
+    let s = r.metrics.action_sensitivity.clone().expect("trained with validation samples");
+    assert!(
+        r.metrics.val_auc.unwrap() > 0.95 && s.obs_only_auc.unwrap() < 0.75,
+        "{:?} {s:?}",
+        r.metrics.val_auc
+    );
+    assert!(s.action_auc.unwrap() > 0.9 && !s.flagged, "{s:?}");
+    assert!((s.auc_gain.unwrap() - (r.metrics.val_auc.unwrap() - s.obs_only_auc.unwrap())).abs() < 1e-12);
+
+    let o = trainer::train(&observation_task(40, 1), &observation_task(12, 2), &spec, &cfg).unwrap();
+    let s = o.metrics.action_sensitivity.clone().unwrap();
+    assert!(o.metrics.val_auc.unwrap() > 0.95 && s.obs_only_auc.unwrap() > 0.95, "{s:?}");
+    assert!(s.auc_gain.unwrap().abs() < 0.03, "{s:?}");
+    assert!(s.flagged && s.reason.as_deref().is_some_and(|r| r.contains("observation-only twin")), "{s:?}");
+
+    // The twin is the recipe's to turn off, and needs validation samples.
+    let off = TrainConfig { obs_only_twin: false, epochs: 2, ..cfg.clone() };
+    assert!(trainer::train(&common::action_task(8, 30, 1), &common::action_task(4, 30, 2), &spec, &off)
+        .unwrap()
+        .metrics
+        .action_sensitivity
+        .is_none());
+    let no_val = TrainConfig { epochs: 2, ..cfg };
+    assert!(trainer::train(&common::action_task(8, 30, 1), &[], &spec, &no_val)
+        .unwrap()
+        .metrics
+        .action_sensitivity
+        .is_none());
+}
+
 #[test]
 fn q_correlates_with_discounted_time_to_success() {
     let tr = common::q_task(40, 1);

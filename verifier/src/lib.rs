@@ -11,7 +11,9 @@
 //! episodes ([`samples`]: what the trainer trains on and scorers query), from the store's steps
 //! with feature `steps` (`steps::StepScorer`: how anything scores a stored episode). The failure
 //! monitor's record, running statistic and conformal threshold are here too ([`monitor`]), so the
-//! offline evaluation, the robot and Python raise the same alarm at the same step.
+//! offline evaluation, the robot and Python raise the same alarm at the same step, and so is the
+//! action-sensitivity figure with its flag ([`quality`]), which the trainer records and the
+//! steering helpers warn about.
 //!
 //! It has no heavy dependencies: `steer` (on the robot) and the Python package bind it. It does
 //! not train (the `trainer` crate), sample policies or steer them (the `steer` crate).
@@ -32,6 +34,7 @@ pub mod kernels;
 mod math;
 pub mod monitor;
 mod net;
+pub mod quality;
 pub mod samples;
 /// Verifier inputs from the store's steps batches and [`steps::StepScorer`] (feature `steps`).
 #[cfg(feature = "steps")]
@@ -51,6 +54,7 @@ pub use format::{
 pub use math::{sigmoid, time_embedding_into};
 pub use monitor::{MonitorRecord, MonitorState, MonitorStep};
 pub use net::Verifier;
+pub use quality::ActionSensitivity;
 pub use samples::{build_samples, EpisodeSeries, ObsSeries, Samples};
 #[cfg(feature = "steps")]
 pub use steps::StepScorer;

@@ -78,11 +78,24 @@ function render(sb) {
     const vq = r.verifier_quality;
     const num = (x) => (typeof x === 'number' ? x.toFixed(3) : '-');
     const vTd = tr.appendChild(el('td', { class: 'verifier' }, vq ? `${num(vq.auroc)} / ${num(vq.ece)}` : '-'));
+    if (vq && typeof vq.action_auroc === 'number') vTd.appendChild(sensitivityLine(vq));
     if (vq && vq.monitor) vTd.appendChild(monitorLine(vq.monitor));
     body.appendChild(tr);
   }
   renderVerifiers(sb);
   return badges;
+}
+
+/** How much the action chunk matters to the verifier, in one line: its AUROC among held-out
+ * samples its observation-only twin scores alike, and the twin's own AUROC (what the trainer
+ * measured). A verifier flagged as unlikely to steer well says so. */
+function sensitivityLine(vq) {
+  const n = (x) => (typeof x === 'number' ? x.toFixed(3) : '-');
+  const flagged = vq.steering_flagged === true;
+  return el('div', { class: `sensitivity${flagged ? ' flagged' : ''}`, 'data-flagged': String(flagged),
+    title: flagged ? vq.steering_warning : 'action: AUROC of the verifier\'s score in excess of its observation-only ' +
+      'twin\'s, among held-out samples the twin scores alike (0.5: the chunk adds nothing); obs-only: the twin\'s AUROC' },
+    `action ${n(vq.action_auroc)} · obs-only ${n(vq.obs_only_auroc)}${flagged ? ' · ⚠ unlikely to steer well' : ''}`);
 }
 
 /** A verifier's failure monitor in one line: its α, the false-alarm rate it showed on held-out
@@ -170,7 +183,7 @@ function renderVerifiers(sb) {
     }
     fig.appendChild(s);
     const num = (x) => (typeof x === 'number' ? x.toFixed(3) : '-');
-    fig.appendChild(el('figcaption', {}, `${vq.kind} ${vq.artifact_id.slice(0, 12)}: AUROC ${num(vq.auroc)}, accuracy ${num(vq.accuracy)}, Brier ${num(vq.brier)}, ECE ${num(vq.ece)} (${vq.val_samples} samples)`));
+    fig.appendChild(el('figcaption', {}, `${vq.kind} ${vq.artifact_id.slice(0, 12)}: AUROC ${num(vq.auroc)} (action ${num(vq.action_auroc)}, obs-only ${num(vq.obs_only_auroc)}), accuracy ${num(vq.accuracy)}, Brier ${num(vq.brier)}, ECE ${num(vq.ece)} (${vq.val_samples} samples)`));
     if (vq.monitor) fig.appendChild(monitorLine(vq.monitor));
     box.appendChild(fig);
   }

@@ -15,10 +15,19 @@ use pyo3::prelude::*;
 
 /// Writes an artifact with random weights (`verifier::testutil`) of the given dimensions
 /// ("square": the paper's Square task; "nav", "nav_features": the 2-D task) into `dir` and
-/// returns its id. For the tests and the benchmark (feature `testing`): it is not a trained verifier.
+/// returns its id; `metrics_json` becomes its `config.json` metrics (e.g. a flagged
+/// action-sensitivity figure). For the tests and the benchmark (feature `testing`): it is not a
+/// trained verifier.
 #[cfg(feature = "testing")]
 #[pyfunction]
-fn write_random_artifact(py: Python<'_>, dir: std::path::PathBuf, dims: &str, seed: u64) -> PyResult<String> {
+#[pyo3(signature = (dir, dims, seed, metrics_json=None))]
+fn write_random_artifact(
+    py: Python<'_>,
+    dir: std::path::PathBuf,
+    dims: &str,
+    seed: u64,
+    metrics_json: Option<&str>,
+) -> PyResult<String> {
     use ::verifier::testutil::RandomSpec;
     use pyo3::exceptions::PyValueError;
     let spec = match dims {
@@ -29,8 +38,15 @@ fn write_random_artifact(py: Python<'_>, dir: std::path::PathBuf, dims: &str, se
             return Err(PyValueError::new_err(format!("unknown dims {other:?}: square, nav or nav_features")))
         }
     };
+    let metrics = metrics_json
+        .map(serde_json::from_str::<serde_json::Value>)
+        .transpose()
+        .map_err(|e| PyValueError::new_err(format!("metrics_json: {e}")))?;
     py.detach(|| {
-        let (config, weights) = spec.build(seed);
+        let (mut config, weights) = spec.build(seed);
+        if let Some(m) = metrics {
+            config.metrics = m;
+        }
         let files = ::verifier::ArtifactFiles::build(&config, &weights)?;
         files.write_dir(&dir)?;
         Ok(files.id)

@@ -197,6 +197,12 @@ impl PyVerifier {
         let l = &self.v.config().input.layout;
         l.check_producers(provided.iter().map(|(k, p)| (k.as_str(), p.as_str()))).map_err(from_verifier)
     }
+    /// Why steering with this verifier may not help, when its training flagged it (the
+    /// action-sensitivity figure of `config.json`'s metrics); `None` otherwise.
+    #[getter]
+    fn steering_warning(&self) -> Option<String> {
+        self.v.steering_warning()
+    }
     /// `config.json` as a JSON string.
     fn config_json(&self) -> PyResult<String> {
         serde_json::to_string(self.v.config()).map_err(|e| PyValueError::new_err(e.to_string()))

@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 import threading
+import warnings
 from pathlib import Path
 from typing import Any, Dict
 
@@ -15,6 +16,7 @@ import numpy as np
 import pytest
 
 import ufops
+from ufops import _ufops
 from conftest import REPO, Server, Ufops, require_torch, rows
 
 KINDS = ("classifier", "q")
@@ -185,3 +187,44 @@ def test_python_lists_and_empty_batches(artifact_dirs: Dict[str, Path]) -> None:
     obs, act, t = inputs(v, 2, seed=6)
     close(v.score(obs.tolist(), act.tolist(), t.tolist()), v.score(obs, act, t))
     assert v.score(np.zeros((0, v.obs_dim), np.float32), np.zeros((0, v.act_dim), np.float32), 0).shape == (0,)
+
+
+def _figure(action_auc: float) -> Dict[str, Any]:
+    """An action-sensitivity figure as the trainer records it (`flagged` by its rule: < 0.6)."""
+    flagged = action_auc < 0.6
+    return {"obs_only_auc": 0.9, "auc_gain": 0.004, "action_auc": action_auc, "strata": 10,
+            "unsure_fraction": 0.2, "unsure_auc": None, "unsure_obs_only_auc": None, "flagged": flagged,
+            "reason": "ranks action chunks at 0.51 AUROC among held-out samples its observation-only twin "
+                      "scores alike" if flagged else None, "twin_seconds": 1.0}
+
+
+def test_a_flagged_verifier_warns_when_loaded_and_an_unflagged_one_does_not(tmp_path: Path) -> None:
+    for action_auc, warns in ((0.51, True), (0.8, False)):
+        d = tmp_path / str(action_auc)
+        metrics = {"final": {"val_auc": 0.93, "action_sensitivity": _figure(action_auc)}}
+        art = _ufops.write_random_artifact(d, "nav", 3, json.dumps(metrics))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            v = ufops.Verifier.load(d)
+        steering = [w for w in caught if issubclass(w.category, ufops.SteeringWarning)]
+        assert len(steering) == int(warns), [str(w.message) for w in caught]
+        assert v.action_sensitivity == metrics["final"]["action_sensitivity"]
+        if warns:
+            assert v.steering_warning is not None and str(steering[0].message) == v.steering_warning
+            assert v.steering_warning.startswith(f"verifier {art}: ranks action chunks at 0.51 AUROC")
+        else:
+            assert v.steering_warning is None
+
+
+def test_trained_verifiers_record_the_figure_and_warn_exactly_when_flagged(
+    artifact_dirs: Dict[str, Path],
+) -> None:
+    for kind, d in artifact_dirs.items():
+        figure = json.loads((d / "config.json").read_text())["metrics"]["final"]["action_sensitivity"]
+        assert 0.0 <= figure["obs_only_auc"] <= 1.0, (kind, figure)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            v = ufops.Verifier.load(d)
+        steering = [w for w in caught if issubclass(w.category, ufops.SteeringWarning)]
+        assert len(steering) == int(figure["flagged"]), (kind, figure)
+        assert v.action_sensitivity == figure

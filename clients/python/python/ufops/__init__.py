@@ -26,10 +26,11 @@ from ufops.errors import (
 )
 from ufops.monitor import Monitor, MonitorStep
 from ufops.store import Store
-from ufops.verifier import Verifier
+from ufops.verifier import SteeringWarning, Verifier
 
 __all__ = [
     "Verifier",
+    "SteeringWarning",
     "Monitor",
     "MonitorStep",
     "Store",

@@ -50,6 +50,8 @@ class Verifier:
     @property
     def required_producers(self) -> dict[str, str]: ...
     def check_producers(self, provided: Mapping[str, str]) -> None: ...
+    @property
+    def steering_warning(self) -> Optional[str]: ...
     def config_json(self) -> str: ...
     def score(
         self, obs: ArrayLike, act: ArrayLike, t: StepLike, extras: Optional[Mapping[str, ArrayLike]] = None
@@ -135,6 +137,9 @@ def episodes_ipc_from_json(records_json: str) -> bytes:
     ...
 
 # Only in a build with the crate's `testing` feature (the tests and the benchmark, see Cargo.toml).
-def write_random_artifact(dir: Union[str, os.PathLike[str]], dims: str, seed: int) -> str:
-    """Writes an artifact with random weights ("square", "nav" or "nav_features" dims) and returns its id."""
+def write_random_artifact(
+    dir: Union[str, os.PathLike[str]], dims: str, seed: int, metrics_json: Optional[str] = None
+) -> str:
+    """Writes an artifact with random weights ("square", "nav" or "nav_features" dims) and returns its id;
+    ``metrics_json`` becomes its config.json ``metrics``."""
     ...

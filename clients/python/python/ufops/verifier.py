@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from typing import Any, Dict, List, Mapping, Optional, Protocol, Tuple, Union
 
 import numpy as np
@@ -26,6 +27,12 @@ ArrayLike = Any  # numpy arrays (float32, C-contiguous: read in place), torch te
 StepLike = Union[int, Any]  # an int, or an integer array of shape (B,)
 
 
+class SteeringWarning(UserWarning):
+    """A verifier's training flagged it as unlikely to steer well: among held-out samples its
+    observation-only twin scores alike, it barely ranks the action chunks (see
+    :attr:`Verifier.action_sensitivity`). Shown once per artifact when it is loaded."""
+
+
 class Verifier:
     """A verifier artifact: ``Verifier.load(dir)``, ``Verifier.from_store(store, ref)`` or
     ``Verifier.from_server(url, ref, token)``; then :meth:`score` candidate chunks or take the
@@ -38,6 +45,9 @@ class Verifier:
         if not isinstance(native, _ufops.Verifier):
             raise TypeError("use Verifier.load, Verifier.from_store or Verifier.from_server")
         self._native = native
+        warning = native.steering_warning
+        if warning is not None:
+            warnings.warn(warning, SteeringWarning, stacklevel=3)
 
     @classmethod
     def load(cls, path: Union[str, "os.PathLike[str]"]) -> "Verifier":
@@ -115,6 +125,19 @@ class Verifier:
         """Raises unless ``provided`` (layer key → producer hash) gives every layer this verifier
         reads from the producer it was trained on."""
         self._native.check_producers(dict(provided))
+
+    @property
+    def action_sensitivity(self) -> Optional[Dict[str, Any]]:
+        """How much the action chunk matters to this verifier's held-out scores, as its training
+        measured with an observation-only twin (``obs_only_auc``, ``auc_gain``, ``action_auc``,
+        ``flagged``, ``reason``...); ``None`` for artifacts trained without the twin."""
+        found = self.config().get("metrics", {}).get("final", {}).get("action_sensitivity")
+        return dict(found) if isinstance(found, dict) else None
+
+    @property
+    def steering_warning(self) -> Optional[str]:
+        """Why steering with this verifier may not help, when its training flagged it."""
+        return self._native.steering_warning
 
     def config(self) -> Dict[str, Any]:
         """The artifact's config.json."""
