@@ -30,9 +30,9 @@ fn verifier_with(action_auc: Option<f64>) -> Verifier {
 
 #[test]
 fn a_flagged_verifier_is_named_once_and_an_unflagged_one_never() {
-    let flagged = verifier_with(Some(0.512));
+    let flagged = verifier_with(Some(0.412));
     let warning = flagged.steering_warning().expect("flagged below the floor");
-    assert!(warning.contains("0.51 AUROC") && warning.contains("observation-only twin"), "{warning}");
+    assert!(warning.contains("0.41 AUROC") && warning.contains("observation-only twin"), "{warning}");
     assert!(warn_if_flagged(&flagged), "the first use warns");
     assert!(!warn_if_flagged(&flagged), "... and only the first");
 

@@ -13,8 +13,11 @@
 use serde::{Deserialize, Serialize};
 
 /// Below this stratified action AUROC a verifier is flagged as unlikely to steer well: among
-/// samples whose observation-predicted outcome is alike, it barely ranks the chunks.
-pub const ACTION_AUC_FLOOR: f64 = 0.6;
+/// samples whose observation-predicted outcome is alike, the chunks it prefers are the ones that
+/// failed more often (below chance). Chosen on the demo's verifiers, where action AUROCs of
+/// 0.55-0.92 all steered best-of-N up by 21-28 pp and one of 0.25 steered it down by 30 pp
+/// (README, "Which verifier will steer well"): a higher floor flagged verifiers that steered well.
+pub const ACTION_AUC_FLOOR: f64 = 0.5;
 
 /// Samples in a twin-score stratum whose positive share lies in this range are ones the
 /// observation alone leaves open (the "unsure" samples).
@@ -73,9 +76,10 @@ impl ActionSensitivity {
             ),
             Some(_) => format!(
                 "the verifier ranks action chunks at {:.2} AUROC among held-out samples its observation-only \
-                 twin scores alike (below {ACTION_AUC_FLOOR}; overall AUROC gain over the twin {}): its held-out \
-                 AUROC is earned by the observation, and best-of-N or guidance with it may not help or may hurt. \
-                 Train on more rollouts, or evaluate a steered run before relying on it",
+                 twin scores alike (below chance, {ACTION_AUC_FLOOR}; overall AUROC gain over the twin {}): the \
+                 chunks it prefers failed more often, and best-of-N or guidance with it may hurt. Check that it \
+                 was trained on this checkpoint's own rollouts, train on more, or evaluate a steered run before \
+                 relying on it",
                 self.action_auc.unwrap_or(f64::NAN),
                 self.auc_gain.map(|g| format!("{g:+.3}")).unwrap_or_else(|| "unknown".into()),
             ),
@@ -142,8 +146,9 @@ mod tests {
 
     #[test]
     fn flags_below_the_floor_only() {
-        assert!(figure(Some(0.55)).flagged);
-        assert!(figure(Some(0.55)).reason.unwrap().contains("0.55 AUROC"));
+        assert!(figure(Some(0.45)).flagged);
+        assert!(figure(Some(0.45)).reason.unwrap().contains("0.45 AUROC"));
+        assert!(!figure(Some(0.55)).flagged, "above chance: the demo's verifiers at 0.55 steered well");
         assert!(!figure(Some(0.75)).flagged);
         assert!(figure(None).flagged, "the twin decided every stratum: nothing left for the chunk");
         assert!(figure(None).reason.unwrap().contains("separates every stratum"));
@@ -153,7 +158,7 @@ mod tests {
 
     #[test]
     fn reads_back_from_metrics() {
-        let f = figure(Some(0.5));
+        let f = figure(Some(0.4));
         let m = serde_json::json!({ "final": { "action_sensitivity": f } });
         assert_eq!(ActionSensitivity::from_metrics(&m), Some(f));
         assert_eq!(ActionSensitivity::from_metrics(&serde_json::json!({ "final": {} })), None);

@@ -190,16 +190,16 @@ def test_python_lists_and_empty_batches(artifact_dirs: Dict[str, Path]) -> None:
 
 
 def _figure(action_auc: float) -> Dict[str, Any]:
-    """An action-sensitivity figure as the trainer records it (`flagged` by its rule: < 0.6)."""
-    flagged = action_auc < 0.6
+    """An action-sensitivity figure as the trainer records it (`flagged` by its rule: < 0.5)."""
+    flagged = action_auc < 0.5
     return {"obs_only_auc": 0.9, "auc_gain": 0.004, "action_auc": action_auc, "strata": 10,
             "unsure_fraction": 0.2, "unsure_auc": None, "unsure_obs_only_auc": None, "flagged": flagged,
-            "reason": "ranks action chunks at 0.51 AUROC among held-out samples its observation-only twin "
+            "reason": "ranks action chunks at 0.41 AUROC among held-out samples its observation-only twin "
                       "scores alike" if flagged else None, "twin_seconds": 1.0}
 
 
 def test_a_flagged_verifier_warns_when_loaded_and_an_unflagged_one_does_not(tmp_path: Path) -> None:
-    for action_auc, warns in ((0.51, True), (0.8, False)):
+    for action_auc, warns in ((0.41, True), (0.55, False)):
         d = tmp_path / str(action_auc)
         metrics = {"final": {"val_auc": 0.93, "action_sensitivity": _figure(action_auc)}}
         art = _ufops.write_random_artifact(d, "nav", 3, json.dumps(metrics))
@@ -211,7 +211,7 @@ def test_a_flagged_verifier_warns_when_loaded_and_an_unflagged_one_does_not(tmp_
         assert v.action_sensitivity == metrics["final"]["action_sensitivity"]
         if warns:
             assert v.steering_warning is not None and str(steering[0].message) == v.steering_warning
-            assert v.steering_warning.startswith(f"verifier {art}: ranks action chunks at 0.51 AUROC")
+            assert v.steering_warning.startswith(f"verifier {art}: ranks action chunks at 0.41 AUROC")
         else:
             assert v.steering_warning is None
 
@@ -227,4 +227,11 @@ def test_trained_verifiers_record_the_figure_and_warn_exactly_when_flagged(
             v = ufops.Verifier.load(d)
         steering = [w for w in caught if issubclass(w.category, ufops.SteeringWarning)]
         assert len(steering) == int(figure["flagged"]), (kind, figure)
-        assert v.action_sensitivity == figure
+        # The same figure (config.json is read back through the core: floats to the last digit or so).
+        got = v.action_sensitivity
+        assert got is not None and got.keys() == figure.keys()
+        for k, want in figure.items():
+            if isinstance(want, float):
+                assert got[k] == pytest.approx(want, rel=1e-12), k
+            else:
+                assert got[k] == want, k
