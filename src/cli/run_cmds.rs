@@ -140,12 +140,10 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
                 rec.aliases.join(", ")
             );
             println!("metrics: {}", rec.config["metrics"]["final"]);
-            // How much the chunk matters, next to the AUROC; a flagged verifier says so loudly.
+            // How much the chunk matters, next to the AUROC (the trainer already logged a flagged
+            // verifier's reason as a warning).
             if let Some(s) = verifier::ActionSensitivity::from_metrics(&rec.config["metrics"]) {
                 println!("{}", s.summary());
-                if let Some(reason) = &s.reason {
-                    eprintln!("warning: {reason}");
-                }
             }
             Ok(())
         }

@@ -226,7 +226,7 @@ mod action_sensitivity_tests {
     }
 
     #[test]
-    fn a_chunk_that_decides_scores_high_and_one_that_does_not_is_flagged() {
+    fn a_chunk_that_decides_scores_high_and_one_that_does_not_scores_near_chance() {
         let (full, twin, labels) = data(true);
         let s = action_sensitivity(&full, &twin, &labels, 10);
         assert!(s.action_auc.unwrap() > 0.9, "{s:?}");
