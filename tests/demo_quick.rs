@@ -213,4 +213,37 @@ fn quick_demo_rows_go_the_way_the_method_says() {
         .map(|s| s["train_episodes"].as_i64().unwrap() + s["val_episodes"].as_i64().unwrap())
         .collect();
     assert!(sizes.contains(&50), "{sizes:?}");
+
+    // Steering telemetry: the recorded best-of-N runs kept every step's candidates, and
+    // `ufops replay` with the run's own verifier and N reproduces every logged choice and score.
+    let replays = report["replays"].as_array().unwrap();
+    assert_eq!(replays.len(), 3, "exact, by Q, off-policy by the on-policy C: {replays:?}");
+    let exact = &replays[0]["report"];
+    assert!(exact["steps"].as_u64().unwrap() > 200 * 5, "{exact}");
+    assert_eq!((&exact["changed"], &exact["max_score_difference"]), (&0.into(), &0.0.into()), "{exact}");
+    let same = t.json(&["replay", "--run", "c-bon10", "--checkpoint", "base", "--json"]);
+    assert_eq!(same["artifact_id"], report["meta"]["artifacts"]["classifier"]);
+    assert_eq!((&same["steps"], &same["changed"]), (&exact["steps"], &0.into()), "{same}");
+    assert_eq!(same["max_score_difference"], 0.0);
+    assert_eq!(same["episodes_without_telemetry"], 0);
+    // Fewer candidates: the changed share is measured, with its interval.
+    let fewer = t.json(&["replay", "--run", "c-bon10", "--checkpoint", "base", "--n", "3", "--json"]);
+    let f = fewer["changed_fraction"].as_f64().unwrap();
+    assert!(f > 0.0 && f < 1.0, "{fewer}");
+    assert!(fewer["max_score_difference"].is_null());
+    // Another artifact: Q on the classifier's logged steps.
+    let q_id = report["meta"]["artifacts"]["q"].as_str().unwrap();
+    let by_q = t.json(&["replay", "--run", "c-bon10", "--checkpoint", "base", "--artifact", q_id, "--json"]);
+    assert_eq!(by_q, replays[1]["report"], "the CLI and the demo's report replay the same way");
+    let text = t.ok(&["replay", "--run", "c-bon10", "--checkpoint", "base", "--n", "3"]);
+    assert!(text.contains("choice changed: ") && text.contains("the first 3 of N = 10 candidates"), "{text}");
+    // The base run logged nothing: a clear message, not an empty report.
+    let err = t.run(&["replay", "--run", "base", "--checkpoint", "base", "--artifact", q_id]);
+    let msg = String::from_utf8_lossy(&err.stderr);
+    assert!(!err.status.success() && msg.contains("holds no steering telemetry"), "{msg}");
+    let md = std::fs::read_to_string(dir.path().join("demo/report.md")).unwrap();
+    assert!(
+        md.contains("## Replaying the logged steps") && md.contains("| would Q have picked differently? |"),
+        "{md}"
+    );
 }

@@ -21,6 +21,7 @@ mod s3_store;
 mod snapshot_stalled_store;
 mod soak;
 mod steer_http;
+mod steering_telemetry;
 mod takeovers;
 mod upload_cleanup;
 mod verifier_parity;

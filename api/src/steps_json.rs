@@ -1,8 +1,11 @@
 //! The step table as columnar JSON: `{column name: [value per row]}`; vectors become arrays.
 //! Binary columns (PNG frames) are omitted and named in `omitted` (use Arrow IPC for them).
+//! The steering column becomes one object per best-of-N step (`artifact_id`, `chosen`,
+//! `latency_us`, `scores`; null between them) without its candidate chunks, which only a replay
+//! needs (they are in the Arrow IPC form).
 
 use arrow::array::{Array, AsArray, RecordBatch};
-use arrow::datatypes::{DataType, Float32Type, Float64Type, Int32Type, Int64Type};
+use arrow::datatypes::{DataType, Float16Type, Float32Type, Float64Type, Int32Type, Int64Type, UInt32Type};
 use serde_json::{Map, Value};
 
 fn num(x: f64) -> Value {
@@ -35,6 +38,44 @@ fn values(a: &dyn Array) -> Option<Vec<Value>> {
         DataType::Float64 => {
             let x = a.as_primitive::<Float64Type>();
             (0..n).map(|i| if x.is_null(i) { Value::Null } else { num(x.value(i)) }).collect()
+        }
+        DataType::UInt32 => {
+            let x = a.as_primitive::<UInt32Type>();
+            (0..n).map(|i| if x.is_null(i) { Value::Null } else { Value::from(x.value(i)) }).collect()
+        }
+        DataType::Float16 => {
+            let x = a.as_primitive::<Float16Type>();
+            (0..n).map(|i| if x.is_null(i) { Value::Null } else { num(x.value(i).to_f64()) }).collect()
+        }
+        DataType::List(_) => {
+            let l = a.as_list::<i32>();
+            (0..n)
+                .map(|i| {
+                    if l.is_null(i) {
+                        Value::Null
+                    } else {
+                        values(l.value(i).as_ref()).map(Value::Array).unwrap_or(Value::Null)
+                    }
+                })
+                .collect()
+        }
+        DataType::Struct(fields) => {
+            let st = a.as_struct();
+            let mut children = Vec::new();
+            for (f, c) in fields.iter().zip(st.columns()) {
+                if f.name() == "candidates" {
+                    continue;
+                }
+                children.push((f.name().clone(), values(c.as_ref())?));
+            }
+            (0..n)
+                .map(|i| {
+                    if st.is_null(i) {
+                        return Value::Null;
+                    }
+                    Value::Object(children.iter().map(|(k, v)| (k.clone(), v[i].clone())).collect())
+                })
+                .collect()
         }
         DataType::FixedSizeList(_, _) => {
             let l = a.as_fixed_size_list();

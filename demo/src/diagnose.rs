@@ -72,6 +72,12 @@ impl Scorer for TracingScorer<'_> {
     fn takes_policy_space(&self) -> bool {
         self.inner.takes_policy_space()
     }
+    fn artifact_id(&self) -> Option<String> {
+        self.inner.artifact_id()
+    }
+    fn steering_warning(&self) -> Option<String> {
+        self.inner.steering_warning()
+    }
     fn score_batch(&self, obs: &[f32], t: &[u32], candidates: &[f32], n: usize) -> steer::Result<Vec<f32>> {
         self.inner.score_batch(obs, t, candidates, n)
     }

@@ -160,8 +160,8 @@ fn to_episodes(eps: &[sim::Episode], horizon: usize, seed: u64) -> Vec<EpisodeIn
 }
 
 /// Ingests rollouts as one version of `run` (or finds the version that already holds the same
-/// rollouts).
-async fn ingest_rollouts(
+/// rollouts), with each episode's steering telemetry when it logged any.
+pub async fn ingest_rollouts(
     store: &Store,
     eps: &[sim::Episode],
     checkpoint: &str,
@@ -191,8 +191,14 @@ async fn ingest_rollouts(
         Err(e) => return Err(e.into()),
     };
     w.set_run(run)?;
-    for e in inputs {
-        w.add_episode(e).await?;
+    for (e, sim_ep) in inputs.into_iter().zip(eps) {
+        if sim_ep.steering.is_empty() {
+            w.add_episode(e).await?;
+        } else {
+            // The best-of-N steps it logged travel with it as the steps' steering column.
+            let steering = verifier::steps::steering_array(&sim_ep.steering, e.len())?;
+            w.add_episode_steered(e, steering).await?;
+        }
     }
     Ok(w.commit(&format!("demo rollouts of {POLICY}/{checkpoint}")).await?.version)
 }
@@ -362,7 +368,9 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     for (name, v) in verifiers {
         for &nn in &cfg.bon_n {
             let label = format!("{name} x BoN (N={nn})");
-            let eps = eval(&base, ChunkChoice::BestOfN { scorer: v, n: nn }, &label, crn)?;
+            // Recorded: every best-of-N step's candidates, scores and choice go into the store with
+            // the episode, for the replays below (`ufops replay`).
+            let eps = eval(&base, ChunkChoice::RecordedBestOfN { scorer: v, n: nn }, &label, crn)?;
             let r = demo_run(
                 &format!("{}-bon{nn}", name.to_lowercase()),
                 Steering::Bon { n: nn as u32 },
@@ -416,7 +424,8 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     let label = format!("flow twin, C x BoN (N={nn})");
     record(store, &mut report, &eps, FLOW, r, &label, "on-policy (DDPM rollouts)", pc.horizon, crn).await?;
     // 6. Off-policy ablation: the verifier trained on the alt checkpoint's rollouts.
-    let eps = eval(&base, ChunkChoice::BestOfN { scorer: &off_clf, n: nn }, "off-policy C x BoN", crn)?;
+    let eps =
+        eval(&base, ChunkChoice::RecordedBestOfN { scorer: &off_clf, n: nn }, "off-policy C x BoN", crn)?;
     let r = demo_run(
         &format!("off-c-bon{nn}"),
         Steering::Bon { n: nn as u32 },
@@ -476,6 +485,64 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     }
 
     report.steering_quality = Some(report::SteeringQuality::new(&report.rows, &bon_runs));
+
+    // Counterfactual replays of the logged best-of-N steps (the store's steering column): the
+    // same verifier and N must reproduce every choice; then a smaller N, the other verifier, and
+    // the on-policy verifier on the off-policy run's steps.
+    let pb = stage("replaying the logged best-of-N steps");
+    let n0 = cfg.bon_n[0];
+    let main_run = format!("c-bon{n0}");
+    let small_n = cfg.bon_n.iter().copied().filter(|&k| k < n0).min();
+    let mut questions: Vec<(String, String, &steer::Verifier, &str, Option<usize>)> = vec![(
+        format!("does replay reproduce the logged choices (C, N={n0})?"),
+        main_run.clone(),
+        &clf,
+        c_rec.id.as_str(),
+        None,
+    )];
+    if let Some(k) = small_n {
+        questions.push((
+            format!("would N={k} have sufficed?"),
+            main_run.clone(),
+            &clf,
+            c_rec.id.as_str(),
+            Some(k),
+        ));
+    }
+    questions.push((
+        "would Q have picked differently?".into(),
+        main_run.clone(),
+        &q,
+        q_rec.id.as_str(),
+        None,
+    ));
+    questions.push((
+        "would the on-policy C have picked differently from the off-policy one?".into(),
+        format!("off-c-bon{n0}"),
+        &clf,
+        c_rec.id.as_str(),
+        None,
+    ));
+    for (question, run, v, artifact, k) in questions {
+        let spec = replay::ReplaySpec {
+            run: run.clone(),
+            policy: Some(POLICY.into()),
+            checkpoint: Some(BASE.into()),
+            n: k,
+            ..Default::default()
+        };
+        let r = replay::replay(store, v, artifact, &spec).await?;
+        report.replays.push(report::ReplayRow { question, run, report: r });
+    }
+    pb.finish_and_clear();
+    let exact = &report.replays[0].report;
+    anyhow::ensure!(
+        exact.changed == 0 && exact.max_score_difference == Some(0.0),
+        "replaying {main_run} with its own verifier and N changed {} of {} choices (largest score difference {:?})",
+        exact.changed,
+        exact.steps,
+        exact.max_score_difference
+    );
 
     // The learning-curve classifiers were published last: `latest` names the main one again.
     store.set_alias("latest", &c_rec.id).await?;

@@ -34,6 +34,46 @@ pub struct Report {
     pub monitor: Option<MonitorSummary>,
     /// Each best-of-N row's verifier figures next to the gain its steering achieved.
     pub steering_quality: Option<SteeringQuality>,
+    /// Counterfactual replays of the logged best-of-N steps (`ufops replay`).
+    pub replays: Vec<ReplayRow>,
+}
+
+/// One replay of a run's logged best-of-N steps, and the question it answers.
+#[derive(Debug, Clone, Serialize)]
+pub struct ReplayRow {
+    pub question: String,
+    pub run: String,
+    pub report: replay::ReplayReport,
+}
+
+/// The replays as a Markdown table.
+pub fn replays_markdown(rows: &[ReplayRow]) -> String {
+    let mut s = String::from(
+        "| question | run | replayed with | N | steps | choice changed (Wilson 95%) | mean margin | max score difference |\n\
+         |---|---|---|---|---|---|---|---|\n",
+    );
+    for r in rows {
+        let p = &r.report;
+        s.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {}/{} = {:.1}% [{:.1}, {:.1}] | {:.4} | {} |\n",
+            r.question,
+            r.run,
+            p.artifact_id,
+            p.replay_n.map_or_else(
+                || p.logged_n.iter().map(usize::to_string).collect::<Vec<_>>().join(","),
+                |k| k.to_string()
+            ),
+            p.steps,
+            p.changed,
+            p.steps,
+            100.0 * p.changed_fraction,
+            100.0 * p.changed_interval.0,
+            100.0 * p.changed_interval.1,
+            p.mean_margin,
+            p.max_score_difference.map_or("-".into(), |d| format!("{d:e}")),
+        ));
+    }
+    s
 }
 
 /// A best-of-N row of the base policy: its verifier's held-out figures and what steering with it
@@ -166,6 +206,7 @@ impl Report {
             meta: serde_json::Value::Null,
             monitor: None,
             steering_quality: None,
+            replays: Vec::new(),
         }
     }
 
@@ -271,10 +312,14 @@ impl Report {
              action AUROC (the AUROC of the verifier's score in excess of its observation-only twin's, among held-out \
              samples the twin scores alike), \
              for every best-of-N row of the base policy.\n\n{}\n\
+             ## Replaying the logged steps\n\nEvery best-of-N step of the C, Q and off-policy rows logged its \
+             candidates, scores and choice with the episode. `ufops replay` re-scores them without the robot: the \
+             margin is the replaying verifier's score of its own pick minus its score of the logged pick.\n\n{}\n\
              ## What steering did\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
             self.markdown(),
             self.monitor_markdown(),
             self.steering_quality.as_ref().map(SteeringQuality::markdown).unwrap_or_default(),
+            replays_markdown(&self.replays),
             crate::diagnose::markdown(&self.diagnostics),
             self.seconds
         );

@@ -7,7 +7,9 @@
 //! * [`read_path`] picks the reader (format detection);
 //! * the async glue ([`ingest`]) runs a reader on a blocking thread, hashes the source on another,
 //!   and forwards everything to the store's `IngestWriter` through a bounded channel, committing
-//!   once at the end (all or nothing).
+//!   once at the end (all or nothing);
+//! * [`steering`] attaches a source's steering telemetry (a sidecar of best-of-N records) to its
+//!   episodes.
 //!
 //! Sources are untrusted: [`confine`] keeps every path a source's metadata names inside it, and
 //! the readers check every declared size against the file's size and a cap before allocating
@@ -37,6 +39,7 @@ pub mod pqfooter;
 pub mod robomimic;
 pub mod ros2msg;
 pub mod sink;
+pub mod steering;
 pub mod video;
 
 use std::path::Path;

@@ -87,6 +87,10 @@ pub struct IngestOptions {
     /// `--intervention-key NAME`: the source's per-step human-takeover flag (a LeRobot feature,
     /// a robomimic demo's or an ALOHA file's dataset) when it is not named `intervention`.
     pub intervention_key: Option<String>,
+    /// `--steering-log FILE`: the source's steering telemetry (a sidecar of best-of-N records,
+    /// [`crate::steering`]); by default `<source>.steering.parquet` (a folder's
+    /// `steering.parquet`) when it exists.
+    pub steering_log: Option<std::path::PathBuf>,
 }
 
 /// What one ingest may hold in memory, whatever the source's size: readers decode one episode

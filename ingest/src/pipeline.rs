@@ -295,6 +295,12 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
         f => f,
     };
     let total = source_size(path)?;
+    // Steering telemetry beside the source (`--steering-log`, else `<source>.steering.parquet`).
+    let sidecar_path = match &opts.steering_log {
+        Some(p) => Some(p.clone()),
+        None => Some(crate::steering::sidecar_for(path)).filter(|p| p.is_file()),
+    };
+    let mut sidecar = sidecar_path.as_deref().map(crate::steering::SteeringSidecar::open).transpose()?;
     let mut bg = Background::start(path, format, read_opts, opts)?;
     let progress = Progress::new(opts.progress, total);
 
@@ -344,6 +350,7 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
             unhashed_bytes: opts.memory.unhashed_bytes,
             expected_episodes,
             total,
+            sidecar: sidecar.as_mut(),
         };
         feeding.run().await
     };
@@ -369,7 +376,18 @@ pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> 
         }
         (Ok(Fed::Done), Ok(outcome)) => outcome,
     };
-    report.notes = outcome.notes;
+    if let Some(sc) = sidecar {
+        let records = sc.records();
+        if let Err(e) = sc.finish() {
+            progress.finish();
+            let _ = writer.abort().await;
+            return Err(e);
+        }
+        report
+            .notes
+            .push(format!("{records} steering records from {}", sidecar_path.unwrap_or_default().display()));
+    }
+    report.notes.extend(outcome.notes);
     let msg = format!(
         "ingest {} {} ({} episodes, policy {}, checkpoint {})",
         report.format,
@@ -396,6 +414,8 @@ struct Feeding<'a> {
     unhashed_bytes: usize,
     expected_episodes: Option<u64>,
     total: u64,
+    /// The source's steering telemetry, attached to its episodes as they come.
+    sidecar: Option<&'a mut crate::steering::SteeringSidecar>,
 }
 
 enum Event {
@@ -465,7 +485,11 @@ impl Feeding<'_> {
             Label::Failure => report.labels.failure += 1,
             Label::Unknown => report.labels.unknown += 1,
         }
-        self.writer.push_episode_with_extras(ep, extras).await.map_err(|e| store_err(self.path, e))?;
+        let steering = match self.sidecar.as_deref_mut() {
+            Some(sc) => sc.take(u64::from(ep.source_index), ep.len())?,
+            None => None,
+        };
+        self.writer.push_episode_steered(ep, extras, steering).await.map_err(|e| store_err(self.path, e))?;
         let pos = match self.expected_episodes {
             Some(n) if self.bg.hash.is_none() => self.total.saturating_mul(report.episodes as u64) / n,
             _ => self.bg.hashed.load(Ordering::Relaxed),

@@ -6,7 +6,7 @@ use anyhow::Result;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-use steer::{best_of_n_raw, Guidance, Scorer};
+use steer::{best_of_n_raw, best_of_n_recorded, Guidance, Scorer};
 
 /// How chunks are chosen at each re-planning step.
 #[derive(Clone, Copy)]
@@ -15,6 +15,9 @@ pub enum ChunkChoice<'a> {
     None,
     /// sample `n` chunks, execute the verifier's argmax (Algorithm 1)
     BestOfN { scorer: &'a dyn Scorer, n: usize },
+    /// best-of-N that records each step's candidates, scores and choice in
+    /// [`Episode::steering`] (`steer::best_of_n_recorded`: candidates on the f16 grid)
+    RecordedBestOfN { scorer: &'a dyn Scorer, n: usize },
     /// verifier guidance inside the sampler (Algorithm 2 for DDPM, its flow analogue for flow)
     Guided { scorer: &'a dyn Scorer, lambda: f32 },
 }
@@ -23,7 +26,7 @@ impl ChunkChoice<'_> {
     pub fn label(&self) -> String {
         match self {
             ChunkChoice::None => "base".into(),
-            ChunkChoice::BestOfN { n, .. } => format!("best-of-{n}"),
+            ChunkChoice::BestOfN { n, .. } | ChunkChoice::RecordedBestOfN { n, .. } => format!("best-of-{n}"),
             ChunkChoice::Guided { lambda, .. } => format!("guided(lambda={lambda})"),
         }
     }
@@ -52,6 +55,10 @@ pub struct Episode {
     pub outcome: Outcome,
     /// which gap the trajectory crossed the wall line at (None if it never did)
     pub gap: Option<Gap>,
+    /// steering telemetry, one record per re-planning step ([`ChunkChoice::RecordedBestOfN`]
+    /// only; empty otherwise)
+    #[serde(skip)]
+    pub steering: Vec<steer::SteeringStep>,
 }
 
 /// (successes, episodes, rate)
@@ -95,10 +102,14 @@ pub fn rollout(
             success: false,
             outcome: Outcome::Timeout,
             gap: None,
+            steering: Vec::new(),
         })
         .collect();
     let ad = pc.act_dim();
-    if let ChunkChoice::BestOfN { scorer, .. } | ChunkChoice::Guided { scorer, .. } = steering {
+    if let ChunkChoice::BestOfN { scorer, .. }
+    | ChunkChoice::RecordedBestOfN { scorer, .. }
+    | ChunkChoice::Guided { scorer, .. } = steering
+    {
         anyhow::ensure!(scorer.act_dim() == ad, "scorer act_dim {} != policy chunk {}", scorer.act_dim(), ad);
         anyhow::ensure!(scorer.obs_dim() % 2 == 0, "scorer obs_dim {} is not T_o * 2", scorer.obs_dim());
     }
@@ -123,7 +134,7 @@ pub fn rollout(
         let ts = vec![step as u32; alive.len()];
         let chunks = match steering {
             ChunkChoice::None => policy.sample_chunks(&obs, None, &mut pol_rng)?,
-            ChunkChoice::BestOfN { scorer, n } => {
+            ChunkChoice::BestOfN { scorer, n } | ChunkChoice::RecordedBestOfN { scorer, n } => {
                 let mut rep = Vec::with_capacity(obs.len() * n);
                 for row in obs.chunks(4) {
                     for _ in 0..n {
@@ -132,7 +143,16 @@ pub fn rollout(
                 }
                 let cands = policy.sample_chunks(&rep, None, &mut pol_rng)?;
                 let space = policy.sample_space();
-                best_of_n_raw(scorer, Some(&space), &verifier_obs(scorer), &ts, &cands, n)?.chunks
+                let vo = verifier_obs(scorer);
+                if let ChunkChoice::RecordedBestOfN { .. } = steering {
+                    let (best, log) = best_of_n_recorded(scorer, Some(&space), &vo, &ts, &cands, n)?;
+                    for (&i, record) in alive.iter().zip(log) {
+                        eps[i].steering.push(record);
+                    }
+                    best.chunks
+                } else {
+                    best_of_n_raw(scorer, Some(&space), &vo, &ts, &cands, n)?.chunks
+                }
             }
             ChunkChoice::Guided { scorer, lambda } => {
                 let vo = verifier_obs(scorer);

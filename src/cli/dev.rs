@@ -31,6 +31,10 @@ pub enum DevCommand {
         steering: Option<String>,
         #[arg(long)]
         run_artifact: Option<String>,
+        /// Steering telemetry of the episodes (a sidecar of best-of-N records, as `ufops ingest
+        /// --steering-log` takes; `episode_index` i is episode_i).
+        #[arg(long, value_name = "FILE")]
+        steering_log: Option<std::path::PathBuf>,
     },
     /// Check every visible version: its episodes' steps read back whole, its label snapshot
     /// file matches; prints a JSON report and fails on any problem.
@@ -50,6 +54,7 @@ pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
             run,
             steering,
             run_artifact,
+            steering_log,
         } => {
             let store = args.open_or_create().await?;
             let run = super::serve_cmds::run_input(
@@ -62,6 +67,13 @@ pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
             if let Some(r) = &run {
                 key.push_str(&format!(":{}:{success_rate}", r.id()));
             }
+            let mut sidecar = match &steering_log {
+                Some(p) => {
+                    key.push_str(&format!(":{}", store::sha256_hex(&std::fs::read(p)?)));
+                    Some(ingest::steering::SteeringSidecar::open(p)?)
+                }
+                None => None,
+            };
             let sha = store::sha256_hex(key.as_bytes());
             let source = SourceInput {
                 path: format!("synth://{seed}"),
@@ -86,7 +98,7 @@ pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
                 let obs: Vec<f32> = (0..steps * 3).map(|_| rnd()).collect();
                 let act: Vec<f32> = (0..steps * 2).map(|_| rnd() - 0.5).collect();
                 let label = if rnd() < success_rate { Label::Success } else { Label::Failure };
-                w.add_episode(EpisodeInput {
+                let ep = EpisodeInput {
                     source_name: format!("episode_{i}"),
                     source_index: i,
                     task: Some("synthetic".into()),
@@ -105,8 +117,14 @@ pub async fn run(args: &StoreArgs, cmd: DevCommand) -> Result<()> {
                     images: vec![],
                     media: vec![],
                     flags: Default::default(),
-                })
-                .await?;
+                };
+                match sidecar.as_mut().map(|sc| sc.take(u64::from(i), steps)).transpose()?.flatten() {
+                    Some(log) => w.add_episode_steered(ep, log).await?,
+                    None => w.add_episode(ep).await?,
+                };
+            }
+            if let Some(sc) = sidecar {
+                sc.finish()?;
             }
             let c = w.commit("synthetic episodes").await?;
             println!("version {} ({} episodes)", c.version, c.episodes);

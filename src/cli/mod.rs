@@ -5,6 +5,7 @@ mod compare_cmd;
 mod dev;
 mod export_cmd;
 mod monitor_cmds;
+mod replay_cmd;
 mod review_cmds;
 mod run_cmds;
 mod scoreboard_cmd;
@@ -144,6 +145,10 @@ pub enum Command {
     /// Episodes ordered by a verifier's score, lowest first (which demonstrations or rollouts to
     /// review, relabel or leave out).
     Rank(export_cmd::RankArgs),
+    /// Re-score a steered run's logged best-of-N steps (steering telemetry) with another verifier
+    /// artifact or only the first K candidates, without the robot: how often the choice changes,
+    /// and the score margin ("would N = 8 have sufficed?", "would verifier v2 pick differently?").
+    Replay(replay_cmd::ReplayArgs),
     /// The review loop: store a verifier's episode scores, list episodes in a review order,
     /// show or set a policy's labeling campaign and its labelers' agreement.
     Review {
@@ -243,6 +248,7 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Ingest(a) => serve_cmds::ingest(&cli.store, a).await,
         Command::Export(a) => export_cmd::export(&cli.store, a).await,
         Command::Rank(a) => export_cmd::rank(&cli.store, a).await,
+        Command::Replay(a) => replay_cmd::run(&cli.store, a).await,
         Command::Review { command } => review_cmds::review(&cli.store, command).await,
         Command::Serve(a) => serve_cmds::serve(&cli.store, a).await,
         Command::Openapi { write } => match write {

@@ -61,6 +61,11 @@ pub struct IngestArgs {
     /// Free-form tags of the run (repeatable).
     #[arg(long = "run-tag")]
     pub run_tags: Vec<String>,
+    /// The run's steering telemetry: a sidecar Parquet file of best-of-N records (written by
+    /// `ufops.SteeringLog`; default: SOURCE.steering.parquet, or a folder's steering.parquet,
+    /// when it exists). Its records become the episodes' steering column (`ufops replay`).
+    #[arg(long = "steering-log", value_name = "FILE")]
+    pub steering_log: Option<std::path::PathBuf>,
     #[arg(long)]
     pub json: bool,
 }
@@ -96,6 +101,7 @@ pub fn ingest_options(a: &IngestArgs) -> Result<ingest::IngestOptions> {
         memory: Default::default(),
         run: run_input(a.run.as_deref(), a.steering.as_deref(), a.run_artifact.as_deref(), &a.run_tags)?,
         intervention_key: a.intervention_key.clone(),
+        steering_log: a.steering_log.clone(),
     })
 }
 
@@ -222,6 +228,8 @@ async fn ingest_job(store: &store::Store, job: &store::JobRecord) -> Result<serd
         progress: false,
         memory: Default::default(),
         intervention_key: field("intervention_key"),
+        // The sidecar beside the source, when there is one.
+        steering_log: None,
         run: {
             let tags: Vec<String> = s
                 .get("run_tags")

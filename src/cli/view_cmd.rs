@@ -75,6 +75,12 @@ pub async fn view(args: &StoreArgs, a: ViewArgs) -> Result<()> {
             report.videos
         );
     }
+    if report.steered_episodes > 0 {
+        println!(
+            "{} steered episodes: their best-of-N candidates' score spread and chosen score under episodes/…/steering",
+            report.steered_episodes
+        );
+    }
     if let (Some(s), Some(f)) = (report.mean_score_success, report.mean_score_failure) {
         println!(
             "mean verifier score: successes {s:.3}, failures {f:.3}; largest gap at {:?}",

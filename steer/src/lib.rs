@@ -4,7 +4,8 @@
 //! DDPM, [`VelocityField`] for flow matching) with the [`DdpmSchedule`], the [`Scorer`]
 //! abstraction over verifiers, and the steering strategies of the paper: best-of-N
 //! (Algorithm 1), classifier guidance for DDPM (Algorithm 2) and guidance for flow policies,
-//! and the failure alarm that runs beside them ([`Monitor`]).
+//! and the failure alarm that runs beside them ([`Monitor`]). Best-of-N can record what each
+//! step saw and chose ([`best_of_n_recorded`], steering telemetry) for `ufops replay`.
 //! With the `http` feature it also loads a verifier from a `ufops serve` API ([`http`]).
 //!
 //! Loading, checking and running a verifier (the forward pass and its gradient) is the
@@ -18,6 +19,7 @@ pub mod monitor;
 pub mod policy;
 pub mod sample;
 pub mod schedule;
+pub mod telemetry;
 
 pub use error::{Result, SteerError};
 pub use monitor::Monitor;
@@ -27,7 +29,9 @@ pub use sample::{
     BestOfN, Guidance,
 };
 pub use schedule::DdpmSchedule;
+pub use telemetry::best_of_n_recorded;
 pub use verifier;
+pub use verifier::SteeringStep;
 pub use verifier::{Kind, Verifier};
 
 /// Anything that scores action chunks and gives guidance gradients: implemented by
@@ -74,6 +78,11 @@ pub trait Scorer {
     fn steering_warning(&self) -> Option<String> {
         None
     }
+    /// The id of the artifact behind this scorer, which steering telemetry records
+    /// ([`telemetry`]); `None` for a scorer that is not an artifact.
+    fn artifact_id(&self) -> Option<String> {
+        None
+    }
 }
 
 impl Scorer for Verifier {
@@ -95,6 +104,9 @@ impl Scorer for Verifier {
     fn steering_warning(&self) -> Option<String> {
         Verifier::steering_warning(self)
     }
+    fn artifact_id(&self) -> Option<String> {
+        Verifier::id(self).map(str::to_string)
+    }
 }
 
 impl<S: Scorer + ?Sized> Scorer for &S {
@@ -115,6 +127,9 @@ impl<S: Scorer + ?Sized> Scorer for &S {
     }
     fn steering_warning(&self) -> Option<String> {
         (**self).steering_warning()
+    }
+    fn artifact_id(&self) -> Option<String> {
+        (**self).artifact_id()
     }
 }
 

@@ -283,6 +283,22 @@ impl IngestWriter {
         Ok(steps::episode_id(&prefix, index))
     }
 
+    /// [`Self::add_episode`] with the episode's steering telemetry ([`Self::push_episode_steered`]).
+    pub async fn add_episode_steered(
+        &mut self,
+        ep: EpisodeInput,
+        steering: arrow::array::ArrayRef,
+    ) -> Result<String, StoreError> {
+        let Some(prefix) = self.id_prefix.clone() else {
+            return Err(StoreError::invalid(
+                "episode ids are not known before the source's sha256: use push_episode_steered",
+            ));
+        };
+        let index = ep.source_index;
+        self.push_episode_steered(ep, Vec::new(), Some(steering)).await?;
+        Ok(steps::episode_id(&prefix, index))
+    }
+
     /// Appends one episode to the current Parquet file (episodes share row groups).
     pub async fn push_episode(&mut self, ep: EpisodeInput) -> Result<(), StoreError> {
         self.push_episode_with_extras(ep, Vec::new()).await
@@ -295,7 +311,19 @@ impl IngestWriter {
         ep: EpisodeInput,
         extras: Vec<ExtraColumn>,
     ) -> Result<(), StoreError> {
-        steps::validate_with_extras(&ep, &extras)?;
+        self.push_episode_steered(ep, extras, None).await
+    }
+
+    /// [`Self::push_episode_with_extras`] with the episode's steering telemetry, stored as the
+    /// [`steps::STEERING_COLUMN`] (one row per step, of [`steps::steering_data_type`]; built by
+    /// `verifier::steps::steering_array`).
+    pub async fn push_episode_steered(
+        &mut self,
+        ep: EpisodeInput,
+        extras: Vec<ExtraColumn>,
+        steering: Option<arrow::array::ArrayRef>,
+    ) -> Result<(), StoreError> {
+        steps::validate_with_extras(&ep, &extras, steering.as_ref())?;
         if let Some(t) = &ep.task {
             check_name("task", t)?;
         }
@@ -305,7 +333,7 @@ impl IngestWriter {
                 ep.source_index, ep.source_name
             )));
         }
-        let schema = steps::schema_with_extras(&ep, &extras);
+        let schema = steps::schema_with_extras(&ep, &extras, steering.is_some());
         if self.current.as_ref().is_some_and(|(_, w)| w.schema != schema) {
             self.finish_file().await?;
         }
@@ -345,6 +373,7 @@ impl IngestWriter {
         let cols = steps::episode_columns_with_extras(
             ep,
             extras,
+            steering,
             &self.policy,
             &self.checkpoint,
             &self.media_paths,

@@ -39,6 +39,25 @@ pub const EXTRA_PREFIX: &str = "extra.";
 pub const INTERVENTION_COLUMN: &str = "intervention";
 /// `false` on the steps a person marked invalid ([`crate::StepFlags::validity`]).
 pub const VALIDITY_COLUMN: &str = "validity";
+/// Steering telemetry of a steered episode: on the row of each step whose chunk best-of-N chose,
+/// what it saw and chose (candidates, scores, chosen index, artifact, latency; the record is
+/// `verifier::telemetry::SteeringStep`, its encoding `verifier::steps::steering_array`); null on
+/// the other rows. Type: [`steering_data_type`].
+pub const STEERING_COLUMN: &str = "steering";
+
+/// The type of the [`STEERING_COLUMN`]: a struct of the artifact id, the chosen index, the
+/// scoring latency in microseconds, the N scores (float32) and the N candidate chunks, raw
+/// actions flattened (`N * H * A`, float16).
+pub fn steering_data_type() -> DataType {
+    let list = |item: DataType| DataType::List(Arc::new(Field::new("item", item, false)));
+    DataType::Struct(arrow::datatypes::Fields::from(vec![
+        Field::new("artifact_id", DataType::Utf8, false),
+        Field::new("chosen", DataType::UInt32, false),
+        Field::new("latency_us", DataType::UInt32, false),
+        Field::new("scores", list(DataType::Float32), false),
+        Field::new("candidates", list(DataType::Float16), false),
+    ]))
+}
 
 /// The episode-level values repeated on every row.
 pub struct EpisodeMeta<'a> {
@@ -57,11 +76,12 @@ fn fsl_field(name: &str, dim: usize, meta: HashMap<String, String>) -> Field {
 
 /// The Arrow schema an episode is written with.
 pub fn schema_for(ep: &EpisodeInput) -> SchemaRef {
-    schema_with_extras(ep, &[])
+    schema_with_extras(ep, &[], false)
 }
 
-/// The Arrow schema of an episode and its extra columns (after the media columns).
-pub fn schema_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn]) -> SchemaRef {
+/// The Arrow schema of an episode and its extra columns (after the media columns), with the
+/// [`STEERING_COLUMN`] after them when `steered`.
+pub fn schema_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn], steered: bool) -> SchemaRef {
     let mut fields = vec![
         Field::new("episode_id", DataType::Utf8, false),
         Field::new("t", DataType::Int32, false),
@@ -103,6 +123,9 @@ pub fn schema_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn]) -> SchemaRe
             Field::new(format!("{EXTRA_PREFIX}{}", x.name), x.values.data_type().clone(), true)
                 .with_metadata(x.metadata.clone()),
         );
+    }
+    if steered {
+        fields.push(Field::new(STEERING_COLUMN, steering_data_type(), true));
     }
     fields.push(Field::new("policy", DataType::Utf8, false));
     fields.push(Field::new("checkpoint", DataType::Utf8, false));
@@ -176,9 +199,26 @@ pub fn validate(ep: &EpisodeInput) -> Result<(), StoreError> {
     Ok(())
 }
 
-/// [`validate`], and the extra columns: one row per step, unique names.
-pub fn validate_with_extras(ep: &EpisodeInput, extras: &[ExtraColumn]) -> Result<(), StoreError> {
+/// [`validate`], and the extra columns: one row per step, unique names; the steering column, when
+/// there is one: one row per step, of [`steering_data_type`].
+pub fn validate_with_extras(
+    ep: &EpisodeInput,
+    extras: &[ExtraColumn],
+    steering: Option<&ArrayRef>,
+) -> Result<(), StoreError> {
     validate(ep)?;
+    if let Some(s) = steering {
+        if s.len() != ep.len() || s.data_type() != &steering_data_type() {
+            return Err(StoreError::invalid(format!(
+                "episode {:?}: the steering column has {} rows of {} for {} steps of {}",
+                ep.source_name,
+                s.len(),
+                s.data_type(),
+                ep.len(),
+                steering_data_type()
+            )));
+        }
+    }
     let mut names = std::collections::HashSet::new();
     for x in extras {
         if x.name.is_empty() || !names.insert(x.name.as_str()) {
@@ -275,14 +315,15 @@ pub fn episode_columns(
     checkpoint: &str,
     media_paths: &HashMap<String, String>,
 ) -> Result<Vec<StepColumn>, StoreError> {
-    episode_columns_with_extras(ep, Vec::new(), policy, checkpoint, media_paths)
+    episode_columns_with_extras(ep, Vec::new(), None, policy, checkpoint, media_paths)
 }
 
-/// [`episode_columns`] with the episode's extra columns, in [`schema_with_extras`] order. Call
-/// [`validate_with_extras`] first.
+/// [`episode_columns`] with the episode's extra columns and steering column, in
+/// [`schema_with_extras`] order. Call [`validate_with_extras`] first.
 pub fn episode_columns_with_extras(
     ep: EpisodeInput,
     extras: Vec<ExtraColumn>,
+    steering: Option<ArrayRef>,
     policy: &str,
     checkpoint: &str,
     media_paths: &HashMap<String, String>,
@@ -331,6 +372,7 @@ pub fn episode_columns_with_extras(
         ExtraValues::Array(a) => StepColumn::Values(a),
         ExtraValues::Pages(p) => StepColumn::Pages(p),
     }));
+    out.extend(steering.map(StepColumn::Values));
     let tail: [ArrayRef; 5] = [
         Arc::new(StringArray::from(vec![policy; n])),
         Arc::new(StringArray::from(vec![checkpoint; n])),

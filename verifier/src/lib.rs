@@ -13,7 +13,8 @@
 //! monitor's record, running statistic and conformal threshold are here too ([`monitor`]), so the
 //! offline evaluation, the robot and Python raise the same alarm at the same step, and so is the
 //! action-sensitivity figure with its flag ([`quality`]), which the trainer records and the
-//! steering helpers warn about.
+//! steering helpers warn about, and the record of a steered step ([`telemetry`]: what
+//! best-of-N saw and chose, kept with the episode for `ufops replay`).
 //!
 //! It has no heavy dependencies: `steer` (on the robot) and the Python package bind it. It does
 //! not train (the `trainer` crate), sample policies or steer them (the `steer` crate).
@@ -39,6 +40,7 @@ pub mod samples;
 /// Verifier inputs from the store's steps batches and [`steps::StepScorer`] (feature `steps`).
 #[cfg(feature = "steps")]
 pub mod steps;
+pub mod telemetry;
 /// Random artifacts for tests and benchmarks (feature `testing`).
 #[cfg(any(test, feature = "testing"))]
 pub mod testutil;
@@ -58,6 +60,7 @@ pub use quality::ActionSensitivity;
 pub use samples::{build_samples, EpisodeSeries, ObsSeries, Samples};
 #[cfg(feature = "steps")]
 pub use steps::StepScorer;
+pub use telemetry::SteeringStep;
 pub use weights::{Tensor, Weights};
 
 use sha2::{Digest, Sha256};

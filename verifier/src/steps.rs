@@ -2,11 +2,21 @@
 //! (`obs.<key>`, `action`, `action_chunk` columns, layers joined as `obs.<layer>` with their
 //! producer in the field metadata) → [`EpisodeSeries`] → the samples of [`build_samples`], and
 //! [`StepScorer`], the one way anything (export curation, the review queue's score job, the
-//! viewer, `ufops rank`) scores a stored episode's steps.
+//! viewer, `ufops rank`) scores a stored episode's steps; and the encoding of steering telemetry
+//! in the store's steering column ([`steering_array`](crate::steps::steering_array),
+//! [`steering_log`](crate::steps::steering_log)).
 
-use arrow::array::RecordBatch;
+use std::sync::Arc;
+
+use arrow::array::{
+    Array, ArrayRef, AsArray, Float16Array, Float32Array, Int32Array, Int64Array, ListArray, RecordBatch,
+    StringArray, StructArray, UInt32Array,
+};
+use arrow::buffer::{NullBuffer, OffsetBuffer};
+use arrow::datatypes::{DataType, Field, Float16Type, Float32Type, Int32Type, Schema, UInt32Type};
 
 use crate::samples::{build_samples, EpisodeSeries, ObsSeries, Samples};
+use crate::telemetry::SteeringStep;
 use crate::{ArtifactConfig, Result, Verifier, VerifierError};
 
 fn input_err(e: impl std::fmt::Display) -> VerifierError {
@@ -102,4 +112,142 @@ impl StepScorer for Verifier {
     fn layers(&self) -> Vec<String> {
         self.config().input.layout.required_producers().iter().map(|(k, _)| k.to_string()).collect()
     }
+}
+
+/// The steering column of an episode of `rows` steps ([`store::steps::STEERING_COLUMN`]): each
+/// record on the row of its step `t`, null elsewhere. Refuses an inconsistent record, a step
+/// outside the episode and two records on one step.
+pub fn steering_array(log: &[SteeringStep], rows: usize) -> Result<ArrayRef> {
+    let mut at: Vec<Option<&SteeringStep>> = vec![None; rows];
+    for s in log {
+        s.check().map_err(input_err)?;
+        let slot = at.get_mut(s.t as usize).ok_or_else(|| {
+            input_err(format!("steering step at t={} is outside the episode's {rows} steps", s.t))
+        })?;
+        if slot.replace(s).is_some() {
+            return Err(input_err(format!("two steering steps at t={}", s.t)));
+        }
+    }
+    steering_struct(&at)
+}
+
+/// The `episode_index` column of a steering sidecar ([`steering_sidecar_batch`]).
+pub const SIDECAR_EPISODE_COLUMN: &str = "episode_index";
+
+/// A steering sidecar's rows: one per best-of-N step, `episode_index` (int64: the source's
+/// episode index, as the store's `source_index`), `t` (int32) and the record as the store's
+/// steering struct (never null). A file of these beside a source is what `ufops ingest` picks
+/// up; [`steering_log`] reads a batch of it back.
+pub fn steering_sidecar_batch(records: &[(u64, SteeringStep)]) -> Result<RecordBatch> {
+    for (_, s) in records {
+        s.check().map_err(input_err)?;
+    }
+    let episode = Int64Array::from_iter_values(records.iter().map(|(e, _)| *e as i64));
+    let t = Int32Array::from_iter_values(records.iter().map(|(_, s)| s.t as i32));
+    let slots: Vec<Option<&SteeringStep>> = records.iter().map(|(_, s)| Some(s)).collect();
+    let st = steering_struct(&slots)?;
+    let schema = Schema::new(vec![
+        Field::new(SIDECAR_EPISODE_COLUMN, DataType::Int64, false),
+        Field::new("t", DataType::Int32, false),
+        Field::new(store::steps::STEERING_COLUMN, st.data_type().clone(), false),
+    ]);
+    RecordBatch::try_new(Arc::new(schema), vec![Arc::new(episode) as ArrayRef, Arc::new(t), st])
+        .map_err(input_err)
+}
+
+/// The steering struct of `slots` (null where `None`).
+fn steering_struct(slots: &[Option<&SteeringStep>]) -> Result<ArrayRef> {
+    let (mut score_off, mut cand_off) = (vec![0i32], vec![0i32]);
+    let (mut scores, mut cands) = (Vec::new(), Vec::new());
+    let (mut ids, mut chosen, mut latency, mut valid) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for s in slots {
+        valid.push(s.is_some());
+        if let Some(s) = s {
+            scores.extend_from_slice(&s.scores);
+            cands.extend(crate::telemetry::to_f16_bits(&s.candidates).into_iter().map(half::f16::from_bits));
+        }
+        let offset =
+            |n: usize| i32::try_from(n).map_err(|_| input_err("steering log too large for one column"));
+        score_off.push(offset(scores.len())?);
+        cand_off.push(offset(cands.len())?);
+        ids.push(s.map_or("", |s| s.artifact_id.as_str()));
+        chosen.push(s.map_or(0, |s| s.chosen));
+        latency.push(s.map_or(0, |s| s.latency_us));
+    }
+    let DataType::Struct(fields) = store::steps::steering_data_type() else {
+        unreachable!("the steering column is a struct")
+    };
+    let list_field = |i: usize| match fields[i].data_type() {
+        DataType::List(f) => f.clone(),
+        _ => unreachable!("scores and candidates are lists"),
+    };
+    let columns: Vec<ArrayRef> = vec![
+        Arc::new(StringArray::from(ids)),
+        Arc::new(UInt32Array::from(chosen)),
+        Arc::new(UInt32Array::from(latency)),
+        Arc::new(
+            ListArray::try_new(
+                list_field(3),
+                OffsetBuffer::new(score_off.into()),
+                Arc::new(Float32Array::from(scores)),
+                None,
+            )
+            .map_err(input_err)?,
+        ),
+        Arc::new(
+            ListArray::try_new(
+                list_field(4),
+                OffsetBuffer::new(cand_off.into()),
+                Arc::new(Float16Array::from(cands)),
+                None,
+            )
+            .map_err(input_err)?,
+        ),
+    ];
+    let nulls = valid.iter().any(|v| !v).then(|| NullBuffer::from(valid));
+    Ok(Arc::new(StructArray::try_new(fields, columns, nulls).map_err(input_err)?))
+}
+
+/// The steering log of a steps batch (one episode's steps as the store reads them): a record per
+/// non-null row of its [`store::steps::STEERING_COLUMN`], in step order; empty without the column.
+/// Every record is checked ([`SteeringStep::check`]).
+pub fn steering_log(batch: &RecordBatch) -> Result<Vec<SteeringStep>> {
+    let Some(col) = batch.column_by_name(store::steps::STEERING_COLUMN) else { return Ok(Vec::new()) };
+    if col.data_type() != &store::steps::steering_data_type() {
+        return Err(input_err(format!(
+            "the steering column is {}, not the steering record",
+            col.data_type()
+        )));
+    }
+    let st = col.as_struct();
+    let t = batch
+        .column_by_name("t")
+        .and_then(|c| c.as_primitive_opt::<Int32Type>())
+        .ok_or_else(|| input_err("steps have no int32 column t"))?;
+    let ids = st.column(0).as_string::<i32>();
+    let chosen = st.column(1).as_primitive::<UInt32Type>();
+    let latency = st.column(2).as_primitive::<UInt32Type>();
+    let scores = st.column(3).as_list::<i32>();
+    let cands = st.column(4).as_list::<i32>();
+    let mut log = Vec::new();
+    for row in (0..st.len()).filter(|&r| st.is_valid(r)) {
+        let s = SteeringStep {
+            t: u32::try_from(t.value(row))
+                .map_err(|_| input_err(format!("negative step {}", t.value(row))))?,
+            artifact_id: ids.value(row).to_string(),
+            candidates: cands
+                .value(row)
+                .as_primitive::<Float16Type>()
+                .values()
+                .iter()
+                .map(|v| v.to_f32())
+                .collect(),
+            scores: scores.value(row).as_primitive::<Float32Type>().values().to_vec(),
+            chosen: chosen.value(row),
+            latency_us: latency.value(row),
+        };
+        s.check().map_err(input_err)?;
+        log.push(s);
+    }
+    Ok(log)
 }

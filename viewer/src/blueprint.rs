@@ -1,4 +1,4 @@
-//! The rerun blueprint of a recording: trajectories left, score / action / state plots right,
+//! The rerun blueprint of a recording: trajectories left, score / steering / action / state plots right,
 //! a grid of camera views under the trajectories.
 
 use re_sdk::blueprint::{
@@ -13,6 +13,8 @@ pub(crate) struct EpisodeEntities {
     pub(crate) base: String,
     pub(crate) label: Label,
     pub(crate) has_score: bool,
+    /// Logged `steering` (best-of-N telemetry: score spread and chosen score per step).
+    pub(crate) has_steering: bool,
     /// `(camera key, entity path)` of each camera logged, in the steps' column order.
     pub(crate) cameras: Vec<(String, String)>,
 }
@@ -36,6 +38,12 @@ pub(crate) fn blueprint(eps: &[EpisodeEntities], pos_dims: Option<usize>, scored
         let mut c = vec!["+ /summary/score/**".to_string()];
         c.extend(per_ep("score", &|e| e.has_score));
         plots.push(TimeSeriesView::new("verifier score").with_origin("/").with_contents(c).into());
+    }
+    if eps.iter().any(|e| e.has_steering) {
+        let c = per_ep("steering", &|e| e.has_steering);
+        plots.push(
+            TimeSeriesView::new("best-of-N: candidates' scores").with_origin("/").with_contents(c).into(),
+        );
     }
     plots.push(
         TimeSeriesView::new("actions").with_origin("/").with_contents(per_ep("action", &|_| true)).into(),

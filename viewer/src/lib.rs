@@ -105,6 +105,9 @@ pub struct ViewReport {
     pub max_separation: Option<(i64, f32)>,
     /// First step from which the gap stays ≥ half its maximum for the rest of the common steps.
     pub separates_from_step: Option<i64>,
+    /// Episodes that logged their best-of-N steps (steering telemetry), drawn as the
+    /// candidates' score spread and the chosen candidate's score at each of those steps.
+    pub steered_episodes: usize,
     /// The entity paths with data (sorted).
     pub entities: Vec<String>,
 }

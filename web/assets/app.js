@@ -22,7 +22,7 @@ async function start() {
   views.show = show;
   S.player = new Player({
     grid: $('videos'), scrub: $('scrub'), frameOut: $('frame'), playButton: $('play'),
-    onFrame: (f) => { if (S.plots) S.plots.setFrame(f); if (S.score) S.score.setFrame(f); if (S.takeovers) S.takeovers.setFrame(f); if (S.traj) S.traj.setFrame(f); },
+    onFrame: (f) => { if (S.plots) S.plots.setFrame(f); if (S.score) S.score.setFrame(f); if (S.steering) S.steering.setFrame(f); if (S.takeovers) S.takeovers.setFrame(f); if (S.traj) S.traj.setFrame(f); },
   });
   wire();
   try {

@@ -1,5 +1,5 @@
 // The episode on screen: prepared (prefetched) episodes and their cache, moving to queue entry i
-// (synced cameras, plots, score, takeovers, trajectory) with the time from a verdict key to
+// (synced cameras, plots, score, steering, takeovers, trajectory) with the time from a verdict key to
 // "playable" measured, the next unlabeled entry, and the metadata and label history.
 
 import * as api from './api.js';
@@ -8,6 +8,7 @@ import { drawPlots, drawTrajectory } from './plots.js';
 import * as consensus from './consensus.js';
 import { drawScore } from './review_queue.js';
 import { drawTakeovers } from './takeovers.js';
+import { drawSteering } from './steering.js';
 import { $, esc, status } from './dom.js';
 import { S, metrics } from './state.js';
 import { countMove, epName, loadAhead, loadMore, renderCounts, updateRow, writeHash } from './queue.js';
@@ -83,6 +84,8 @@ export async function show(i, t0) {
   S.plots = drawPlots($('plots'), p.steps, (f) => S.player.seek(f));
   if (S.score) S.score.destroy();
   S.score = drawScore($('score-plot'), e.id, p.steps.num_rows || 0, (f) => S.player.seek(f));
+  if (S.steering) S.steering.destroy();
+  S.steering = drawSteering($('steering-plot'), p.steps, (f) => S.player.seek(f));
   if (S.takeovers) S.takeovers.destroy();
   S.takeovers = drawTakeovers($('takeovers'), $('scrub'), p.steps, p.steps.num_rows || 0, (f) => S.player.seek(f));
   const traj = $('traj');

@@ -24,6 +24,7 @@ export const S = {
   selected: new Set(),
   plots: null,
   score: null,      // the verifier score plot (review_queue.js)
+  steering: null,   // the best-of-N score spread of a steered episode (steering.js)
   takeovers: null,  // the human-takeover strip under the scrub bar (takeovers.js)
   traj: null,
   showSeq: 0,

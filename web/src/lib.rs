@@ -64,6 +64,7 @@ pub static ASSETS: &[Asset] = &[
     asset!("consensus.js", "text/javascript; charset=utf-8", false),
     asset!("review_queue.js", "text/javascript; charset=utf-8", false),
     asset!("takeovers.js", "text/javascript; charset=utf-8", false),
+    asset!("steering.js", "text/javascript; charset=utf-8", false),
     asset!("scoreboard.html", "text/html; charset=utf-8", false),
     asset!("scoreboard.js", "text/javascript; charset=utf-8", false),
     asset!("vendor/uPlot-1.6.32.iife.min.js", "text/javascript; charset=utf-8", true),

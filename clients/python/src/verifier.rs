@@ -21,6 +21,9 @@ pub struct PyVerifier {
     pub(crate) v: verifier::Verifier,
 }
 
+/// Two arrays of the same shape (`telemetry_grid`'s scored and raw chunks).
+type ArrayPair<'py> = (Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>);
+
 /// How the action argument is laid out: rows of `lead` chunks, each flat (`act_dim`) or `(H, A)`.
 struct Chunks {
     lead: Vec<usize>,
@@ -217,6 +220,35 @@ impl PyVerifier {
             self.v.act_dim(),
             self.v.backend_name()
         )
+    }
+
+    /// The steering-telemetry grid of chunks given in the space the verifier takes (any shape
+    /// ending in `act_dim`, or `(…, chunk_len, action_dim)`): their raw actions (the artifact's
+    /// action normaliser undone) rounded to half floats, and those put back into the verifier's
+    /// space. A recorded best-of-N scores and executes the second and stores the first, so a
+    /// replay scores exactly what the robot did (`verifier::telemetry`). Returns `(scored, raw)`,
+    /// both shaped like `act`.
+    fn telemetry_grid<'py>(&self, py: Python<'py>, act: &Bound<'py, PyAny>) -> PyResult<ArrayPair<'py>> {
+        let ad = self.v.act_dim();
+        let act = f32_array(act, "act", || format!("(..., {ad}) chunks"))?;
+        let shape = act.shape().to_vec();
+        let mut raw = values(&act).into_owned();
+        if ad == 0 || !raw.len().is_multiple_of(ad) {
+            return Err(PyValueError::new_err(format!(
+                "act of shape {} does not hold whole chunks of {ad} values",
+                shape_str(&shape)
+            )));
+        }
+        let cfg = self.v.config();
+        let action_dim = cfg.input.layout.action_dim;
+        cfg.input.action_space.input_to_raw(&mut raw, action_dim);
+        ::verifier::telemetry::round_to_f16(&mut raw);
+        let mut scored = raw.clone();
+        cfg.input.action_space.raw_to_input(&mut scored, action_dim);
+        let as_array = |v: Vec<f32>| -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+            numpy::PyArray1::from_vec(py, v).reshape(IxDyn(&shape))
+        };
+        Ok((as_array(scored)?, as_array(raw)?))
     }
 
     /// Scores of action chunks: `obs` `(obs_dim,)` with `act` `(N, act_dim)` → `(N,)`;

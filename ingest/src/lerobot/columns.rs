@@ -33,7 +33,7 @@ pub(super) fn checked_builder<R: ChunkReader + 'static>(
 
 /// The reader metadata of a Parquet file, checked as [`checked_builder`] checks it (once per
 /// file: the readers of its image columns reuse it).
-pub(super) fn checked_metadata<R: ChunkReader + 'static>(path: &Path, r: &R) -> Result<ArrowReaderMetadata> {
+pub(crate) fn checked_metadata<R: ChunkReader + 'static>(path: &Path, r: &R) -> Result<ArrowReaderMetadata> {
     guarded(path, || checked_metadata_inner(path, r))
 }
 

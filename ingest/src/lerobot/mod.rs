@@ -22,7 +22,7 @@
 //! [`StepFlags::intervention`]: crate::model::StepFlags::intervention
 //! [`StepFlags::validity`]: crate::model::StepFlags::validity
 
-mod columns;
+pub(crate) mod columns;
 mod data;
 mod episode;
 mod info;

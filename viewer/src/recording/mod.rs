@@ -245,9 +245,17 @@ impl<'a> Recorder<'a> {
         self.log_trajectory(e)?;
         self.log_series(e)?;
         let has_score = self.log_score(e)?;
+        let has_steering = self.log_steering(e)?;
         let cameras = self.log_cameras(store, e).await?;
         tracing::debug!(episode = %e.ep.id, steps = e.n, label = %e.label, "recorded episode");
-        self.logged.push(EpisodeEntities { index, base: e.base.clone(), label: e.label, has_score, cameras });
+        self.logged.push(EpisodeEntities {
+            index,
+            base: e.base.clone(),
+            label: e.label,
+            has_score,
+            has_steering,
+            cameras,
+        });
         Ok(())
     }
 
@@ -306,6 +314,33 @@ impl<'a> Recorder<'a> {
         }
         self.acc.entry(e.label).or_default().add(&scores);
         self.out.series(&e.idx, e.color, format!("{}/score", e.base), vec!["score".into()], 1, scores)?;
+        Ok(true)
+    }
+
+    /// A steered episode's best-of-N steps (its steering column): at each, the lowest, median
+    /// and highest candidate score and the chosen one's (NaN, so no line, on the other steps);
+    /// true if the episode has any.
+    fn log_steering(&mut self, e: &EpisodeSteps<'_>) -> Result<bool, ViewError> {
+        let log = verifier::steps::steering_log(e.batch)
+            .map_err(|err| ViewError::Invalid(format!("episode {}: {err}", e.ep.id)))?;
+        if log.is_empty() {
+            return Ok(false);
+        }
+        let mut values = vec![f32::NAN; e.n * 4];
+        for s in &log {
+            let Some(row) = values.get_mut(s.t as usize * 4..s.t as usize * 4 + 4) else { continue };
+            let mut sorted = s.scores.clone();
+            sorted.sort_by(f32::total_cmp);
+            row.copy_from_slice(&[
+                sorted[0],
+                sorted[sorted.len() / 2],
+                sorted[sorted.len() - 1],
+                s.scores[s.chosen as usize],
+            ]);
+        }
+        let names = ["lowest", "median", "highest", "chosen"].map(String::from).to_vec();
+        self.out.series(&e.idx, e.color, format!("{}/steering", e.base), names, 4, values)?;
+        self.report.steered_episodes += 1;
         Ok(true)
     }
 

@@ -9,6 +9,8 @@
   DataFrames (``pip install polars``).
 * :class:`Client` — the ``ufops serve`` API: episodes, labels (with optimistic concurrency).
 * :mod:`ufops.torch` — best-of-N and guidance hooks for PyTorch samplers.
+* :class:`SteeringLog` — best-of-N steps recorded on the robot, written as the sidecar
+  ``ufops ingest`` keeps with the episodes (``ufops replay`` re-scores them).
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ from ufops.errors import (
 )
 from ufops.monitor import Monitor, MonitorStep
 from ufops.store import Store
+from ufops.telemetry import SteeringLog, sidecar_for
 from ufops.verifier import SteeringWarning, Verifier
 
 __all__ = [
@@ -34,6 +37,8 @@ __all__ = [
     "Monitor",
     "MonitorStep",
     "Store",
+    "SteeringLog",
+    "sidecar_for",
     "Client",
     "UfopsError",
     "ArtifactError",

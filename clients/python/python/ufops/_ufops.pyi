@@ -59,6 +59,7 @@ class Verifier:
     def grad(
         self, obs: ArrayLike, act: ArrayLike, t: StepLike, extras: Optional[Mapping[str, ArrayLike]] = None
     ) -> npt.NDArray[np.float32]: ...
+    def telemetry_grid(self, act: ArrayLike) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...
 
 class Store:
     """A ufops store opened read-only (the native part of ufops.Store)."""
@@ -142,4 +143,12 @@ def write_random_artifact(
 ) -> str:
     """Writes an artifact with random weights ("square", "nav" or "nav_features" dims) and returns its id;
     ``metrics_json`` becomes its config.json ``metrics``."""
+    ...
+
+def write_steering_log(
+    path: Union[str, os.PathLike[str]],
+    records: list[tuple[int, int, str, list[float], list[float], int, int]],
+) -> int:
+    """Writes a steering sidecar of (episode_index, t, artifact_id, raw candidates, scores,
+    chosen, latency_us) records; returns their number."""
     ...

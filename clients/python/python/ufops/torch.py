@@ -1,6 +1,7 @@
 """Steering helpers for PyTorch samplers, running the verifier core through :class:`ufops.Verifier`.
 
-* :func:`best_of_n` — the paper's Algorithm 1: sample N candidate chunks, keep the best scored.
+* :func:`best_of_n` — the paper's Algorithm 1: sample N candidate chunks, keep the best scored
+  (and, with ``log=``, record the step for ``ufops replay``: :mod:`ufops.telemetry`).
 * :func:`ddpm_guidance` — Algorithm 2 for a diffusers-style loop: a hook that turns the policy's
   noise prediction into the one whose x̂0 is ``x̂0 + λ ∇ log C(o, x̂0)`` (classifier) or
   ``x̂0 + λ ∇ Q`` (q), so ``scheduler.step`` then takes its posterior mean at the guided x̂0.
@@ -13,10 +14,13 @@ gradients come back on the input's device and dtype. torch is imported by these 
 """
 from __future__ import annotations
 
+import time
 from typing import Any, Callable, Optional, Tuple
 
 import numpy as np
+import numpy.typing as npt
 
+from ufops.telemetry import SteeringLog
 from ufops.verifier import Verifier
 
 Tensor = Any  # torch.Tensor (kept loose so the package imports without torch)
@@ -42,19 +46,49 @@ def best_of_n(
     obs: Any,
     n: int,
     t: Any = 0,
+    log: Optional[SteeringLog] = None,
+    episode: Any = None,
 ) -> Tuple[Tensor, Tensor]:
     """Algorithm 1. ``sample_fn(n)`` returns ``n`` candidate chunks for the observation row
     ``obs`` (shape ``(obs_dim,)``): ``(n, act_dim)`` or ``(n, chunk_len, action_dim)``; with a
     batch of rows ``obs`` ``(B, obs_dim)`` it returns ``(B, n, ...)``. Returns the best chunk
-    (per row) and all scores ``(n,)`` / ``(B, n)``, as tensors like the candidates."""
+    (per row) and all scores ``(n,)`` / ``(B, n)``, as tensors like the candidates.
+
+    With a :class:`~ufops.telemetry.SteeringLog` ``log`` the step is recorded for ``episode``
+    (the source's episode index; a sequence of them with a batch): the candidates are first put
+    on the half-float grid the log stores them on (:meth:`ufops.Verifier.telemetry_grid`), so the
+    chunk returned is the one a replay scores."""
     import torch
 
     if n < 1:
         raise ValueError(f"n must be at least 1; got {n}")
     cands = sample_fn(n)
+    raw: Optional[npt.NDArray[np.float32]] = None
+    if log is not None:
+        if episode is None:
+            raise ValueError("recording a step needs the episode it belongs to (episode=)")
+        if verifier.id is None:
+            raise ValueError("recording a step needs a verifier loaded from an artifact (it has no id)")
+        scored, raw = verifier.telemetry_grid(cands.detach().cpu().numpy())
+        cands = torch.from_numpy(scored).to(device=cands.device, dtype=cands.dtype)
+    started = time.perf_counter()
     scores = verifier.score(obs, cands, _steps(t))
+    latency_us = int((time.perf_counter() - started) * 1e6)
     s = torch.from_numpy(np.ascontiguousarray(scores)).to(cands.device)
     best = s.argmax(dim=-1)
+    if log is not None and raw is not None:
+        assert verifier.id is not None
+        rows = int(s.shape[0]) if s.dim() == 2 else 1
+        episodes = np.atleast_1d(np.asarray(episode)).reshape(-1)
+        steps = np.broadcast_to(np.asarray(_steps(t)), (rows,)).reshape(-1)
+        if len(episodes) != rows:
+            raise ValueError(f"{len(episodes)} episodes for {rows} rows of candidates")
+        score_rows = np.asarray(scores).reshape(rows, n)
+        raw_rows = raw.reshape(rows, n, -1)
+        picks = best.reshape(-1).tolist()
+        for r in range(rows):
+            log.add(int(episodes[r]), int(steps[r]), verifier.id, raw_rows[r], score_rows[r], int(picks[r]),
+                    latency_us // rows)
     if s.dim() == 1:
         return cands[best], s
     return cands[torch.arange(cands.shape[0], device=cands.device), best], s

@@ -155,6 +155,13 @@ class Verifier:
         ``(B,)`` ints)."""
         return self._native.score(obs, act, t, extras)
 
+    def telemetry_grid(self, act: ArrayLike) -> Tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """Chunks in the space this verifier takes, put on the grid steering telemetry stores:
+        ``(scored, raw)`` — the raw actions (the artifact's action normaliser undone) rounded to
+        half floats, and those back in this verifier's space. A recorded best-of-N scores and
+        executes ``scored`` and logs ``raw``, so a replay scores exactly what the robot did."""
+        return self._native.telemetry_grid(act)
+
     def grad(
         self, obs: ArrayLike, act: ArrayLike, t: StepLike, extras: Optional[Mapping[str, ArrayLike]] = None
     ) -> npt.NDArray[np.float32]:
