@@ -49,13 +49,13 @@ pub struct ReplayRow {
 /// The replays as a Markdown table.
 pub fn replays_markdown(rows: &[ReplayRow]) -> String {
     let mut s = String::from(
-        "| question | run | replayed with | N | steps | choice changed (Wilson 95%) | mean margin | max score difference |\n\
-         |---|---|---|---|---|---|---|---|\n",
+        "| question | run | replayed with | N | steps | choice changed (Wilson 95%) | mean margin | logged pick over a random candidate | max score difference |\n\
+         |---|---|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
         let p = &r.report;
         s.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {}/{} = {:.1}% [{:.1}, {:.1}] | {:.4} | {} |\n",
+            "| {} | {} | {} | {} | {} | {}/{} = {:.1}% [{:.1}, {:.1}] | {:.4} | {:+.4} | {} |\n",
             r.question,
             r.run,
             p.artifact_id,
@@ -70,6 +70,7 @@ pub fn replays_markdown(rows: &[ReplayRow]) -> String {
             100.0 * p.changed_interval.0,
             100.0 * p.changed_interval.1,
             p.mean_margin,
+            p.mean_lift_over_random,
             p.max_score_difference.map_or("-".into(), |d| format!("{d:e}")),
         ));
     }
@@ -314,7 +315,9 @@ impl Report {
              for every best-of-N row of the base policy.\n\n{}\n\
              ## Replaying the logged steps\n\nEvery best-of-N step of the C, Q and off-policy rows logged its \
              candidates, scores and choice with the episode. `ufops replay` re-scores them without the robot: the \
-             margin is the replaying verifier's score of its own pick minus its score of the logged pick.\n\n{}\n\
+             margin is the replaying verifier's score of its own pick minus its score of the logged pick; the logged \
+             pick over a random candidate is the logging verifier's score of its choice minus its mean score of the \
+             step's candidates.\n\n{}\n\
              ## What steering did\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
             self.markdown(),
             self.monitor_markdown(),

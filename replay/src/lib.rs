@@ -74,8 +74,9 @@ pub struct ReplayReport {
     pub changed: u64,
     pub changed_fraction: f64,
     pub changed_interval: (f64, f64),
-    /// The replayed artifact's score of its own pick minus its score of the logged pick, over
-    /// all steps (0 where the choice is the same): mean and median.
+    /// The replaying artifact's score of its own pick minus its score of the logged pick, over
+    /// all steps (0 where the choice is the same): positive when it prefers its pick, negative
+    /// when fewer candidates left out one it scores higher. Mean and median.
     pub mean_margin: f64,
     pub median_margin: f64,
     /// The logging artifact's score of the logged pick minus its score of the replayed pick,
@@ -95,16 +96,15 @@ pub struct ReplayReport {
 #[derive(Debug, Clone, PartialEq)]
 pub struct StepReplay {
     pub t: u32,
-    /// The replayed scores of the candidates replayed (the first `n`).
+    /// The replaying artifact's scores of every logged candidate (all N, so the logged pick
+    /// has one even when the choice is among the first `n` only).
     pub scores: Vec<f32>,
-    /// The replayed choice (an index among the first `n`).
+    /// The replayed choice: the best of the first `n` candidates.
     pub chosen: usize,
-    /// The replayed artifact's score of the logged pick, when it was among those replayed.
-    pub score_of_logged: Option<f32>,
 }
 
-/// Re-scores one episode's logged steps (`log`, from its `steps`) with `verifier`, on the first
-/// `n` candidates of each (all with `None`). The observation of step `t` is the verifier's input
+/// Re-scores one episode's logged steps (`log`, from its `steps`) with `verifier` and picks the
+/// best of the first `n` candidates of each (all with `None`). The observation of step `t` is the verifier's input
 /// built from the stored steps; the candidates are raw actions, put into the space the verifier
 /// takes as the robot's best-of-N did.
 pub fn replay_log(
@@ -142,12 +142,12 @@ pub fn replay_log(
             row_of.get(s.t as usize).copied().flatten().ok_or_else(|| {
                 invalid(format!("step t={} has no verifier input in the stored steps", s.t))
             })?;
-        let mut cands = s.candidates[..k * ad].to_vec();
+        let mut cands = s.candidates.clone();
         cfg.input.action_space.raw_to_input(&mut cands, action_dim);
-        let scores = verifier.score(&samples.obs[row * od..(row + 1) * od], &[samples.t[row]], &cands, k)?;
-        let chosen = steer::select_best(&scores);
-        let score_of_logged = scores.get(s.chosen as usize).copied();
-        out.push(StepReplay { t: s.t, scores, chosen, score_of_logged });
+        let scores =
+            verifier.score(&samples.obs[row * od..(row + 1) * od], &[samples.t[row]], &cands, s.n())?;
+        let chosen = steer::select_best(&scores[..k]);
+        out.push(StepReplay { t: s.t, scores, chosen });
     }
     Ok(out)
 }
@@ -263,10 +263,7 @@ impl Accumulator {
                 self.changed += 1;
                 self.regrets.push(f64::from(s.scores[logged]) - f64::from(s.scores[r.chosen]));
             }
-            // A logged pick outside the replayed candidates: score it as the worst replayed one.
-            let of_logged =
-                r.score_of_logged.unwrap_or_else(|| r.scores.iter().copied().fold(f32::INFINITY, f32::min));
-            self.margins.push(f64::from(r.scores[r.chosen]) - f64::from(of_logged));
+            self.margins.push(f64::from(r.scores[r.chosen]) - f64::from(r.scores[logged]));
             let mean = s.scores.iter().map(|&x| f64::from(x)).sum::<f64>() / s.n() as f64;
             let (lo, hi) =
                 s.scores.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), &x| (l.min(x), h.max(x)));
