@@ -49,15 +49,7 @@ fn values(a: &dyn Array) -> Option<Vec<Value>> {
         }
         DataType::List(_) => {
             let l = a.as_list::<i32>();
-            (0..n)
-                .map(|i| {
-                    if l.is_null(i) {
-                        Value::Null
-                    } else {
-                        values(l.value(i).as_ref()).map(Value::Array).unwrap_or(Value::Null)
-                    }
-                })
-                .collect()
+            (0..n).map(|i| row_array(l.is_null(i), || l.value(i))).collect()
         }
         DataType::Struct(fields) => {
             let st = a.as_struct();
@@ -79,19 +71,19 @@ fn values(a: &dyn Array) -> Option<Vec<Value>> {
         }
         DataType::FixedSizeList(_, _) => {
             let l = a.as_fixed_size_list();
-            (0..n)
-                .map(|i| {
-                    if l.is_null(i) {
-                        Value::Null
-                    } else {
-                        values(l.value(i).as_ref()).map(Value::Array).unwrap_or(Value::Null)
-                    }
-                })
-                .collect()
+            (0..n).map(|i| row_array(l.is_null(i), || l.value(i))).collect()
         }
         _ => return None,
     };
     Some(v)
+}
+
+/// One row of a list column as a JSON array (null for a null row or values JSON cannot hold).
+fn row_array(null: bool, row: impl FnOnce() -> arrow::array::ArrayRef) -> Value {
+    if null {
+        return Value::Null;
+    }
+    values(row().as_ref()).map(Value::Array).unwrap_or(Value::Null)
 }
 
 /// `(columns, omitted column names)`

@@ -26,6 +26,20 @@ export function vectorColumns(steps) {
   return out;
 }
 
+/** The frame cursor of a uPlot chart `u` over an episode of `n` frames: a vertical line (moved by
+ *  the caller to the frame shown) and click-to-seek (`onSeek(frame)`). Every timeline plot
+ *  (these, the verifier score, the steering spread) uses it. */
+export function frameCursor(u, n, onSeek) {
+  const line = document.createElement('div');
+  line.className = 'frame-cursor';
+  u.over.appendChild(line);
+  u.over.addEventListener('click', (e) => {
+    const f = Math.round(u.posToVal(e.offsetX, 'x'));
+    if (Number.isFinite(f)) onSeek(Math.max(0, Math.min(n - 1, f)));
+  });
+  return line;
+}
+
 /** Draws one chart per vector column into `el`; `onSeek(frame)` on a click. */
 export function drawPlots(el, steps, onSeek) {
   el.replaceChildren();
@@ -52,13 +66,7 @@ export function drawPlots(el, steps, onSeek) {
     };
     // eslint-disable-next-line no-undef
     const u = new uPlot(opts, data, box);
-    const line = document.createElement('div');
-    line.className = 'frame-cursor';
-    u.over.appendChild(line);
-    u.over.addEventListener('click', (e) => {
-      const f = Math.round(u.posToVal(e.offsetX, 'x'));
-      if (Number.isFinite(f)) onSeek(Math.max(0, Math.min(n - 1, f)));
-    });
+    const line = frameCursor(u, n, onSeek);
     charts.push({ u, line });
   }
   return {

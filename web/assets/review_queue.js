@@ -4,6 +4,7 @@
 // more filter of app.js: its value goes to GET /v1/episodes as `order`.
 
 import { call } from './api.js';
+import { frameCursor } from './plots.js';
 
 /** The stored per-step scores of an episode, or null when it has none (404: not scored yet). */
 export async function episodeScores(id) {
@@ -44,13 +45,7 @@ export function drawScore(el, id, n, onSeek) {
     };
     // eslint-disable-next-line no-undef
     u = new uPlot(opts, [xs, ys, half], box);
-    line = document.createElement('div');
-    line.className = 'frame-cursor';
-    u.over.appendChild(line);
-    u.over.addEventListener('click', (e) => {
-      const f = Math.round(u.posToVal(e.offsetX, 'x'));
-      if (Number.isFinite(f)) onSeek(Math.max(0, Math.min(n - 1, f)));
-    });
+    line = frameCursor(u, n, onSeek);
     line.style.left = `${u.valToPos(frame, 'x')}px`;
     el.dataset.scored = id;
   }).catch(() => { /* the timeline works without the score */ });

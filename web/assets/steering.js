@@ -2,6 +2,8 @@
 // column), the spread of the candidates' scores (lowest to highest, shaded), their median, and
 // the score of the candidate the robot executed; a click seeks to that frame.
 
+import { frameCursor } from './plots.js';
+
 /** The best-of-N records of a steps document, `[{t, n, lo, median, hi, chosen, artifact, latency}]`. */
 export function steeringSteps(steps) {
   const col = (steps.columns || {}).steering;
@@ -52,13 +54,7 @@ export function drawSteering(el, steps, onSeek) {
   const data = [xs, at((r) => r.lo), at((r) => r.hi), at((r) => r.median), at((r) => r.chosen)];
   // eslint-disable-next-line no-undef
   const u = new uPlot(opts, data, box);
-  const line = document.createElement('div');
-  line.className = 'frame-cursor';
-  u.over.appendChild(line);
-  u.over.addEventListener('click', (e) => {
-    const f = Math.round(u.posToVal(e.offsetX, 'x'));
-    if (Number.isFinite(f)) onSeek(Math.max(0, Math.min(n - 1, f)));
-  });
+  const line = frameCursor(u, n, onSeek);
   el.dataset.steps = String(recs.length);
   el.dataset.logged = recs.map((r) => r.t).join(',');
   return {
