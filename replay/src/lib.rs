@@ -152,32 +152,31 @@ pub fn replay_log(
     Ok(out)
 }
 
-/// The episodes of the runs `spec` names (at its version), and the run ids.
-pub async fn run_episodes(store: &Store, spec: &ReplaySpec) -> Result<(Vec<String>, Vec<EpisodeRecord>)> {
-    let mut runs: Vec<String> = match store.run(&spec.run).await {
-        Ok(r) => vec![r.id],
-        Err(store::StoreError::NotFound { .. }) => {
-            store.runs(Some(&spec.run)).await?.into_iter().map(|r| r.id).collect()
-        }
+/// The run with id `run`, else every run named `run`; an error when there is none.
+pub async fn runs_named(store: &Store, run: &str) -> Result<Vec<store::RunRecord>> {
+    let runs = match store.run(run).await {
+        Ok(r) => vec![r],
+        Err(store::StoreError::NotFound { .. }) => store.runs(Some(run)).await?,
         Err(e) => return Err(e.into()),
     };
-    runs.sort();
     if runs.is_empty() {
-        return Err(invalid(format!("no run is named or has the id {:?}", spec.run)));
+        return Err(invalid(format!("no run is named or has the id {run:?}")));
     }
+    Ok(runs)
+}
+
+/// The episodes of the runs `spec` names (at its version), and the run ids.
+pub async fn run_episodes(store: &Store, spec: &ReplaySpec) -> Result<(Vec<String>, Vec<EpisodeRecord>)> {
+    let mut runs: Vec<String> = runs_named(store, &spec.run).await?.into_iter().map(|r| r.id).collect();
+    runs.sort();
     let filter = EpisodeFilter {
         version: spec.version,
         policy: spec.policy.clone(),
         checkpoint: spec.checkpoint.clone(),
+        run_ids: runs.clone(),
         ..Default::default()
     };
-    let wanted: BTreeSet<&str> = runs.iter().map(String::as_str).collect();
-    let episodes: Vec<EpisodeRecord> = store
-        .episodes(&filter)
-        .await?
-        .into_iter()
-        .filter(|e| e.run_id.as_deref().is_some_and(|r| wanted.contains(r)))
-        .collect();
+    let episodes = store.episodes(&filter).await?;
     let runs: Vec<String> = {
         let present: BTreeSet<&str> = episodes.iter().filter_map(|e| e.run_id.as_deref()).collect();
         runs.into_iter().filter(|r| present.contains(r.as_str())).collect()

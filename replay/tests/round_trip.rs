@@ -134,6 +134,11 @@ async fn round_trip(store: Store) {
     assert_eq!(same.logged_n, vec![N]);
     assert_eq!(same.logged_artifacts, vec![rec.id.clone()]);
     assert_eq!(same.mean_margin, 0.0);
+    // At the version the run was written in, the same (the run filter on a version's labels).
+    let head = store.head_version().await.unwrap();
+    let at_version =
+        replay(&store, &v, &rec.id, &ReplaySpec { version: Some(head), ..spec.clone() }).await.unwrap();
+    assert_eq!(at_version, same);
 
     // The first 3 of 8 candidates: changed exactly where the logged pick is not the best of them.
     let k = 3;

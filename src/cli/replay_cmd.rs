@@ -42,11 +42,8 @@ pub async fn run(store_args: &StoreArgs, a: ReplayArgs) -> Result<()> {
     let reference = match a.artifact {
         Some(r) => r,
         None => {
-            let (runs, _) = replay::run_episodes(&store, &spec).await?;
-            let mut named = Vec::new();
-            for id in &runs {
-                named.extend(store.run(id).await?.artifact_id);
-            }
+            let mut named: Vec<String> =
+                replay::runs_named(&store, &a.run).await?.into_iter().filter_map(|r| r.artifact_id).collect();
             named.sort();
             named.dedup();
             match named.as_slice() {

@@ -68,6 +68,8 @@ pub struct EpisodeFilter {
     pub label: Option<Label>,
     pub label_source: Option<String>,
     pub tag: Option<String>,
+    /// Only episodes of these evaluation runs (`episodes.run_id`); empty: any.
+    pub run_ids: Vec<String>,
     /// Only episodes whose id sorts after this one (cursor pagination).
     pub after: Option<String>,
     pub limit: Option<i64>,
@@ -148,6 +150,10 @@ pub(crate) fn episode_conds(filter: &EpisodeFilter, args: &mut Vec<Val>) -> Resu
             "e.id IN (SELECT episode_id FROM episode_tags WHERE tag = {})",
             push_arg(args, Val::S(t.clone()))
         ));
+    }
+    if !filter.run_ids.is_empty() {
+        let ids: Vec<String> = filter.run_ids.iter().map(|r| push_arg(args, Val::S(r.clone()))).collect();
+        conds.push(format!("e.run_id IN ({})", ids.join(", ")));
     }
     Ok(conds)
 }
@@ -246,6 +252,7 @@ impl Store {
         let filters_episode_columns = filter.id.is_some()
             || filter.policy.is_some()
             || filter.checkpoint.is_some()
+            || !filter.run_ids.is_empty()
             || filter.task.is_some()
             || filter.tag.is_some();
         Ok(match filter.version {
