@@ -202,7 +202,7 @@ pub async fn replay(
         return Err(invalid("--n must be at least 1"));
     }
     let (runs, episodes) = run_episodes(store, spec).await?;
-    let layers: Vec<String> = cfg_layers(verifier).into_iter().collect::<BTreeSet<_>>().into_iter().collect();
+    let layers = verifier::StepScorer::layers(verifier);
     let mut acc = Accumulator::default();
     export::for_each_episode_with_layers(store, &episodes, &layers, spec.version, |_, e, steps| {
         let log = steering_log(&steps)
@@ -223,10 +223,6 @@ pub async fn replay(
     Ok(acc.report(runs, artifact_id, episodes.len(), spec.n))
 }
 
-fn cfg_layers(v: &Verifier) -> Vec<String> {
-    v.config().input.layout.required_producers().iter().map(|(k, _)| k.to_string()).collect()
-}
-
 #[derive(Default)]
 struct Accumulator {
     logged_artifacts: BTreeSet<String>,
@@ -238,19 +234,16 @@ struct Accumulator {
     regrets: Vec<f64>,
     lift: f64,
     spread: f64,
-    /// `Some` while every step was replayed with its own artifact and N.
-    max_diff: Option<f64>,
-    exact_possible: bool,
+    /// The largest difference between a logged and a replayed score…
+    max_diff: f64,
+    /// …which means nothing once a step was replayed with another artifact or fewer candidates.
+    inexact: bool,
 }
 
 impl Accumulator {
     fn add(&mut self, log: &[SteeringStep], replayed: &[StepReplay], artifact_id: &str, n: Option<usize>) {
         if log.is_empty() {
             return;
-        }
-        if self.steps == 0 {
-            self.exact_possible = true;
-            self.max_diff = Some(0.0);
         }
         self.episodes_with += 1;
         for (s, r) in log.iter().zip(replayed) {
@@ -268,14 +261,9 @@ impl Accumulator {
                 s.scores.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), &x| (l.min(x), h.max(x)));
             self.lift += f64::from(s.scores[logged]) - mean;
             self.spread += f64::from(hi - lo);
-            let same = s.artifact_id == artifact_id && n.is_none_or(|k| k >= s.n());
-            if !same {
-                self.exact_possible = false;
-            }
-            if let Some(m) = self.max_diff.as_mut() {
-                for (a, b) in s.scores.iter().zip(&r.scores) {
-                    *m = m.max(f64::from((a - b).abs()));
-                }
+            self.inexact |= s.artifact_id != artifact_id || n.is_some_and(|k| k < s.n());
+            for (a, b) in s.scores.iter().zip(&r.scores) {
+                self.max_diff = self.max_diff.max(f64::from((a - b).abs()));
             }
         }
     }
@@ -316,7 +304,7 @@ impl Accumulator {
             mean_logged_regret: mean(&self.regrets),
             mean_lift_over_random: self.lift / steps as f64,
             mean_score_spread: self.spread / steps as f64,
-            max_score_difference: if self.exact_possible { self.max_diff } else { None },
+            max_score_difference: (!self.inexact).then_some(self.max_diff),
         }
     }
 }

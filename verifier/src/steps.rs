@@ -164,7 +164,7 @@ fn steering_struct(slots: &[Option<&SteeringStep>]) -> Result<ArrayRef> {
         valid.push(s.is_some());
         if let Some(s) = s {
             scores.extend_from_slice(&s.scores);
-            cands.extend(crate::telemetry::to_f16_bits(&s.candidates).into_iter().map(half::f16::from_bits));
+            cands.extend(s.candidates.iter().map(|&v| half::f16::from_f32(v)));
         }
         let offset =
             |n: usize| i32::try_from(n).map_err(|_| input_err("steering log too large for one column"));

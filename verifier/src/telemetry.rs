@@ -75,16 +75,6 @@ pub fn round_to_f16(values: &mut [f32]) {
     }
 }
 
-/// The half-float bits of `values` (what the store writes).
-pub fn to_f16_bits(values: &[f32]) -> Vec<u16> {
-    values.iter().map(|&v| f16::from_f32(v).to_bits()).collect()
-}
-
-/// `f32` values of half-float bits.
-pub fn from_f16_bits(bits: impl IntoIterator<Item = u16>) -> Vec<f32> {
-    bits.into_iter().map(|b| f16::from_bits(b).to_f32()).collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -97,7 +87,7 @@ mod tests {
         for (a, b) in v.iter().zip(&orig) {
             assert!((a - b).abs() <= b.abs() * 4.9e-4 + 6e-8, "{a} vs {b}");
         }
-        let again = from_f16_bits(to_f16_bits(&v));
+        let again: Vec<f32> = v.iter().map(|&x| f16::from_f32(x).to_f32()).collect();
         assert_eq!(again, v, "values on the f16 grid survive storage exactly");
     }
 
