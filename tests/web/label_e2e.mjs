@@ -100,7 +100,7 @@ try {
   await a.keyboard.press(',');
   await a.keyboard.press(' ');
   // Wait for the condition rather than a fixed time (a loaded machine plays late).
-  const advanced = await a.waitForFunction(() => Number(document.getElementById('scrub').value) > 1, null, { timeout: 10000 })
+  const advanced = await a.waitForFunction(() => Number(document.getElementById('scrub').value) > 1, null, { timeout: 30000 })
     .then(() => true, () => false);
   await a.keyboard.press(' ');
   const played = await a.evaluate(() => Number(document.getElementById('scrub').value));
