@@ -84,6 +84,9 @@ fn schemathesis_finds_no_failures() {
         .args(["--header", &format!("Authorization: Bearer {admin}")])
         .args(["--report", "json", "--report-json-path", report.to_str().unwrap()])
         .env("NO_COLOR", "1")
+        // A fresh Idempotency-Key per call, as clients send them (the hook module says why).
+        .env("SCHEMATHESIS_HOOKS", "idempotency_hooks")
+        .env("PYTHONPATH", Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/openapi"))
         // Its example cache goes to the temp dir, not the checkout.
         .current_dir(dir.path())
         .output()

@@ -112,6 +112,7 @@ impl From<StoreError> for ApiError {
                 err
             }
             StoreError::Conflict(_) => ApiError::new(StatusCode::CONFLICT, "conflict", detail),
+            StoreError::Gone(_) => ApiError::new(StatusCode::GONE, "gone", detail),
             StoreError::Db(sqlx_err) => {
                 if matches!(sqlx_err, sqlx::Error::PoolTimedOut) {
                     ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "busy", "the catalog is busy; retry")

@@ -12,6 +12,7 @@ mod body_schemas;
 mod conn;
 mod error;
 mod extract;
+mod idempotency;
 mod label_writer;
 mod media;
 mod metrics;
@@ -21,6 +22,7 @@ mod session;
 mod session_routes;
 mod steps_json;
 mod upload;
+mod webhooks;
 mod worker;
 
 pub use auth::Caller;
@@ -28,6 +30,7 @@ pub use error::{ApiError, Problem};
 pub use media::parse_range;
 pub use openapi::{openapi, openapi_json};
 pub use upload::{sanitize_filename, sweep as sweep_uploads};
+pub use webhooks::{signature as webhook_signature, DELIVERY_TIMEOUT};
 pub use worker::{run_worker, run_worker_with, worker_identity, JobContext, JobRunner, WorkerOptions};
 
 use axum::extract::DefaultBodyLimit;
@@ -94,6 +97,21 @@ pub struct ServeConfig {
     /// Reverse proxies whose `X-Forwarded-For` is believed (default none): a request from one
     /// counts against the per-address limits of the client the header names (see `conn.rs`).
     pub trusted_proxies: Vec<std::net::IpAddr>,
+    /// How long a request's `Idempotency-Key` and its response are kept (default 24 h).
+    pub idempotency_ttl: Duration,
+    /// The lease of a request being served under an idempotency key (default 30 s, renewed
+    /// every third of it): after the server dies, a retry waits this long at most.
+    pub idempotency_lease: Duration,
+    /// Events of the change feed older than this are deleted (default 30 days; None: kept).
+    pub event_retention: Option<Duration>,
+    /// Deliver webhooks from this server (default true).
+    pub deliver_webhooks: bool,
+    /// The first retry of a failed webhook delivery waits this long, each next one twice as
+    /// long (default 1 s; at most an hour).
+    pub webhook_backoff: Duration,
+    /// How often the delivery loop looks for due subscriptions besides waking on this server's
+    /// commits (default 1 s): other servers' events and retries due.
+    pub webhook_poll: Duration,
 }
 
 /// `scheme://host[:port]` of a public URL (a trailing `/` allowed; no path, query or user info).
@@ -136,6 +154,12 @@ impl ServeConfig {
             write_stall_timeout: Duration::from_secs(60),
             max_connections: 4096,
             trusted_proxies: Vec::new(),
+            idempotency_ttl: Duration::from_secs(24 * 3600),
+            idempotency_lease: Duration::from_secs(30),
+            event_retention: Some(Duration::from_secs(30 * 24 * 3600)),
+            deliver_webhooks: true,
+            webhook_backoff: Duration::from_secs(1),
+            webhook_poll: Duration::from_secs(1),
         }
     }
 }
@@ -231,6 +255,7 @@ pub fn router(state: AppState) -> Router {
             post(upload::ingest.layer(from_fn_with_state(Role::Admin, auth::require_role)))
                 .layer(DefaultBodyLimit::disable()),
         )
+        .route_layer(from_fn_with_state(state.clone(), idempotency::guard))
         .route_layer(from_fn_with_state(state.clone(), auth::require_token));
     Router::new()
         .route("/healthz", get(r::healthz))
@@ -322,6 +347,25 @@ pub async fn serve_on(
             }
         })
     };
+    // Feed retention and expired idempotency keys: at start, then hourly.
+    let pruner = {
+        let (store, retention) = (store.clone(), cfg.event_retention);
+        tokio::spawn(async move {
+            loop {
+                if let Some(r) = retention {
+                    match store.prune_events(r).await {
+                        Ok(0) => {}
+                        Ok(n) => tracing::info!("deleted {n} events past the feed's retention"),
+                        Err(e) => tracing::warn!("cannot prune the change feed: {e}"),
+                    }
+                }
+                if let Err(e) = store.prune_idempotency_keys().await {
+                    tracing::warn!("cannot prune idempotency keys: {e}");
+                }
+                tokio::time::sleep(Duration::from_secs(3600)).await;
+            }
+        })
+    };
     let stop_tx = Arc::new(stop_tx);
     let stop_tx2 = stop_tx.clone();
     let worker = cfg.run_worker_in_process.then(|| {
@@ -334,6 +378,15 @@ pub async fn serve_on(
             async move {
                 let _ = rx.wait_for(|s| *s).await;
             },
+        ))
+    });
+    let deliveries = cfg.deliver_webhooks.then(|| {
+        tokio::spawn(webhooks::deliver_loop(
+            store.clone(),
+            format!("{}-webhooks", cfg.worker_id),
+            cfg.webhook_backoff,
+            cfg.webhook_poll,
+            stop_rx.clone(),
         ))
     });
     let deadline = cfg.shutdown_deadline;
@@ -360,8 +413,12 @@ pub async fn serve_on(
     };
     let _ = stop_tx.send(true);
     sweeper.abort();
+    pruner.abort();
     if let Some(w) = worker {
         let _ = w.await;
+    }
+    if let Some(d) = deliveries {
+        let _ = d.await;
     }
     Ok(())
 }

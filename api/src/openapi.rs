@@ -9,9 +9,10 @@ use crate::error::Problem;
 use crate::routes;
 use crate::upload;
 use axum::Json;
-use utoipa::openapi::path::{Operation, ParameterIn};
+use utoipa::openapi::path::{Operation, ParameterBuilder, ParameterIn};
 use utoipa::openapi::schema::{ObjectBuilder, Schema, Type};
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+use utoipa::openapi::Required;
 use utoipa::openapi::{ContentBuilder, Ref, RefOr, ResponseBuilder};
 use utoipa::{Modify, OpenApi};
 
@@ -24,6 +25,7 @@ use utoipa::{Modify, OpenApi};
         routes::healthz, routes::metrics, serve_openapi,
         routes::list_policies, routes::list_checkpoints, routes::list_tasks,
         routes::list_versions, routes::get_version, routes::diff_versions,
+        routes::list_events,
         routes::list_episodes, routes::episode_counts, routes::get_episode, routes::get_steps, routes::get_media,
         routes::get_frame,
         routes::put_label, routes::bulk_labels, routes::create_snapshot,
@@ -41,6 +43,8 @@ use utoipa::{Modify, OpenApi};
         routes::get_episode_scores, routes::get_review_artifact, routes::put_review_artifact,
         routes::delete_review_artifact, routes::create_score_job,
         upload::ingest, routes::gc, routes::create_token, routes::list_tokens, routes::revoke_token,
+        routes::create_webhook, routes::list_webhooks, routes::get_webhook, routes::delete_webhook,
+        routes::list_dead_letters,
     ),
     components(schemas(Problem, routes::EpisodeSort, routes::EpisodeOrder, routes::ScoreboardFormat)),
     modifiers(&Bearer, &Contract),
@@ -94,6 +98,19 @@ pub const STEERING_PATTERN: &str = r"^(base|bon:[1-9][0-9]{0,8}|(cg|flow):[0-9]{
 /// `If-Match` of a label write: a label revision, quoted or not, weak or not.
 pub const IF_MATCH_PATTERN: &str = r#"^(W/)?("[0-9]{1,18}"|[0-9]{1,18})$"#;
 
+/// An `Idempotency-Key`: 1 to 255 visible ASCII characters.
+pub const IDEMPOTENCY_KEY_PATTERN: &str = r"^[!-~]{1,255}$";
+
+/// A webhook's URL (`store::Store::create_webhook`).
+pub const WEBHOOK_URL_PATTERN: &str = r"^[hH][tT][tT][pP][sS]?://[^\s]{1,1990}$";
+
+/// `kind` of `GET /v1/events`: event kinds separated by commas.
+fn event_kinds_pattern() -> String {
+    let one =
+        store::EventKind::ALL.iter().map(|k| k.as_str().replace('.', r"\.")).collect::<Vec<_>>().join("|");
+    format!("^(({one})(,({one}))*)?$")
+}
+
 /// Query parameters the handlers check as names (`extract::check_name`) or ids, per path.
 const CHECKED_QUERY: &[(&str, &str, &str)] = &[
     ("/v1/scoreboard", "policy", NAME_PATTERN),
@@ -117,6 +134,7 @@ const CHECKED_QUERY: &[(&str, &str, &str)] = &[
     ("/v1/agreement", "policy", NAME_PATTERN),
     ("/v1/episodes/{id}/scores", "artifact", ID_PATTERN),
     ("/v1/review/artifacts/{policy}", "checkpoint", NAME_PATTERN),
+    ("/v1/events", "policy", NAME_PATTERN),
 ];
 
 /// Request-body fields the handlers check, per component schema.
@@ -137,6 +155,8 @@ const CHECKED_FIELDS: &[(&str, &str, &str)] = &[
     ("ScoreJobCreate", "artifact", ARTIFACT_REF_PATTERN),
     ("ReviewArtifactUpdate", "artifact", ARTIFACT_REF_PATTERN),
     ("PolicyAliasMoveBody", "to", ARM_PATTERN),
+    ("WebhookCreate", "url", WEBHOOK_URL_PATTERN),
+    ("WebhookCreate", "policy", NAME_PATTERN),
     // Array fields: the pattern goes on their items.
     ("FailureCauses", "causes", TOKEN_NAME_PATTERN),
 ];
@@ -184,8 +204,24 @@ fn string_schema(pattern: &str) -> RefOr<Schema> {
 }
 
 impl Contract {
-    fn operation(op: &mut Operation, path: &str, public: bool) {
+    fn operation(op: &mut Operation, path: &str, public: bool, mutating: bool) {
         let params = op.parameters.get_or_insert_with(Vec::new);
+        if mutating && !public {
+            params.push(
+                ParameterBuilder::new()
+                    .name("Idempotency-Key")
+                    .parameter_in(ParameterIn::Header)
+                    .required(Required::False)
+                    .description(Some(
+                        "Makes a retry safe: a request sent again with the same key (per token) gets the first \
+                         response (with `Idempotent-Replayed: true`) and does its work once. Kept 24 h. The same \
+                         key with another method, path or body is a 422; while the first is still being served, \
+                         a 409 with Retry-After.",
+                    ))
+                    .schema(Some(string_schema(IDEMPOTENCY_KEY_PATTERN)))
+                    .build(),
+            );
+        }
         for p in params.iter_mut() {
             if p.parameter_in == ParameterIn::Query {
                 if let Some((_, _, pattern)) =
@@ -194,6 +230,11 @@ impl Contract {
                     if let Some(s) = p.schema.as_mut() {
                         set_pattern(s, pattern);
                     }
+                }
+            }
+            if p.parameter_in == ParameterIn::Query && path == "/v1/events" && p.name == "kind" {
+                if let Some(s) = p.schema.as_mut() {
+                    set_pattern(s, &event_kinds_pattern());
                 }
             }
             if p.parameter_in == ParameterIn::Header && p.name == "If-Match" {
@@ -238,6 +279,10 @@ impl Contract {
             add("415", "the body is not of the documented content type");
             add("422", "the body does not have the documented shape");
         }
+        if mutating && !public {
+            add("409", "a request with this Idempotency-Key is still being served (see Retry-After)");
+            add("422", "the Idempotency-Key was used for another request");
+        }
         if !public {
             add("401", "no valid bearer token");
             add("429", "too many requests in flight for this token, or token checks; see Retry-After");
@@ -265,11 +310,12 @@ impl Modify for Contract {
     fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
         for (path, item) in openapi.paths.paths.iter_mut() {
             let public = path == "/healthz";
-            for op in [&mut item.get, &mut item.put, &mut item.post, &mut item.delete, &mut item.patch]
-                .into_iter()
-                .flatten()
+            if let Some(op) = item.get.as_mut() {
+                Contract::operation(op, path, public, false);
+            }
+            for op in [&mut item.put, &mut item.post, &mut item.delete, &mut item.patch].into_iter().flatten()
             {
-                Contract::operation(op, path, public);
+                Contract::operation(op, path, public, true);
             }
         }
         if let Some(components) = openapi.components.as_mut() {

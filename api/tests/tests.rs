@@ -5,6 +5,7 @@
 mod auth;
 mod common;
 mod consensus;
+mod feed;
 mod flow;
 mod lists;
 mod load;

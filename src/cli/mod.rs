@@ -3,6 +3,7 @@
 mod catalog_cmds;
 mod compare_cmd;
 mod dev;
+mod events_cmd;
 mod export_cmd;
 mod monitor_cmds;
 mod replay_cmd;
@@ -145,6 +146,10 @@ pub enum Command {
     /// Episodes ordered by a verifier's score, lowest first (which demonstrations or rollouts to
     /// review, relabel or leave out).
     Rank(export_cmd::RankArgs),
+    /// The change feed: every catalog change (ingests, labels, votes, versions, splits, jobs,
+    /// artifacts, aliases, exports) with its sequence number, from any point; `--follow` waits
+    /// for new ones. From the store, or from `ufops serve` with `--api`.
+    Events(events_cmd::EventsArgs),
     /// Re-score a steered run's logged best-of-N steps (steering telemetry) with another verifier
     /// artifact or only the first K candidates, without the robot: how often the choice changes,
     /// and the score margin ("would N = 8 have sufficed?", "would verifier v2 pick differently?").
@@ -249,6 +254,7 @@ pub async fn run(cli: Cli) -> Result<()> {
         Command::Export(a) => export_cmd::export(&cli.store, a).await,
         Command::Rank(a) => export_cmd::rank(&cli.store, a).await,
         Command::Replay(a) => replay_cmd::run(&cli.store, a).await,
+        Command::Events(a) => events_cmd::run(&cli.store, a).await,
         Command::Review { command } => review_cmds::review(&cli.store, command).await,
         Command::Serve(a) => serve_cmds::serve(&cli.store, a).await,
         Command::Openapi { write } => match write {

@@ -325,6 +325,16 @@ pub struct ServeArgs {
     /// per-address limits count; without one, every request from the proxy shares its address.
     #[arg(long = "trusted-proxy", value_name = "IP")]
     pub trusted_proxies: Vec<std::net::IpAddr>,
+    /// Days the change feed keeps its events (`GET /v1/events`, `ufops events`); 0: forever.
+    #[arg(long, default_value_t = 30)]
+    pub event_retention_days: u64,
+    /// Hours a request's `Idempotency-Key` and its response are kept for retries.
+    #[arg(long, default_value_t = 24, value_parser = clap::value_parser!(u64).range(1..=720))]
+    pub idempotency_ttl_hours: u64,
+    /// Seconds a request being served holds its `Idempotency-Key` without renewing it: after a
+    /// crash, a retry of it waits at most this long.
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=3600))]
+    pub idempotency_lease_secs: u64,
 }
 
 /// Ctrl-C or SIGTERM (what `docker stop`, systemd and Kubernetes send): the server finishes the
@@ -363,6 +373,10 @@ pub async fn serve(args: &StoreArgs, a: ServeArgs) -> Result<()> {
     cfg.unverified_checks_per_peer = a.unverified_checks_per_peer;
     cfg.max_connections = a.max_connections as usize;
     cfg.trusted_proxies = a.trusted_proxies;
+    cfg.event_retention =
+        (a.event_retention_days > 0).then(|| std::time::Duration::from_secs(a.event_retention_days * 86_400));
+    cfg.idempotency_ttl = std::time::Duration::from_secs(a.idempotency_ttl_hours * 3600);
+    cfg.idempotency_lease = std::time::Duration::from_secs(a.idempotency_lease_secs);
     api::serve(store, cfg, Arc::new(Runner), shutdown_signal()).await
 }
 

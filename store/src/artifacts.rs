@@ -2,6 +2,7 @@
 //! with per-checkpoint aliases (`latest` is moved automatically on publish).
 
 use crate::catalog::RowExt;
+use crate::events::{EventKind, NewEvent};
 use crate::{now_rfc3339, Store, StoreError};
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
@@ -111,7 +112,7 @@ impl Store {
         }
         let now = now_rfc3339();
         let mut tx = self.db().begin_write().await?;
-        sqlx::query(&format!(
+        let inserted = sqlx::query(&format!(
             "INSERT INTO artifacts ({ART_COLS}) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10) ON CONFLICT DO NOTHING"
         ))
         .bind(&id)
@@ -126,14 +127,31 @@ impl Store {
         .bind(&now)
         .execute(&mut *tx)
         .await?;
+        let mut events = Vec::new();
+        if inserted.rows_affected() == 1 {
+            events.push(
+                NewEvent::new(
+                    EventKind::ArtifactPublished,
+                    id.clone(),
+                    serde_json::json!({
+                        "kind": new.kind,
+                        "split_id": new.split_id,
+                        "job_id": new.job_id,
+                        "off_policy": off_policy,
+                    }),
+                )
+                .of(new.policy, Some(new.checkpoint)),
+            );
+        }
         if !off_policy {
             upsert_alias(&mut tx, new.policy, new.checkpoint, new.kind, "latest", &id, &now).await?;
+            events.push(alias_moved(new.policy, new.checkpoint, new.kind, "latest", &id));
         }
         sqlx::query("DELETE FROM pending_objects WHERE writer = $1")
             .bind(&publisher)
             .execute(&mut *tx)
             .await?;
-        tx.commit().await?;
+        self.commit_with_events(tx, &events).await?;
         self.artifact(&id).await
     }
 
@@ -189,7 +207,8 @@ impl Store {
         let a = self.artifact(artifact_id).await?;
         let mut tx = self.db().begin_write().await?;
         upsert_alias(&mut tx, &a.policy, &a.checkpoint, &a.kind, alias, &a.id, &now_rfc3339()).await?;
-        tx.commit().await?;
+        let event = alias_moved(&a.policy, &a.checkpoint, &a.kind, alias, &a.id);
+        self.commit_with_events(tx, &[event]).await?;
         self.artifact(artifact_id).await
     }
 
@@ -289,4 +308,14 @@ fn artifact_from_row(r: &sqlx::any::AnyRow) -> Result<ArtifactRecord, StoreError
         aliases: Vec::new(),
         created_at: r.s("created_at")?,
     })
+}
+
+/// The event of an artifact alias pointed at `artifact_id`.
+fn alias_moved(policy: &str, checkpoint: &str, kind: &str, alias: &str, artifact_id: &str) -> NewEvent {
+    NewEvent::new(
+        EventKind::AliasMoved,
+        alias,
+        serde_json::json!({"target": "artifact", "kind": kind, "artifact_id": artifact_id}),
+    )
+    .of(policy, Some(checkpoint))
 }

@@ -44,6 +44,8 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (13, "episode_tags", include_str!("../../migrations/sqlite/0013_episode_tags.sql")),
     (14, "review_score_index", include_str!("../../migrations/sqlite/0014_review_score_index.sql")),
     (15, "monitors", include_str!("../../migrations/sqlite/0015_monitors.sql")),
+    (16, "events", include_str!("../../migrations/sqlite/0016_events.sql")),
+    (17, "webhooks", include_str!("../../migrations/sqlite/0017_webhooks.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
@@ -65,6 +67,8 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (13, "episode_tags", include_str!("../../migrations/postgres/0013_episode_tags.sql")),
     (14, "review_score_index", include_str!("../../migrations/postgres/0014_review_score_index.sql")),
     (15, "monitors", include_str!("../../migrations/postgres/0015_monitors.sql")),
+    (16, "events", include_str!("../../migrations/postgres/0016_events.sql")),
+    (17, "webhooks", include_str!("../../migrations/postgres/0017_webhooks.sql")),
 ];
 
 fn migrator(backend: Backend) -> Migrator {

@@ -16,6 +16,7 @@
 
 use crate::catalog::{RowExt, Tx};
 use crate::counts::CountDeltas;
+use crate::events::{EventKind, NewEvent};
 use crate::labels::apply_one;
 use crate::{now_rfc3339, Backend, Label, LabelChange, LabelUpdate, Store, StoreError};
 use serde::{Deserialize, Serialize};
@@ -485,7 +486,13 @@ impl Store {
         .execute(&mut *tx)
         .await?;
         let c = campaign_in(&mut tx, policy).await?;
-        tx.commit().await?;
+        let event = NewEvent::new(
+            EventKind::CampaignSet,
+            policy,
+            json!({"labels_needed": labels_needed, "blind": blind, "actor": actor}),
+        )
+        .of(policy, None);
+        self.commit_with_events(tx, &[event]).await?;
         self.inner.multi_labeler.clear();
         Ok(c)
     }
@@ -616,6 +623,12 @@ impl Store {
         .await?;
         let latest = latest_by_actor(votes_in(&mut tx, &vote.episode_id).await?);
         let state = state_of(&latest, campaign.labels_needed, false);
+        let mut events = vec![NewEvent::new(
+            EventKind::VoteCast,
+            vote.episode_id.clone(),
+            json!({"label": vote.label.as_str(), "actor": actor, "state": state, "voters": latest.len()}),
+        )
+        .of(&head.policy, None)];
         let mut out = VoteOutcome {
             state,
             voters: latest.len(),
@@ -640,12 +653,12 @@ impl Store {
                 expect_revision: expect,
                 note: vote.note.clone(),
             };
-            let change = write_event(&mut tx, backend, &update, actor, source, data).await?;
+            let change = write_event(&mut tx, backend, &update, actor, source, data, &mut events).await?;
             out.label = change.label;
             out.revision = change.revision;
             out.change = Some(change);
         }
-        tx.commit().await?;
+        self.commit_with_events(tx, &events).await?;
         Ok(out)
     }
 
@@ -700,8 +713,10 @@ impl Store {
             d = json!({"failure_cause": data.failure_cause, "spans": data.spans, "votes": d["votes"]});
         }
         let update = LabelUpdate { episode_id: episode_id.to_string(), label, expect_revision: None, note };
-        let change = write_event(&mut tx, backend, &update, actor, "adjudication", Some(d)).await?;
-        tx.commit().await?;
+        let mut events = Vec::new();
+        let change =
+            write_event(&mut tx, backend, &update, actor, "adjudication", Some(d), &mut events).await?;
+        self.commit_with_events(tx, &events).await?;
         Ok(change)
     }
 
@@ -847,9 +862,10 @@ async fn write_event(
     actor: &str,
     source: &str,
     data: Option<Value>,
+    events: &mut Vec<NewEvent>,
 ) -> Result<LabelChange, StoreError> {
     let mut counts = CountDeltas::default();
-    let change = apply_one(tx, backend, update, actor, source, &mut counts).await?;
+    let change = apply_one(tx, backend, update, actor, source, &mut counts, events).await?;
     counts.apply(tx, backend).await?;
     if let Some(d) = data {
         sqlx::query("UPDATE label_events SET data = $1 WHERE episode_id = $2 AND revision = $3")

@@ -24,6 +24,9 @@ pub enum StoreError {
     },
     #[error("conflict: {0}")]
     Conflict(String),
+    /// What was asked for existed but was deleted for good (events behind the feed's retention).
+    #[error("gone: {0}")]
+    Gone(String),
     #[error("catalog error: {0}")]
     Db(#[from] sqlx::Error),
     #[error("catalog migration failed: {0}")]

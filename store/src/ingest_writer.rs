@@ -492,7 +492,7 @@ impl IngestWriter {
         self.insert_files(&mut tx, version).await?;
         let ids: Vec<String> =
             self.episodes.iter().map(|e| steps::episode_id(&prefix, e.source_index)).collect();
-        self.insert_episodes(&mut tx, version, &ids, run_id, &now).await?;
+        self.insert_episodes(&mut tx, version, &ids, run_id.clone(), &now).await?;
         self.insert_media_refs_and_label_events(&mut tx, &ids, &now).await?;
         let n = self.episodes.len();
         let mut counts = CountDeltas::default();
@@ -507,6 +507,18 @@ impl IngestWriter {
             source_sha256: Some(self.source.sha256.clone()),
             episodes_added: n as i64,
             episodes_removed: 0,
+            events: vec![crate::events::NewEvent::new(
+                crate::events::EventKind::IngestCommitted,
+                self.source.sha256.clone(),
+                serde_json::json!({
+                    "version": version,
+                    "episodes": n,
+                    "format": self.source.format,
+                    "path": self.source.path,
+                    "run_id": run_id,
+                }),
+            )
+            .of(&self.policy, Some(&self.checkpoint))],
         };
         finish_version(&store, tx, head, counts, None).await?;
         Ok(CommitInfo { version, episodes: n })

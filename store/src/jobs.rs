@@ -3,6 +3,7 @@
 //! `max_attempts`); no job runs twice at once. Postgres claims with `FOR UPDATE SKIP LOCKED`.
 
 use crate::catalog::{Backend, RowExt};
+use crate::events::{EventKind, NewEvent};
 use crate::{now_ms, now_rfc3339, Store, StoreError};
 use serde::Serialize;
 
@@ -129,6 +130,42 @@ fn job_from_row(r: &sqlx::any::AnyRow) -> Result<JobRecord, StoreError> {
     })
 }
 
+/// The feed's events of jobs whose rows a statement returned: `job.changed`, and
+/// `export.finished` for an export that succeeded.
+fn job_events(rows: &[sqlx::any::AnyRow]) -> Result<Vec<NewEvent>, StoreError> {
+    let mut out = Vec::with_capacity(rows.len());
+    for r in rows {
+        let job = job_from_row(r)?;
+        let text = |k: &str| job.spec.get(k).and_then(|v| v.as_str()).map(str::to_string);
+        let (policy, checkpoint) = (text("policy"), text("checkpoint"));
+        let scope = |e: NewEvent| match &policy {
+            Some(p) => e.of(p, checkpoint.as_deref()),
+            None => e,
+        };
+        out.push(scope(NewEvent::new(
+            EventKind::JobChanged,
+            job.id.clone(),
+            serde_json::json!({
+                "kind": job.kind,
+                "state": job.state,
+                "attempts": job.attempts,
+                "worker": job.worker,
+                "error": job.error,
+                "result": job.result,
+                "created_by": job.created_by,
+            }),
+        )));
+        if job.kind == JobKind::Export && job.state == JobState::Succeeded {
+            out.push(scope(NewEvent::new(
+                EventKind::ExportFinished,
+                job.id.clone(),
+                serde_json::json!({"result": job.result, "files_prefix": format!("{}/{}/", crate::EXPORTS_PREFIX, job.id)}),
+            )));
+        }
+    }
+    Ok(out)
+}
+
 impl Store {
     pub async fn create_job(
         &self,
@@ -138,16 +175,20 @@ impl Store {
     ) -> Result<JobRecord, StoreError> {
         let id = format!("job-{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
         let now = now_rfc3339();
-        sqlx::query(&format!(
-            "INSERT INTO jobs ({JOB_COLS}) VALUES ($1, $2, 'queued', $3, '{{}}', NULL, NULL, 0, 3, NULL, NULL, 0, $4, $5, $5)"
+        let mut tx = self.db().begin_write().await?;
+        let row = sqlx::query(&format!(
+            "INSERT INTO jobs ({JOB_COLS}) VALUES ($1, $2, 'queued', $3, '{{}}', NULL, NULL, 0, 3, NULL, NULL, 0, $4, $5, $5) \
+             RETURNING {JOB_COLS}"
         ))
         .bind(&id)
         .bind(kind.as_str())
         .bind(serde_json::to_string(spec)?)
         .bind(actor)
         .bind(&now)
-        .execute(&self.db().pool)
+        .fetch_one(&mut *tx)
         .await?;
+        let events = job_events(&[row])?;
+        self.commit_with_events(tx, &events).await?;
         self.job(&id).await
     }
 
@@ -175,20 +216,24 @@ impl Store {
         let now = now_ms();
         let mut tx = self.db().begin_write().await?;
         // A cancelled job whose worker died (lease expired) is cancelled now, not left running.
-        sqlx::query(&format!("{CANCEL_ORPHANS} AND lease_until_ms < $2"))
+        let mut ended =
+            sqlx::query(&format!("{CANCEL_ORPHANS} AND lease_until_ms < $2 RETURNING {JOB_COLS}"))
+                .bind(now_rfc3339())
+                .bind(now)
+                .fetch_all(&mut *tx)
+                .await?;
+        // Jobs whose lease ran out too often are failed for good.
+        ended.extend(
+            sqlx::query(&format!(
+                "UPDATE jobs SET state = 'failed', error = 'worker lost too many times (lease expired)', updated_at = $1 \
+                 WHERE state = 'running' AND lease_until_ms < $2 AND attempts >= max_attempts RETURNING {JOB_COLS}"
+            ))
             .bind(now_rfc3339())
             .bind(now)
-            .execute(&mut *tx)
-            .await?;
-        // Jobs whose lease ran out too often are failed for good.
-        sqlx::query(
-            "UPDATE jobs SET state = 'failed', error = 'worker lost too many times (lease expired)', updated_at = $1 \
-             WHERE state = 'running' AND lease_until_ms < $2 AND attempts >= max_attempts",
-        )
-        .bind(now_rfc3339())
-        .bind(now)
-        .execute(&mut *tx)
-        .await?;
+            .fetch_all(&mut *tx)
+            .await?,
+        );
+        let mut events = job_events(&ended)?;
         let lock = if self.backend() == Backend::Postgres { " FOR UPDATE SKIP LOCKED" } else { "" };
         let row = sqlx::query(&format!(
             "SELECT id FROM jobs WHERE (state = 'queued' OR (state = 'running' AND lease_until_ms < $1)) \
@@ -198,21 +243,22 @@ impl Store {
         .fetch_optional(&mut *tx)
         .await?;
         let Some(row) = row else {
-            tx.commit().await?;
+            self.commit_with_events(tx, &events).await?;
             return Ok(None);
         };
         let id = row.s("id")?;
-        sqlx::query(
+        let claimed = sqlx::query(&format!(
             "UPDATE jobs SET state = 'running', worker = $1, lease_until_ms = $2, attempts = attempts + 1, \
-             updated_at = $3 WHERE id = $4",
-        )
+             updated_at = $3 WHERE id = $4 RETURNING {JOB_COLS}"
+        ))
         .bind(worker)
         .bind(now + lease_ms)
         .bind(now_rfc3339())
         .bind(&id)
-        .execute(&mut *tx)
+        .fetch_one(&mut *tx)
         .await?;
-        tx.commit().await?;
+        events.extend(job_events(&[claimed])?);
+        self.commit_with_events(tx, &events).await?;
         Ok(Some(self.job(&id).await?))
     }
 
@@ -256,11 +302,12 @@ impl Store {
             Ok(v) => ("succeeded", Some(serde_json::to_string(&v)?), None),
             Err(e) => ("failed", None, Some(e)),
         };
-        let r = sqlx::query(
+        let mut tx = self.db().begin_write().await?;
+        let rows = sqlx::query(&format!(
             "UPDATE jobs SET state = CASE WHEN cancel_requested = 1 AND CAST($1 AS TEXT) = 'failed' THEN 'cancelled' ELSE CAST($1 AS TEXT) END, \
              result = $2, error = $3, lease_until_ms = NULL, updated_at = $4 \
-             WHERE id = $5 AND worker = $6 AND attempts = $7 AND state = 'running'",
-        )
+             WHERE id = $5 AND worker = $6 AND attempts = $7 AND state = 'running' RETURNING {JOB_COLS}"
+        ))
         .bind(state)
         .bind(result)
         .bind(error)
@@ -268,52 +315,67 @@ impl Store {
         .bind(id)
         .bind(worker)
         .bind(attempt)
-        .execute(&self.db().pool)
+        .fetch_all(&mut *tx)
         .await?;
-        Ok(r.rows_affected() == 1)
+        let events = job_events(&rows)?;
+        self.commit_with_events(tx, &events).await?;
+        Ok(rows.len() == 1)
     }
 
     /// Gives back a job this attempt holds, when its worker stops before finishing it: queued
     /// again without counting the attempt (a graceful restart is not a failure), or cancelled
     /// if a cancel was requested. Returns `false` when the job was no longer this attempt's.
     pub async fn release_job(&self, id: &str, worker: &str, attempt: i64) -> Result<bool, StoreError> {
-        let r = sqlx::query(
+        let mut tx = self.db().begin_write().await?;
+        let rows = sqlx::query(&format!(
             "UPDATE jobs SET state = CASE WHEN cancel_requested = 1 THEN 'cancelled' ELSE 'queued' END, \
              attempts = CASE WHEN cancel_requested = 1 THEN attempts ELSE attempts - 1 END, \
              worker = NULL, lease_until_ms = NULL, updated_at = $1 \
-             WHERE id = $2 AND worker = $3 AND attempts = $4 AND state = 'running'",
-        )
+             WHERE id = $2 AND worker = $3 AND attempts = $4 AND state = 'running' RETURNING {JOB_COLS}"
+        ))
         .bind(now_rfc3339())
         .bind(id)
         .bind(worker)
         .bind(attempt)
-        .execute(&self.db().pool)
+        .fetch_all(&mut *tx)
         .await?;
-        Ok(r.rows_affected() == 1)
+        let events = job_events(&rows)?;
+        self.commit_with_events(tx, &events).await?;
+        Ok(rows.len() == 1)
     }
 
     /// Requests cancellation: a queued job is cancelled at once, a running one at its next heartbeat.
     pub async fn cancel_job(&self, id: &str) -> Result<JobRecord, StoreError> {
         let now = now_rfc3339();
-        sqlx::query("UPDATE jobs SET state = 'cancelled', cancel_requested = 1, updated_at = $1 WHERE id = $2 AND state = 'queued'")
-            .bind(&now)
-            .bind(id)
-            .execute(&self.db().pool)
-            .await?;
+        let mut tx = self.db().begin_write().await?;
+        let mut rows = sqlx::query(&format!(
+            "UPDATE jobs SET state = 'cancelled', cancel_requested = 1, updated_at = $1 WHERE id = $2 AND state = 'queued' \
+             RETURNING {JOB_COLS}"
+        ))
+        .bind(&now)
+        .bind(id)
+        .fetch_all(&mut *tx)
+        .await?;
         sqlx::query(
             "UPDATE jobs SET cancel_requested = 1, updated_at = $1 WHERE id = $2 AND state = 'running'",
         )
         .bind(&now)
         .bind(id)
-        .execute(&self.db().pool)
+        .execute(&mut *tx)
         .await?;
         // Its worker already gone (lease expired): nobody will see the request, so finish it here.
-        sqlx::query(&format!("{CANCEL_ORPHANS} AND lease_until_ms < $2 AND id = $3"))
+        rows.extend(
+            sqlx::query(&format!(
+                "{CANCEL_ORPHANS} AND lease_until_ms < $2 AND id = $3 RETURNING {JOB_COLS}"
+            ))
             .bind(&now)
             .bind(now_ms())
             .bind(id)
-            .execute(&self.db().pool)
-            .await?;
+            .fetch_all(&mut *tx)
+            .await?,
+        );
+        let events = job_events(&rows)?;
+        self.commit_with_events(tx, &events).await?;
         self.job(id).await
     }
 }

@@ -3,6 +3,7 @@
 
 use crate::catalog::{RowExt, Tx};
 use crate::counts::CountDeltas;
+use crate::events::{EventKind, NewEvent};
 use crate::version::{finish_version, next_version, write_labels_file_ahead, LabelsFileAhead, VersionHead};
 use crate::{now_rfc3339, Backend, CommitInfo, Label, Store, StoreError};
 use serde::Serialize;
@@ -76,11 +77,12 @@ impl Store {
         let mut tx = self.db().begin_write().await?;
         let mut out = Vec::with_capacity(updates.len());
         let mut counts = CountDeltas::default();
+        let mut events = Vec::new();
         for u in updates {
-            out.push(apply_one(&mut tx, backend, &u, actor, source, &mut counts).await?);
+            out.push(apply_one(&mut tx, backend, &u, actor, source, &mut counts, &mut events).await?);
         }
         counts.apply(&mut tx, backend).await?;
-        tx.commit().await?;
+        self.commit_with_events(tx, &events).await?;
         Ok(out)
     }
 
@@ -107,10 +109,11 @@ impl Store {
         let mut out: Vec<Option<Result<LabelChange, StoreError>>> = (0..items.len()).map(|_| None).collect();
         let mut tx = self.db().begin_write().await?;
         let mut counts = CountDeltas::default();
+        let mut events = Vec::new();
         for i in order {
             let (u, actor) = &items[i];
             let r = match crate::model::check_name("actor", actor) {
-                Ok(()) => apply_one(&mut tx, backend, u, actor, source, &mut counts).await,
+                Ok(()) => apply_one(&mut tx, backend, u, actor, source, &mut counts, &mut events).await,
                 Err(e) => Err(e),
             };
             match r {
@@ -119,7 +122,7 @@ impl Store {
             }
         }
         counts.apply(&mut tx, backend).await?;
-        tx.commit().await?;
+        self.commit_with_events(tx, &events).await?;
         Ok(out
             .into_iter()
             .map(|o| o.unwrap_or_else(|| Err(StoreError::Corrupt("label write without an outcome".into()))))
@@ -208,6 +211,7 @@ impl Store {
             source_sha256: None,
             episodes_added: 0,
             episodes_removed: 0,
+            events: Vec::new(),
         };
         finish_version(self, tx, head, CountDeltas::default(), Some(prepared.0)).await?;
         let info = self.version(version).await?;
@@ -271,6 +275,7 @@ impl Store {
             source_sha256: None,
             episodes_added: 0,
             episodes_removed: ids.len() as i64,
+            events: Vec::new(),
         };
         finish_version(self, tx, head, counts, None).await?;
         let info = self.version(version).await?;
@@ -336,6 +341,7 @@ pub(crate) async fn apply_one(
     actor: &str,
     source: &str,
     counts: &mut CountDeltas,
+    events: &mut Vec<NewEvent>,
 ) -> Result<LabelChange, StoreError> {
     if let Some(n) = &u.note {
         if n.len() > 4000 {
@@ -400,6 +406,21 @@ pub(crate) async fn apply_one(
         {
             let (policy, checkpoint, task) = group.ok_or_else(|| inconsistent(u))?;
             counts.relabel(&policy, &checkpoint, task.as_deref(), current_label, u.label);
+            events.push(
+                NewEvent::new(
+                    EventKind::LabelSet,
+                    u.episode_id.clone(),
+                    serde_json::json!({
+                        "revision": rev,
+                        "label": u.label.as_str(),
+                        "old_label": current_label.as_str(),
+                        "source": source,
+                        "actor": actor,
+                        "task": task,
+                    }),
+                )
+                .of(&policy, Some(&checkpoint)),
+            );
             Ok(LabelChange {
                 episode_id: u.episode_id.clone(),
                 old_label: current_label,

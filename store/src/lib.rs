@@ -12,9 +12,11 @@ mod consensus;
 mod counts;
 mod episodes_arrow;
 mod error;
+mod events;
 mod exports;
 mod frames;
 mod gc;
+mod idempotency;
 mod ingest_writer;
 mod jobs;
 mod labels;
@@ -39,6 +41,7 @@ pub mod test_support;
 mod tokens;
 mod version;
 pub mod video;
+mod webhooks;
 
 pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
 pub use catalog::{migration_names, Backend};
@@ -52,9 +55,13 @@ pub use consensus::{
 pub use counts::{CountFilter, LabelCounts};
 pub use episodes_arrow::{episodes_batch, episodes_schema};
 pub use error::StoreError;
+pub use events::{
+    with_request, Event, EventFilter, EventKind, EventPage, NewEvent, RequestContext, MAX_EVENT_PAGE,
+};
 pub use exports::{check_export_path, ExportFile, EXPORTS_PREFIX};
 pub use frames::{cameras_of, Camera, CameraKind, FrameLocation};
 pub use gc::{GcReport, MAX_GRACE_SECONDS};
+pub use idempotency::{Claim, IdempotentRequest, StoredResponse, MAX_IDEMPOTENCY_KEY_LEN};
 pub use ingest_writer::{CommitInfo, IngestWriter, SourceRecord, MAX_STEPS_FILE_BYTES};
 pub use jobs::{JobKind, JobRecord, JobState};
 pub use labels::{LabelChange, LabelEvent, LabelUpdate, PreparedLabelSnapshot};
@@ -76,6 +83,7 @@ pub use runs::{RunInput, RunRecord, Steering};
 pub use scoreboard::{BaselineComparison, Scoreboard, ScoreboardRequest, ScoreboardRow, NO_RUN};
 pub use splits::{SplitCheckpointSteps, SplitEpisode, SplitRecord, SplitRequest};
 pub use tokens::{Role, TokenRecord};
+pub use webhooks::{delivery_id, DeadLetter, HeldWebhook, WebhookRecord, MAX_WEBHOOK_ATTEMPTS};
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -113,6 +121,8 @@ struct Inner {
     /// The policies whose campaign needs several labelers, read at most once a second (every
     /// label PUT asks: `consensus.rs`).
     multi_labeler: consensus::MultiLabelerCache,
+    /// The newest event sequence number this handle committed (`events.rs`).
+    feed: tokio::sync::watch::Sender<i64>,
 }
 
 impl Store {
@@ -139,6 +149,7 @@ impl Store {
                 meta_cache,
                 frame_pages,
                 multi_labeler: Default::default(),
+                feed: tokio::sync::watch::Sender::new(0),
             }),
         })
     }

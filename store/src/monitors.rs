@@ -5,6 +5,7 @@
 //! checks only what it indexes.
 
 use crate::catalog::RowExt;
+use crate::events::{EventKind, NewEvent};
 use crate::{now_rfc3339, Store, StoreError};
 use serde::Serialize;
 
@@ -71,7 +72,7 @@ impl Store {
         let id = crate::sha256_hex(new.record_json)[..16].to_string();
         let now = now_rfc3339();
         let mut tx = self.db().begin_write().await?;
-        sqlx::query(&format!(
+        let inserted = sqlx::query(&format!(
             "INSERT INTO monitors ({MON_COLS}) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10) ON CONFLICT DO NOTHING"
         ))
         .bind(&id)
@@ -87,7 +88,19 @@ impl Store {
         .execute(&mut *tx)
         .await?;
         upsert_monitor_alias(&mut tx, new.policy, new.checkpoint, "latest", &id, &now).await?;
-        tx.commit().await?;
+        let mut events = Vec::new();
+        if inserted.rows_affected() == 1 {
+            events.push(
+                NewEvent::new(
+                    EventKind::MonitorCreated,
+                    id.clone(),
+                    serde_json::json!({"artifact_id": new.artifact_id, "alpha": new.alpha, "threshold": new.threshold}),
+                )
+                .of(new.policy, Some(new.checkpoint)),
+            );
+        }
+        events.push(monitor_alias_moved(new.policy, new.checkpoint, "latest", &id));
+        self.commit_with_events(tx, &events).await?;
         self.monitor(&id).await
     }
 
@@ -158,7 +171,8 @@ impl Store {
         let m = self.monitor(id).await?;
         let mut tx = self.db().begin_write().await?;
         upsert_monitor_alias(&mut tx, &m.policy, &m.checkpoint, alias, id, &now_rfc3339()).await?;
-        tx.commit().await?;
+        let event = monitor_alias_moved(&m.policy, &m.checkpoint, alias, id);
+        self.commit_with_events(tx, &[event]).await?;
         self.monitor(id).await
     }
 
@@ -220,4 +234,14 @@ fn monitor_from_row(r: &sqlx::any::AnyRow) -> Result<MonitorEntry, StoreError> {
         created_by: r.s("created_by")?,
         created_at: r.s("created_at")?,
     })
+}
+
+/// The event of a monitor alias pointed at `monitor_id`.
+fn monitor_alias_moved(policy: &str, checkpoint: &str, alias: &str, monitor_id: &str) -> NewEvent {
+    NewEvent::new(
+        EventKind::AliasMoved,
+        alias,
+        serde_json::json!({"target": "monitor", "monitor_id": monitor_id}),
+    )
+    .of(policy, Some(checkpoint))
 }

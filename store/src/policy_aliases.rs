@@ -232,14 +232,27 @@ impl Store {
         )
         .bind(&req.policy)
         .bind(&req.alias)
-        .bind(current.map(|c| c.target))
+        .bind(current.as_ref().map(|c| c.target.clone()))
         .bind(&target)
         .bind(evidence_json)
         .bind(&req.actor)
         .bind(&now)
         .execute(&mut *tx)
         .await?;
-        tx.commit().await?;
+        let event = crate::events::NewEvent::new(
+            crate::events::EventKind::AliasMoved,
+            req.alias.clone(),
+            serde_json::json!({
+                "target": "policy",
+                "to": target,
+                "from": current.map(|c| c.target),
+                "protected": protected,
+                "gated": evidence.is_some(),
+                "actor": req.actor,
+            }),
+        )
+        .of(&req.policy, None);
+        self.commit_with_events(tx, &[event]).await?;
         self.policy_alias(&req.policy, &req.alias).await
     }
 

@@ -179,7 +179,12 @@ impl Store {
         )
         .await?;
         refresh_review_scores_of(&mut tx, &ids).await?;
-        tx.commit().await?;
+        let event = crate::events::NewEvent::new(
+            crate::events::EventKind::ReviewScored,
+            artifact_id,
+            serde_json::json!({"episodes": ids.len(), "job_id": job_id}),
+        );
+        self.commit_with_events(tx, &[event]).await?;
         Ok(())
     }
 

@@ -289,7 +289,20 @@ impl Store {
             "",
         )
         .await?;
-        tx.commit().await?;
+        let event = crate::events::NewEvent::new(
+            crate::events::EventKind::SplitFrozen,
+            rec.id.clone(),
+            serde_json::json!({
+                "version": rec.version,
+                "mode": rec.mode,
+                "source_checkpoints": rec.source_checkpoints,
+                "train_episodes": rec.train_episodes,
+                "val_episodes": rec.val_episodes,
+                "actor": rec.created_by,
+            }),
+        )
+        .of(&rec.policy, Some(&rec.checkpoint));
+        self.commit_with_events(tx, &[event]).await?;
         Ok(())
     }
 

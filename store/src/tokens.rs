@@ -66,6 +66,7 @@ impl Store {
         let secret = format!("ufops_{}{}", uuid::Uuid::new_v4().simple(), uuid::Uuid::new_v4().simple());
         let id = format!("tok_{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
         let now = now_rfc3339();
+        let mut tx = self.db().begin_write().await?;
         sqlx::query(
             "INSERT INTO tokens (id, name, role, token_hash, created_at) VALUES ($1, $2, $3, $4, $5)",
         )
@@ -74,8 +75,10 @@ impl Store {
         .bind(role.as_str())
         .bind(crate::sha256_hex(secret.as_bytes()))
         .bind(&now)
-        .execute(&self.db().pool)
+        .execute(&mut *tx)
         .await?;
+        let event = token_changed(&id, "created", name, role);
+        self.commit_with_events(tx, &[event]).await?;
         Ok((secret, TokenRecord { id, name: name.into(), role, created_at: now, revoked_at: None }))
     }
 
@@ -99,14 +102,26 @@ impl Store {
     }
 
     pub async fn revoke_token(&self, id: &str) -> Result<(), StoreError> {
-        let r = sqlx::query("UPDATE tokens SET revoked_at = $1 WHERE id = $2 AND revoked_at IS NULL")
-            .bind(now_rfc3339())
-            .bind(id)
-            .execute(&self.db().pool)
-            .await?;
-        if r.rows_affected() == 0 {
+        let mut tx = self.db().begin_write().await?;
+        let row = sqlx::query(
+            "UPDATE tokens SET revoked_at = $1 WHERE id = $2 AND revoked_at IS NULL RETURNING name, role",
+        )
+        .bind(now_rfc3339())
+        .bind(id)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(row) = row else {
             return Err(StoreError::not_found("token", id));
-        }
-        Ok(())
+        };
+        let event = token_changed(id, "revoked", &row.s("name")?, row.s("role")?.parse()?);
+        self.commit_with_events(tx, &[event]).await
     }
+}
+
+fn token_changed(id: &str, change: &str, name: &str, role: Role) -> crate::events::NewEvent {
+    crate::events::NewEvent::new(
+        crate::events::EventKind::TokenChanged,
+        id,
+        serde_json::json!({"change": change, "name": name, "role": role.as_str()}),
+    )
 }

@@ -47,6 +47,8 @@ pub(crate) struct VersionHead {
     pub source_sha256: Option<String>,
     pub episodes_added: i64,
     pub episodes_removed: i64,
+    /// What else the version's transaction records in the feed (after `version.created`).
+    pub events: Vec<crate::events::NewEvent>,
 }
 
 /// One visible episode's row of a labels file, from a query selecting the columns of
@@ -248,6 +250,20 @@ pub(crate) async fn finish_version(
     if moved.rows_affected() != 1 {
         return Err(StoreError::Conflict(format!("another writer committed version {v} first; retry")));
     }
-    tx.commit().await?;
+    let mut events = vec![crate::events::NewEvent::new(
+        crate::events::EventKind::VersionCreated,
+        v.to_string(),
+        serde_json::json!({
+            "version": v,
+            "kind": head.kind,
+            "message": head.message,
+            "actor": head.actor,
+            "episodes_added": head.episodes_added,
+            "episodes_removed": head.episodes_removed,
+            "episode_count": label_rows.len(),
+        }),
+    )];
+    events.extend(head.events);
+    store.commit_with_events(tx, &events).await?;
     Ok(v)
 }

@@ -15,6 +15,7 @@ mod catalog;
 mod compare;
 mod consensus;
 mod episodes;
+mod events;
 mod exports;
 mod frames;
 mod infra;
@@ -25,6 +26,7 @@ mod monitors;
 mod review;
 mod scoreboard;
 mod splits;
+mod webhooks;
 
 pub use admin::*;
 pub use artifacts::*;
@@ -32,6 +34,7 @@ pub use catalog::*;
 pub use compare::*;
 pub use consensus::*;
 pub use episodes::*;
+pub use events::*;
 pub use exports::*;
 pub use frames::*;
 pub use infra::*;
@@ -42,6 +45,7 @@ pub use monitors::*;
 pub use review::*;
 pub use scoreboard::*;
 pub use splits::*;
+pub use webhooks::*;
 
 use crate::auth::Caller;
 use crate::body_schemas::FileBytes;
@@ -84,6 +88,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
         .merge(compare::router())
         .merge(consensus::router())
         .merge(episodes::router())
+        .merge(events::router())
         .merge(frames::router())
         .merge(infra::router())
         .merge(jobs::router())
@@ -93,6 +98,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
         .merge(review::router())
         .merge(scoreboard::router())
         .merge(splits::router())
+        .merge(webhooks::router())
 }
 
 fn etag(revision: i64) -> HeaderValue {

@@ -24,6 +24,8 @@ pub struct LoadReport {
     pub p99_ms: f64,
     pub max_ms: f64,
     pub events_replayed: usize,
+    /// `label.set` events a follower of `GET /v1/events?wait=` received during and after the load.
+    pub feed_events: usize,
 }
 
 impl LoadReport {
@@ -33,9 +35,10 @@ impl LoadReport {
     pub fn print(&self) {
         println!(
             "label load on {:?}: {} labelers x {} episodes for {:.1} s: {} writes ({:.0}/s), {} conflicts (409, retried), \
-             {} errors; PUT latency p50 {:.2} ms, p99 {:.2} ms, max {:.1} ms; audit log replayed ({} events): no lost updates",
+             {} errors; PUT latency p50 {:.2} ms, p99 {:.2} ms, max {:.1} ms; audit log replayed ({} events): no lost updates; \
+             feed followed ({} label.set events): every acknowledged write once, in commit order",
             self.db, self.labelers, self.episodes, self.seconds, self.writes, self.writes_per_s(), self.conflicts,
-            self.errors, self.p50_ms, self.p99_ms, self.max_ms, self.events_replayed
+            self.errors, self.p50_ms, self.p99_ms, self.max_ms, self.events_replayed, self.feed_events
         );
     }
 }
@@ -153,6 +156,31 @@ pub async fn run_label_load_at(
     }
     let http = reqwest::Client::builder().pool_max_idle_per_host(labelers * 2).build().unwrap();
     let base = srv.base.clone();
+    // A follower of the change feed, long-polling the API while the labelers write, from the
+    // feed's head before the first write.
+    let (feed_start, _) = srv.store.event_head().await.unwrap();
+    let (feed_stop_tx, feed_stop) = tokio::sync::watch::channel(None::<i64>);
+    let follower = {
+        let (http, base) = (http.clone(), base.clone());
+        let viewer = srv.store.create_token("feed-follower", Role::Viewer).await.unwrap().0;
+        tokio::spawn(async move {
+            let mut after = feed_start;
+            let mut got: Vec<Value> = Vec::new();
+            loop {
+                // Stop once the load is over and the follower reached the head it was told.
+                if let Some(head) = *feed_stop.borrow() {
+                    if after >= head {
+                        return got;
+                    }
+                }
+                let url = format!("{base}/v1/events?after={after}&kind=label.set&wait=2");
+                let page: Value =
+                    http.get(url).bearer_auth(&viewer).send().await.unwrap().json().await.unwrap();
+                got.extend(page["events"].as_array().unwrap().iter().cloned());
+                after = page["next"].as_i64().unwrap();
+            }
+        })
+    };
     let deadline = Instant::now() + duration;
     let t0 = Instant::now();
     let mut tasks = Vec::new();
@@ -248,6 +276,9 @@ pub async fn run_label_load_at(
         errors += e;
     }
     let seconds = t0.elapsed().as_secs_f64();
+    let (feed_head, _) = srv.store.event_head().await.unwrap();
+    feed_stop_tx.send(Some(feed_head)).unwrap();
+    let feed = follower.await.unwrap();
     lat.sort_unstable();
     let pct = |p: f64| {
         if lat.is_empty() {
@@ -307,6 +338,30 @@ pub async fn run_label_load_at(
             "acknowledged write {id}@{rev} missing from the log"
         );
     }
+    // The feed: dense sequence numbers, each acknowledged write exactly once, and per episode
+    // the revisions in the order they committed.
+    let mut last_rev: HashMap<String, i64> = HashMap::new();
+    let mut in_feed: HashMap<(String, i64), Label> = HashMap::new();
+    for (i, e) in feed.iter().enumerate() {
+        if i > 0 {
+            assert!(e["seq"].as_i64() > feed[i - 1]["seq"].as_i64(), "feed out of order at {e}");
+        }
+        let id = e["subject"].as_str().unwrap().to_string();
+        let rev = e["data"]["revision"].as_i64().unwrap();
+        if let Some(prev) = last_rev.insert(id.clone(), rev) {
+            assert_eq!(rev, prev + 1, "feed skips or reorders revisions of {id}: {prev} then {rev}");
+        }
+        let label: Label = e["data"]["label"].as_str().unwrap().parse().unwrap();
+        assert!(in_feed.insert((id, rev), label).is_none(), "an event twice in the feed: {e}");
+    }
+    assert_eq!(feed.len(), events.iter().filter(|e| e.actor.starts_with("labeler-")).count());
+    for (id, rev, label) in &acked {
+        assert_eq!(
+            in_feed.get(&(id.clone(), *rev)),
+            Some(label),
+            "acknowledged write {id}@{rev} not in the feed"
+        );
+    }
     let report = LoadReport {
         db,
         labelers,
@@ -319,6 +374,7 @@ pub async fn run_label_load_at(
         p99_ms: pct(0.99),
         max_ms: lat.last().map(|x| *x as f64 / 1000.0).unwrap_or(0.0),
         events_replayed: events.len(),
+        feed_events: feed.len(),
     };
     srv.stop().await;
     report

@@ -44,3 +44,25 @@ def test_bad_requests(server: Server) -> None:
         c.set_label(c.episodes(limit=1)[0]["id"], "maybe", 0)
     with pytest.raises(ufops.FetchError):
         ufops.Client("http://127.0.0.1:9", "t", timeout=2).episodes()
+
+
+def test_change_feed_follows_label_writes(server: Server) -> None:
+    import threading
+
+    c = ufops.Client(server.url, server.token)
+    head = c.events(wait=0)["head"]
+    ep = c.episodes(limit=1)[0]
+    # A write from elsewhere while this client waits on the feed.
+    writer = threading.Timer(0.3, lambda: c.set_label(ep["id"], "failure", ep["label_revision"]))
+    writer.start()
+    page = c.events(head, kinds=["label.set"], wait=20)
+    writer.join()
+    assert [(e["kind"], e["subject"]) for e in page["events"]] == [("label.set", ep["id"])]
+    assert page["events"][0]["data"]["revision"] == ep["label_revision"] + 1
+    assert page["next"] == page["events"][0]["seq"] > head
+    # The generator resumes from a sequence number and yields each event once.
+    c.set_label(ep["id"], "success", ep["label_revision"] + 1)
+    followed = next(iter(c.follow_events(page["next"], kinds=["label.set"])))
+    assert followed["data"]["label"] == "success" and followed["seq"] > page["next"]
+    with pytest.raises(ValueError, match="400"):
+        c.events(kinds=["no.such.kind"])

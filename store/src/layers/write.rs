@@ -368,6 +368,7 @@ impl Store {
             source_sha256: None,
             episodes_added: 0,
             episodes_removed: 0,
+            events: Vec::new(),
         };
         finish_version(self, tx, head, Default::default(), None).await
     }

@@ -10,7 +10,7 @@ import json
 import urllib.error
 import urllib.parse
 import urllib.request
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, Iterator, List, Optional, Sequence
 
 from ufops.errors import AuthError, ConflictError, FetchError, NotFoundError, UfopsError
 
@@ -183,6 +183,39 @@ class Client:
             {"If-Match": f'"{revision}"'},
         )
         return change  # type: ignore[no-any-return]
+
+
+    def events(
+        self,
+        after: int = 0,
+        *,
+        kinds: Optional[Sequence[str]] = None,
+        policy: Optional[str] = None,
+        wait: float = 0,
+        limit: int = 1000,
+    ) -> JsonObject:
+        """One page of the change feed (``GET /v1/events``): ``{"events": [...], "next": N,
+        "head": H}``, events with a sequence number above ``after``, oldest first. ``kinds``
+        (``"label.set"``, ``"job.changed"``, ...) and ``policy`` filter; with ``wait`` seconds (at
+        most 60) an empty page waits for the next matching event."""
+        query: Dict[str, str] = {"after": str(after), "limit": str(limit), "wait": str(int(wait))}
+        if kinds:
+            query["kind"] = ",".join(kinds)
+        if policy is not None:
+            query["policy"] = policy
+        page, _ = self._request("GET", "/v1/events?" + urllib.parse.urlencode(query))
+        return page  # type: ignore[no-any-return]
+
+    def follow_events(
+        self, after: int = 0, *, kinds: Optional[Sequence[str]] = None, policy: Optional[str] = None
+    ) -> Iterator[JsonObject]:
+        """Every event after ``after`` as it commits, forever (long polling): ``for e in
+        client.follow_events(kinds=["job.changed"]): ...``. Remember the last ``e["seq"]`` to
+        resume from it."""
+        while True:
+            page = self.events(after, kinds=kinds, policy=policy, wait=min(30.0, self.timeout / 2))
+            yield from page["events"]
+            after = page["next"]
 
 
 class ApiLayerStore:
