@@ -4,7 +4,11 @@
 //! in its own process (this benchmark started again with `--serve-child`), so the clients' work
 //! is not counted against it; `--in-process` runs both in one process as the test does.
 //!
-//! `cargo bench -p api --bench label_load [-- --seconds 20 --labelers 64 --episodes 256 --runs 1 --postgres --no-sqlite --in-process]`
+//! `cargo bench -p api --bench label_load [-- --seconds 20 --labelers 64 --episodes 256 --runs 1 --postgres --no-sqlite --in-process --no-feed-follower]`
+//!
+//! Every run also checks the change feed: a follower long-polls `GET /v1/events` while the
+//! labelers write (`--no-feed-follower`: it reads the feed once at the end), and every
+//! acknowledged write must be in it exactly once, in commit order.
 //!
 //! Each run prints its figures with the machine's load average (the box is shared: other
 //! processes' CPU use moves the figures); with `--runs N` the medians are printed at the end.
@@ -75,6 +79,9 @@ fn main() {
     let labelers = arg("--labelers", 64) as usize;
     let episodes = arg("--episodes", 256) as usize;
     let runs = arg("--runs", 1).max(1) as usize;
+    // By default a follower long-polls the change feed during the load (as a webhook deliverer
+    // or `ufops events --follow` would); with this flag the feed is only read at the end.
+    let follow = !args.iter().any(|a| a == "--no-feed-follower");
     let mut dbs = Vec::new();
     if !args.iter().any(|a| a == "--no-sqlite") {
         dbs.push(Db::Sqlite);
@@ -87,7 +94,14 @@ fn main() {
         let mut reports: Vec<LoadReport> = Vec::new();
         for run in 1..=runs {
             let before = loadavg();
-            let r = rt.block_on(run_label_load_at(db, &at, labelers, episodes, Duration::from_secs(seconds)));
+            let r = rt.block_on(run_label_load_at(
+                db,
+                &at,
+                labelers,
+                episodes,
+                Duration::from_secs(seconds),
+                follow,
+            ));
             print!("run {run}/{runs} (load average before: {before}, after: {}): ", loadavg());
             r.print();
             reports.push(r);

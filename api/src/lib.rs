@@ -3,8 +3,9 @@
 //! This crate owns the HTTP surface only: routing, authentication (bearer tokens verified by the
 //! store) and role checks, request validation and size limits, problem+json errors, the OpenAPI
 //! document (generated from the handlers with utoipa), Prometheus metrics, media range requests,
-//! streamed uploads, and the worker loop that claims jobs and runs them through a [`JobRunner`].
-//! Every rule about data (label revisions, versions, splits, leases, aliases) lives in the
+//! streamed uploads, `Idempotency-Key` replay (`idempotency.rs`), webhook delivery from the
+//! change feed (`webhooks.rs`), and the worker loop that claims jobs and runs them through a
+//! [`JobRunner`]. Every rule about data (label revisions, versions, splits, leases, aliases) lives in the
 //! `store` crate, which the CLI uses too; the real job runner (training, ingest) is the binary's.
 
 mod auth;

@@ -306,34 +306,39 @@ impl Store {
         filter: &EventFilter,
     ) -> Result<EventPage, StoreError> {
         let limit = limit.clamp(1, MAX_EVENT_PAGE);
-        let (head, pruned_through) = self.event_head().await?;
+        // One statement (one snapshot, one round trip): the head row, joined to the events
+        // after `after` up to it; a row with no event when none matches.
+        let mut sql = String::from(
+            "SELECT h.seq AS head_seq, h.pruned_through, e.seq, e.kind, e.subject, e.policy, e.checkpoint, e.data, \
+             e.created_at FROM event_head h LEFT JOIN events e ON e.seq > $1 AND e.seq <= h.seq \
+             AND ($2 = '' OR e.policy = $2)",
+        );
+        if !filter.kinds.is_empty() {
+            let list: Vec<String> = (0..filter.kinds.len()).map(|i| format!("${}", i + 4)).collect();
+            sql.push_str(&format!(" AND e.kind IN ({})", list.join(", ")));
+        }
+        sql.push_str(" WHERE h.id = 1 ORDER BY e.seq LIMIT $3");
+        let mut q = sqlx::query(&sql).bind(after).bind(filter.policy.clone().unwrap_or_default()).bind(limit);
+        for k in &filter.kinds {
+            q = q.bind(k.as_str());
+        }
+        let rows = q.fetch_all(&self.db().pool).await?;
+        let first =
+            rows.first().ok_or_else(|| StoreError::Corrupt("the event_head row is missing".into()))?;
+        let (head, pruned_through) = (first.i("head_seq")?, first.i("pruned_through")?);
         if after < pruned_through {
             return Err(StoreError::Gone(format!(
                 "events up to {pruned_through} were deleted by retention; read from after={pruned_through} \
                  (and re-read current state: changes between {after} and {pruned_through} are gone)"
             )));
         }
-        // Read up to the head read above: a page never reaches past what `head` says.
-        let mut sql = String::from(
-            "SELECT seq, kind, subject, policy, checkpoint, data, created_at FROM events \
-             WHERE seq > $1 AND seq <= $2 AND ($3 = '' OR policy = $3)",
-        );
-        if !filter.kinds.is_empty() {
-            let list: Vec<String> = (0..filter.kinds.len()).map(|i| format!("${}", i + 5)).collect();
-            sql.push_str(&format!(" AND kind IN ({})", list.join(", ")));
+        let mut events = Vec::with_capacity(rows.len());
+        for r in &rows {
+            if r.oi("seq")?.is_some() {
+                events.push(event_from_row(r)?);
+            }
         }
-        sql.push_str(" ORDER BY seq LIMIT $4");
-        let mut q = sqlx::query(&sql)
-            .bind(after)
-            .bind(head)
-            .bind(filter.policy.clone().unwrap_or_default())
-            .bind(limit);
-        for k in &filter.kinds {
-            q = q.bind(k.as_str());
-        }
-        let rows = q.fetch_all(&self.db().pool).await?;
-        let events = rows.iter().map(event_from_row).collect::<Result<Vec<_>, _>>()?;
-        // A short page looked at everything up to the head read above.
+        // A short page looked at everything up to the head.
         let next = match events.last() {
             Some(e) if events.len() as i64 == limit => e.seq,
             _ => head.max(after),
@@ -344,19 +349,31 @@ impl Store {
     /// Deletes events created more than `older_than` ago and returns how many went.
     pub async fn prune_events(&self, older_than: std::time::Duration) -> Result<u64, StoreError> {
         let cutoff = now_ms() - older_than.as_millis() as i64;
-        let mut tx = self.db().begin_write().await?;
-        let row = sqlx::query("SELECT MAX(seq) AS m FROM events WHERE created_ms < $1")
-            .bind(cutoff)
-            .fetch_one(&mut *tx)
-            .await?;
-        let Some(through) = row.oi("m")? else {
-            tx.commit().await?;
+        // The last event created before the cutoff, by bisection on `seq` (`created_ms` does not
+        // decrease along it: both are taken under the `event_head` lock). Invariant: every
+        // event up to `lo` is older than the cutoff (or gone already); none after `hi` is.
+        let (head, pruned) = self.event_head().await?;
+        let (mut lo, mut hi) = (pruned, head);
+        while lo < hi {
+            let mid = lo + (hi - lo + 1) / 2;
+            let created = sqlx::query("SELECT created_ms FROM events WHERE seq >= $1 ORDER BY seq LIMIT 1")
+                .bind(mid)
+                .fetch_optional(&self.db().pool)
+                .await?
+                .map(|r| r.i("created_ms"))
+                .transpose()?;
+            match created {
+                Some(ms) if ms < cutoff => lo = mid,
+                _ => hi = mid - 1,
+            }
+        }
+        if lo <= pruned {
             return Ok(0);
-        };
-        let deleted =
-            sqlx::query("DELETE FROM events WHERE seq <= $1").bind(through).execute(&mut *tx).await?;
+        }
+        let mut tx = self.db().begin_write().await?;
+        let deleted = sqlx::query("DELETE FROM events WHERE seq <= $1").bind(lo).execute(&mut *tx).await?;
         sqlx::query("UPDATE event_head SET pruned_through = $1 WHERE id = 1 AND pruned_through < $1")
-            .bind(through)
+            .bind(lo)
             .execute(&mut *tx)
             .await?;
         tx.commit().await?;

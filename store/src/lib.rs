@@ -4,6 +4,9 @@
 //! storage (a local directory or S3 via `object_store`) and the Parquet layout of episode steps.
 //! Every write creates an immutable, numbered version; data files are written first under unique
 //! names and become visible only when the version's catalog row commits in one transaction.
+//! Every catalog change also records its events in the change feed, in the same transaction
+//! (`events.rs`), which idempotency keys (`idempotency.rs`) and webhook subscriptions
+//! (`webhooks.rs`) build on.
 
 mod artifacts;
 mod catalog;

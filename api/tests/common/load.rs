@@ -130,7 +130,7 @@ impl LoadServer {
 }
 
 pub async fn run_label_load(db: Db, labelers: usize, n_episodes: usize, duration: Duration) -> LoadReport {
-    run_label_load_at(db, &ServerAt::InProcess, labelers, n_episodes, duration).await
+    run_label_load_at(db, &ServerAt::InProcess, labelers, n_episodes, duration, true).await
 }
 
 pub async fn run_label_load_at(
@@ -139,6 +139,7 @@ pub async fn run_label_load_at(
     labelers: usize,
     n_episodes: usize,
     duration: Duration,
+    follow_feed: bool,
 ) -> LoadReport {
     let srv = LoadServer::start(db, at).await;
     // Episodes: several ingests so the pool has enough of them.
@@ -157,7 +158,7 @@ pub async fn run_label_load_at(
     let http = reqwest::Client::builder().pool_max_idle_per_host(labelers * 2).build().unwrap();
     let base = srv.base.clone();
     // A follower of the change feed, long-polling the API while the labelers write, from the
-    // feed's head before the first write.
+    // feed's head before the first write (without `follow_feed`, it reads the feed at the end).
     let (feed_start, _) = srv.store.event_head().await.unwrap();
     let (feed_stop_tx, feed_stop) = tokio::sync::watch::channel(None::<i64>);
     let follower = {
@@ -166,6 +167,10 @@ pub async fn run_label_load_at(
         tokio::spawn(async move {
             let mut after = feed_start;
             let mut got: Vec<Value> = Vec::new();
+            let mut feed_stop = feed_stop;
+            if !follow_feed {
+                let _ = feed_stop.wait_for(|h| h.is_some()).await;
+            }
             loop {
                 // Stop once the load is over and the follower reached the head it was told.
                 if let Some(head) = *feed_stop.borrow() {
