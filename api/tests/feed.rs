@@ -8,6 +8,7 @@
 use crate::common;
 
 use common::{Db, TestServer};
+use futures::FutureExt;
 use reqwest::Method;
 use serde_json::{json, Value};
 use std::time::{Duration, Instant};
@@ -241,6 +242,15 @@ async fn idempotency_keys(db: Db) {
     // A key being served elsewhere: 409 with Retry-After (claimed here as a live server would).
     let admin = srv.store.verify_token(&srv.tokens["admin"]).await.unwrap().unwrap();
     let body = serde_json::to_vec(&json!({"name": "robot-e", "role": "viewer"})).unwrap();
+    // The same request as `ask` below describes, sent over HTTP under `key`.
+    let raw_post = |key: &'static str| {
+        srv.req(Method::POST, "/v1/tokens", "admin")
+            .header("Idempotency-Key", key)
+            .header("Content-Type", "application/json")
+            .body(body.clone())
+            .send()
+            .map(|r| r.unwrap())
+    };
     let ask = store::IdempotentRequest {
         principal: &admin.id,
         key: "k-2",
@@ -249,14 +259,7 @@ async fn idempotency_keys(db: Db) {
         fingerprint: &store::sha256_hex(&body),
     };
     assert_eq!(srv.store.claim_idempotent(&ask, 60_000, 3_600_000).await.unwrap(), store::Claim::Run);
-    let r = srv
-        .req(Method::POST, "/v1/tokens", "admin")
-        .header("Idempotency-Key", "k-2")
-        .header("Content-Type", "application/json")
-        .body(body.clone())
-        .send()
-        .await
-        .unwrap();
+    let r = raw_post("k-2").await;
     assert_eq!(r.status(), 409);
     assert!(r.headers().contains_key("retry-after"));
 
@@ -267,14 +270,7 @@ async fn idempotency_keys(db: Db) {
     let ctx = store::RequestContext { idempotency: Some((admin.id.clone(), "k-3".into())) };
     store::with_request(ctx, srv.store.create_token("robot-e", store::Role::Viewer)).await.unwrap();
     tokio::time::sleep(Duration::from_millis(400)).await;
-    let r = srv
-        .req(Method::POST, "/v1/tokens", "admin")
-        .header("Idempotency-Key", "k-3")
-        .header("Content-Type", "application/json")
-        .body(body.clone())
-        .send()
-        .await
-        .unwrap();
+    let r = raw_post("k-3").await;
     assert_eq!(r.status(), 409);
     let p: Value = r.json().await.unwrap();
     assert_eq!(p["type"], "urn:ufops:problem:idempotent-response-lost", "{p}");
@@ -283,14 +279,7 @@ async fn idempotency_keys(db: Db) {
     let ask = store::IdempotentRequest { key: "k-4", ..ask };
     assert_eq!(srv.store.claim_idempotent(&ask, 300, 3_600_000).await.unwrap(), store::Claim::Run);
     tokio::time::sleep(Duration::from_millis(400)).await;
-    let r = srv
-        .req(Method::POST, "/v1/tokens", "admin")
-        .header("Idempotency-Key", "k-4")
-        .header("Content-Type", "application/json")
-        .body(body)
-        .send()
-        .await
-        .unwrap();
+    let r = raw_post("k-4").await;
     assert_eq!(r.status(), 201);
     assert_eq!(count("robot-e").await, 2);
     srv.stop().await;
