@@ -150,6 +150,12 @@ async fn authorization_matrix() {
             Need::Admin,
         ),
         (Method::DELETE, "/v1/tokens/tok_nope".into(), None, Need::Admin),
+        (Method::GET, "/v1/events?after=0".into(), None, Need::Viewer),
+        (Method::GET, "/v1/webhooks".into(), None, Need::Admin),
+        (Method::POST, "/v1/webhooks".into(), body(json!({"url": "http://127.0.0.1:9/hook"})), Need::Admin),
+        (Method::GET, "/v1/webhooks/wh_nope".into(), None, Need::Admin),
+        (Method::GET, "/v1/webhooks/wh_nope/dead-letters".into(), None, Need::Admin),
+        (Method::DELETE, "/v1/webhooks/wh_nope".into(), None, Need::Admin),
     ];
     // Every route of the OpenAPI document is in the matrix (and vice versa).
     let doc = api::openapi();
@@ -242,7 +248,7 @@ fn templatize(p: &str) -> String {
             "episodes" if *s != "counts" => "{id}",
             "versions" => "{version}",
             "diff" => "{to}",
-            "splits" | "jobs" | "artifacts" | "tokens" | "exports" if !s.is_empty() => "{id}",
+            "splits" | "jobs" | "artifacts" | "tokens" | "exports" | "webhooks" if !s.is_empty() => "{id}",
             // /v1/monitors/{id}, and a checkpoint's /monitors/{alias}
             "monitors" if segs[i - 2] == "v1" => "{id}",
             "monitors" => "{alias}",
