@@ -186,12 +186,13 @@ impl Store {
     }
 
     /// Takes the lease of every subscription due for a delivery attempt that no live lease
-    /// holds, for `owner`.
+    /// holds and that the feed has gone past, for `owner` (an idle subscription costs no write).
     pub async fn claim_webhooks(&self, owner: &str, lease_ms: i64) -> Result<Vec<HeldWebhook>, StoreError> {
         let now = now_ms();
         let rows = sqlx::query(&format!(
             "UPDATE webhooks SET lease_owner = $1, lease_until_ms = $2 \
-             WHERE lease_until_ms < $3 AND next_attempt_ms <= $3 RETURNING {COLS}"
+             WHERE lease_until_ms < $3 AND next_attempt_ms <= $3 \
+             AND cursor_seq < (SELECT seq FROM event_head WHERE id = 1) RETURNING {COLS}"
         ))
         .bind(owner)
         .bind(now + lease_ms)
