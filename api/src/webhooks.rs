@@ -23,6 +23,8 @@ use store::{HeldWebhook, Store};
 pub const DELIVERY_TIMEOUT: Duration = Duration::from_secs(10);
 /// Events delivered per subscription per lease.
 const BATCH: i64 = 100;
+/// After a commit wakes the loop, how long it waits for more before claiming.
+const COALESCE: Duration = Duration::from_millis(50);
 
 /// The `Ufops-Signature` header of `body` sent at `unix_seconds`.
 pub fn signature(secret: &str, unix_seconds: i64, body: &[u8]) -> String {
@@ -49,23 +51,34 @@ pub(crate) async fn deliver_loop(
         .into();
     let mut commits = store.feed_watch();
     let lease_ms = (DELIVERY_TIMEOUT.as_millis() as i64) * 3;
+    // Whether any subscription existed when last looked (every `poll`): without one, this
+    // server's commits (a label batch's, many a second) do not wake the loop at all.
+    let mut any = true;
     while !*stop.borrow() {
         commits.mark_unchanged();
-        match store.claim_webhooks(&owner, lease_ms).await {
-            Ok(held) => {
-                for hook in held {
-                    if let Err(e) = deliver_some(&store, &agent, &owner, &hook, backoff).await {
-                        tracing::warn!("webhook {}: {e}", hook.record.id);
+        if any {
+            match store.claim_webhooks(&owner, lease_ms).await {
+                Ok(held) => {
+                    for hook in held {
+                        if let Err(e) = deliver_some(&store, &agent, &owner, &hook, backoff).await {
+                            tracing::warn!("webhook {}: {e}", hook.record.id);
+                        }
+                        let _ = store.release_webhook(&hook.record.id, &owner).await;
                     }
-                    let _ = store.release_webhook(&hook.record.id, &owner).await;
                 }
+                Err(e) => tracing::warn!("cannot claim webhooks: {e}"),
             }
-            Err(e) => tracing::warn!("cannot claim webhooks: {e}"),
         }
-        tokio::select! {
-            _ = commits.changed() => {}
-            _ = tokio::time::sleep(poll) => {}
-            _ = stop.changed() => {}
+        let by_commit = tokio::select! {
+            r = commits.changed(), if any => r.is_ok(),
+            _ = tokio::time::sleep(poll) => false,
+            _ = stop.changed() => false,
+        };
+        if by_commit {
+            // Commits come in bursts: one claim for those of the next moment too.
+            tokio::time::sleep(COALESCE).await;
+        } else {
+            any = store.has_webhooks().await.unwrap_or(true);
         }
     }
 }

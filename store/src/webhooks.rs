@@ -147,6 +147,12 @@ impl Store {
         rows.iter().map(|r| Ok(from_row(r)?.record)).collect()
     }
 
+    /// Whether any subscription exists.
+    pub async fn has_webhooks(&self) -> Result<bool, StoreError> {
+        let row = sqlx::query("SELECT id FROM webhooks LIMIT 1").fetch_optional(&self.db().pool).await?;
+        Ok(row.is_some())
+    }
+
     /// Deletes a subscription and its dead letters.
     pub async fn delete_webhook(&self, id: &str) -> Result<(), StoreError> {
         let mut tx = self.db().begin_write().await?;
