@@ -41,7 +41,13 @@ pub struct EventsArgs {
 /// Where the pages come from.
 enum Feed {
     Store(store::Store, store::EventFilter),
-    Api { agent: ureq::Agent, url: String, token: String },
+    /// `query`: the filter's parameters, encoded by ureq.
+    Api {
+        agent: ureq::Agent,
+        url: String,
+        token: String,
+        query: Vec<(&'static str, String)>,
+    },
 }
 
 impl Feed {
@@ -61,12 +67,14 @@ impl Feed {
                     tokio::time::sleep(Duration::from_millis(200)).await;
                 }
             }
-            Feed::Api { agent, url, token } => {
-                let url = format!("{url}&after={after}&wait={}", wait.as_secs());
-                let (agent, token) = (agent.clone(), token.clone());
+            Feed::Api { agent, url, token, query } => {
+                let (agent, url, token) = (agent.clone(), url.clone(), token.clone());
+                let mut query = query.clone();
+                query.extend([("after", after.to_string()), ("wait", wait.as_secs().to_string())]);
                 tokio::task::spawn_blocking(move || -> Result<store::EventPage> {
                     let mut resp = agent
                         .get(&url)
+                        .query_pairs(query.iter().map(|(k, v)| (*k, v.as_str())))
                         .header("Authorization", &format!("Bearer {token}"))
                         .call()
                         .with_context(|| format!("GET {url}"))?;
@@ -95,19 +103,20 @@ pub async fn run(args: &StoreArgs, a: EventsArgs) -> Result<()> {
     let feed = match &a.api {
         Some(base) => {
             let token = a.token.clone().context("--api needs a token: --token or UFOPS_TOKEN")?;
-            let mut url = format!("{}/v1/events?limit={}", base.trim_end_matches('/'), store::MAX_EVENT_PAGE);
+            let url = format!("{}/v1/events", base.trim_end_matches('/'));
+            let mut query = vec![("limit", store::MAX_EVENT_PAGE.to_string())];
             if !a.kind.is_empty() {
-                url.push_str(&format!("&kind={}", a.kind.join(",")));
+                query.push(("kind", a.kind.join(",")));
             }
             if let Some(p) = &a.policy {
-                url.push_str(&format!("&policy={}", urlencode(p)));
+                query.push(("policy", p.clone()));
             }
             let agent: ureq::Agent = ureq::Agent::config_builder()
                 .timeout_global(Some(Duration::from_secs(90)))
                 .http_status_as_error(false)
                 .build()
                 .into();
-            Feed::Api { agent, url, token }
+            Feed::Api { agent, url, token, query }
         }
         None => Feed::Store(args.open().await?, filter),
     };
@@ -149,13 +158,4 @@ pub async fn run(args: &StoreArgs, a: EventsArgs) -> Result<()> {
             return Ok(());
         }
     }
-}
-
-fn urlencode(s: &str) -> String {
-    s.bytes()
-        .map(|b| match b {
-            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'_' | b'.' | b'~' => (b as char).to_string(),
-            _ => format!("%{b:02X}"),
-        })
-        .collect()
 }
