@@ -4,11 +4,12 @@
 //! store) and role checks, request validation and size limits, problem+json errors, the OpenAPI
 //! document (generated from the handlers with utoipa), Prometheus metrics, media range requests,
 //! streamed uploads, `Idempotency-Key` replay (`idempotency.rs`), webhook delivery from the
-//! change feed (`webhooks.rs`), and the worker loop that claims jobs and runs them through a
+//! change feed (`webhooks.rs`), the loop that runs automations (`automations.rs`), and the worker loop that claims jobs and runs them through a
 //! [`JobRunner`]. Every rule about data (label revisions, versions, splits, leases, aliases) lives in the
 //! `store` crate, which the CLI uses too; the real job runner (training, ingest) is the binary's.
 
 mod auth;
+mod automations;
 mod body_schemas;
 mod conn;
 mod error;
@@ -113,6 +114,8 @@ pub struct ServeConfig {
     /// How often the delivery loop looks for due subscriptions besides waking on this server's
     /// commits (default 1 s): other servers' events and retries due.
     pub webhook_poll: Duration,
+    /// Run the automations from this server (default true; `ufops serve --no-automations`).
+    pub run_automations: bool,
 }
 
 /// `scheme://host[:port]` of a public URL (a trailing `/` allowed; no path, query or user info).
@@ -161,6 +164,7 @@ impl ServeConfig {
             deliver_webhooks: true,
             webhook_backoff: Duration::from_secs(1),
             webhook_poll: Duration::from_secs(1),
+            run_automations: true,
         }
     }
 }
@@ -390,6 +394,14 @@ pub async fn serve_on(
             stop_rx.clone(),
         ))
     });
+    let automations = cfg.run_automations.then(|| {
+        tokio::spawn(automations::automation_loop(
+            store.clone(),
+            format!("{}-automations", cfg.worker_id),
+            cfg.webhook_poll,
+            stop_rx.clone(),
+        ))
+    });
     let deadline = cfg.shutdown_deadline;
     let limits = conn::ConnLimits {
         header_read_timeout: cfg.header_read_timeout,
@@ -420,6 +432,9 @@ pub async fn serve_on(
     }
     if let Some(d) = deliveries {
         let _ = d.await;
+    }
+    if let Some(a) = automations {
+        let _ = a.await;
     }
     Ok(())
 }

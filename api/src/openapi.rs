@@ -45,8 +45,12 @@ use utoipa::{Modify, OpenApi};
         upload::ingest, routes::gc, routes::create_token, routes::list_tokens, routes::revoke_token,
         routes::create_webhook, routes::list_webhooks, routes::get_webhook, routes::delete_webhook,
         routes::list_dead_letters,
+        routes::create_automation, routes::list_automations, routes::get_automation, routes::delete_automation,
     ),
-    components(schemas(Problem, routes::EpisodeSort, routes::EpisodeOrder, routes::ScoreboardFormat)),
+    components(schemas(
+        Problem, routes::EpisodeSort, routes::EpisodeOrder, routes::ScoreboardFormat, store::TrainOnLabels,
+        store::ScoreOnPublish, store::ScoreboardOnRunLabeled
+    )),
     modifiers(&Bearer, &Contract),
     security(("bearer" = [])),
 )]
@@ -135,6 +139,7 @@ const CHECKED_QUERY: &[(&str, &str, &str)] = &[
     ("/v1/episodes/{id}/scores", "artifact", ID_PATTERN),
     ("/v1/review/artifacts/{policy}", "checkpoint", NAME_PATTERN),
     ("/v1/events", "policy", NAME_PATTERN),
+    ("/v1/automations", "policy", NAME_PATTERN),
 ];
 
 /// Request-body fields the handlers check, per component schema.
@@ -157,6 +162,7 @@ const CHECKED_FIELDS: &[(&str, &str, &str)] = &[
     ("PolicyAliasMoveBody", "to", ARM_PATTERN),
     ("WebhookCreate", "url", WEBHOOK_URL_PATTERN),
     ("WebhookCreate", "policy", NAME_PATTERN),
+    ("AutomationCreate", "policy", NAME_PATTERN),
     // Array fields: the pattern goes on their items.
     ("FailureCauses", "causes", TOKEN_NAME_PATTERN),
 ];

@@ -53,7 +53,8 @@ pub(crate) async fn deliver_loop(
     let lease_ms = (DELIVERY_TIMEOUT.as_millis() as i64) * 3;
     // Whether any subscription existed when last looked (every `poll`): without one, this
     // server's commits (a label batch's, many a second) do not wake the loop at all.
-    let mut any = true;
+    let mut any = store.has_webhooks().await.unwrap_or(true);
+    let mut looked = std::time::Instant::now();
     while !*stop.borrow() {
         commits.mark_unchanged();
         if any {
@@ -77,8 +78,11 @@ pub(crate) async fn deliver_loop(
         if by_commit {
             // Commits come in bursts: one claim for those of the next moment too.
             tokio::time::sleep(COALESCE).await;
-        } else {
+        }
+        // Under a steady stream of commits the poll never times out: look again by the clock.
+        if looked.elapsed() >= poll {
             any = store.has_webhooks().await.unwrap_or(true);
+            looked = std::time::Instant::now();
         }
     }
 }

@@ -156,6 +156,15 @@ async fn authorization_matrix() {
         (Method::GET, "/v1/webhooks/wh_nope".into(), None, Need::Admin),
         (Method::GET, "/v1/webhooks/wh_nope/dead-letters".into(), None, Need::Admin),
         (Method::DELETE, "/v1/webhooks/wh_nope".into(), None, Need::Admin),
+        (Method::GET, "/v1/automations".into(), None, Need::Viewer),
+        (
+            Method::POST,
+            "/v1/automations".into(),
+            body(json!({"policy": "pol", "rule": "score_on_publish"})),
+            Need::Trainer,
+        ),
+        (Method::GET, "/v1/automations/auto_nope".into(), None, Need::Viewer),
+        (Method::DELETE, "/v1/automations/auto_nope".into(), None, Need::Trainer),
     ];
     // Every route of the OpenAPI document is in the matrix (and vice versa).
     let doc = api::openapi();
@@ -248,7 +257,11 @@ fn templatize(p: &str) -> String {
             "episodes" if *s != "counts" => "{id}",
             "versions" => "{version}",
             "diff" => "{to}",
-            "splits" | "jobs" | "artifacts" | "tokens" | "exports" | "webhooks" if !s.is_empty() => "{id}",
+            "splits" | "jobs" | "artifacts" | "tokens" | "exports" | "webhooks" | "automations"
+                if !s.is_empty() =>
+            {
+                "{id}"
+            }
             // /v1/monitors/{id}, and a checkpoint's /monitors/{alias}
             "monitors" if segs[i - 2] == "v1" => "{id}",
             "monitors" => "{alias}",

@@ -336,3 +336,72 @@ pub async fn layers(
     }
     Ok(())
 }
+
+#[derive(clap::Subcommand, Debug)]
+pub enum AutomationCommand {
+    /// Declare an automation: a rule that queues jobs from the change feed (api/README.md,
+    /// *Automations*). It runs in `ufops serve`.
+    Add {
+        #[arg(long)]
+        policy: String,
+        /// train_on_labels | score_on_publish | scoreboard_on_run_labeled
+        #[arg(long)]
+        rule: String,
+        /// The rule's parameters as JSON, e.g. '{"min_labeled": 200, "chunk_len": 16}'.
+        #[arg(long, default_value = "{}")]
+        params: String,
+        #[arg(long, default_value = "cli")]
+        actor: String,
+        #[arg(long)]
+        json: bool,
+    },
+    List {
+        #[arg(long)]
+        policy: Option<String>,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Delete an automation (the jobs it queued go on).
+    Rm {
+        id: String,
+        #[arg(long, default_value = "cli")]
+        actor: String,
+    },
+}
+
+pub async fn automation(args: &StoreArgs, cmd: AutomationCommand) -> Result<()> {
+    let store = args.open().await?;
+    match cmd {
+        AutomationCommand::Add { policy, rule, params, actor, json } => {
+            let params: serde_json::Value =
+                serde_json::from_str(&params).map_err(|e| anyhow::anyhow!("--params is not JSON: {e}"))?;
+            let a = store.create_automation(&policy, rule.parse()?, &params, &actor).await?;
+            if json {
+                return print_json(&a);
+            }
+            println!("{}  {}  {}  {}", a.id, a.policy, a.rule.as_str(), a.params);
+        }
+        AutomationCommand::List { policy, json } => {
+            let all = store.automations(policy.as_deref()).await?;
+            if json {
+                return print_json(&all);
+            }
+            for a in all {
+                println!(
+                    "{}  {:<12} {:<26} fired {:<4} at event {}  {}",
+                    a.id,
+                    a.policy,
+                    a.rule.as_str(),
+                    a.fired,
+                    a.cursor_seq,
+                    a.params
+                );
+            }
+        }
+        AutomationCommand::Rm { id, actor } => {
+            store.delete_automation(&id, &actor).await?;
+            println!("automation {id} deleted");
+        }
+    }
+    Ok(())
+}

@@ -18,7 +18,8 @@ pub struct EventsArgs {
     follow: bool,
     /// Only these kinds (repeatable or comma-separated): ingest.committed, label.set, vote.cast,
     /// version.created, split.frozen, job.changed, artifact.published, alias.moved,
-    /// export.finished, monitor.created, review.scored, campaign.set, token.changed.
+    /// export.finished, monitor.created, review.scored, campaign.set, token.changed,
+    /// automation.created, automation.deleted, automation.fired.
     #[arg(long, value_delimiter = ',')]
     kind: Vec<String>,
     /// Only events of this policy.

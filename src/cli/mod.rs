@@ -134,6 +134,12 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Automations: rules per policy that train, score and snapshot by themselves when the
+    /// change feed says so (run by `ufops serve`).
+    Automation {
+        #[command(subcommand)]
+        command: catalog_cmds::AutomationCommand,
+    },
     /// API tokens.
     Token {
         #[command(subcommand)]
@@ -250,6 +256,7 @@ pub async fn run(cli: Cli) -> Result<()> {
             catalog_cmds::layers(&cli.store, episode, version, json).await
         }
         Command::Token { command } => catalog_cmds::token(&cli.store, command).await,
+        Command::Automation { command } => catalog_cmds::automation(&cli.store, command).await,
         Command::Ingest(a) => serve_cmds::ingest(&cli.store, a).await,
         Command::Export(a) => export_cmd::export(&cli.store, a).await,
         Command::Rank(a) => export_cmd::rank(&cli.store, a).await,

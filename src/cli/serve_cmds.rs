@@ -182,6 +182,9 @@ impl api::JobRunner for Runner {
                 store::JobKind::Ingest => ingest_job(store, job).await,
                 store::JobKind::Export => export_job(store, job, &ctx).await,
                 store::JobKind::Score => score_job(store, job, &ctx).await,
+                store::JobKind::Scoreboard => {
+                    store.run_scoreboard_job(&job.spec).await.map_err(|e| e.to_string())
+                }
             }
         })
     }
@@ -193,7 +196,30 @@ async fn train_job(
     job: &store::JobRecord,
     ctx: api::JobContext,
 ) -> Result<serde_json::Value, String> {
-    let spec = train_spec(&job.spec)?;
+    let mut job_spec = job.spec.clone();
+    // An automation's job freezes its split when it runs, so the split holds every label so far.
+    if let Some(freeze) = job_spec.as_object_mut().and_then(|o| {
+        o.remove("automation");
+        o.remove("freeze")
+    }) {
+        let text = |k: &str| job.spec.get(k).and_then(|v| v.as_str()).map(String::from);
+        let split = store
+            .create_split(&store::SplitRequest {
+                policy: text("policy").ok_or("the job's spec has no policy")?,
+                checkpoint: text("checkpoint").ok_or("the job's spec has no checkpoint")?,
+                version: None,
+                off_policy_from: Vec::new(),
+                val_fraction: freeze.get("val_fraction").and_then(|v| v.as_f64()).unwrap_or(0.2),
+                seed: freeze.get("seed").and_then(|v| v.as_u64()).unwrap_or(0),
+                actor: format!("job:{}", job.id),
+                max_episodes: None,
+            })
+            .await
+            .map_err(|e| format!("freezing the split: {e}"))?;
+        ctx.progress(serde_json::json!({"split_id": split.id}));
+        job_spec["split_id"] = serde_json::json!(split.id);
+    }
+    let spec = train_spec(&job_spec)?;
     let cancel = Arc::new(AtomicBool::new(false));
     let (c2, ctx2) = (cancel.clone(), ctx.clone());
     let watcher = tokio::spawn(async move {
@@ -302,6 +328,9 @@ pub struct ServeArgs {
     /// Do not run jobs in this process (leave them to `ufops worker`).
     #[arg(long)]
     pub no_worker: bool,
+    /// Do not run the automations from this server (another server runs them).
+    #[arg(long)]
+    pub no_automations: bool,
     /// The URL browsers use when the server runs behind a TLS proxy (`https://HOST[:PORT]`):
     /// session cookies get `Secure` and the CSRF origin check compares with it.
     #[arg(long, env = "UFOPS_PUBLIC_URL")]
@@ -365,6 +394,7 @@ pub async fn serve(args: &StoreArgs, a: ServeArgs) -> Result<()> {
     let mut cfg = api::ServeConfig::new(&args.data_dir);
     cfg.addr = a.addr;
     cfg.run_worker_in_process = !a.no_worker;
+    cfg.run_automations = !a.no_automations;
     cfg.public_url = a.public_url;
     cfg.header_read_timeout = std::time::Duration::from_secs(a.header_timeout_secs);
     cfg.body_idle_timeout = std::time::Duration::from_secs(a.body_idle_timeout_secs);

@@ -46,6 +46,7 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (15, "monitors", include_str!("../../migrations/sqlite/0015_monitors.sql")),
     (16, "events", include_str!("../../migrations/sqlite/0016_events.sql")),
     (17, "webhooks", include_str!("../../migrations/sqlite/0017_webhooks.sql")),
+    (18, "automations", include_str!("../../migrations/sqlite/0018_automations.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
@@ -69,6 +70,7 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (15, "monitors", include_str!("../../migrations/postgres/0015_monitors.sql")),
     (16, "events", include_str!("../../migrations/postgres/0016_events.sql")),
     (17, "webhooks", include_str!("../../migrations/postgres/0017_webhooks.sql")),
+    (18, "automations", include_str!("../../migrations/postgres/0018_automations.sql")),
 ];
 
 fn migrator(backend: Backend) -> Migrator {

@@ -63,10 +63,20 @@ pub enum EventKind {
     /// An API token was created or revoked (subject: the token id; never its secret).
     #[serde(rename = "token.changed")]
     TokenChanged,
+    /// An automation was declared (subject: its id; `data`: its rule and parameters).
+    #[serde(rename = "automation.created")]
+    AutomationCreated,
+    /// An automation was deleted (subject: its id).
+    #[serde(rename = "automation.deleted")]
+    AutomationDeleted,
+    /// An automation queued a job (subject: its id; `data`: rule, target, job id and kind, and
+    /// the event that decided it).
+    #[serde(rename = "automation.fired")]
+    AutomationFired,
 }
 
 impl EventKind {
-    pub const ALL: [EventKind; 13] = [
+    pub const ALL: [EventKind; 16] = [
         EventKind::IngestCommitted,
         EventKind::LabelSet,
         EventKind::VoteCast,
@@ -80,6 +90,9 @@ impl EventKind {
         EventKind::ReviewScored,
         EventKind::CampaignSet,
         EventKind::TokenChanged,
+        EventKind::AutomationCreated,
+        EventKind::AutomationDeleted,
+        EventKind::AutomationFired,
     ];
 
     pub fn as_str(self) -> &'static str {
@@ -97,6 +110,9 @@ impl EventKind {
             EventKind::ReviewScored => "review.scored",
             EventKind::CampaignSet => "campaign.set",
             EventKind::TokenChanged => "token.changed",
+            EventKind::AutomationCreated => "automation.created",
+            EventKind::AutomationDeleted => "automation.deleted",
+            EventKind::AutomationFired => "automation.fired",
         }
     }
 }

@@ -20,6 +20,9 @@ pub enum JobKind {
     Export,
     /// Score episodes with a verifier for the review queue.
     Score,
+    /// Freeze the labels into a version and compute a run's scoreboard rows
+    /// (`Store::run_scoreboard_job`; queued by an automation).
+    Scoreboard,
 }
 
 impl JobKind {
@@ -29,6 +32,7 @@ impl JobKind {
             JobKind::Ingest => "ingest",
             JobKind::Export => "export",
             JobKind::Score => "score",
+            JobKind::Scoreboard => "scoreboard",
         }
     }
 
@@ -38,6 +42,7 @@ impl JobKind {
             "ingest" => JobKind::Ingest,
             "export" => JobKind::Export,
             "score" => JobKind::Score,
+            "scoreboard" => JobKind::Scoreboard,
             _ => return Err(StoreError::Corrupt(format!("unknown job kind {s:?}"))),
         })
     }
@@ -166,6 +171,30 @@ fn job_events(rows: &[sqlx::any::AnyRow]) -> Result<Vec<NewEvent>, StoreError> {
     Ok(out)
 }
 
+/// Queues a job inside `tx`: its id and the events the transaction must append.
+pub(crate) async fn insert_job(
+    tx: &mut crate::catalog::Tx,
+    kind: JobKind,
+    spec: &serde_json::Value,
+    actor: &str,
+) -> Result<(String, Vec<NewEvent>), StoreError> {
+    let id = format!("job-{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
+    let now = now_rfc3339();
+    let row = sqlx::query(&format!(
+        "INSERT INTO jobs ({JOB_COLS}) VALUES ($1, $2, 'queued', $3, '{{}}', NULL, NULL, 0, 3, NULL, NULL, 0, $4, $5, $5) \
+         RETURNING {JOB_COLS}"
+    ))
+    .bind(&id)
+    .bind(kind.as_str())
+    .bind(serde_json::to_string(spec)?)
+    .bind(actor)
+    .bind(&now)
+    .fetch_one(&mut **tx)
+    .await?;
+    let events = job_events(&[row])?;
+    Ok((id, events))
+}
+
 impl Store {
     pub async fn create_job(
         &self,
@@ -173,21 +202,8 @@ impl Store {
         spec: &serde_json::Value,
         actor: &str,
     ) -> Result<JobRecord, StoreError> {
-        let id = format!("job-{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
-        let now = now_rfc3339();
         let mut tx = self.db().begin_write().await?;
-        let row = sqlx::query(&format!(
-            "INSERT INTO jobs ({JOB_COLS}) VALUES ($1, $2, 'queued', $3, '{{}}', NULL, NULL, 0, 3, NULL, NULL, 0, $4, $5, $5) \
-             RETURNING {JOB_COLS}"
-        ))
-        .bind(&id)
-        .bind(kind.as_str())
-        .bind(serde_json::to_string(spec)?)
-        .bind(actor)
-        .bind(&now)
-        .fetch_one(&mut *tx)
-        .await?;
-        let events = job_events(&[row])?;
+        let (id, events) = insert_job(&mut tx, kind, spec, actor).await?;
         self.commit_with_events(tx, &events).await?;
         self.job(&id).await
     }

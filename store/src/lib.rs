@@ -5,10 +5,11 @@
 //! Every write creates an immutable, numbered version; data files are written first under unique
 //! names and become visible only when the version's catalog row commits in one transaction.
 //! Every catalog change also records its events in the change feed, in the same transaction
-//! (`events.rs`), which idempotency keys (`idempotency.rs`) and webhook subscriptions
-//! (`webhooks.rs`) build on.
+//! (`events.rs`), which idempotency keys (`idempotency.rs`), webhook subscriptions
+//! (`webhooks.rs`) and automations (`automations.rs`, rules that queue jobs from the feed) build on.
 
 mod artifacts;
+mod automations;
 mod catalog;
 mod compare;
 mod consensus;
@@ -47,6 +48,10 @@ pub mod video;
 mod webhooks;
 
 pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
+pub use automations::{
+    check_params as check_automation_params, AutomationRecord, AutomationRule, ScoreOnPublish,
+    ScoreboardOnRunLabeled, TrainOnLabels,
+};
 pub use catalog::{migration_names, Backend};
 pub use compare::{
     ArmSpec, CompareRequest, Comparison, ComparisonSlice, EValues, PairTable, DEFAULT_PAIR_KEY,

@@ -2,6 +2,7 @@
 //! (one link of the whole dependency tree instead of one per file). A file that installs a
 //! global allocator to measure memory stays a binary of its own (see Cargo.toml).
 
+mod automations;
 mod campaign_cache;
 mod catalog_lists;
 mod compare;

@@ -11,6 +11,7 @@ macro_rules! need {
 
 mod admin;
 mod artifacts;
+mod automations;
 mod catalog;
 mod compare;
 mod consensus;
@@ -30,6 +31,7 @@ mod webhooks;
 
 pub use admin::*;
 pub use artifacts::*;
+pub use automations::*;
 pub use catalog::*;
 pub use compare::*;
 pub use consensus::*;
@@ -83,6 +85,7 @@ pub(crate) fn authed_routes() -> Router<AppState> {
     Router::new()
         .merge(admin::router())
         .merge(artifacts::router())
+        .merge(automations::router())
         .merge(exports::router())
         .merge(catalog::router())
         .merge(compare::router())

@@ -203,7 +203,9 @@ impl TestRunner {
                 json!({"version": c.version, "episodes": c.episodes})
             }
             // The other kinds only take their time here (the lease and retry tests use them).
-            store::JobKind::Export | store::JobKind::Score => json!({"slept_ms": self.run_ms}),
+            store::JobKind::Export | store::JobKind::Score | store::JobKind::Scoreboard => {
+                json!({"slept_ms": self.run_ms})
+            }
         };
         self.runs.lock().unwrap()[idx].end = Some(Instant::now());
         Ok(out)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 import ufops
-from conftest import Server, Ufops, require
+from conftest import Server, Ufops, require, serving
 
 
 def test_episodes_follow_every_page(server: Server, trained: Ufops) -> None:
@@ -66,3 +66,21 @@ def test_change_feed_follows_label_writes(server: Server) -> None:
     assert followed["data"]["label"] == "success" and followed["seq"] > page["next"]
     with pytest.raises(ValueError, match="400"):
         c.events(kinds=["no.such.kind"])
+
+
+def test_automations_are_declared_listed_and_audited(server: Server, trained: Ufops) -> None:
+    labeler = ufops.Client(server.url, server.token)
+    with pytest.raises(ufops.AuthError, match="403"):
+        labeler.create_automation("synth", "score_on_publish")
+    with serving(trained, "trainer", name="pytest-trainer") as s:
+        c = ufops.Client(s.url, s.token)
+        head = c.events()["head"]
+        a = c.create_automation("synth", "score_on_publish", {"checkpoint": "ckpt-0"})
+        assert a["rule"] == "score_on_publish" and a["params"] == {"checkpoint": "ckpt-0"}
+        assert [x["id"] for x in c.automations("synth")] == [a["id"]]
+        with pytest.raises(ValueError, match="400"):
+            c.create_automation("synth", "train_on_labels", {"min_labeled": 1})
+        c.delete_automation(a["id"])
+        assert c.automations() == []
+        kinds = [(e["kind"], e["subject"]) for e in c.events(head, kinds=["automation.created", "automation.deleted"])["events"]]
+        assert kinds == [("automation.created", a["id"]), ("automation.deleted", a["id"])]

@@ -217,6 +217,24 @@ class Client:
             yield from page["events"]
             after = page["next"]
 
+    def automations(self, policy: Optional[str] = None) -> List[JsonObject]:
+        """Every automation (of ``policy``), oldest first, with its cursor in the feed and how
+        many jobs it queued."""
+        query = "" if policy is None else "?" + urllib.parse.urlencode({"policy": policy})
+        body, _ = self._request("GET", "/v1/automations" + query)
+        return body  # type: ignore[no-any-return]
+
+    def create_automation(self, policy: str, rule: str, params: Optional[JsonObject] = None) -> JsonObject:
+        """Declares an automation (a trainer token): ``rule`` is ``"train_on_labels"`` (``params``
+        needs ``min_labeled``), ``"score_on_publish"`` or ``"scoreboard_on_run_labeled"``. From then
+        on the server queues its jobs from the change feed, each an ``automation.fired`` event."""
+        body, _ = self._request("POST", "/v1/automations", {"policy": policy, "rule": rule, "params": params or {}})
+        return body  # type: ignore[no-any-return]
+
+    def delete_automation(self, automation_id: str) -> None:
+        """Deletes an automation (the jobs it queued go on)."""
+        self._request("DELETE", f"/v1/automations/{urllib.parse.quote(automation_id, safe='')}")
+
 
 class ApiLayerStore:
     """:class:`Client` as a :class:`ufops.features.LayerStore`: what ``compute_layer`` reads and
