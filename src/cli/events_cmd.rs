@@ -56,17 +56,10 @@ impl Feed {
     async fn page(&self, after: i64, wait: Duration) -> Result<store::EventPage> {
         match self {
             Feed::Store(store, filter) => {
-                let deadline = tokio::time::Instant::now() + wait;
-                let mut after = after;
-                loop {
-                    let page = store.events_after(after, store::MAX_EVENT_PAGE, filter).await?;
-                    if !page.events.is_empty() || tokio::time::Instant::now() >= deadline {
-                        return Ok(page);
-                    }
-                    after = page.next;
-                    // Other processes write: look again shortly.
-                    tokio::time::sleep(Duration::from_millis(200)).await;
-                }
+                // Other processes write: look again every 200 ms.
+                Ok(store
+                    .wait_for_events(after, store::MAX_EVENT_PAGE, filter, wait, Duration::from_millis(200))
+                    .await?)
             }
             Feed::Api { agent, url, token, query } => {
                 let (agent, url, token) = (agent.clone(), url.clone(), token.clone());

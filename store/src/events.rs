@@ -362,6 +362,36 @@ impl Store {
         Ok(EventPage { events, next, head })
     }
 
+    /// [`Self::events_after`], waiting up to `wait` when nothing matches yet (long polling):
+    /// returns as soon as a matching event commits. This process's commits wake it at once,
+    /// other processes' within `poll`. An empty page comes only after `wait` without one.
+    pub async fn wait_for_events(
+        &self,
+        mut after: i64,
+        limit: i64,
+        filter: &EventFilter,
+        wait: std::time::Duration,
+        poll: std::time::Duration,
+    ) -> Result<EventPage, StoreError> {
+        let deadline = tokio::time::Instant::now() + wait;
+        let mut commits = self.feed_watch();
+        loop {
+            // Before the read: a commit after it wakes the wait below at once.
+            commits.mark_unchanged();
+            let page = self.events_after(after, limit, filter).await?;
+            let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+            if !page.events.is_empty() || left.is_zero() {
+                return Ok(page);
+            }
+            // Nothing yet: everything up to the head was looked at.
+            after = page.next;
+            tokio::select! {
+                r = commits.changed() => if r.is_err() { tokio::time::sleep(left.min(poll)).await },
+                _ = tokio::time::sleep(left.min(poll)) => {}
+            }
+        }
+    }
+
     /// Deletes events created more than `older_than` ago and returns how many went.
     pub async fn prune_events(&self, older_than: std::time::Duration) -> Result<u64, StoreError> {
         let cutoff = now_ms() - older_than.as_millis() as i64;

@@ -2,7 +2,7 @@
 //! long polling (`wait`) so a follower learns of a change as it commits.
 
 use super::*;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// The routes of this resource (behind the token check).
 pub(crate) fn router() -> Router<AppState> {
@@ -44,7 +44,7 @@ pub async fn list_events(
     State(s): State<AppState>,
     ApiQuery(q): ApiQuery<EventsQuery>,
 ) -> ApiResult<Json<store::EventPage>> {
-    let mut after = q.after.unwrap_or(0);
+    let after = q.after.unwrap_or(0);
     if after < 0 {
         return Err(ApiError::bad_request("after must be 0 or more"));
     }
@@ -66,21 +66,6 @@ pub async fn list_events(
         check_name("policy", p)?;
         filter.policy = Some(p.clone());
     }
-    let deadline = Instant::now() + Duration::from_secs(wait);
-    let mut commits = s.store().feed_watch();
-    loop {
-        // Before the read: a commit after it wakes the wait below at once.
-        commits.mark_unchanged();
-        let page = s.store().events_after(after, limit, &filter).await?;
-        let left = deadline.saturating_duration_since(Instant::now());
-        if !page.events.is_empty() || left.is_zero() {
-            return Ok(Json(page));
-        }
-        // Nothing yet: everything up to the head was looked at.
-        after = page.next;
-        tokio::select! {
-            r = commits.changed() => if r.is_err() { tokio::time::sleep(left.min(POLL)).await },
-            _ = tokio::time::sleep(left.min(POLL)) => {}
-        }
-    }
+    let page = s.store().wait_for_events(after, limit, &filter, Duration::from_secs(wait), POLL).await?;
+    Ok(Json(page))
 }
