@@ -405,3 +405,50 @@ fn labels_train_publish_and_score_by_themselves(t: &Target) {
     }
     assert!(accepted.values().all(|n| *n == 1), "a delivery accepted twice: {accepted:?}");
 }
+
+/// `ufops automation add|list|rm` on the store: bad rules and parameters fail with a message and
+/// leave nothing behind; declared ones are listed and audited in the feed.
+#[test]
+fn automation_cli_declares_lists_and_deletes() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = Target::sqlite(dir.path());
+    t.ok(&["init"]);
+    for (args, says) in [
+        (vec!["--rule", "train_when_ready"], "unknown automation rule"),
+        (vec!["--rule", "train_on_labels", "--params", "{\"min_labeled\": 1}"], "min_labeled"),
+        (vec!["--rule", "train_on_labels", "--params", "not json"], "--params is not JSON"),
+        (vec!["--rule", "score_on_publish", "--params", "{\"min_labeled\": 8}"], "unknown field"),
+    ] {
+        let mut a = vec!["automation", "add", "--policy", "bc"];
+        a.extend(args.iter().copied());
+        let out = t.run(&a);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(says), "{args:?}: {err}");
+    }
+    assert_eq!(t.json(&["automation", "list", "--json"]), serde_json::json!([]));
+    let a = t.json(&[
+        "automation",
+        "add",
+        "--policy",
+        "bc",
+        "--rule",
+        "train_on_labels",
+        "--params",
+        r#"{"min_labeled": 50, "chunk_len": 16}"#,
+        "--json",
+    ]);
+    assert_eq!(a["params"]["min_labeled"], 50);
+    assert_eq!(a["params"]["kind"], "classifier", "defaults filled in: {a}");
+    let id = a["id"].as_str().unwrap();
+    let listed = t.json(&["automation", "list", "--policy", "bc", "--json"]);
+    assert_eq!(listed.as_array().unwrap().len(), 1);
+    assert_eq!(listed[0]["id"], id);
+    assert!(t.ok(&["automation", "rm", id]).contains("deleted"));
+    assert!(!t.run(&["automation", "rm", id]).status.success(), "already gone");
+    let feed = t.ok(&["events", "--kind", "automation.created,automation.deleted", "--json"]);
+    let kinds: Vec<String> = feed
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["kind"].as_str().unwrap().to_string())
+        .collect();
+    assert_eq!(kinds, ["automation.created", "automation.deleted"], "{feed}");
+}
