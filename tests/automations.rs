@@ -319,6 +319,18 @@ fn labels_train_publish_and_score_by_themselves(t: &Target) {
     assert_eq!(kinds.iter().filter(|k| **k == "train").count(), 1, "{kinds:?}");
     assert_eq!(kinds.iter().filter(|k| **k == "score").count(), 1, "{kinds:?}");
     assert!(all.iter().all(|j| j["created_by"].as_str().unwrap().starts_with("automation:")), "{all:?}");
+    // The automation says why it fired: its verifier now covers the checkpoint's labels.
+    let a =
+        http(url, "GET", &format!("/v1/automations/{}", ids[0]), &[("Authorization", &labeler)], None).json();
+    assert_eq!(a["fired"], 1, "{a}");
+    let target = &a["targets"][0];
+    assert_eq!(
+        (target["target"].as_str(), target["job_id"].as_str()),
+        (Some("e600"), Some(train_job.as_str())),
+        "{a}"
+    );
+    assert_eq!(target["covered_seq"].as_i64(), Some(seq(frozen)), "covered up to its split's freeze: {a}");
+    assert!(target["changed_seq"].as_i64().unwrap() <= seq(frozen), "{a}");
 
     // The steered run: its scoreboard row once its last episode is labeled, not before.
     for (i, (id, success)) in steered.iter().enumerate() {

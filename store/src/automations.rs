@@ -212,6 +212,24 @@ pub struct AutomationRecord {
     pub fired: i64,
     pub created_by: String,
     pub created_at: String,
+    /// What it knows of each target it has seen (a checkpoint, or a run id): why it fired or
+    /// did not.
+    pub targets: Vec<AutomationTarget>,
+}
+
+/// An automation's view of one target, as `GET /v1/automations/{id}` shows it.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct AutomationTarget {
+    /// A checkpoint (`train_on_labels`, `score_on_publish`) or a run id.
+    pub target: String,
+    /// The last event that changed what the rule counts.
+    pub changed_seq: i64,
+    /// The feed position its newest verifier covers (`train_on_labels`: the freeze of its split).
+    pub covered_seq: i64,
+    /// The feed position of its last firing (0: never), and the job it queued then.
+    pub fired_seq: i64,
+    pub job_id: Option<String>,
 }
 
 /// What an automation knows of one target (a checkpoint, or a run).
@@ -248,6 +266,7 @@ fn from_row(r: &sqlx::any::AnyRow) -> Result<AutomationRecord, StoreError> {
         fired: r.i("fired")?,
         created_by: r.s("created_by")?,
         created_at: r.s("created_at")?,
+        targets: Vec::new(),
     })
 }
 
@@ -299,7 +318,30 @@ impl Store {
             .fetch_optional(&self.db().pool)
             .await?
             .ok_or_else(|| StoreError::not_found("automation", id))?;
-        from_row(&row)
+        let mut a = from_row(&row)?;
+        a.targets = self.automation_targets(id).await?;
+        Ok(a)
+    }
+
+    async fn automation_targets(&self, id: &str) -> Result<Vec<AutomationTarget>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT target, changed_seq, covered_seq, fired_seq, job_id FROM automation_targets \
+             WHERE automation_id = $1 ORDER BY target",
+        )
+        .bind(id)
+        .fetch_all(&self.db().pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(AutomationTarget {
+                    target: r.s("target")?,
+                    changed_seq: r.i("changed_seq")?,
+                    covered_seq: r.i("covered_seq")?,
+                    fired_seq: r.i("fired_seq")?,
+                    job_id: r.os("job_id")?,
+                })
+            })
+            .collect()
     }
 
     /// Every automation, oldest first; `policy` filters.
@@ -310,7 +352,13 @@ impl Store {
         .bind(policy.unwrap_or(""))
         .fetch_all(&self.db().pool)
         .await?;
-        rows.iter().map(from_row).collect()
+        let mut out = Vec::with_capacity(rows.len());
+        for r in &rows {
+            let mut a = from_row(r)?;
+            a.targets = self.automation_targets(&a.id).await?;
+            out.push(a);
+        }
+        Ok(out)
     }
 
     /// Whether any automation exists.

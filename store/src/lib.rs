@@ -49,8 +49,8 @@ mod webhooks;
 
 pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
 pub use automations::{
-    check_params as check_automation_params, AutomationRecord, AutomationRule, ScoreOnPublish,
-    ScoreboardOnRunLabeled, TrainOnLabels,
+    check_params as check_automation_params, AutomationRecord, AutomationRule, AutomationTarget,
+    ScoreOnPublish, ScoreboardOnRunLabeled, TrainOnLabels,
 };
 pub use catalog::{migration_names, Backend};
 pub use compare::{

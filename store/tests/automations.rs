@@ -105,6 +105,14 @@ async fn decides(db: Backend) {
     assert_eq!(feed[fired].data["job_id"], jobs[0].id.as_str());
     assert_eq!(feed[fired + 1].kind, EventKind::JobChanged);
     assert_eq!(feed[fired + 1].subject, jobs[0].id);
+    // It says why: the checkpoint's last change, and the job it queued for it.
+    let seen = store.automation(&a.id).await.unwrap().targets;
+    assert_eq!(seen.len(), 1, "{seen:?}");
+    assert_eq!((seen[0].target.as_str(), seen[0].job_id.as_deref()), ("c1", Some(jobs[0].id.as_str())));
+    assert!(
+        seen[0].changed_seq > seen[0].covered_seq && seen[0].fired_seq >= seen[0].changed_seq,
+        "{seen:?}"
+    );
     // A label while it is queued: no second job.
     label(&store, &ids[5], Label::Failure).await;
     assert_eq!(step(&store, "s1").await, 0, "one job per checkpoint at a time");

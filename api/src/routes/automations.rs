@@ -66,7 +66,8 @@ pub async fn list_automations(
     Ok(Json(s.store().automations(q.policy.as_deref()).await?))
 }
 
-/// One automation.
+/// One automation, with what it knows of each target it has seen (a checkpoint or a run: the
+/// last change, what its verifier covers, its last job): why it fired, or did not.
 #[utoipa::path(get, path = "/v1/automations/{id}", tag = "automations", params(("id" = String, Path,)),
     responses((status = 200, body = store::AutomationRecord), (status = 404, description = "no such automation")))]
 pub async fn get_automation(
