@@ -97,7 +97,17 @@ async fn deliver_some(
     backoff: Duration,
 ) -> Result<(), store::StoreError> {
     let w = &hook.record;
-    let page = store.events_after(w.cursor_seq, BATCH, &w.filter()).await?;
+    let page = match store.events_after(w.cursor_seq, BATCH, &w.filter()).await {
+        // Retention deleted events it had not delivered (a receiver down for longer than the
+        // retention): they are gone, so delivery goes on from the oldest left.
+        Err(store::StoreError::Gone(_)) => {
+            let (_, pruned_through) = store.event_head().await?;
+            tracing::warn!("webhook {}: events up to {pruned_through} are gone; delivering from there", w.id);
+            store.record_webhook_attempt(&w.id, owner, pruned_through, None, 0).await?;
+            return Ok(());
+        }
+        r => r?,
+    };
     if page.events.is_empty() {
         if page.next > w.cursor_seq {
             store.record_webhook_attempt(&w.id, owner, page.next, None, 0).await?;

@@ -488,3 +488,62 @@ async fn webhooks_deliver_each_event_once_postgres() {
     }
     webhooks_deliver_each_event_once(Db::Postgres).await;
 }
+
+/// A subscription whose undelivered events retention deleted (its receiver was away longer than
+/// the retention) goes on from the oldest event left, instead of failing on every try.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn webhooks_go_on_past_retention() {
+    let tune = |c: &mut api::ServeConfig| {
+        c.webhook_backoff = Duration::from_millis(50);
+        c.webhook_poll = Duration::from_millis(100);
+    };
+    let mut srv = TestServer::start_with(Db::Sqlite, false, tune).await;
+    let receiver = Receiver::default();
+    let app = axum::Router::new().route("/hook", axum::routing::post(receive)).with_state(receiver.clone());
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let hook_url = format!("http://{}/hook", listener.local_addr().unwrap());
+    tokio::spawn(async move { axum::serve(listener, app).await.unwrap() });
+    let r = srv
+        .req(Method::POST, "/v1/webhooks", "admin")
+        .json(&json!({"url": hook_url, "kinds": ["label.set"]}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let created: Value = r.json().await.unwrap();
+    *receiver.secret.lock().unwrap() = created["secret"].as_str().unwrap().to_string();
+    let hook = created["webhook"]["id"].as_str().unwrap().to_string();
+
+    // No server while a label is set and retention deletes its event; then another label.
+    srv.server.take().unwrap().shutdown().await.unwrap();
+    let ids = common::ingest(&srv.store, "gone", "c1", 2).await;
+    let label = |id: &str| store::LabelUpdate {
+        episode_id: id.to_string(),
+        label: store::Label::Failure,
+        expect_revision: None,
+        note: None,
+    };
+    srv.store.set_label(label(&ids[0]), "offline", "human").await.unwrap();
+    tokio::time::sleep(Duration::from_millis(5)).await;
+    assert!(srv.store.prune_events(Duration::ZERO).await.unwrap() > 0);
+    srv.store.set_label(label(&ids[1]), "offline", "human").await.unwrap();
+    let mut cfg = api::ServeConfig::new(srv.dir.path());
+    cfg.addr = "127.0.0.1:0".parse().unwrap();
+    cfg.run_worker_in_process = false;
+    tune(&mut cfg);
+    srv.server = Some(api::spawn(srv.store.clone(), cfg, srv.runner.clone()).await.unwrap());
+
+    let t0 = Instant::now();
+    while receiver.accepted.lock().unwrap().is_empty() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "stuck behind retention: {:?}",
+            srv.store.webhook(&hook).await
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await; // nothing more arrives
+    let accepted = receiver.accepted.lock().unwrap().clone();
+    let subjects: Vec<&str> = accepted.iter().map(|(_, e)| e["subject"].as_str().unwrap()).collect();
+    assert_eq!(subjects, [ids[1].as_str()], "the deleted event is gone; the next one delivered once");
+}

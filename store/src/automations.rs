@@ -424,7 +424,28 @@ impl Store {
         owner: &str,
     ) -> Result<Option<i64>, StoreError> {
         let filter = EventFilter { kinds: a.rule.kinds(), policy: Some(a.policy.clone()) };
-        let page = self.events_after(a.cursor_seq, PAGE, &filter).await?;
+        let page = match self.events_after(a.cursor_seq, PAGE, &filter).await {
+            // Retention deleted events it had not read (a server that ran none for a month):
+            // they are gone, so it goes on from the oldest left, as a reader of the feed must.
+            Err(StoreError::Gone(_)) => {
+                let (_, pruned_through) = self.event_head().await?;
+                tracing::warn!(
+                    "automation {}: events up to {pruned_through} are gone; going on from there",
+                    a.id
+                );
+                let moved = sqlx::query(
+                    "UPDATE automations SET cursor_seq = $1 WHERE id = $2 AND lease_owner = $3 AND cursor_seq = $4",
+                )
+                .bind(pruned_through)
+                .bind(&a.id)
+                .bind(owner)
+                .bind(a.cursor_seq)
+                .execute(&self.db().pool)
+                .await?;
+                return Ok((moved.rows_affected() == 1).then_some(pruned_through));
+            }
+            r => r?,
+        };
         if page.next <= a.cursor_seq {
             return Ok(Some(a.cursor_seq));
         }

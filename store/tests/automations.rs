@@ -171,6 +171,15 @@ async fn decides(db: Backend) {
     let j = if j.id == job.id { j } else { panic!("unexpected job {j:?}") };
     assert!(store.finish_job(&j.id, "worker", j.attempts, Ok(out)).await.unwrap());
     assert_eq!(step(&store, "s1").await, 1);
+
+    // Retention deleted events it had not read: it goes on from the oldest left, no error loop.
+    label(&store, &run_ids[0], Label::Failure).await;
+    tokio::time::sleep(std::time::Duration::from_millis(5)).await;
+    assert!(store.prune_events(std::time::Duration::ZERO).await.unwrap() > 0);
+    let (head, pruned_through) = store.event_head().await.unwrap();
+    assert!(store.automation(&r.id).await.unwrap().cursor_seq < pruned_through);
+    assert_eq!(step(&store, "s1").await, 0);
+    assert_eq!(store.automation(&r.id).await.unwrap().cursor_seq, pruned_through.max(head));
     store.delete_automation(&r.id, "t").await.unwrap();
 }
 
