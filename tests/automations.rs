@@ -1,4 +1,4 @@
-//! The flywheel turns by itself (issue 32, must-show 1), through `ufops serve` and its worker on
+//! The flywheel turns by itself, through `ufops serve` and its worker on
 //! SQLite and Postgres: episodes are labeled over HTTP one at a time; below the threshold nothing
 //! is queued; the label that reaches it makes the `train_on_labels` automation freeze a split and
 //! train, the published verifier makes `score_on_publish` score the review queue, and a steered
