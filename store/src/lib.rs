@@ -49,8 +49,7 @@ mod webhooks;
 
 pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
 pub use automations::{
-    check_params as check_automation_params, AutomationRecord, AutomationRule, AutomationTarget,
-    ScoreOnPublish, ScoreboardOnRunLabeled, TrainOnLabels,
+    AutomationRecord, AutomationRule, AutomationTarget, ScoreOnPublish, ScoreboardOnRunLabeled, TrainOnLabels,
 };
 pub use catalog::{migration_names, Backend};
 pub use compare::{
