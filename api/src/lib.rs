@@ -4,7 +4,8 @@
 //! store) and role checks, request validation and size limits, problem+json errors, the OpenAPI
 //! document (generated from the handlers with utoipa), Prometheus metrics, media range requests,
 //! streamed uploads, `Idempotency-Key` replay (`idempotency.rs`), webhook delivery from the
-//! change feed (`webhooks.rs`), the loop that runs automations (`automations.rs`), and the worker loop that claims jobs and runs them through a
+//! change feed (`webhooks.rs`), the automations (`automations.rs`), the loop both run in
+//! (`feed_consumers.rs`), and the worker loop that claims jobs and runs them through a
 //! [`JobRunner`]. Every rule about data (label revisions, versions, splits, leases, aliases) lives in the
 //! `store` crate, which the CLI uses too; the real job runner (training, ingest) is the binary's.
 
@@ -14,6 +15,7 @@ mod body_schemas;
 mod conn;
 mod error;
 mod extract;
+mod feed_consumers;
 mod idempotency;
 mod label_writer;
 mod media;
@@ -386,21 +388,12 @@ pub async fn serve_on(
         ))
     });
     let deliveries = cfg.deliver_webhooks.then(|| {
-        tokio::spawn(webhooks::deliver_loop(
-            store.clone(),
-            format!("{}-webhooks", cfg.worker_id),
-            cfg.webhook_backoff,
-            cfg.webhook_poll,
-            stop_rx.clone(),
-        ))
+        let consumers = webhooks::Deliveries::new(format!("{}-webhooks", cfg.worker_id), cfg.webhook_backoff);
+        tokio::spawn(feed_consumers::run(store.clone(), cfg.webhook_poll, stop_rx.clone(), consumers))
     });
     let automations = cfg.run_automations.then(|| {
-        tokio::spawn(automations::automation_loop(
-            store.clone(),
-            format!("{}-automations", cfg.worker_id),
-            cfg.webhook_poll,
-            stop_rx.clone(),
-        ))
+        let consumers = automations::Automations { owner: format!("{}-automations", cfg.worker_id) };
+        tokio::spawn(feed_consumers::run(store.clone(), cfg.webhook_poll, stop_rx.clone(), consumers))
     });
     let deadline = cfg.shutdown_deadline;
     let limits = conn::ConnLimits {

@@ -1,4 +1,4 @@
-//! Webhook delivery: each server runs [`deliver_loop`], which takes the lease of the
+//! Webhook delivery: each server runs [`Deliveries`] in the feed consumers' loop, which takes the lease of the
 //! subscriptions that are due (`store::Store::claim_webhooks`) and posts each one's next events,
 //! in feed order, one at a time.
 //!
@@ -23,8 +23,6 @@ use store::{HeldWebhook, Store};
 pub const DELIVERY_TIMEOUT: Duration = Duration::from_secs(10);
 /// Events delivered per subscription per lease.
 const BATCH: i64 = 100;
-/// After a commit wakes the loop, how long it waits for more before claiming.
-const COALESCE: Duration = Duration::from_millis(50);
 
 /// The `Ufops-Signature` header of `body` sent at `unix_seconds`.
 pub fn signature(secret: &str, unix_seconds: i64, body: &[u8]) -> String {
@@ -35,54 +33,41 @@ pub fn signature(secret: &str, unix_seconds: i64, body: &[u8]) -> String {
     format!("t={unix_seconds},v1={}", hex::encode(mac.finalize().into_bytes()))
 }
 
-/// Delivers due subscriptions until `stop` says so; wakes on this server's commits and at least
-/// every `poll`.
-pub(crate) async fn deliver_loop(
-    store: Store,
+/// The subscriptions this server delivers, as [`crate::feed_consumers::run`] drives them.
+pub(crate) struct Deliveries {
+    agent: ureq::Agent,
+    /// Whose lease it takes.
     owner: String,
     backoff: Duration,
-    poll: Duration,
-    mut stop: tokio::sync::watch::Receiver<bool>,
-) {
-    let agent: ureq::Agent = ureq::Agent::config_builder()
-        .timeout_global(Some(DELIVERY_TIMEOUT))
-        .http_status_as_error(false)
-        .build()
-        .into();
-    let mut commits = store.feed_watch();
-    let lease_ms = (DELIVERY_TIMEOUT.as_millis() as i64) * 3;
-    // Whether any subscription existed when last looked (every `poll`): without one, this
-    // server's commits (a label batch's, many a second) do not wake the loop at all.
-    let mut any = store.has_webhooks().await.unwrap_or(true);
-    let mut looked = std::time::Instant::now();
-    while !*stop.borrow() {
-        commits.mark_unchanged();
-        if any {
-            match store.claim_webhooks(&owner, lease_ms).await {
-                Ok(held) => {
-                    for hook in held {
-                        if let Err(e) = deliver_some(&store, &agent, &owner, &hook, backoff).await {
-                            tracing::warn!("webhook {}: {e}", hook.record.id);
-                        }
-                        let _ = store.release_webhook(&hook.record.id, &owner).await;
-                    }
-                }
-                Err(e) => tracing::warn!("cannot claim webhooks: {e}"),
-            }
-        }
-        let by_commit = tokio::select! {
-            r = commits.changed(), if any => r.is_ok(),
-            _ = tokio::time::sleep(poll) => false,
-            _ = stop.changed() => false,
+}
+
+impl Deliveries {
+    pub(crate) fn new(owner: String, backoff: Duration) -> Self {
+        let agent: ureq::Agent = ureq::Agent::config_builder()
+            .timeout_global(Some(DELIVERY_TIMEOUT))
+            .http_status_as_error(false)
+            .build()
+            .into();
+        Deliveries { agent, owner, backoff }
+    }
+}
+
+impl crate::feed_consumers::FeedConsumers for Deliveries {
+    async fn any(&self, store: &Store) -> bool {
+        store.has_webhooks().await.unwrap_or(true)
+    }
+
+    async fn work(&mut self, store: &Store) {
+        let lease_ms = (DELIVERY_TIMEOUT.as_millis() as i64) * 3;
+        let held = match store.claim_webhooks(&self.owner, lease_ms).await {
+            Ok(held) => held,
+            Err(e) => return tracing::warn!("cannot claim webhooks: {e}"),
         };
-        if by_commit {
-            // Commits come in bursts: one claim for those of the next moment too.
-            tokio::time::sleep(COALESCE).await;
-        }
-        // Under a steady stream of commits the poll never times out: look again by the clock.
-        if looked.elapsed() >= poll {
-            any = store.has_webhooks().await.unwrap_or(true);
-            looked = std::time::Instant::now();
+        for hook in held {
+            if let Err(e) = deliver_some(store, &self.agent, &self.owner, &hook, self.backoff).await {
+                tracing::warn!("webhook {}: {e}", hook.record.id);
+            }
+            let _ = store.release_webhook(&hook.record.id, &self.owner).await;
         }
     }
 }
