@@ -335,6 +335,33 @@ fn chrono_now() -> i64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_secs() as i64
 }
 
+/// Starts the server of `srv` again (no worker, `tune`d) on the same store.
+async fn restart(srv: &mut TestServer, tune: impl FnOnce(&mut api::ServeConfig)) {
+    let mut cfg = api::ServeConfig::new(srv.dir.path());
+    cfg.addr = "127.0.0.1:0".parse().unwrap();
+    cfg.run_worker_in_process = false;
+    tune(&mut cfg);
+    let restarted = api::spawn(srv.store.clone(), cfg, srv.runner.clone()).await.unwrap();
+    srv.base = format!("http://{}", restarted.addr);
+    srv.server = Some(restarted);
+}
+
+/// What `receiver` accepted once it holds `n` deliveries (and nothing more came for a moment);
+/// fails after 30 s with the subscription's state.
+async fn delivered(receiver: &Receiver, n: usize, srv: &TestServer, hook: &str) -> Vec<(String, Value)> {
+    let t0 = Instant::now();
+    while receiver.accepted.lock().unwrap().len() < n {
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "deliveries stalled: {:?}",
+            srv.store.webhook(hook).await
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await; // nothing more arrives
+    receiver.accepted.lock().unwrap().clone()
+}
+
 async fn webhooks_deliver_each_event_once(db: Db) {
     let tune = |c: &mut api::ServeConfig| {
         c.webhook_backoff = Duration::from_millis(50);
@@ -414,13 +441,7 @@ async fn webhooks_deliver_each_event_once(db: Db) {
         )
         .await
         .unwrap();
-    let mut cfg = api::ServeConfig::new(srv.dir.path());
-    cfg.addr = "127.0.0.1:0".parse().unwrap();
-    cfg.run_worker_in_process = false;
-    tune(&mut cfg);
-    let restarted = api::spawn(srv.store.clone(), cfg, srv.runner.clone()).await.unwrap();
-    srv.base = format!("http://{}", restarted.addr);
-    srv.server = Some(restarted);
+    restart(&mut srv, tune).await;
 
     // What the receiver must get: every matching event after the subscription began.
     let filter = store::EventFilter {
@@ -434,17 +455,7 @@ async fn webhooks_deliver_each_event_once(db: Db) {
     let expected: Vec<i64> =
         srv.store.events_after(from, 1000, &filter).await.unwrap().events.iter().map(|e| e.seq).collect();
     assert_eq!(expected.len(), 1 + 3 + 1 + 1 + 1, "ingest, 3 labels, snapshot, split, offline label");
-    let t0 = Instant::now();
-    while receiver.accepted.lock().unwrap().len() < expected.len() {
-        assert!(
-            t0.elapsed() < Duration::from_secs(30),
-            "deliveries stalled: {:?}",
-            srv.store.webhook(&hook).await
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    tokio::time::sleep(Duration::from_millis(300)).await; // nothing more arrives
-    let accepted = receiver.accepted.lock().unwrap().clone();
+    let accepted = delivered(&receiver, expected.len(), &srv, &hook).await;
     let seqs: Vec<i64> = accepted.iter().map(|(_, e)| e["seq"].as_i64().unwrap()).collect();
     assert_eq!(seqs, expected, "each event once, in feed order");
     for (delivery, e) in &accepted {
@@ -527,23 +538,9 @@ async fn webhooks_go_on_past_retention() {
     tokio::time::sleep(Duration::from_millis(5)).await;
     assert!(srv.store.prune_events(Duration::ZERO).await.unwrap() > 0);
     srv.store.set_label(label(&ids[1]), "offline", "human").await.unwrap();
-    let mut cfg = api::ServeConfig::new(srv.dir.path());
-    cfg.addr = "127.0.0.1:0".parse().unwrap();
-    cfg.run_worker_in_process = false;
-    tune(&mut cfg);
-    srv.server = Some(api::spawn(srv.store.clone(), cfg, srv.runner.clone()).await.unwrap());
+    restart(&mut srv, tune).await;
 
-    let t0 = Instant::now();
-    while receiver.accepted.lock().unwrap().is_empty() {
-        assert!(
-            t0.elapsed() < Duration::from_secs(30),
-            "stuck behind retention: {:?}",
-            srv.store.webhook(&hook).await
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    tokio::time::sleep(Duration::from_millis(300)).await; // nothing more arrives
-    let accepted = receiver.accepted.lock().unwrap().clone();
+    let accepted = delivered(&receiver, 1, &srv, &hook).await;
     let subjects: Vec<&str> = accepted.iter().map(|(_, e)| e["subject"].as_str().unwrap()).collect();
     assert_eq!(subjects, [ids[1].as_str()], "the deleted event is gone; the next one delivered once");
 }
