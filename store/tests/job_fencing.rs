@@ -43,10 +43,11 @@ async fn a_cancelled_job_whose_worker_died_is_cancelled_not_left_running() {
     let (_d, store) = open().await;
     // Cancel requested while running; the worker dies before its next heartbeat.
     let a = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
-    store.claim_job("dead-worker", 20).await.unwrap().unwrap();
+    // A lease long enough for the two reads below on a loaded machine (20 ms was not).
+    store.claim_job("dead-worker", 1_000).await.unwrap().unwrap();
     assert!(store.cancel_job(&a.id).await.unwrap().cancel_requested);
     assert_eq!(store.job(&a.id).await.unwrap().state, JobState::Running, "the lease still runs");
-    tokio::time::sleep(Duration::from_millis(40)).await;
+    tokio::time::sleep(Duration::from_millis(1_100)).await;
     // The next worker looking for work finishes it; there is nothing else to claim.
     assert!(store.claim_job("w2", 60_000).await.unwrap().is_none());
     let a = store.job(&a.id).await.unwrap();
