@@ -23,7 +23,7 @@ fn pyarrow_reads_a_version() {
     let v = last["version"].as_i64().unwrap().to_string();
     let expected = serde_json::json!({
         "version": last["version"],
-        "labels_path": last["labels_path"],
+        "versions": versions,
         "episodes": t.json(&["episodes", "--version", &v, "--json"]),
     });
     assert_eq!(expected["episodes"][0]["label"], new_label);

@@ -90,11 +90,11 @@ fn fill_sql(backend: Backend, sources: usize) -> Vec<String> {
     v.push(format!(
         "{gen}INSERT INTO episodes (id, policy, checkpoint, task, source_sha256, source_name, source_index, length, \
          tags, metadata, data_file, row_group, row_offset, row_count, version_added, label, label_source, label_revision, \
-         label_actor, label_updated_at, created_at, run_id) \
+         label_frozen_revision, label_actor, label_updated_at, created_at, run_id) \
          SELECT substr(sha256, 1, 12) || '-' || {pad}, 'nav', 'ckpt-' || (k % 5), 'task-' || (i % 4), \
          sha256, 'demo_' || i, i, 100, '[]', '{{}}', 'steps/scoreboard.parquet', 0, 0, 100, 1, \
          CASE WHEN h % 100 < 90 THEN (CASE WHEN (h / 100) % 100 < 60 THEN 'success' ELSE 'failure' END) ELSE 'unknown' END, \
-         'sim', 1, 'ingest', '{now}', '{now}', {run} FROM g"
+         'sim', 1, 1, 'ingest', '{now}', '{now}', {run} FROM g"
     ));
     v.push(
         "INSERT INTO label_events (episode_id, revision, old_label, new_label, source, actor, note, created_at) \
@@ -102,18 +102,18 @@ fn fill_sql(backend: Backend, sources: usize) -> Vec<String> {
             .into(),
     );
     v.push(
-        "INSERT INTO version_labels (version, episode_id, label, label_source, revision) \
-         SELECT 1, id, label, label_source, 1 FROM episodes"
+        "INSERT INTO version_labels (episode_id, version_from, label, label_source, revision) \
+         SELECT id, 1, label, label_source, 1 FROM episodes"
             .into(),
     );
     v.push(
-        "INSERT INTO version_counts (version, policy, checkpoint, task, label, n) \
+        "INSERT INTO version_counts (version_from, policy, checkpoint, task, label, n) \
          SELECT 1, policy, checkpoint, COALESCE(task, ''), label, COUNT(*) FROM episodes \
          GROUP BY policy, checkpoint, COALESCE(task, ''), label"
             .into(),
     );
     v.push(
-        "INSERT INTO version_run_counts (version, policy, checkpoint, task, run_id, label, n) \
+        "INSERT INTO version_run_counts (version_from, policy, checkpoint, task, run_id, label, n) \
          SELECT 1, policy, checkpoint, COALESCE(task, ''), COALESCE(run_id, ''), label, COUNT(*) FROM episodes \
          GROUP BY policy, checkpoint, COALESCE(task, ''), COALESCE(run_id, ''), label"
             .into(),

@@ -81,7 +81,7 @@ async fn main() {
     }
     let store = make_store(&store_dir, n).await;
     let head = store.head_version().await.unwrap();
-    let labels = store.version(head).await.unwrap().labels_path;
+    let labels = store.full_labels_file(head).await.unwrap();
     let runs: usize = std::env::var("EXPORT_BENCH_RUNS").ok().and_then(|v| v.parse().ok()).unwrap_or(3);
     let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../bench/reference/py_export_store.py");
     let exe = std::env::current_exe().unwrap();

@@ -169,8 +169,9 @@ pub async fn filter_by_score(
 #[derive(Debug, Clone)]
 pub struct Selected {
     pub version: i64,
-    /// The label snapshot file of `version` (store/README.md, "Label snapshot schema").
-    pub labels_path: String,
+    /// The labels files of `version`: a full one, then the deltas after it (store/README.md,
+    /// "Label files").
+    pub labels_files: Vec<String>,
     pub episodes: Vec<EpisodeRecord>,
     /// For a split: each episode's part (`train` or `val`).
     pub parts: HashMap<String, String>,
@@ -202,7 +203,7 @@ impl Selected {
             "exported_at": chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Secs, true),
             "format": format,
             "store_version": self.version,
-            "label_snapshot": self.labels_path,
+            "label_files": self.labels_files,
             "selection": self.selection,
             "episodes": self.episodes.len(),
             "episodes_scored": self.scored,
@@ -271,7 +272,7 @@ pub async fn select(store: &Store, sel: &Selection) -> Result<Selected> {
     Ok(Selected {
         label_data,
         version,
-        labels_path: info.labels_path,
+        labels_files: store.labels_files(info.version).await?,
         episodes,
         parts,
         selection: sel.clone(),

@@ -171,7 +171,11 @@ async fn exports_frozen_labels_with_provenance() {
     assert_eq!(info["codebase_version"], "v3.0");
     assert_eq!(info["ufops"]["store_version"], v);
     assert_eq!(info["ufops"]["selection"]["label"], "success");
-    assert!(info["ufops"]["label_snapshot"].as_str().unwrap().starts_with("labels/"));
+    let files = info["ufops"]["label_files"].as_array().unwrap();
+    assert!(
+        !files.is_empty() && files.iter().all(|f| f.as_str().unwrap().starts_with("labels/")),
+        "{files:?}"
+    );
     assert_eq!(info["total_episodes"], sel.episodes.len());
     // An existing output is refused, untouched.
     let err = export::lerobot::export(&a, &sel, &out, None).await.unwrap_err();

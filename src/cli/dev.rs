@@ -158,13 +158,21 @@ async fn verify(args: &StoreArgs) -> Result<()> {
                 v.episode_count
             ));
         }
-        let labels = store.get_object(&v.labels_path).await;
-        match labels.map(parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new) {
-            Ok(Ok(b)) if b.metadata().file_metadata().num_rows() == v.episode_count => {}
-            _ => problems.push(format!(
-                "version {}: label snapshot {} unreadable or wrong size",
-                v.version, v.labels_path
+        // The labels files alone (a full one and the deltas after it) give the same labels.
+        match store.read_labels_files(v.version).await {
+            Ok(rows)
+                if rows.len() == eps.len() && {
+                    let frozen: std::collections::HashMap<&str, (store::Label, i64)> =
+                        eps.iter().map(|e| (e.id.as_str(), (e.label, e.label_revision))).collect();
+                    rows.iter().all(|r| frozen.get(r.episode_id.as_str()) == Some(&(r.label, r.revision)))
+                } => {}
+            Ok(rows) => problems.push(format!(
+                "version {}: its labels files hold {} rows that differ from the catalog's {} episodes",
+                v.version,
+                rows.len(),
+                eps.len()
             )),
+            Err(e) => problems.push(format!("version {}: labels files unreadable: {e}", v.version)),
         }
         // Every episode of the version, read in one pass grouped by steps file.
         let mut locations = Vec::with_capacity(eps.len());

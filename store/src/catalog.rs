@@ -47,6 +47,7 @@ const SQLITE_MIGRATIONS: &[(i64, &str, &str)] = &[
     (16, "events", include_str!("../../migrations/sqlite/0016_events.sql")),
     (17, "webhooks", include_str!("../../migrations/sqlite/0017_webhooks.sql")),
     (18, "automations", include_str!("../../migrations/sqlite/0018_automations.sql")),
+    (19, "version_spans", include_str!("../../migrations/sqlite/0019_version_spans.sql")),
 ];
 const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (1, "store", include_str!("../../migrations/postgres/0001_store.sql")),
@@ -71,6 +72,7 @@ const POSTGRES_MIGRATIONS: &[(i64, &str, &str)] = &[
     (16, "events", include_str!("../../migrations/postgres/0016_events.sql")),
     (17, "webhooks", include_str!("../../migrations/postgres/0017_webhooks.sql")),
     (18, "automations", include_str!("../../migrations/postgres/0018_automations.sql")),
+    (19, "version_spans", include_str!("../../migrations/postgres/0019_version_spans.sql")),
 ];
 
 fn migrator(backend: Backend) -> Migrator {
@@ -448,8 +450,109 @@ mod tests {
         let s = |t: &str, l: &str, n: i64| (t.to_string(), l.to_string(), n);
         assert_eq!(now, [s("", "failure", 1), s("reach", "success", 1), s("reach", "unknown", 1)]);
         let v1 =
-            read("SELECT task, label, n FROM version_counts WHERE version = 1 ORDER BY task, label").await;
+            read("SELECT task, label, n FROM version_counts WHERE version_from <= 1 AND (version_to IS NULL OR version_to > 1) ORDER BY task, label").await;
         assert_eq!(v1, [s("", "failure", 1), s("reach", "success", 1), s("reach", "unknown", 2)]);
+    }
+
+    /// Migration 0019 turns each version's copies into spans: one label span per revision, open
+    /// at the head only while the episode is visible; the revision the head froze on the episode.
+    #[tokio::test]
+    async fn migration_0019_turns_copies_into_spans() {
+        let dir = tempfile::tempdir().unwrap();
+        let url = format!("sqlite://{}/catalog.sqlite?mode=rwc", dir.path().display());
+        sqlx::any::install_default_drivers();
+        let pool = AnyPoolOptions::new().max_connections(1).connect(&url).await.unwrap();
+        migrator_of(&SQLITE_MIGRATIONS[..18]).run(&pool).await.unwrap();
+        sqlx::query("PRAGMA foreign_keys = OFF").execute(&pool).await.unwrap();
+        // e-1 relabeled in version 3, e-2 removed in version 2, e-3 added in version 2.
+        for (id, removed, rev) in [("e-1", None, 2), ("e-2", Some(2), 1), ("e-3", None, 1)] {
+            sqlx::query(
+                "INSERT INTO episodes (id, policy, checkpoint, task, source_sha256, source_name, source_index, length, \
+                 tags, metadata, data_file, row_group, row_offset, row_count, version_added, version_removed, label, \
+                 label_source, label_revision, label_actor, label_updated_at, created_at) VALUES ($1, 'p', 'c', NULL, 'x', \
+                 'demo', 0, 1, '[]', '{}', 'steps/a.parquet', 0, 0, 1, 1, $2, 'failure', 'test', $3, 'ingest', 'now', 'now')",
+            )
+            .bind(id)
+            .bind(removed)
+            .bind(rev)
+            .execute(&pool)
+            .await
+            .unwrap();
+        }
+        let frozen = [
+            (1, "e-1", "success", 1),
+            (2, "e-1", "success", 1),
+            (3, "e-1", "failure", 2),
+            (1, "e-2", "unknown", 1),
+            (2, "e-3", "success", 1),
+            (3, "e-3", "success", 1),
+        ];
+        for (v, id, label, rev) in frozen {
+            sqlx::query("INSERT INTO version_labels (version, episode_id, label, label_source, revision) VALUES ($1, $2, $3, 'test', $4)")
+                .bind(v)
+                .bind(id)
+                .bind(label)
+                .bind(rev)
+                .execute(&pool)
+                .await
+                .unwrap();
+        }
+        for (v, n) in [(1, 1), (2, 2), (3, 1)] {
+            sqlx::query("INSERT INTO version_counts (version, policy, checkpoint, task, label, n) VALUES ($1, 'p', 'c', '', 'success', $2)")
+                .bind(v)
+                .bind(n)
+                .execute(&pool)
+                .await
+                .unwrap();
+        }
+        sqlx::query("UPDATE store_head SET version = 3").execute(&pool).await.unwrap();
+        pool.close().await;
+        let cat = Catalog::connect(&url).await.unwrap();
+        let rows = sqlx::query(
+            "SELECT episode_id, version_from, version_to, revision FROM version_labels ORDER BY episode_id, version_from",
+        )
+        .fetch_all(&cat.pool)
+        .await
+        .unwrap();
+        let spans: Vec<(String, i64, Option<i64>, i64)> = rows
+            .iter()
+            .map(|r| {
+                (
+                    r.try_get("episode_id").unwrap(),
+                    r.try_get("version_from").unwrap(),
+                    r.try_get("version_to").unwrap(),
+                    r.try_get("revision").unwrap(),
+                )
+            })
+            .collect();
+        let e = |id: &str, from, to, rev| (id.to_string(), from, to, rev);
+        assert_eq!(
+            spans,
+            [e("e-1", 1, Some(3), 1), e("e-1", 3, None, 2), e("e-2", 1, Some(2), 1), e("e-3", 2, None, 1)]
+        );
+        let rows = sqlx::query("SELECT id, label_frozen_revision FROM episodes ORDER BY id")
+            .fetch_all(&cat.pool)
+            .await
+            .unwrap();
+        let frozen: Vec<Option<i64>> =
+            rows.iter().map(|r| r.try_get("label_frozen_revision").unwrap()).collect();
+        assert_eq!(frozen, [Some(2), None, Some(1)]);
+        let rows =
+            sqlx::query("SELECT version_from, version_to, n FROM version_counts ORDER BY version_from")
+                .fetch_all(&cat.pool)
+                .await
+                .unwrap();
+        let counts: Vec<(i64, Option<i64>, i64)> = rows
+            .iter()
+            .map(|r| {
+                (
+                    r.try_get("version_from").unwrap(),
+                    r.try_get("version_to").unwrap(),
+                    r.try_get("n").unwrap(),
+                )
+            })
+            .collect();
+        assert_eq!(counts, [(1, Some(2), 1), (2, Some(3), 2), (3, None, 1)]);
     }
 
     /// Migration 0013 indexes the tags of the episodes already stored (each tag once per episode).

@@ -8,6 +8,7 @@
 //! or, with `progress`, a score in [0, 1] from each episode's metadata (partial credit).
 
 use crate::catalog::{bind_val, RowExt, Val};
+use crate::version::covers;
 use crate::{Label, Store, StoreError, NO_RUN};
 use evalstats::sequential::{compare_pairs, pair_by_key, Decision, Pair, PairedCounts, SequentialConfig};
 use serde::{Deserialize, Serialize};
@@ -280,11 +281,12 @@ impl Store {
         pair_key: Option<&str>,
     ) -> Result<Vec<Rollout>, StoreError> {
         let mut args = vec![Val::I(version), Val::S(req.policy.clone()), Val::S(arm.checkpoint.clone())];
-        let mut sql = String::from(
+        let mut sql = format!(
             "SELECT COALESCE(e.task, '') AS task, e.metadata AS metadata, e.version_added AS version_added, \
              e.source_index AS source_index, e.source_name AS source_name, l.label AS label FROM version_labels l \
              JOIN episodes e ON e.id = l.episode_id LEFT JOIN runs r ON r.id = e.run_id \
-             WHERE l.version = $1 AND e.policy = $2 AND e.checkpoint = $3",
+             WHERE {} AND e.policy = $2 AND e.checkpoint = $3",
+            covers("l", "$1")
         );
         match arm.run.as_deref() {
             Some(NO_RUN) => sql.push_str(" AND e.run_id IS NULL"),

@@ -5,9 +5,11 @@
 //! row per (policy, checkpoint, task, label, shard) of the visible episodes, and every write that
 //! changes a label or visibility (label writes, ingests, deletions) adds its deltas in its own
 //! transaction, just before it commits. A read sums a few rows. Each version also freezes its
-//! counts (`version_counts`), written from the label snapshot the version already builds.
+//! counts (`version_counts`): spans of versions per group, moved on by the groups it changes
+//! (`version.rs`).
 
-use crate::catalog::{bind_val, insert_rows, RowExt, Tx, Val};
+use crate::catalog::{bind_val, RowExt, Tx, Val};
+use crate::version::covers;
 use crate::{Backend, Label, Store, StoreError};
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -131,25 +133,6 @@ impl CountDeltas {
     }
 }
 
-/// Writes version `v`'s counts, from the rows of its label snapshot.
-pub(crate) async fn insert_version_counts<'a>(
-    tx: &mut Tx,
-    v: i64,
-    rows: impl Iterator<Item = (&'a str, &'a str, Option<&'a str>, Label)>,
-) -> Result<(), StoreError> {
-    let mut counts = CountDeltas::default();
-    for (policy, checkpoint, task, label) in rows {
-        counts.add(policy, checkpoint, task, label, 1);
-    }
-    let rows: Vec<Vec<Val>> = counts
-        .by_key
-        .into_iter()
-        .map(|((p, c, t, l), n)| vec![Val::I(v), p.into(), c.into(), t.into(), l.into(), Val::I(n)])
-        .collect();
-    insert_rows(tx, "version_counts", &["version", "policy", "checkpoint", "task", "label", "n"], rows, "")
-        .await
-}
-
 /// `WHERE` terms for the filter's policy/checkpoint/task on columns prefixed by `p`.
 fn filter_terms(f: &CountFilter, p: &str, args: &mut Vec<Val>, conds: &mut Vec<String>) {
     for (col, v) in [("policy", &f.policy), ("checkpoint", &f.checkpoint), ("task", &f.task)] {
@@ -183,7 +166,7 @@ impl Store {
             Some(v) => {
                 self.version(v).await?;
                 args.push(Val::I(v));
-                conds.push("version = $1".to_string());
+                conds.push(covers("", "$1"));
                 "version_counts"
             }
         };
@@ -207,7 +190,7 @@ impl Store {
             Some(v) => {
                 self.version(v).await?;
                 args.push(Val::I(v));
-                conds.push("l.version = $1".to_string());
+                conds.push(covers("l", "$1"));
                 "SELECT l.label AS label, COUNT(*) AS n FROM version_labels l JOIN episodes e ON e.id = l.episode_id"
             }
         };

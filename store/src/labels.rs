@@ -4,12 +4,15 @@
 use crate::catalog::{RowExt, Tx};
 use crate::counts::CountDeltas;
 use crate::events::{EventKind, NewEvent};
-use crate::version::{finish_version, next_version, write_labels_file_ahead, LabelsFileAhead, VersionHead};
+use crate::version::{
+    finish_version, next_version, unfrozen_episodes, write_labels_file_ahead, LabelsFileAhead, VersionHead,
+    UNFROZEN,
+};
 use crate::{now_rfc3339, Backend, CommitInfo, Label, Store, StoreError};
 use serde::Serialize;
 
-/// A label snapshot's labels file, written ahead of the version lock
-/// ([`Store::prepare_label_snapshot`]); commit it with [`Store::commit_label_snapshot`].
+/// A label snapshot's labels file (the labels changed since the head), written ahead of the
+/// version lock ([`Store::prepare_label_snapshot`]); commit it with [`Store::commit_label_snapshot`].
 pub struct PreparedLabelSnapshot(LabelsFileAhead);
 
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
@@ -169,7 +172,7 @@ impl Store {
 
     /// Freezes the current labels into a new version only if one changed since the head froze
     /// them: `(head, false)` otherwise, so a client repeating the request (or many clients) does
-    /// not pile up identical versions, each a full copy of the label table.
+    /// not pile up identical versions.
     pub async fn snapshot_labels_if_changed(
         &self,
         actor: &str,
@@ -182,9 +185,9 @@ impl Store {
     }
 
     /// A label snapshot's first step, outside the version lock: None when no label changed since
-    /// the head froze them; otherwise the labels file, written to the object store now, so that
-    /// label writes go on while it uploads (on SQLite the version lock stops them all). A caller
-    /// that serialises writers (the API's write gate) holds its gate only for
+    /// the head froze them; otherwise the labels file of the changes, written to the object store
+    /// now, so that label writes go on while it uploads (on SQLite the version lock stops them
+    /// all). A caller that serialises writers (the API's write gate) holds its gate only for
     /// [`Store::commit_label_snapshot`].
     pub async fn prepare_label_snapshot(&self) -> Result<Option<PreparedLabelSnapshot>, StoreError> {
         if !self.labels_changed_since_head().await? && self.head_version().await? > 0 {
@@ -193,8 +196,9 @@ impl Store {
         Ok(Some(PreparedLabelSnapshot(write_labels_file_ahead(self).await?)))
     }
 
-    /// A label snapshot's second step, under the version lock: the new version, with the file
-    /// written ahead if the labels did not change meanwhile (else with a new file).
+    /// A label snapshot's second step, under the version lock: the new version, freezing the
+    /// labels changed since the head (its cost is theirs, not the store's), with the file written
+    /// ahead if they did not change meanwhile (else with a new file).
     pub async fn commit_label_snapshot(
         &self,
         prepared: PreparedLabelSnapshot,
@@ -225,13 +229,13 @@ impl Store {
         Ok(CommitInfo { version: head, episodes })
     }
 
-    /// Whether any label changed since the head version froze them.
+    /// Whether any label changed since the head version froze them (one probe of the index of
+    /// unfrozen episodes).
     pub async fn labels_changed_since_head(&self) -> Result<bool, StoreError> {
-        let row = sqlx::query(
-            "SELECT COUNT(*) AS n FROM episodes e LEFT JOIN version_labels l \
-             ON l.episode_id = e.id AND l.version = (SELECT version FROM store_head WHERE id = 1) \
-             WHERE e.version_removed IS NULL AND (l.revision IS NULL OR l.revision <> e.label_revision)",
-        )
+        let row = sqlx::query(&format!(
+            "SELECT COUNT(*) AS n FROM (SELECT e.id FROM {} WHERE {UNFROZEN} LIMIT 1) x",
+            unfrozen_episodes(self.backend() == Backend::Sqlite)
+        ))
         .fetch_one(&self.db().pool)
         .await?;
         Ok(row.i("n")? > 0)

@@ -23,6 +23,7 @@ mod gc;
 mod idempotency;
 mod ingest_writer;
 mod jobs;
+mod label_files;
 mod labels;
 mod layers;
 mod lru;

@@ -1,6 +1,7 @@
 //! Reads: versions, episodes (now or at any past version) and version diffs (steps: read.rs).
 
 use crate::catalog::{bind_val, RowExt, Val};
+use crate::version::covers;
 use crate::{Backend, Label, Store, StoreError};
 use serde::{Deserialize, Serialize};
 
@@ -12,7 +13,12 @@ pub struct VersionInfo {
     pub message: String,
     pub actor: String,
     pub created_at: String,
+    /// This version's labels file: the rows it changed (`labels_kind` "delta") or all of them
+    /// ("full"). [`Store::labels_files`] lists the files that make up its labels.
     pub labels_path: String,
+    pub labels_kind: String,
+    /// A full labels file of this version written after it committed, if one was.
+    pub labels_checkpoint: Option<String>,
     pub source_sha256: Option<String>,
     pub episodes_added: i64,
     pub episodes_removed: i64,
@@ -85,8 +91,8 @@ pub struct VersionDiff {
     pub labels_changed: Vec<(String, Label, Label)>,
 }
 
-const VERSION_COLS: &str = "version, kind, message, actor, created_at, labels_path, source_sha256, \
-    episodes_added, episodes_removed, labels_changed, episode_count";
+const VERSION_COLS: &str = "version, kind, message, actor, created_at, labels_path, labels_kind, \
+    labels_checkpoint, source_sha256, episodes_added, episodes_removed, labels_changed, episode_count";
 
 fn version_from_row(r: &sqlx::any::AnyRow) -> Result<VersionInfo, StoreError> {
     Ok(VersionInfo {
@@ -96,6 +102,8 @@ fn version_from_row(r: &sqlx::any::AnyRow) -> Result<VersionInfo, StoreError> {
         actor: r.s("actor")?,
         created_at: r.s("created_at")?,
         labels_path: r.s("labels_path")?,
+        labels_kind: r.s("labels_kind")?,
+        labels_checkpoint: r.os("labels_checkpoint")?,
         source_sha256: r.os("source_sha256")?,
         episodes_added: r.i("episodes_added")?,
         episodes_removed: r.i("episodes_removed")?,
@@ -279,8 +287,9 @@ impl Store {
                         from: format!(
                             "l.label AS label, l.label_source AS label_source, l.revision AS label_revision, \
                              ev.actor AS label_actor, ev.created_at AS label_updated_at FROM episodes e \
-                             JOIN version_labels l ON l.episode_id = e.id AND l.version = {p} \
-                             JOIN label_events ev ON ev.episode_id = e.id AND ev.revision = l.revision"
+                             JOIN version_labels l ON l.episode_id = e.id AND {} \
+                             JOIN label_events ev ON ev.episode_id = e.id AND ev.revision = l.revision",
+                            covers("l", &p)
                         ),
                         cond: None,
                         order_col: "e.id",
@@ -294,7 +303,8 @@ impl Store {
                              l.actor AS label_actor, l.created_at AS label_updated_at FROM episodes e \
                              CROSS JOIN LATERAL (SELECT v.label, v.label_source, v.revision, ev.actor, ev.created_at \
                              FROM version_labels v JOIN label_events ev ON ev.episode_id = v.episode_id \
-                             AND ev.revision = v.revision WHERE v.version = {p} AND v.episode_id = e.id"
+                             AND ev.revision = v.revision WHERE v.episode_id = e.id AND {}",
+                            covers("v", &p)
                         ),
                         cond: None,
                         order_col: "e.id",
@@ -317,7 +327,7 @@ impl Store {
                          JOIN episodes e ON e.id = l.episode_id \
                          JOIN label_events ev ON ev.episode_id = l.episode_id AND ev.revision = l.revision",
                     ),
-                    cond: Some(format!("l.version = {p}")),
+                    cond: Some(covers("l", &p)),
                     order_col: "l.episode_id",
                     cursor_cols: &["l.episode_id", "e.id", "ev.episode_id"],
                     label_alias: "l",

@@ -6,6 +6,7 @@ use crate::catalog::{bind_val, insert_rows, RowExt, Tx, Val};
 use crate::query::{
     episode_conds, episode_from_row, label_conds, push_arg, EpisodeFilter, EpisodeRecord, EPISODE_SELECT,
 };
+use crate::version::covers;
 use crate::{now_rfc3339, Store, StoreError};
 use serde::Serialize;
 
@@ -414,9 +415,10 @@ impl Store {
                     format!(
                         "l.label AS label, l.label_source AS label_source, l.revision AS label_revision, \
                          ev.actor AS label_actor, ev.created_at AS label_updated_at, {{key}} FROM episodes e \
-                         JOIN version_labels l ON l.episode_id = e.id AND l.version = {p} \
+                         JOIN version_labels l ON l.episode_id = e.id AND {} \
                          JOIN label_events ev ON ev.episode_id = e.id AND ev.revision = l.revision \
-                         {REVIEW_JOINS} WHERE 1 = 1"
+                         {REVIEW_JOINS} WHERE 1 = 1",
+                        covers("l", &p)
                     ),
                 )
             }

@@ -2,14 +2,15 @@
 //! Wilson 95% intervals, and each row against a baseline row: Newcombe's (method 10) interval of
 //! the difference, the rollouts per arm that would separate the two at the observed rates, and how
 //! many unlabeled episodes could change that answer. Each version freezes its counts per policy,
-//! checkpoint, task, run and label when it is written (`version_run_counts`, from the label rows
-//! the version already gathers for its snapshot), so the scoreboard reads a few rows whatever the
+//! checkpoint, task, run and label when it is written (`version_run_counts`, spans of versions
+//! moved on by the groups the version changes), so the scoreboard reads a few rows whatever the
 //! number of episodes; [`Store::recount_scoreboard`] computes the same counts with a `GROUP BY`
 //! over the version's frozen labels (the reference the tests hold it to). The arithmetic is
 //! `evalstats`'.
 
-use crate::catalog::{bind_val, insert_rows, RowExt, Tx, Val};
+use crate::catalog::{bind_val, RowExt, Val};
 use crate::runs::{run_from_row, RunRecord};
+use crate::version::covers;
 use crate::{Label, Store, StoreError};
 use evalstats::{newcombe_diff, rollouts_to_separate, separates, unlabeled_to_flip, wilson, Arm};
 use serde::Serialize;
@@ -212,32 +213,6 @@ fn monitor_summary(m: &crate::MonitorEntry) -> serde_json::Value {
 /// Counts per (checkpoint, task, run id) of one policy: [successes, failures, unlabeled].
 type Cells = BTreeMap<(String, Option<String>, Option<String>), [u64; 3]>;
 
-/// Writes version `v`'s counts per policy, checkpoint, task, run and label ('' for no task or run).
-pub(crate) async fn insert_version_run_counts<'a>(
-    tx: &mut Tx,
-    v: i64,
-    rows: impl Iterator<Item = (&'a str, &'a str, Option<&'a str>, Option<&'a str>, Label)>,
-) -> Result<(), StoreError> {
-    let mut counts: BTreeMap<(&str, &str, &str, &str, &'static str), i64> = BTreeMap::new();
-    for (p, c, t, r, l) in rows {
-        *counts.entry((p, c, t.unwrap_or(""), r.unwrap_or(""), l.as_str())).or_default() += 1;
-    }
-    let rows: Vec<Vec<Val>> = counts
-        .into_iter()
-        .map(|((p, c, t, r, l), n)| {
-            vec![Val::I(v), p.into(), c.into(), t.into(), r.into(), l.into(), Val::I(n)]
-        })
-        .collect();
-    insert_rows(
-        tx,
-        "version_run_counts",
-        &["version", "policy", "checkpoint", "task", "run_id", "label", "n"],
-        rows,
-        "",
-    )
-    .await
-}
-
 fn add_cell(
     cells: &mut Cells,
     checkpoint: String,
@@ -267,17 +242,19 @@ impl Store {
         let mut args = vec![Val::I(version), Val::S(req.policy.clone())];
         let (mut sql, col) = if recount {
             (
-                String::from(
+                format!(
                     "SELECT e.checkpoint AS checkpoint, COALESCE(e.task, '') AS task, COALESCE(e.run_id, '') AS run_id, \
                      l.label AS label, COUNT(*) AS n FROM version_labels l JOIN episodes e ON e.id = l.episode_id \
-                     WHERE l.version = $1 AND e.policy = $2",
+                     WHERE {} AND e.policy = $2",
+                    covers("l", "$1")
                 ),
                 "e.",
             )
         } else {
             (
-                String::from(
-                    "SELECT checkpoint, task, run_id, label, n FROM version_run_counts WHERE version = $1 AND policy = $2",
+                format!(
+                    "SELECT checkpoint, task, run_id, label, n FROM version_run_counts WHERE {} AND policy = $2",
+                    covers("", "$1")
                 ),
                 "",
             )

@@ -871,7 +871,9 @@ pub fn observation_keys(schema: &Schema) -> Vec<(String, usize)> {
         .collect()
 }
 
-/// Snapshot file of a version's labels: one row per visible episode.
+/// A row of a version's labels file. A `full` file has one row per visible episode; a `delta`
+/// file (store/README.md, "Label files") one per episode the version added, relabeled or removed.
+#[derive(Debug, Clone, PartialEq)]
 pub struct LabelRow {
     pub episode_id: String,
     pub policy: String,
@@ -886,9 +888,30 @@ pub struct LabelRow {
     /// The episode's first row inside its row group, and its number of rows.
     pub row_offset: i64,
     pub row_count: i64,
+    /// In a delta file: the episode left the store in this version (its row holds its last label).
+    pub removed: bool,
 }
 
-pub fn labels_file(version_hint: i64, rows: &[LabelRow]) -> Result<Vec<u8>, StoreError> {
+/// What a labels file holds: every visible episode, or the rows one version changed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LabelsKind {
+    Full,
+    Delta,
+}
+
+impl LabelsKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            LabelsKind::Full => "full",
+            LabelsKind::Delta => "delta",
+        }
+    }
+}
+
+/// Metadata key naming a labels file's [`LabelsKind`].
+pub const LABELS_KIND_KEY: &str = "ufops.labels";
+
+pub fn labels_file(version_hint: i64, kind: LabelsKind, rows: &[LabelRow]) -> Result<Vec<u8>, StoreError> {
     use arrow::array::Int64Array;
     let schema = Arc::new(
         Schema::new(vec![
@@ -905,10 +928,12 @@ pub fn labels_file(version_hint: i64, rows: &[LabelRow]) -> Result<Vec<u8>, Stor
             Field::new("row_group", DataType::Int64, false),
             Field::new("row_offset", DataType::Int64, false),
             Field::new("row_count", DataType::Int64, false),
+            Field::new("removed", DataType::Boolean, false),
         ])
         .with_metadata(HashMap::from([
             ("ufops.schema_version".to_string(), SCHEMA_VERSION.to_string()),
             ("ufops.version".to_string(), version_hint.to_string()),
+            (LABELS_KIND_KEY.to_string(), kind.as_str().to_string()),
         ])),
     );
     let cols: Vec<ArrayRef> = vec![
@@ -925,11 +950,78 @@ pub fn labels_file(version_hint: i64, rows: &[LabelRow]) -> Result<Vec<u8>, Stor
         Arc::new(Int64Array::from_iter_values(rows.iter().map(|r| r.row_group))),
         Arc::new(Int64Array::from_iter_values(rows.iter().map(|r| r.row_offset))),
         Arc::new(Int64Array::from_iter_values(rows.iter().map(|r| r.row_count))),
+        Arc::new(BooleanArray::from(rows.iter().map(|r| r.removed).collect::<Vec<_>>())),
     ];
     let batch = RecordBatch::try_new(schema.clone(), cols)?;
     let mut w = ArrowWriter::try_new(Vec::new(), schema, Some(writer_properties()))?;
     w.write(&batch)?;
     Ok(w.into_inner()?)
+}
+
+/// Reads a labels file back: its kind (files written before deltas carry none: full) and rows.
+pub fn read_labels_file(data: Bytes) -> Result<(LabelsKind, Vec<LabelRow>), StoreError> {
+    use arrow::array::{Array, AsArray};
+    use arrow::datatypes::Int64Type;
+    let bad = |what: &str| StoreError::invalid(format!("labels file: {what}"));
+    let builder = ParquetRecordBatchReaderBuilder::try_new(data)?;
+    // The Arrow schema's metadata (stored in the file's `ARROW:schema`).
+    let kind = match builder.schema().metadata().get(LABELS_KIND_KEY).cloned() {
+        Some(k) if k == "delta" => LabelsKind::Delta,
+        Some(k) if k != "full" => return Err(bad(&format!("unknown kind {k:?}"))),
+        _ => LabelsKind::Full,
+    };
+    let mut out = Vec::new();
+    for batch in builder.build()? {
+        let b = batch?;
+        let col = |name: &str| b.column_by_name(name).ok_or_else(|| bad(&format!("no column {name}")));
+        let strs = |name: &str| -> Result<_, StoreError> {
+            col(name)?.as_string_opt::<i32>().cloned().ok_or_else(|| bad(&format!("{name} is not text")))
+        };
+        let ints = |name: &str| -> Result<_, StoreError> {
+            col(name)?
+                .as_primitive_opt::<Int64Type>()
+                .cloned()
+                .ok_or_else(|| bad(&format!("{name} is not int64")))
+        };
+        let (id, policy, checkpoint, task, label, source, data_file) = (
+            strs("episode_id")?,
+            strs("policy")?,
+            strs("checkpoint")?,
+            strs("task")?,
+            strs("label")?,
+            strs("label_source")?,
+            strs("data_file")?,
+        );
+        let (length, revision, row_group, row_offset, row_count) = (
+            ints("length")?,
+            ints("label_revision")?,
+            ints("row_group")?,
+            ints("row_offset")?,
+            ints("row_count")?,
+        );
+        let removed = match b.column_by_name("removed") {
+            Some(c) => Some(c.as_boolean_opt().cloned().ok_or_else(|| bad("removed is not boolean"))?),
+            None => None,
+        };
+        for i in 0..b.num_rows() {
+            out.push(LabelRow {
+                episode_id: id.value(i).to_string(),
+                policy: policy.value(i).to_string(),
+                checkpoint: checkpoint.value(i).to_string(),
+                task: task.is_valid(i).then(|| task.value(i).to_string()),
+                length: length.value(i),
+                label: label.value(i).parse()?,
+                label_source: source.value(i).to_string(),
+                revision: revision.value(i),
+                data_file: data_file.value(i).to_string(),
+                row_group: row_group.value(i),
+                row_offset: row_offset.value(i),
+                row_count: row_count.value(i),
+                removed: removed.as_ref().is_some_and(|r| r.value(i)),
+            });
+        }
+    }
+    Ok((kind, out))
 }
 
 #[cfg(test)]

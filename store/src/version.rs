@@ -1,13 +1,15 @@
-//! The version-commit protocol every write ends with (ingest, label snapshots, layers): under
-//! the version lock, freeze the visible episodes' labels into a labels file, record the version
-//! row and its counts, move the head, commit. Data files are written before it (put-if-absent,
-//! unreferenced until this commit), so a crash leaves no visible partial version.
+//! The version-commit protocol every write ends with (ingest, label snapshots, deletions, layers):
+//! under the version lock, freeze the labels that changed since the head (spans of labels and
+//! counts, migration 0019) and write them as the version's labels file, record the version row,
+//! move the head, commit. Data files are written before it (put-if-absent, unreferenced until
+//! this commit), so a crash leaves no visible partial version. A version costs what it changes.
 
-use crate::catalog::{RowExt, Tx};
-use crate::counts::{insert_version_counts, CountDeltas};
-use crate::steps;
-use crate::{now_rfc3339, Store, StoreError};
+use crate::catalog::{insert_rows, RowExt, Tx, Val};
+use crate::counts::CountDeltas;
+use crate::steps::{self, LabelsKind};
+use crate::{now_rfc3339, Label, Store, StoreError};
 use bytes::Bytes;
+use std::collections::BTreeMap;
 
 /// Reads the head under the version lock and returns the next version number.
 pub(crate) async fn next_version(tx: &mut Tx) -> Result<i64, StoreError> {
@@ -51,9 +53,8 @@ pub(crate) struct VersionHead {
     pub events: Vec<crate::events::NewEvent>,
 }
 
-/// One visible episode's row of a labels file, from a query selecting the columns of
-/// [`LIVE_LABEL_ROWS`].
-fn label_row(r: &sqlx::any::AnyRow) -> Result<steps::LabelRow, StoreError> {
+/// One row of a labels file, from a query selecting the columns of [`label_cols`].
+fn label_row(r: &sqlx::any::AnyRow, removed: bool) -> Result<steps::LabelRow, StoreError> {
     Ok(steps::LabelRow {
         episode_id: r.s("id")?,
         policy: r.s("policy")?,
@@ -67,59 +68,274 @@ fn label_row(r: &sqlx::any::AnyRow) -> Result<steps::LabelRow, StoreError> {
         row_group: r.i("row_group")?,
         row_offset: r.i("row_offset")?,
         row_count: r.i("row_count")?,
+        removed,
     })
 }
 
-/// The current labels of every visible episode, as a labels file holds them (outside any lock).
-const LIVE_LABEL_ROWS: &str = "SELECT e.id, e.policy, e.checkpoint, e.task, e.length, e.label, e.label_source, \
-     e.label_revision AS revision, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
-     COALESCE(e.row_count, e.length) AS row_count FROM episodes e WHERE e.version_removed IS NULL ORDER BY e.id";
+/// The columns [`label_row`] reads, the label ones from table alias `l` (`e` is the episode).
+fn label_cols(l: &str, revision: &str) -> String {
+    format!(
+        "e.id, e.policy, e.checkpoint, e.task, e.length, {l}.label AS label, {l}.label_source AS label_source, \
+         {l}.{revision} AS revision, e.run_id, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
+         COALESCE(e.row_count, e.length) AS row_count"
+    )
+}
 
-/// What a labels file holds, in 32 bytes: the version it is written for and every row.
-fn label_rows_digest(version: i64, rows: &[steps::LabelRow]) -> [u8; 32] {
-    use sha2::Digest;
-    let mut h = sha2::Sha256::new();
-    let mut text = |s: &str| {
-        h.update((s.len() as u64).to_le_bytes());
-        h.update(s.as_bytes());
-    };
-    text(&version.to_string());
-    for r in rows {
-        text(&r.episode_id);
-        text(&r.policy);
-        text(&r.checkpoint);
-        text(r.task.as_deref().unwrap_or("\u{0}none"));
-        text(&r.label.to_string());
-        text(&r.label_source);
-        text(&r.data_file);
-        for n in [r.length, r.revision, r.row_group, r.row_offset, r.row_count] {
-            text(&n.to_string());
+/// `alias`'s span `[version_from, version_to)` covers the version bound as `p`: the SQL every
+/// read of a past version's labels and counts goes through (migration 0019).
+pub(crate) fn covers(alias: &str, p: &str) -> String {
+    let a = if alias.is_empty() { String::new() } else { format!("{alias}.") };
+    format!("{a}version_from <= {p} AND ({a}version_to IS NULL OR {a}version_to > {p})")
+}
+
+/// The visible episodes whose label the head has not frozen: added since, or relabeled. The
+/// condition is the partial index `episodes_labels_unfrozen`'s, word for word, so both backends
+/// read only those rows.
+pub(crate) const UNFROZEN: &str = "e.version_removed IS NULL AND (e.label_frozen_revision IS NULL OR \
+     e.label_frozen_revision <> e.label_revision)";
+
+/// `episodes e`, read through the index of [`UNFROZEN`] episodes. SQLite's planner, without
+/// statistics, would rather scan the table in id order: told the index, it reads only them (and
+/// fails loudly if the index could not serve the condition).
+pub(crate) fn unfrozen_episodes(sqlite: bool) -> &'static str {
+    if sqlite {
+        "episodes e INDEXED BY episodes_labels_unfrozen"
+    } else {
+        "episodes e"
+    }
+}
+
+/// Episode ids per statement of an `IN (…)` list.
+const IDS_PER_STATEMENT: usize = 500;
+
+/// What one version changes: the episodes whose labels it freezes anew (with the label their
+/// previous span froze, None for an episode it adds), and the ones it removes.
+struct VersionChanges {
+    changed: Vec<(steps::LabelRow, Option<String>, Option<Label>)>,
+    removed: Vec<(steps::LabelRow, Option<String>)>,
+}
+
+async fn read_changes(tx: &mut Tx, v: i64) -> Result<VersionChanges, StoreError> {
+    // Read once: on Postgres label writes go on beside this transaction, and every later step
+    // works from these rows, not from what the episodes hold by then.
+    let rows = sqlx::query(&format!(
+        "SELECT {}, s.label AS old_label FROM {} \
+         LEFT JOIN version_labels s ON s.episode_id = e.id AND s.version_to IS NULL WHERE {UNFROZEN} ORDER BY e.id",
+        label_cols("e", "label_revision"),
+        unfrozen_episodes(tx.backend_name().eq_ignore_ascii_case("sqlite"))
+    ))
+    .fetch_all(&mut **tx)
+    .await?;
+    let mut changed = Vec::with_capacity(rows.len());
+    for r in &rows {
+        let old = r.os("old_label")?.map(|l| l.parse::<Label>()).transpose()?;
+        changed.push((label_row(r, false)?, r.os("run_id")?, old));
+    }
+    let rows = sqlx::query(&format!(
+        "SELECT {} FROM episodes e JOIN version_labels s ON s.episode_id = e.id AND s.version_to IS NULL \
+         WHERE e.version_removed = $1 ORDER BY e.id",
+        label_cols("s", "revision")
+    ))
+    .bind(v)
+    .fetch_all(&mut **tx)
+    .await?;
+    let mut removed = Vec::with_capacity(rows.len());
+    for r in &rows {
+        removed.push((label_row(r, true)?, r.os("run_id")?));
+    }
+    Ok(VersionChanges { changed, removed })
+}
+
+/// Runs `sql` (with `$1` bound to `v` and `{ids}` standing for an `IN` list) over `ids` in chunks.
+async fn for_ids(tx: &mut Tx, sql: &str, v: i64, ids: &[&str]) -> Result<(), StoreError> {
+    for chunk in ids.chunks(IDS_PER_STATEMENT) {
+        let list = (0..chunk.len()).map(|i| format!("${}", i + 2)).collect::<Vec<_>>().join(", ");
+        let sql = sql.replace("{ids}", &list);
+        let mut q = sqlx::query(&sql).bind(v);
+        for id in chunk {
+            q = q.bind(*id);
+        }
+        q.execute(&mut **tx).await?;
+    }
+    Ok(())
+}
+
+/// Moves the frozen labels on to version `v`: closes the spans of the episodes it relabels or
+/// removes, opens one per episode it adds or relabels, and records the revision frozen.
+async fn write_label_spans(tx: &mut Tx, v: i64, c: &VersionChanges) -> Result<(), StoreError> {
+    let closing: Vec<&str> = c
+        .changed
+        .iter()
+        .filter(|(_, _, old)| old.is_some())
+        .map(|(r, _, _)| r.episode_id.as_str())
+        .chain(c.removed.iter().map(|(r, _)| r.episode_id.as_str()))
+        .collect();
+    for_ids(
+        tx,
+        "UPDATE version_labels SET version_to = $1 WHERE version_to IS NULL AND episode_id IN ({ids})",
+        v,
+        &closing,
+    )
+    .await?;
+    let rows = c
+        .changed
+        .iter()
+        .map(|(r, _, _)| {
+            vec![
+                Val::S(r.episode_id.clone()),
+                Val::I(v),
+                Val::S(r.label.as_str().into()),
+                Val::S(r.label_source.clone()),
+                Val::I(r.revision),
+            ]
+        })
+        .collect();
+    insert_rows(
+        tx,
+        "version_labels",
+        &["episode_id", "version_from", "label", "label_source", "revision"],
+        rows,
+        "",
+    )
+    .await?;
+    // The revision of the span just opened, not the episode's revision now (a label write may
+    // have moved it on since the read: it stays unfrozen for the next version).
+    let opened: Vec<&str> = c.changed.iter().map(|(r, _, _)| r.episode_id.as_str()).collect();
+    for_ids(
+        tx,
+        "UPDATE episodes SET label_frozen_revision = (SELECT s.revision FROM version_labels s \
+         WHERE s.episode_id = episodes.id AND s.version_from = $1) WHERE id IN ({ids})",
+        v,
+        &opened,
+    )
+    .await
+}
+
+/// Moves the frozen counts on to version `v`: for every group whose count the version changes,
+/// closes its open span and opens one with the new count (none when it reaches zero). `table`
+/// is `version_counts` or `version_run_counts`, keyed by `key_cols` then `label`.
+async fn write_count_spans(
+    tx: &mut Tx,
+    table: &str,
+    key_cols: &[&str],
+    v: i64,
+    deltas: BTreeMap<Vec<String>, i64>,
+) -> Result<(), StoreError> {
+    let key_cond = key_cols
+        .iter()
+        .enumerate()
+        .map(|(i, c)| format!("{c} = ${}", i + 2))
+        .collect::<Vec<_>>()
+        .join(" AND ");
+    let mut opened = Vec::new();
+    let close =
+        format!("UPDATE {table} SET version_to = $1 WHERE {key_cond} AND version_to IS NULL RETURNING n");
+    for (key, delta) in deltas.into_iter().filter(|(_, d)| *d != 0) {
+        let mut q = sqlx::query(&close).bind(v);
+        for k in &key {
+            q = q.bind(k.clone());
+        }
+        let before = match q.fetch_optional(&mut **tx).await? {
+            Some(r) => r.i("n")?,
+            None => 0,
+        };
+        let n = before + delta;
+        if n < 0 {
+            return Err(StoreError::Conflict(format!("{table}: a count of {key:?} would fall below zero")));
+        }
+        if n > 0 {
+            let mut row: Vec<Val> = key.into_iter().map(Val::S).collect();
+            row.extend([Val::I(v), Val::I(n)]);
+            opened.push(row);
         }
     }
-    h.finalize().into()
+    let mut cols = key_cols.to_vec();
+    cols.extend(["version_from", "n"]);
+    insert_rows(tx, table, &cols, opened, "").await
+}
+
+/// The count changes of `c`, keyed (policy, checkpoint, task, [run,] label).
+fn count_deltas(c: &VersionChanges, by_run: bool) -> BTreeMap<Vec<String>, i64> {
+    let mut out: BTreeMap<Vec<String>, i64> = BTreeMap::new();
+    let mut add = |r: &steps::LabelRow, run: &Option<String>, label: Label, n: i64| {
+        let mut key = vec![r.policy.clone(), r.checkpoint.clone(), r.task.clone().unwrap_or_default()];
+        if by_run {
+            key.push(run.clone().unwrap_or_default());
+        }
+        key.push(label.as_str().to_string());
+        *out.entry(key).or_default() += n;
+    };
+    for (r, run, old) in &c.changed {
+        if let Some(old) = old {
+            add(r, run, *old, -1);
+        }
+        add(r, run, r.label, 1);
+    }
+    for (r, run) in &c.removed {
+        add(r, run, r.label, -1);
+    }
+    out
+}
+
+/// Writes a version's labels file: `rows` under a fresh name.
+async fn put_labels_file(
+    store: &Store,
+    v: i64,
+    kind: LabelsKind,
+    rows: &[steps::LabelRow],
+) -> Result<(String, i64), StoreError> {
+    let data = steps::labels_file(v, kind, rows)?;
+    let path = format!("labels/{}.parquet", uuid::Uuid::new_v4());
+    let size = data.len() as i64;
+    store.objects().put_new(&path, Bytes::from(data)).await?;
+    Ok((path, size))
+}
+
+/// The episodes in the store before version `v` (0 for the first).
+async fn episodes_before(tx: &mut Tx, v: i64) -> Result<i64, StoreError> {
+    Ok(sqlx::query("SELECT episode_count FROM versions WHERE version = $1")
+        .bind(v - 1)
+        .fetch_optional(&mut **tx)
+        .await?
+        .map(|r| r.i("episode_count"))
+        .transpose()?
+        .unwrap_or(0))
+}
+
+/// A version's rows of its labels file, and its kind: a version over an empty store holds all
+/// its labels, a full file where chains start.
+fn file_rows(c: &VersionChanges, before: i64) -> (LabelsKind, Vec<steps::LabelRow>) {
+    let kind = if before == 0 { LabelsKind::Full } else { LabelsKind::Delta };
+    let rows =
+        c.changed.iter().map(|(r, _, _)| r.clone()).chain(c.removed.iter().map(|(r, _)| r.clone())).collect();
+    (kind, rows)
 }
 
 /// A version's labels file written before the version lock is taken (label snapshots): on
 /// SQLite that lock stops every label write, and an upload to an object store can take seconds.
-/// [`finish_version`] uses it if the labels under the lock are the ones it was built from, for
+/// [`finish_version`] uses it if the changes under the lock are the ones it was built from, for
 /// the version it was built for; otherwise it writes a new one and leaves this one to gc. The
 /// object is pending (see `gc.rs`) until then, so gc keeps it meanwhile.
 pub(crate) struct LabelsFileAhead {
     version: i64,
-    digest: [u8; 32],
+    kind: LabelsKind,
+    rows: Vec<steps::LabelRow>,
     path: String,
     size: i64,
     writer: String,
 }
 
 pub(crate) async fn write_labels_file_ahead(store: &Store) -> Result<LabelsFileAhead, StoreError> {
-    let version = store.head_version().await? + 1;
-    let rows = sqlx::query(LIVE_LABEL_ROWS).fetch_all(&store.db().pool).await?;
-    let label_rows = rows.iter().map(label_row).collect::<Result<Vec<_>, _>>()?;
-    drop(rows);
-    let digest = label_rows_digest(version, &label_rows);
-    let data = steps::labels_file(version, &label_rows)?;
-    drop(label_rows);
+    // A read transaction: the head and the changes read from one snapshot (no lock taken).
+    let mut tx = store.db().pool.begin().await?;
+    let version =
+        sqlx::query("SELECT version FROM store_head WHERE id = 1").fetch_one(&mut *tx).await?.i("version")?
+            + 1;
+    let changes = read_changes(&mut tx, version).await?;
+    let before = episodes_before(&mut tx, version).await?;
+    tx.rollback().await?;
+    let (kind, rows) = file_rows(&changes, before);
+    let data = steps::labels_file(version, kind, &rows)?;
     let path = format!("labels/{}.parquet", uuid::Uuid::new_v4());
     let writer = format!("labels-{}", uuid::Uuid::new_v4().simple());
     store.register_pending(&writer, &path).await?;
@@ -127,12 +343,42 @@ pub(crate) async fn write_labels_file_ahead(store: &Store) -> Result<LabelsFileA
     store.objects().put_new(&path, Bytes::from(data)).await?;
     // The upload may have outlasted the lease: renewed, it holds until the commit checks it.
     store.renew_pending(&writer).await?;
-    Ok(LabelsFileAhead { version, digest, path, size, writer })
+    Ok(LabelsFileAhead { version, kind, rows, path, size, writer })
 }
 
-/// Freezes the current labels of every visible episode into the version (and their counts),
-/// writes the label snapshot file, records the version row, adds the write's `counts` deltas to
-/// the maintained counts and moves the head — then commits.
+/// The labels file of version `v`: the one written ahead if it holds exactly these rows and its
+/// pending record is still within its lease (then no gc can have deleted it: gc deletes under
+/// this lock, and only objects whose lease had lapsed); else a new one.
+async fn labels_file_for(
+    store: &Store,
+    tx: &mut Tx,
+    v: i64,
+    kind: LabelsKind,
+    rows: &[steps::LabelRow],
+    ahead: Option<LabelsFileAhead>,
+) -> Result<(String, i64), StoreError> {
+    let Some(a) = ahead else { return put_labels_file(store, v, kind, rows).await };
+    // Used or not, the early file is no longer pending: referenced now, or garbage for gc.
+    let live = sqlx::query(
+        "DELETE FROM pending_objects WHERE writer = $1 AND path = $2 AND created_ms >= $3 RETURNING path",
+    )
+    .bind(&a.writer)
+    .bind(&a.path)
+    .bind(crate::now_ms() - crate::gc::writer_lease_ms())
+    .fetch_optional(&mut **tx)
+    .await?
+    .is_some();
+    sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(&a.writer).execute(&mut **tx).await?;
+    if live && a.version == v && a.kind == kind && a.rows == rows {
+        return Ok((a.path, a.size));
+    }
+    put_labels_file(store, v, kind, rows).await
+}
+
+/// Freezes the labels the version changes (spans of labels and counts, migration 0019), writes
+/// its labels file (the rows it changed), records the version row, adds the write's `counts`
+/// deltas to the maintained counts and moves the head — then commits. It reads and writes
+/// O(changed) rows, whatever the store's size.
 // Past 100 lines on purpose: one transaction's steps under the version lock, in the order the
 // crash-safety argument needs them (labels file, version row, counts, head, commit).
 pub(crate) async fn finish_version(
@@ -143,89 +389,43 @@ pub(crate) async fn finish_version(
     ahead: Option<LabelsFileAhead>,
 ) -> Result<i64, StoreError> {
     let v = head.version;
-    sqlx::query(
-        "INSERT INTO version_labels (version, episode_id, label, label_source, revision) \
-         SELECT $1, id, label, label_source, label_revision FROM episodes WHERE version_removed IS NULL",
+    let changes = read_changes(&mut tx, v).await?;
+    write_label_spans(&mut tx, v, &changes).await?;
+    write_count_spans(
+        &mut tx,
+        "version_counts",
+        &["policy", "checkpoint", "task", "label"],
+        v,
+        count_deltas(&changes, false),
     )
-    .bind(v)
-    .execute(&mut *tx)
     .await?;
-    let rows = sqlx::query(
-        "SELECT e.id, e.policy, e.checkpoint, e.task, e.length, l.label, l.label_source, l.revision, e.run_id, \
-         e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
-         COALESCE(e.row_count, e.length) AS row_count FROM version_labels l JOIN episodes e ON e.id = l.episode_id \
-         WHERE l.version = $1 ORDER BY e.id",
+    write_count_spans(
+        &mut tx,
+        "version_run_counts",
+        &["policy", "checkpoint", "task", "run_id", "label"],
+        v,
+        count_deltas(&changes, true),
     )
-    .bind(v)
-    .fetch_all(&mut *tx)
     .await?;
-    let mut label_rows = Vec::with_capacity(rows.len());
-    let mut run_ids = Vec::with_capacity(rows.len());
-    for r in &rows {
-        run_ids.push(r.os("run_id")?);
-        label_rows.push(label_row(r)?);
-    }
-    drop(rows);
-    let frozen =
-        label_rows.iter().map(|r| (r.policy.as_str(), r.checkpoint.as_str(), r.task.as_deref(), r.label));
-    insert_version_counts(&mut tx, v, frozen).await?;
-    let by_run = label_rows.iter().zip(&run_ids).map(|(r, run)| {
-        (r.policy.as_str(), r.checkpoint.as_str(), r.task.as_deref(), run.as_deref(), r.label)
-    });
-    crate::scoreboard::insert_version_run_counts(&mut tx, v, by_run).await?;
-    let changed = sqlx::query(
-        "SELECT COUNT(*) AS n FROM version_labels a JOIN version_labels b \
-         ON b.episode_id = a.episode_id AND b.version = $2 WHERE a.version = $1 AND a.revision <> b.revision",
-    )
-    .bind(v)
-    .bind(v - 1)
-    .fetch_one(&mut *tx)
-    .await?
-    .i("n")?;
-    // The file written ahead of the lock, if it holds exactly these labels for this version.
-    let ahead_writer = ahead.as_ref().map(|a| a.writer.clone());
-    // Its pending record must still be within its lease: then no gc can have deleted it (gc
-    // deletes under this lock, and only objects whose lease had lapsed).
-    let usable = match &ahead {
-        Some(a) if a.version == v && a.digest == label_rows_digest(v, &label_rows) => sqlx::query(
-            "SELECT COUNT(*) AS n FROM pending_objects WHERE writer = $1 AND path = $2 AND created_ms >= $3",
-        )
-        .bind(&a.writer)
-        .bind(&a.path)
-        .bind(crate::now_ms() - crate::gc::writer_lease_ms())
-        .fetch_one(&mut *tx)
-        .await?
-        .i("n")?
-            > 0,
-        _ => false,
-    };
-    let (labels_path, size) = match ahead {
-        Some(a) if usable => (a.path, a.size),
-        _ => {
-            let data = steps::labels_file(v, &label_rows)?;
-            let labels_path = format!("labels/{}.parquet", uuid::Uuid::new_v4());
-            let size = data.len() as i64;
-            store.objects().put_new(&labels_path, Bytes::from(data)).await?;
-            (labels_path, size)
-        }
-    };
-    if let Some(w) = &ahead_writer {
-        // Used or not, the early file is no longer pending: referenced now, or garbage for gc.
-        sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(w).execute(&mut *tx).await?;
-    }
+    let before = episodes_before(&mut tx, v).await?;
+    let added = changes.changed.iter().filter(|(_, _, old)| old.is_none()).count() as i64;
+    let relabeled = changes.changed.len() as i64 - added;
+    let episode_count = before + added - changes.removed.len() as i64;
+    let (kind, rows) = file_rows(&changes, before);
+    let (labels_path, size) = labels_file_for(store, &mut tx, v, kind, &rows, ahead).await?;
     sqlx::query(
         "INSERT INTO data_files (path, kind, size_bytes, num_rows, version_added) VALUES ($1, 'labels', $2, $3, $4)",
     )
     .bind(&labels_path)
     .bind(size)
-    .bind(label_rows.len() as i64)
+    .bind(rows.len() as i64)
     .bind(v)
     .execute(&mut *tx)
     .await?;
     sqlx::query(
         "INSERT INTO versions (version, kind, message, actor, created_at, labels_path, source_sha256, \
-         episodes_added, episodes_removed, labels_changed, episode_count) \
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11)",
+         episodes_added, episodes_removed, labels_changed, episode_count, labels_kind) \
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12)",
     )
     .bind(v)
     .bind(head.kind)
@@ -236,8 +436,9 @@ pub(crate) async fn finish_version(
     .bind(head.source_sha256.clone())
     .bind(head.episodes_added)
     .bind(head.episodes_removed)
-    .bind(changed)
-    .bind(label_rows.len() as i64)
+    .bind(relabeled)
+    .bind(episode_count)
+    .bind(kind.as_str())
     .execute(&mut *tx)
     .await?;
     // Last: on Postgres the counter rows stay locked until the commit.
@@ -260,10 +461,14 @@ pub(crate) async fn finish_version(
             "actor": head.actor,
             "episodes_added": head.episodes_added,
             "episodes_removed": head.episodes_removed,
-            "episode_count": label_rows.len(),
+            "episode_count": episode_count,
         }),
     )];
     events.extend(head.events);
     store.commit_with_events(tx, &events).await?;
+    // Committed: a checkpoint that fails now only leaves the chain longer for the next one.
+    if let Err(e) = crate::label_files::checkpoint_if_due(store, v).await {
+        tracing::warn!("labels checkpoint of version {v} failed (the next version retries): {e}");
+    }
     Ok(v)
 }

@@ -12,3 +12,4 @@ mod review_index;
 mod scoreboard;
 mod split_sample;
 mod store;
+mod version_history;

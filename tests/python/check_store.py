@@ -2,7 +2,8 @@
 and checks them against what the `ufops` CLI reported.
 
 usage: check_store.py DATA_DIR EXPECTED.json
-EXPECTED.json: {"version": N, "labels_path": "...", "episodes": [ufops episodes --version N --json]}
+EXPECTED.json: {"version": N, "versions": [ufops versions --json],
+                "episodes": [ufops episodes --version N --json]}
 """
 import json
 import os
@@ -11,14 +12,43 @@ import sys
 import pyarrow.parquet as pq
 
 
+def labels_files(versions, n):
+    """The labels files of version n, in the order to apply them (store/README.md, "Label files"):
+    back from n to a full file (or a version's checkpoint), then forward."""
+    chain = []
+    for v in sorted(versions, key=lambda v: -v["version"]):
+        if v["version"] > n:
+            continue
+        if v.get("labels_checkpoint"):
+            chain.append(v["labels_checkpoint"])
+            break
+        chain.append(v["labels_path"])
+        if v["labels_kind"] == "full":
+            break
+    return chain[::-1]
+
+
+def read_labels(objects, files):
+    rows = {}
+    for f in files:
+        for r in pq.read_table(os.path.join(objects, f)).to_pylist():
+            if r.get("removed"):
+                rows.pop(r["episode_id"], None)
+            else:
+                rows[r["episode_id"]] = r
+    return list(rows.values())
+
+
 def main():
     data_dir, expected_path = sys.argv[1], sys.argv[2]
     objects = os.path.join(data_dir, "objects")
     expected = json.load(open(expected_path))
     episodes = {e["id"]: e for e in expected["episodes"]}
 
-    # The version's label snapshot lists every episode with its label and where its steps are.
-    labels = pq.read_table(os.path.join(objects, expected["labels_path"])).to_pylist()
+    # The version's labels files list every episode with its label and where its steps are.
+    files = labels_files(expected["versions"], expected["version"])
+    assert len(files) >= 2, f"a chain of deltas was expected here, got {files}"
+    labels = read_labels(objects, files)
     assert len(labels) == len(episodes), (len(labels), len(episodes))
     for row in labels:
         e = episodes[row["episode_id"]]
@@ -47,8 +77,14 @@ def main():
         n = duckdb.sql(f"SELECT count(*) FROM read_parquet('{glob}')").fetchall()[0][0]
         total = sum(e["length"] for e in episodes.values())
         assert n >= total, (n, total)
-        lbl = os.path.join(objects, expected["labels_path"])
-        s = duckdb.sql(f"SELECT count(*) FROM read_parquet('{lbl}') WHERE label = 'success'").fetchall()[0][0]
+        paths = [os.path.join(objects, f) for f in files]
+        s = duckdb.sql(
+            "SELECT count(*) FROM (SELECT label, removed, row_number() OVER (PARTITION BY episode_id "
+            "ORDER BY list_position($paths, filename) DESC) AS newest "
+            "FROM read_parquet($paths, filename = true, union_by_name = true)) "
+            "WHERE newest = 1 AND NOT coalesce(removed, false) AND label = 'success'",
+            params={"paths": paths},
+        ).fetchall()[0][0]
         assert s == sum(1 for e in episodes.values() if e["label"] == "success")
         print(f"duckdb: {n} step rows, {s} successes")
     try:
@@ -56,7 +92,15 @@ def main():
     except ImportError:
         pl = None
     if pl is not None:
-        df = pl.read_parquet(os.path.join(objects, expected["labels_path"]))
+        df = (
+            pl.concat(
+                [pl.read_parquet(os.path.join(objects, f)).with_columns(pl.lit(i).alias("file")) for i, f in enumerate(files)],
+                how="diagonal",
+            )
+            .sort("file")
+            .unique(subset="episode_id", keep="last")
+            .filter(~pl.col("removed").fill_null(False))
+        )
         assert df.height == len(episodes)
         print(f"polars: {df.height} label rows")
 
