@@ -11,7 +11,8 @@
 //! `cargo bench -p api --bench catalog_scale [-- --episodes 1000000 --requests 200 --no-sqlite --no-postgres]`
 //!
 //! The filled SQLite catalog is cached under `<target>/catalog_scale/` between runs (delete it to
-//! refill); the Postgres one is filled in a fresh schema every run and dropped at the end.
+//! refill); the Postgres one is filled in a fresh schema every run and dropped at the end (kept
+//! with `CATALOG_SCALE_KEEP_SCHEMA=1`).
 
 use serde_json::Value;
 use std::path::PathBuf;
@@ -24,7 +25,7 @@ const POLICIES: usize = 4;
 const CHECKPOINTS: usize = 5;
 const PER_SOURCE: usize = 1000;
 /// Bump when the fill changes: the cached SQLite catalog is refilled.
-const FILL_FORMAT: u32 = 2;
+const FILL_FORMAT: u32 = 3;
 
 struct Runner;
 impl api::JobRunner for Runner {
@@ -95,12 +96,12 @@ fn fill_sql(backend: Backend, sources: usize) -> Vec<String> {
     v.push(format!(
         "{gen}INSERT INTO episodes (id, policy, checkpoint, task, source_sha256, source_name, source_index, length, \
          tags, metadata, data_file, row_group, row_offset, row_count, version_added, label, label_source, label_revision, \
-         label_actor, label_updated_at, created_at) \
+         label_frozen_revision, label_actor, label_updated_at, created_at) \
          SELECT substr(sha256, 1, 12) || '-' || {pad}, 'policy-' || (c / 5), 'ckpt-' || (c % 5), 'task-' || (i % 4), \
          sha256, 'demo_' || i, i, 100, '[]', '{{}}', 'steps/catalog-scale.parquet', 0, 0, 100, 1, \
          CASE WHEN h % 100 < c * 5 THEN (CASE WHEN (h / 100) % 100 < 60 THEN 'success' ELSE 'failure' END) ELSE 'unknown' END, \
          CASE WHEN h % 100 < c * 5 THEN (CASE WHEN (h / 10000) % 10 = 0 THEN 'human' ELSE 'sim' END) ELSE '' END, \
-         1, 'ingest', '{now}', '{now}' FROM g"
+         1, 1, 'ingest', '{now}', '{now}' FROM g"
     ));
     v.push(
         "INSERT INTO label_events (episode_id, revision, old_label, new_label, source, actor, note, created_at) \
@@ -108,14 +109,20 @@ fn fill_sql(backend: Backend, sources: usize) -> Vec<String> {
             .into(),
     );
     v.push(
-        "INSERT INTO version_labels (version, episode_id, label, label_source, revision) \
-         SELECT 1, id, label, label_source, 1 FROM episodes"
+        "INSERT INTO version_labels (episode_id, version_from, label, label_source, revision) \
+         SELECT id, 1, label, label_source, 1 FROM episodes"
             .into(),
     );
     v.push(
-        "INSERT INTO version_counts (version, policy, checkpoint, task, label, n) \
+        "INSERT INTO version_counts (version_from, policy, checkpoint, task, label, n) \
          SELECT 1, policy, checkpoint, COALESCE(task, ''), label, COUNT(*) FROM episodes \
          GROUP BY policy, checkpoint, COALESCE(task, ''), label"
+            .into(),
+    );
+    v.push(
+        "INSERT INTO version_run_counts (version_from, policy, checkpoint, task, run_id, label, n) \
+         SELECT 1, policy, checkpoint, COALESCE(task, ''), COALESCE(run_id, ''), label, COUNT(*) FROM episodes \
+         GROUP BY policy, checkpoint, COALESCE(task, ''), COALESCE(run_id, ''), label"
             .into(),
     );
     v.push(format!(
@@ -437,13 +444,106 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
         what: "reference: review first page by a sort of the policy's episodes, no HTTP".into(),
         ms: sorted,
     });
+    stats.extend(version_cost(&store, &reference_pool).await);
     server.shutdown().await.unwrap();
-    if let Some(schema) = schema {
+    if std::env::var_os("CATALOG_SCALE_KEEP_SCHEMA").is_some() {
+        // For a look at the plans afterwards (psql, `SET search_path`).
+        println!("  kept the Postgres schema {schema:?}");
+    } else if let Some(schema) = schema {
         use sqlx::{Connection, Executor};
         let mut conn = sqlx::AnyConnection::connect(&store::test_postgres_base()).await.unwrap();
         conn.execute(format!("DROP SCHEMA {schema} CASCADE").as_str()).await.unwrap();
     }
     stats
+}
+
+/// Catalog rows version `v` wrote to the tables a version writes: spans opened and closed (labels,
+/// counts, run counts), episodes whose frozen revision moved, and its version and file rows.
+async fn rows_written(pool: &sqlx::AnyPool, v: i64) -> i64 {
+    let mut n = 2; // its row in `versions` and its labels file's in `data_files`
+    for table in ["version_labels", "version_counts", "version_run_counts"] {
+        let q = format!("SELECT COUNT(*) AS n FROM {table} WHERE version_from = $1 OR version_to = $1");
+        let r = sqlx::query(&q).bind(v).fetch_one(pool).await.unwrap();
+        n += sqlx::Row::try_get::<i64, _>(&r, "n").unwrap();
+    }
+    // One episode row per label span opened (its frozen revision).
+    let r = sqlx::query("SELECT COUNT(*) AS n FROM version_labels WHERE version_from = $1")
+        .bind(v)
+        .fetch_one(pool)
+        .await
+        .unwrap();
+    n + sqlx::Row::try_get::<i64, _>(&r, "n").unwrap()
+}
+
+/// What a version costs at this size (issue 31): a label snapshot after 100 label changes and an
+/// ingest of 10 episodes, timed whole (the catalog transaction and its small labels file), with
+/// the catalog rows each wrote counted. The reference in the same run: the copy of every visible
+/// episode's label that each version made before (an `INSERT … SELECT` into a scratch table).
+async fn version_cost(store: &Store, pool: &sqlx::AnyPool) -> Vec<Stat> {
+    let (mut snap, mut ingest, mut copy) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut snap_rows, mut ingest_rows) = (Vec::new(), Vec::new());
+    let unknown = store
+        .episodes(&store::EpisodeFilter {
+            label: Some(store::Label::Unknown),
+            limit: Some(1000),
+            ..Default::default()
+        })
+        .await
+        .unwrap();
+    for round in 0..5 {
+        let updates = unknown[round * 100..(round + 1) * 100]
+            .iter()
+            .map(|e| store::LabelUpdate {
+                episode_id: e.id.clone(),
+                label: store::Label::Success,
+                expect_revision: None,
+                note: None,
+            })
+            .collect();
+        store.set_labels(updates, "bench", "human").await.unwrap();
+        let t = Instant::now();
+        let v = store.snapshot_labels("bench", "100 labels").await.unwrap().version;
+        snap.push(t.elapsed().as_secs_f64() * 1e3);
+        snap_rows.push(rows_written(pool, v).await);
+
+        let mut w = store
+            .begin_ingest(
+                store::test_support::source(&format!("version-cost-{}", uuid::Uuid::new_v4())),
+                "policy-0",
+                "ckpt-0",
+            )
+            .await
+            .unwrap();
+        for i in 0..10 {
+            w.add_episode(store::test_support::two_step_episode(i, Some("task-0"), store::Label::Unknown))
+                .await
+                .unwrap();
+        }
+        let t = Instant::now();
+        let v = w.commit("10 episodes").await.unwrap().version;
+        ingest.push(t.elapsed().as_secs_f64() * 1e3);
+        ingest_rows.push(rows_written(pool, v).await);
+
+        use sqlx::Executor;
+        let mut tx = pool.begin().await.unwrap();
+        (&mut *tx).execute("CREATE TEMPORARY TABLE copy_reference (version BIGINT, episode_id TEXT, label TEXT, label_source TEXT, revision BIGINT)").await.unwrap();
+        let t = Instant::now();
+        (&mut *tx)
+            .execute("INSERT INTO copy_reference SELECT 0, id, label, label_source, label_revision FROM episodes WHERE version_removed IS NULL")
+            .await
+            .unwrap();
+        copy.push(t.elapsed().as_secs_f64() * 1e3);
+        tx.rollback().await.unwrap();
+    }
+    println!("  catalog rows written per label snapshot of 100 changes: {snap_rows:?}; per ingest of 10 episodes: {ingest_rows:?}");
+    vec![
+        Stat { what: "version: label snapshot of 100 changes (whole call), no HTTP".into(), ms: snap },
+        Stat { what: "version: ingest commit of 10 episodes (whole call), no HTTP".into(), ms: ingest },
+        Stat {
+            what: "reference: copying every visible label once (the old per-version cost), no HTTP".into(),
+            ms: copy,
+        },
+    ]
 }
 
 fn main() {

@@ -6,7 +6,6 @@ use crate::counts::CountDeltas;
 use crate::events::{EventKind, NewEvent};
 use crate::version::{
     finish_version, next_version, unfrozen_episodes, write_labels_file_ahead, LabelsFileAhead, VersionHead,
-    UNFROZEN,
 };
 use crate::{now_rfc3339, Backend, CommitInfo, Label, Store, StoreError};
 use serde::Serialize;
@@ -232,9 +231,9 @@ impl Store {
     /// Whether any label changed since the head version froze them (one probe of the index of
     /// unfrozen episodes).
     pub async fn labels_changed_since_head(&self) -> Result<bool, StoreError> {
+        let (from, unfrozen) = unfrozen_episodes(self.backend() == Backend::Sqlite);
         let row = sqlx::query(&format!(
-            "SELECT COUNT(*) AS n FROM (SELECT e.id FROM {} WHERE {UNFROZEN} LIMIT 1) x",
-            unfrozen_episodes(self.backend() == Backend::Sqlite)
+            "SELECT COUNT(*) AS n FROM (SELECT e.id FROM {from} WHERE {unfrozen} LIMIT 1) x"
         ))
         .fetch_one(&self.db().pool)
         .await?;

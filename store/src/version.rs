@@ -88,20 +88,21 @@ pub(crate) fn covers(alias: &str, p: &str) -> String {
     format!("{a}version_from <= {p} AND ({a}version_to IS NULL OR {a}version_to > {p})")
 }
 
-/// The visible episodes whose label the head has not frozen: added since, or relabeled. The
-/// condition is the partial index `episodes_labels_unfrozen`'s, word for word, so both backends
-/// read only those rows.
-pub(crate) const UNFROZEN: &str = "e.version_removed IS NULL AND (e.label_frozen_revision IS NULL OR \
-     e.label_frozen_revision <> e.label_revision)";
-
-/// `episodes e`, read through the index of [`UNFROZEN`] episodes. SQLite's planner, without
-/// statistics, would rather scan the table in id order: told the index, it reads only them (and
-/// fails loudly if the index could not serve the condition).
-pub(crate) fn unfrozen_episodes(sqlite: bool) -> &'static str {
+/// The visible episodes whose label the head has not frozen (added since, or relabeled), as
+/// `FROM` and `WHERE` parts that read them through the partial index `episodes_labels_unfrozen`.
+/// SQLite's planner, without statistics, would rather scan the table in id order: told the
+/// index (whose condition is this one word for word), it reads only them, and fails loudly if
+/// the index could not serve. Postgres keeps the condition as a generated column with statistics
+/// of its own (migration 0019).
+pub(crate) fn unfrozen_episodes(sqlite: bool) -> (&'static str, &'static str) {
     if sqlite {
-        "episodes e INDEXED BY episodes_labels_unfrozen"
+        (
+            "episodes e INDEXED BY episodes_labels_unfrozen",
+            "e.version_removed IS NULL AND (e.label_frozen_revision IS NULL OR \
+             e.label_frozen_revision <> e.label_revision)",
+        )
     } else {
-        "episodes e"
+        ("episodes e", "e.label_unfrozen")
     }
 }
 
@@ -118,11 +119,11 @@ struct VersionChanges {
 async fn read_changes(tx: &mut Tx, v: i64) -> Result<VersionChanges, StoreError> {
     // Read once: on Postgres label writes go on beside this transaction, and every later step
     // works from these rows, not from what the episodes hold by then.
+    let (from, unfrozen) = unfrozen_episodes(tx.backend_name().eq_ignore_ascii_case("sqlite"));
     let rows = sqlx::query(&format!(
-        "SELECT {}, s.label AS old_label FROM {} \
-         LEFT JOIN version_labels s ON s.episode_id = e.id AND s.version_to IS NULL WHERE {UNFROZEN} ORDER BY e.id",
+        "SELECT {}, s.label AS old_label FROM {from} \
+         LEFT JOIN version_labels s ON s.episode_id = e.id AND s.version_to IS NULL WHERE {unfrozen} ORDER BY e.id",
         label_cols("e", "label_revision"),
-        unfrozen_episodes(tx.backend_name().eq_ignore_ascii_case("sqlite"))
     ))
     .fetch_all(&mut **tx)
     .await?;
