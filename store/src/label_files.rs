@@ -9,7 +9,7 @@
 
 use crate::catalog::{RowExt, Tx};
 use crate::steps::{self, LabelRow, LabelsKind};
-use crate::version::covers;
+use crate::version::{covers, label_cols, label_row};
 use crate::{Store, StoreError};
 use bytes::Bytes;
 use std::collections::BTreeMap;
@@ -131,32 +131,14 @@ pub(crate) async fn checkpoint_if_due(store: &Store, v: i64) -> Result<bool, Sto
 /// Writes and attaches version `v`'s full labels file (false if another writer attached one).
 pub(crate) async fn write_checkpoint(store: &Store, v: i64) -> Result<bool, StoreError> {
     let rows = sqlx::query(&format!(
-        "SELECT e.id, e.policy, e.checkpoint, e.task, e.length, l.label, l.label_source, l.revision, e.data_file, \
-         e.row_group, COALESCE(e.row_offset, 0) AS row_offset, COALESCE(e.row_count, e.length) AS row_count \
-         FROM version_labels l JOIN episodes e ON e.id = l.episode_id WHERE {} ORDER BY e.id",
+        "SELECT {} FROM version_labels l JOIN episodes e ON e.id = l.episode_id WHERE {} ORDER BY e.id",
+        label_cols("l", "revision"),
         covers("l", "$1")
     ))
     .bind(v)
     .fetch_all(&store.db().pool)
     .await?;
-    let mut labels = Vec::with_capacity(rows.len());
-    for r in &rows {
-        labels.push(LabelRow {
-            episode_id: r.s("id")?,
-            policy: r.s("policy")?,
-            checkpoint: r.s("checkpoint")?,
-            task: r.os("task")?,
-            length: r.i("length")?,
-            label: r.s("label")?.parse()?,
-            label_source: r.s("label_source")?,
-            revision: r.i("revision")?,
-            data_file: r.s("data_file")?,
-            row_group: r.i("row_group")?,
-            row_offset: r.i("row_offset")?,
-            row_count: r.i("row_count")?,
-            removed: false,
-        });
-    }
+    let labels = rows.iter().map(|r| label_row(r, false)).collect::<Result<Vec<_>, _>>()?;
     drop(rows);
     let data = steps::labels_file(v, LabelsKind::Full, &labels)?;
     let path = format!("labels/{}.parquet", uuid::Uuid::new_v4());

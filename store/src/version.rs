@@ -54,7 +54,7 @@ pub(crate) struct VersionHead {
 }
 
 /// One row of a labels file, from a query selecting the columns of [`label_cols`].
-fn label_row(r: &sqlx::any::AnyRow, removed: bool) -> Result<steps::LabelRow, StoreError> {
+pub(crate) fn label_row(r: &sqlx::any::AnyRow, removed: bool) -> Result<steps::LabelRow, StoreError> {
     Ok(steps::LabelRow {
         episode_id: r.s("id")?,
         policy: r.s("policy")?,
@@ -73,7 +73,7 @@ fn label_row(r: &sqlx::any::AnyRow, removed: bool) -> Result<steps::LabelRow, St
 }
 
 /// The columns [`label_row`] reads, the label ones from table alias `l` (`e` is the episode).
-fn label_cols(l: &str, revision: &str) -> String {
+pub(crate) fn label_cols(l: &str, revision: &str) -> String {
     format!(
         "e.id, e.policy, e.checkpoint, e.task, e.length, {l}.label AS label, {l}.label_source AS label_source, \
          {l}.{revision} AS revision, e.run_id, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
