@@ -475,7 +475,7 @@ async fn rows_written(pool: &sqlx::AnyPool, v: i64) -> i64 {
     n + sqlx::Row::try_get::<i64, _>(&r, "n").unwrap()
 }
 
-/// What a version costs at this size (issue 31): a label snapshot after 100 label changes and an
+/// What a version costs at this size: a label snapshot after 100 label changes and an
 /// ingest of 10 episodes, timed whole (the catalog transaction and its small labels file), with
 /// the catalog rows each wrote counted. The reference in the same run: the copy of every visible
 /// episode's label that each version made before (an `INSERT … SELECT` into a scratch table).

@@ -1,4 +1,4 @@
--- Versions cost what they change (issue 31). Until now every version copied every visible
+-- Versions cost what they change. Until now every version copied every visible
 -- episode's label into `version_labels`, and its counts into `version_counts` and
 -- `version_run_counts`: a label snapshot of 10 changes in a 10^6-episode store wrote 10^6 rows.
 -- Now a row holds for a span of versions, [version_from, version_to), and version_to is NULL while

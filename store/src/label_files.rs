@@ -9,9 +9,8 @@
 
 use crate::catalog::{RowExt, Tx};
 use crate::steps::{self, LabelRow, LabelsKind};
-use crate::version::{covers, label_cols, label_row};
+use crate::version::{covers, label_cols, label_row, put_pending_labels_file};
 use crate::{Store, StoreError};
-use bytes::Bytes;
 use std::collections::BTreeMap;
 
 /// A checkpoint is due once this many delta files follow the last full one...
@@ -140,13 +139,7 @@ pub(crate) async fn write_checkpoint(store: &Store, v: i64) -> Result<bool, Stor
     .await?;
     let labels = rows.iter().map(|r| label_row(r, false)).collect::<Result<Vec<_>, _>>()?;
     drop(rows);
-    let data = steps::labels_file(v, LabelsKind::Full, &labels)?;
-    let path = format!("labels/{}.parquet", uuid::Uuid::new_v4());
-    let writer = format!("labels-{}", uuid::Uuid::new_v4().simple());
-    store.register_pending(&writer, &path).await?;
-    let size = data.len() as i64;
-    store.objects().put_new(&path, Bytes::from(data)).await?;
-    store.renew_pending(&writer).await?;
+    let (path, size, writer) = put_pending_labels_file(store, v, LabelsKind::Full, &labels).await?;
     let mut tx = store.db().begin_version_write().await?;
     let attached = attach(&mut tx, v, &writer, &path, size, labels.len() as i64).await?;
     // Attached or not, the file is no longer pending: referenced now, or garbage for gc.

@@ -336,7 +336,19 @@ pub(crate) async fn write_labels_file_ahead(store: &Store) -> Result<LabelsFileA
     let before = episodes_before(&mut tx, version).await?;
     tx.rollback().await?;
     let (kind, rows) = file_rows(&changes, before);
-    let data = steps::labels_file(version, kind, &rows)?;
+    let (path, size, writer) = put_pending_labels_file(store, version, kind, &rows).await?;
+    Ok(LabelsFileAhead { version, kind, rows, path, size, writer })
+}
+
+/// Writes a labels file outside the version lock, recorded as pending (gc keeps it) under a
+/// writer of its own until a transaction references it: its path, size and writer.
+pub(crate) async fn put_pending_labels_file(
+    store: &Store,
+    v: i64,
+    kind: LabelsKind,
+    rows: &[steps::LabelRow],
+) -> Result<(String, i64, String), StoreError> {
+    let data = steps::labels_file(v, kind, rows)?;
     let path = format!("labels/{}.parquet", uuid::Uuid::new_v4());
     let writer = format!("labels-{}", uuid::Uuid::new_v4().simple());
     store.register_pending(&writer, &path).await?;
@@ -344,7 +356,7 @@ pub(crate) async fn write_labels_file_ahead(store: &Store) -> Result<LabelsFileA
     store.objects().put_new(&path, Bytes::from(data)).await?;
     // The upload may have outlasted the lease: renewed, it holds until the commit checks it.
     store.renew_pending(&writer).await?;
-    Ok(LabelsFileAhead { version, kind, rows, path, size, writer })
+    Ok((path, size, writer))
 }
 
 /// The labels file of version `v`: the one written ahead if it holds exactly these rows and its
