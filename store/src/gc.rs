@@ -258,6 +258,27 @@ impl Store {
         Ok(())
     }
 
+    /// Forgets a writer's pending records inside `tx`, which holds the version lock and is about
+    /// to reference `path` (or leave it to gc): true if `path`'s record was still within its
+    /// lease, so no gc can have deleted the object (gc deletes under that lock, and only objects
+    /// whose lease had lapsed).
+    pub(crate) async fn release_pending(
+        tx: &mut crate::catalog::Tx,
+        writer: &str,
+        path: &str,
+    ) -> Result<bool, StoreError> {
+        let rows = sqlx::query("DELETE FROM pending_objects WHERE writer = $1 RETURNING path, created_ms")
+            .bind(writer)
+            .fetch_all(&mut **tx)
+            .await?;
+        let since = crate::now_ms() - writer_lease_ms();
+        let mut live = false;
+        for r in &rows {
+            live |= r.s("path")? == path && r.i("created_ms")? >= since;
+        }
+        Ok(live)
+    }
+
     /// Forgets a writer's pending records outside a commit (after a publish, or an abort).
     pub(crate) async fn clear_pending(&self, writer: &str) -> Result<(), StoreError> {
         sqlx::query("DELETE FROM pending_objects WHERE writer = $1")

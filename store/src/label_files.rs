@@ -141,36 +141,14 @@ pub(crate) async fn write_checkpoint(store: &Store, v: i64) -> Result<bool, Stor
     drop(rows);
     let (path, size, writer) = put_pending_labels_file(store, v, LabelsKind::Full, &labels).await?;
     let mut tx = store.db().begin_version_write().await?;
-    let attached = attach(&mut tx, v, &writer, &path, size, labels.len() as i64).await?;
     // Attached or not, the file is no longer pending: referenced now, or garbage for gc.
-    sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(&writer).execute(&mut *tx).await?;
+    let live = Store::release_pending(&mut tx, &writer, &path).await?;
+    let attached = live && attach(&mut tx, v, &path, size, labels.len() as i64).await?;
     tx.commit().await?;
     Ok(attached)
 }
 
-async fn attach(
-    tx: &mut Tx,
-    v: i64,
-    writer: &str,
-    path: &str,
-    size: i64,
-    rows: i64,
-) -> Result<bool, StoreError> {
-    // The pending record must still be within its lease: then no gc can have deleted the file
-    // (gc deletes under the version lock, held here, and only objects whose lease had lapsed).
-    let live = sqlx::query(
-        "SELECT COUNT(*) AS n FROM pending_objects WHERE writer = $1 AND path = $2 AND created_ms >= $3",
-    )
-    .bind(writer)
-    .bind(path)
-    .bind(crate::now_ms() - crate::gc::writer_lease_ms())
-    .fetch_one(&mut **tx)
-    .await?
-    .i("n")?
-        > 0;
-    if !live {
-        return Ok(false);
-    }
+async fn attach(tx: &mut Tx, v: i64, path: &str, size: i64, rows: i64) -> Result<bool, StoreError> {
     let set = sqlx::query(
         "UPDATE versions SET labels_checkpoint = $1 WHERE version = $2 AND labels_checkpoint IS NULL",
     )

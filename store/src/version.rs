@@ -372,16 +372,7 @@ async fn labels_file_for(
 ) -> Result<(String, i64), StoreError> {
     let Some(a) = ahead else { return put_labels_file(store, v, kind, rows).await };
     // Used or not, the early file is no longer pending: referenced now, or garbage for gc.
-    let live = sqlx::query(
-        "DELETE FROM pending_objects WHERE writer = $1 AND path = $2 AND created_ms >= $3 RETURNING path",
-    )
-    .bind(&a.writer)
-    .bind(&a.path)
-    .bind(crate::now_ms() - crate::gc::writer_lease_ms())
-    .fetch_optional(&mut **tx)
-    .await?
-    .is_some();
-    sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(&a.writer).execute(&mut **tx).await?;
+    let live = Store::release_pending(tx, &a.writer, &a.path).await?;
     if live && a.version == v && a.kind == kind && a.rows == rows {
         return Ok((a.path, a.size));
     }
