@@ -316,20 +316,34 @@ impl Store {
             }
             // Otherwise walk the version's labels in episode order (`version_labels`' key). The
             // cursor bounds every joined side: Postgres does not carry an inequality across a
-            // join, and its merge joins would start from the first episode.
+            // join, and its merge joins would start from the first episode. On Postgres the
+            // label's event is a LATERAL lookup instead: joined, its cursor bound counted a
+            // third time in the row estimate, which fell under the page's LIMIT past the middle
+            // of the ids, and the planner hash-joined the rest of the version and sorted it
+            // (0.2-0.4 s a page at a million episodes, against 5 ms).
             Some(v) => {
                 self.version(v).await?;
                 let p = push_arg(args, Val::I(v));
+                let (event, cursor_cols): (&str, &'static [&'static str]) = match self.backend() {
+                    Backend::Sqlite => (
+                        "JOIN label_events ev ON ev.episode_id = l.episode_id AND ev.revision = l.revision",
+                        &["l.episode_id", "e.id", "ev.episode_id"],
+                    ),
+                    Backend::Postgres => (
+                        "CROSS JOIN LATERAL (SELECT x.actor, x.created_at FROM label_events x \
+                         WHERE x.episode_id = l.episode_id AND x.revision = l.revision OFFSET 0) ev",
+                        &["l.episode_id", "e.id"],
+                    ),
+                };
                 LabelSource {
-                    from: String::from(
+                    from: format!(
                         "l.label AS label, l.label_source AS label_source, l.revision AS label_revision, \
                          ev.actor AS label_actor, ev.created_at AS label_updated_at FROM version_labels l \
-                         JOIN episodes e ON e.id = l.episode_id \
-                         JOIN label_events ev ON ev.episode_id = l.episode_id AND ev.revision = l.revision",
+                         JOIN episodes e ON e.id = l.episode_id {event}"
                     ),
                     cond: Some(covers("l", &p)),
                     order_col: "l.episode_id",
-                    cursor_cols: &["l.episode_id", "e.id", "ev.episode_id"],
+                    cursor_cols,
                     label_alias: "l",
                     lateral: false,
                 }
