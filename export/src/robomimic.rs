@@ -1,5 +1,5 @@
-//! robomimic HDF5 files in robomimic's documented layout, written with `hdf5-pure` (pure Rust,
-//! no system library; h5py reads its files):
+//! robomimic HDF5 files in robomimic's documented layout, written front to back by
+//! `h5stream` (pure Rust, no system library; h5py and `hdf5-pure` read its files):
 //!
 //! * `data@total` (frames), `data@env_args` (JSON: the source's when it was robomimic), and
 //!   `data@ufops` (JSON: where the export came from);
@@ -15,15 +15,15 @@
 //! * `mask/train`, `mask/valid` from a split's parts, and `mask/<filter>` for the source's own
 //!   filter keys (ingested as tags).
 //!
-//! The file is assembled in memory and written once (hdf5-pure's `FileBuilder`), under a
-//! temporary name renamed at the end: memory is about the file's size.
+//! Each demo's datasets are written as soon as its steps are read, under a temporary name
+//! renamed at the end: memory holds one demo (its steps, decoded frames and `next_obs`) and
+//! the names of the demos, never the file.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 use arrow::array::{Array, ArrayRef, AsArray, RecordBatch};
 use arrow::datatypes::{DataType, Float32Type, Float64Type, UInt8Type};
-use hdf5_pure::{AttrValue, FileBuilder, GroupBuilder};
 use serde_json::Value;
 use store::steps::{EXTRA_PREFIX, IMAGE_PREFIX, OBS_PREFIX};
 use store::{EpisodeRecord, Store};
@@ -32,9 +32,34 @@ use crate::cameras::{png_frames, Frames, VideoDecoder};
 use crate::{
     count_label, disk_size, EpisodeReader, ExportError, ExportReport, Progress, Result, Selected, Staged,
 };
+use h5stream::{Attr, Element, Group, Writer};
 
 fn bad(e: &EpisodeRecord, what: impl std::fmt::Display) -> ExportError {
     ExportError::invalid(format!("episode {}: {what}", e.id))
+}
+
+/// The file being written and its final name (for errors).
+struct Out<'a> {
+    w: Writer,
+    path: &'a Path,
+}
+
+impl Out<'_> {
+    /// Writes a dataset and links it into `g` as `name`.
+    fn dataset<T: Element>(&mut self, g: &mut Group, name: &str, shape: &[u64], values: &[T]) -> Result<()> {
+        let at = self
+            .w
+            .dataset(shape, values)
+            .map_err(|err| ExportError::write(self.path, format!("{name}: {err}")))?;
+        g.link(name, at);
+        Ok(())
+    }
+    /// Writes a finished group and links it into `parent` as `name`.
+    fn group(&mut self, parent: &mut Group, name: &str, g: Group) -> Result<()> {
+        let at = self.w.group(g).map_err(|err| ExportError::write(self.path, format!("{name}: {err}")))?;
+        parent.link(name, at);
+        Ok(())
+    }
 }
 
 /// A float32 fixed-size-list column as (dim, values of its rows).
@@ -117,24 +142,21 @@ fn next_obs(obs: &Obs, kept: Option<&ArrayRef>, t: usize) -> Obs {
 
 /// Writes an observation; float ones as float64 when the source's were (`wide`: the widened
 /// float32 values), else float32.
-fn put_obs(g: &mut GroupBuilder, key: &str, o: &Obs, t: usize, wide: bool) {
+fn put_obs(out: &mut Out, g: &mut Group, key: &str, o: &Obs, t: usize, wide: bool) -> Result<()> {
     match o {
         Obs::F32 { dim, values } if wide => {
             let v: Vec<f64> = values.iter().map(|&x| x as f64).collect();
-            g.create_dataset(key).with_f64_data(&v).with_shape(&dims(t, &[*dim]));
+            out.dataset(g, key, &dims(t, &[*dim]), &v)
         }
-        Obs::F32 { dim, values } => {
-            g.create_dataset(key).with_f32_data(values).with_shape(&dims(t, &[*dim]));
-        }
-        Obs::U8 { shape, values } => {
-            g.create_dataset(key).with_u8_data(values).with_shape(&dims(t, shape));
-        }
+        Obs::F32 { dim, values } => out.dataset(g, key, &dims(t, &[*dim]), values),
+        Obs::U8 { shape, values } => out.dataset(g, key, &dims(t, shape), values),
     }
 }
 
 /// An extra column back as a dataset in its source dtype and shape.
 fn put_extra(
-    g: &mut GroupBuilder,
+    out: &mut Out,
+    g: &mut Group,
     e: &EpisodeRecord,
     name: &str,
     col: &ArrayRef,
@@ -152,52 +174,47 @@ fn put_extra(
     let dtype = meta.get("ufops.dtype").map(String::as_str).unwrap_or("");
     match l.value_type() {
         DataType::UInt8 => {
-            g.create_dataset(name)
-                .with_u8_data(&l.values().as_primitive::<UInt8Type>().values()[a..b])
-                .with_shape(&shape);
+            out.dataset(g, name, &shape, &l.values().as_primitive::<UInt8Type>().values()[a..b])
         }
         DataType::Float32 => {
-            g.create_dataset(name)
-                .with_f32_data(&l.values().as_primitive::<Float32Type>().values()[a..b])
-                .with_shape(&shape);
+            out.dataset(g, name, &shape, &l.values().as_primitive::<Float32Type>().values()[a..b])
         }
         DataType::Float64 => {
             let v = &l.values().as_primitive::<Float64Type>().values()[a..b];
             // Integers were kept as float64 (exact): write them back as integers.
             if dtype.starts_with("int") || dtype.starts_with("uint") || dtype == "bool" {
                 let ints: Vec<i64> = v.iter().map(|&x| x as i64).collect();
-                g.create_dataset(name).with_i64_data(&ints).with_shape(&shape);
+                out.dataset(g, name, &shape, &ints)
             } else {
-                g.create_dataset(name).with_f64_data(v).with_shape(&shape);
+                out.dataset(g, name, &shape, v)
             }
         }
-        other => return Err(bad(e, format!("extra column {name} holds {other}, not numbers"))),
+        other => Err(bad(e, format!("extra column {name} holds {other}, not numbers"))),
     }
-    Ok(())
 }
 
-/// Builds one `demo_<i>` group from an episode's steps and its video cameras' frames.
+/// Writes one demo's datasets from an episode's steps and its video cameras' frames, and
+/// returns its group (attributes set) for the caller to complete and write.
 fn demo_group(
-    fb: &mut FileBuilder,
-    name: &str,
+    out: &mut Out,
     e: &EpisodeRecord,
     steps: &RecordBatch,
     videos: BTreeMap<String, Frames>,
     robomimic_source: bool,
-) -> Result<GroupBuilder> {
-    let mut g = fb.create_group(name);
-    put_observations(&mut g, e, steps, videos)?;
-    put_step_datasets(&mut g, e, steps)?;
-    let mut attrs = put_extras(&mut g, e, steps)?;
+) -> Result<Group> {
+    let mut g = Group::default();
+    put_observations(out, &mut g, e, steps, videos)?;
+    put_step_datasets(out, &mut g, e, steps)?;
+    let mut attrs = put_extras(out, &mut g, e, steps)?;
     // The source's demo attributes (robomimic sources keep them as episode metadata).
     if robomimic_source {
         add_source_attrs(&mut attrs, e);
     }
     if let Some(s) = e.label.as_bool() {
-        attrs.insert("success".into(), AttrValue::I64(s as i64));
+        attrs.insert("success".into(), Attr::I64(s as i64));
     }
     for (k, v) in attrs {
-        g.set_attr(&k, v);
+        g.attr(&k, v);
     }
     Ok(g)
 }
@@ -205,7 +222,8 @@ fn demo_group(
 /// `obs/<key>` and `next_obs/<key>` of every observation, image column (decoded from PNG) and
 /// video camera (`videos`: decoded by the caller), float64 where the source's were.
 fn put_observations(
-    g: &mut GroupBuilder,
+    out: &mut Out,
+    g: &mut Group,
     e: &EpisodeRecord,
     steps: &RecordBatch,
     videos: BTreeMap<String, Frames>,
@@ -224,8 +242,8 @@ fn put_observations(
         }
     }
     obs.extend(videos.into_iter().map(|(k, f)| (k, f.into())));
-    let mut obs_g = g.create_group("obs");
-    let mut next_g = g.create_group("next_obs");
+    let mut obs_g = Group::default();
+    let mut next_g = Group::default();
     for (key, o) in obs {
         // The source's dtype is recorded on the kept `next_obs` column (robomimic writes obs and
         // next_obs alike).
@@ -234,40 +252,39 @@ fn put_observations(
         let wide = schema
             .field_with_name(&kept_name)
             .is_ok_and(|f| f.metadata().get("ufops.dtype").is_some_and(|d| d == "float64"));
-        put_obs(&mut obs_g, &key, &o, t, wide);
-        put_obs(&mut next_g, &key, &next_obs(&o, kept, t), t, wide);
+        put_obs(out, &mut obs_g, &key, &o, t, wide)?;
+        put_obs(out, &mut next_g, &key, &next_obs(&o, kept, t), t, wide)?;
     }
-    g.add_group(obs_g.finish());
-    g.add_group(next_g.finish());
-    Ok(())
+    out.group(g, "obs", obs_g)?;
+    out.group(g, "next_obs", next_g)
 }
 
 /// `actions` (float32), `rewards` (float64), `dones` (uint8) and, when the steps have them,
 /// human takeovers as `intervention` (uint8).
-fn put_step_datasets(g: &mut GroupBuilder, e: &EpisodeRecord, steps: &RecordBatch) -> Result<()> {
+fn put_step_datasets(out: &mut Out, g: &mut Group, e: &EpisodeRecord, steps: &RecordBatch) -> Result<()> {
     let t = steps.num_rows();
     let actions = steps
         .column_by_name("action")
         .ok_or_else(|| bad(e, "has no actions: robomimic needs one per step"))?;
     let (adim, avals) = f32_rows(actions).ok_or_else(|| bad(e, "action is not a float32 list column"))?;
-    g.create_dataset("actions").with_f32_data(&avals).with_shape(&dims(t, &[adim]));
+    out.dataset(g, "actions", &dims(t, &[adim]), &avals)?;
     let reward = steps
         .column_by_name("reward")
         .and_then(|c| c.as_primitive_opt::<Float32Type>().cloned())
         .ok_or_else(|| bad(e, "no reward column"))?;
     let rewards: Vec<f64> = reward.values().iter().map(|&r| r as f64).collect();
-    g.create_dataset("rewards").with_f64_data(&rewards);
+    out.dataset(g, "rewards", &[t as u64], &rewards)?;
     let done = steps
         .column_by_name("done")
         .and_then(|c| c.as_boolean_opt().cloned())
         .ok_or_else(|| bad(e, "no done column"))?;
     let dones: Vec<u8> = done.iter().map(|d| (d == Some(true)) as u8).collect();
-    g.create_dataset("dones").with_u8_data(&dones);
+    out.dataset(g, "dones", &[t as u64], &dones)?;
     // Human takeovers, where ingest reads them back (a demo's `intervention` dataset).
     if let Some(c) = steps.column_by_name(store::steps::INTERVENTION_COLUMN) {
         let flags = c.as_boolean_opt().ok_or_else(|| bad(e, "intervention is not a boolean column"))?;
         let flags: Vec<u8> = flags.iter().map(|d| (d == Some(true)) as u8).collect();
-        g.create_dataset(store::steps::INTERVENTION_COLUMN).with_u8_data(&flags);
+        out.dataset(g, store::steps::INTERVENTION_COLUMN, &[t as u64], &flags)?;
     }
     Ok(())
 }
@@ -275,14 +292,15 @@ fn put_step_datasets(g: &mut GroupBuilder, e: &EpisodeRecord, steps: &RecordBatc
 /// The extra columns ingest kept: per-step arrays back as datasets, `attr/*` as the demo's
 /// attributes (returned with `num_samples`, for the caller to complete and set).
 fn put_extras(
-    g: &mut GroupBuilder,
+    out: &mut Out,
+    g: &mut Group,
     e: &EpisodeRecord,
     steps: &RecordBatch,
-) -> Result<BTreeMap<String, AttrValue>> {
+) -> Result<BTreeMap<String, Attr>> {
     let t = steps.num_rows();
     let schema = steps.schema();
-    let mut attrs: BTreeMap<String, AttrValue> = BTreeMap::new();
-    attrs.insert("num_samples".into(), AttrValue::I64(t as i64));
+    let mut attrs: BTreeMap<String, Attr> = BTreeMap::new();
+    attrs.insert("num_samples".into(), Attr::I64(t as i64));
     for f in schema.fields() {
         let Some(name) = f.name().strip_prefix(EXTRA_PREFIX) else { continue };
         let col = steps.column_by_name(f.name()).expect("field of the batch");
@@ -291,18 +309,18 @@ fn put_extras(
         }
         if let Some(attr) = name.strip_prefix("attr/") {
             if let Some(s) = col.as_string_opt::<i32>().filter(|s| s.is_valid(0)) {
-                attrs.insert(attr.to_string(), AttrValue::VarLenString(s.value(0).to_string()));
+                attrs.insert(attr.to_string(), Attr::Str(s.value(0).to_string()));
             }
             continue;
         }
-        put_extra(g, e, name, col, f.metadata(), t)?;
+        put_extra(out, g, e, name, col, f.metadata(), t)?;
     }
     Ok(attrs)
 }
 
 /// The episode metadata of a robomimic source (its demo's attributes: strings and numbers) that
 /// `attrs` does not hold yet.
-fn add_source_attrs(attrs: &mut BTreeMap<String, AttrValue>, e: &EpisodeRecord) {
+fn add_source_attrs(attrs: &mut BTreeMap<String, Attr>, e: &EpisodeRecord) {
     if let Some(md) = e.metadata.as_object() {
         for (k, v) in md {
             if k == "not_ingested" || k == "success" || attrs.contains_key(k) {
@@ -310,13 +328,13 @@ fn add_source_attrs(attrs: &mut BTreeMap<String, AttrValue>, e: &EpisodeRecord) 
             }
             match v {
                 Value::String(s) => {
-                    attrs.insert(k.clone(), AttrValue::VarLenString(s.clone()));
+                    attrs.insert(k.clone(), Attr::Str(s.clone()));
                 }
                 Value::Number(n) if n.is_i64() => {
-                    attrs.insert(k.clone(), AttrValue::I64(n.as_i64().unwrap_or_default()));
+                    attrs.insert(k.clone(), Attr::I64(n.as_i64().unwrap_or_default()));
                 }
                 Value::Number(n) => {
-                    attrs.insert(k.clone(), AttrValue::F64(n.as_f64().unwrap_or_default()));
+                    attrs.insert(k.clone(), Attr::F64(n.as_f64().unwrap_or_default()));
                 }
                 _ => {}
             }
@@ -352,27 +370,31 @@ fn mask_filters(sources: &HashMap<String, (String, Value)>) -> std::collections:
 }
 
 /// The demo attributes of the selection's curation: verifier score, failure cause, label spans.
-fn set_curation_attrs(g: &mut GroupBuilder, sel: &Selected, e: &EpisodeRecord) {
+fn set_curation_attrs(g: &mut Group, sel: &Selected, e: &EpisodeRecord) {
     if let Some(score) = sel.scores.get(&e.id) {
-        g.set_attr("verifier_score", AttrValue::F64(*score));
+        g.attr("verifier_score", Attr::F64(*score));
     }
     if let Some(c) = crate::failure_cause(sel.label_data.get(&e.id)) {
-        g.set_attr("failure_cause", AttrValue::VarLenString(c));
+        g.attr("failure_cause", Attr::Str(c));
     }
     if let Some(spans) = crate::label_spans(sel.label_data.get(&e.id)) {
-        g.set_attr("label_spans", AttrValue::VarLenString(spans));
+        g.attr("label_spans", Attr::Str(spans));
     }
 }
 
 /// The `mask` group: per mask, the names of its demos (none when there are no masks).
-fn add_masks(fb: &mut FileBuilder, masks: &BTreeMap<String, Vec<String>>, out: &Path) -> Result<()> {
+fn add_masks(out: &mut Out, root: &mut Group, masks: &BTreeMap<String, Vec<String>>) -> Result<()> {
     if !masks.is_empty() {
-        let mut mask = fb.create_group("mask");
+        let mut mask = Group::default();
         for (k, demos) in masks {
             let names: Vec<&str> = demos.iter().map(String::as_str).collect();
-            mask.create_dataset(k).with_ascii_strings(&names).map_err(|err| ExportError::write(out, err))?;
+            let at = out
+                .w
+                .ascii_strings(&names)
+                .map_err(|err| ExportError::write(out.path, format!("mask/{k}: {err}")))?;
+            mask.link(k, at);
         }
-        fb.add_group(mask.finish());
+        out.group(root, "mask", mask)?;
     }
     Ok(())
 }
@@ -391,8 +413,9 @@ pub async fn export(
     let filters = mask_filters(&sources);
     let mut masks: BTreeMap<String, Vec<String>> = BTreeMap::new();
     let mut report = ExportReport::empty(out, "robomimic", sel.version);
-    let mut fb = FileBuilder::new();
-    let mut data = fb.create_group("data");
+    let w = Writer::create(&staged.tmp).map_err(|err| ExportError::io(&staged.tmp, err))?;
+    let mut file = Out { w, path: out };
+    let mut data = Group::default();
     let total = sel.episodes.len();
     let mut decoder = VideoDecoder::default();
     let mut reader = EpisodeReader::new(store, &sel.episodes, &sel.selection.layers, Some(sel.version));
@@ -400,9 +423,9 @@ pub async fn export(
         let name = format!("demo_{i}");
         let robomimic_source = sources.get(&e.source_sha256).is_some_and(|(f, _)| f == "robomimic");
         let videos = decoder.episode(store, e, &steps).await?;
-        let mut g = demo_group(&mut fb, &name, e, &steps, videos, robomimic_source)?;
+        let mut g = demo_group(&mut file, e, &steps, videos, robomimic_source)?;
         set_curation_attrs(&mut g, sel, e);
-        data.add_group(g.finish());
+        file.group(&mut data, &name, g)?;
         for tag in &e.tags {
             if filters.contains(tag) {
                 masks.entry(tag.clone()).or_default().push(name.clone());
@@ -418,13 +441,14 @@ pub async fn export(
             p(i + 1, total);
         }
     }
-    data.set_attr("total", AttrValue::I64(report.frames as i64));
-    data.set_attr("env_args", AttrValue::VarLenString(env_args.to_string()));
-    data.set_attr("ufops", AttrValue::VarLenString(sel.provenance("robomimic").to_string()));
-    fb.add_group(data.finish());
-    add_masks(&mut fb, &masks, out)?;
+    data.attr("total", Attr::I64(report.frames as i64));
+    data.attr("env_args", Attr::Str(env_args.to_string()));
+    data.attr("ufops", Attr::Str(sel.provenance("robomimic").to_string()));
+    let mut root = Group::default();
+    file.group(&mut root, "data", data)?;
+    add_masks(&mut file, &mut root, &masks)?;
     report.warnings.extend(decoder.warnings("robomimic"));
-    fb.write(&staged.tmp).map_err(|err| ExportError::write(out, err))?;
+    file.w.finish(root).map_err(|err| ExportError::write(out, err))?;
     report.episodes = total;
     report.bytes = disk_size(&staged.tmp);
     staged.commit()?;

@@ -18,6 +18,7 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use arrow::array::{ArrayRef, FixedSizeListArray, Float32Array, Float64Array, Int64Array, RecordBatch};
 use arrow::datatypes::{DataType, Field};
+use h5stream::lookup3;
 use serde_json::{json, Value};
 
 /// What a hostile source attacks.
@@ -532,61 +533,6 @@ fn fix_object_header_checksum(bytes: &mut [u8], at: usize) -> Result<()> {
     let sum = lookup3(&bytes[start..end]);
     bytes[end..end + 4].copy_from_slice(&sum.to_le_bytes());
     Ok(())
-}
-
-/// Bob Jenkins' lookup3 `hashlittle` with initval 0: the checksum of HDF5 metadata blocks.
-pub fn lookup3(data: &[u8]) -> u32 {
-    let le = |b: &[u8]| u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-    let mut a = 0xdead_beefu32.wrapping_add(data.len() as u32);
-    let (mut b, mut c) = (a, a);
-    let mut k = data;
-    while k.len() > 12 {
-        a = a.wrapping_add(le(&k[0..4]));
-        b = b.wrapping_add(le(&k[4..8]));
-        c = c.wrapping_add(le(&k[8..12]));
-        a = a.wrapping_sub(c);
-        a ^= c.rotate_left(4);
-        c = c.wrapping_add(b);
-        b = b.wrapping_sub(a);
-        b ^= a.rotate_left(6);
-        a = a.wrapping_add(c);
-        c = c.wrapping_sub(b);
-        c ^= b.rotate_left(8);
-        b = b.wrapping_add(a);
-        a = a.wrapping_sub(c);
-        a ^= c.rotate_left(16);
-        c = c.wrapping_add(b);
-        b = b.wrapping_sub(a);
-        b ^= a.rotate_left(19);
-        a = a.wrapping_add(c);
-        c = c.wrapping_sub(b);
-        c ^= b.rotate_left(4);
-        b = b.wrapping_add(a);
-        k = &k[12..];
-    }
-    if k.is_empty() {
-        return c;
-    }
-    let mut t = [0u8; 12];
-    t[..k.len()].copy_from_slice(k);
-    a = a.wrapping_add(le(&t[0..4]));
-    b = b.wrapping_add(le(&t[4..8]));
-    c = c.wrapping_add(le(&t[8..12]));
-    c ^= b;
-    c = c.wrapping_sub(b.rotate_left(14));
-    a ^= c;
-    a = a.wrapping_sub(c.rotate_left(11));
-    b ^= a;
-    b = b.wrapping_sub(a.rotate_left(25));
-    c ^= b;
-    c = c.wrapping_sub(b.rotate_left(16));
-    a ^= c;
-    a = a.wrapping_sub(c.rotate_left(4));
-    b ^= a;
-    b = b.wrapping_sub(a.rotate_left(14));
-    c ^= b;
-    c = c.wrapping_sub(b.rotate_left(24));
-    c
 }
 
 // --- MCAP built from its record layout ---------------------------------------------------------
