@@ -1,7 +1,8 @@
 //! Export of 5,000 rollouts: `export::lerobot::export` and
 //! `export::robomimic::export` against the Python path a user would write with pyarrow / h5py
 //! (`bench/reference/py_export_store.py`), in the same run, each in its own process (wall time
-//! and peak RSS), medians of `EXPORT_BENCH_RUNS` (default 3).
+//! and peak RSS), medians of `EXPORT_BENCH_RUNS` (default 3). The ufops child runs with the
+//! allocator settings the `ufops` binary sets for itself.
 //!
 //! The store: 5,000 generated Square-like rollouts (obs 23 floats in 4 keys, action 7, 150-400
 //! steps, 1.38 M steps), made once under the target dir and reused.
@@ -98,7 +99,12 @@ async fn main() {
                 let _ = std::fs::remove_dir_all(p);
                 let _ = std::fs::remove_file(p);
             }
+            // The allocator settings the `ufops` binary gives itself (src/main.rs,
+            // `keep_freed_memory_from_piling_up`), so the peak is the one users see.
+            let cores = std::thread::available_parallelism().map_or(2, |n| n.get()).max(2);
             let u = run(Command::new(&exe)
+                .env("MALLOC_ARENA_MAX", cores.to_string())
+                .env("MALLOC_MMAP_THRESHOLD_", (1 << 20).to_string())
                 .env("EXPORT_BENCH_CHILD", format)
                 .env("EXPORT_BENCH_OUT", &a)
                 .env("EXPORT_BENCH_N", n.to_string()));
