@@ -266,6 +266,60 @@ pub fn two_step_episode(i: u32, task: Option<&str>, label: crate::Label) -> crat
     }
 }
 
+/// A global allocator that counts the live heap and its high-water mark, every thread's: a test
+/// binary that checks memory bounds installs it (`#[global_allocator] static A: CountingAlloc =
+/// CountingAlloc;`) and runs its tests one at a time.
+pub struct CountingAlloc;
+
+static HEAP_LIVE: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+static HEAP_PEAK: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+fn heap_grew(by: usize) {
+    use std::sync::atomic::Ordering::Relaxed;
+    let now = HEAP_LIVE.fetch_add(by, Relaxed) + by;
+    HEAP_PEAK.fetch_max(now, Relaxed);
+}
+
+// SAFETY: every call is forwarded to the system allocator unchanged; only counters move.
+unsafe impl std::alloc::GlobalAlloc for CountingAlloc {
+    unsafe fn alloc(&self, layout: std::alloc::Layout) -> *mut u8 {
+        let p = unsafe { std::alloc::System.alloc(layout) };
+        if !p.is_null() {
+            heap_grew(layout.size());
+        }
+        p
+    }
+    unsafe fn alloc_zeroed(&self, layout: std::alloc::Layout) -> *mut u8 {
+        let p = unsafe { std::alloc::System.alloc_zeroed(layout) };
+        if !p.is_null() {
+            heap_grew(layout.size());
+        }
+        p
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: std::alloc::Layout) {
+        unsafe { std::alloc::System.dealloc(ptr, layout) };
+        HEAP_LIVE.fetch_sub(layout.size(), std::sync::atomic::Ordering::Relaxed);
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: std::alloc::Layout, new_size: usize) -> *mut u8 {
+        let p = unsafe { std::alloc::System.realloc(ptr, layout, new_size) };
+        if !p.is_null() {
+            HEAP_LIVE.fetch_sub(layout.size(), std::sync::atomic::Ordering::Relaxed);
+            heap_grew(new_size);
+        }
+        p
+    }
+}
+
+/// The peak heap growth, in bytes above what was live when it started, while `f` runs (with
+/// [`CountingAlloc`] installed; 0 without it).
+pub fn peak_heap_while<T>(f: impl FnOnce() -> T) -> (usize, T) {
+    use std::sync::atomic::Ordering::Relaxed;
+    let before = HEAP_LIVE.load(Relaxed);
+    HEAP_PEAK.store(before, Relaxed);
+    let out = f();
+    (HEAP_PEAK.load(Relaxed).saturating_sub(before), out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
