@@ -1,15 +1,32 @@
 //! h5stream owns writing an HDF5 file in one pass, and HDF5's metadata checksum ([`lookup3`]).
 //!
-//! A one-pass HDF5 writer for exports too large to assemble in memory: each dataset's bytes go
-//! to the file as soon as it is given, and a group's object header once its children are
-//! written (children before parents, the root last), so memory holds one dataset and the links
-//! of the groups still open — never the file.
+//! Each dataset's bytes go to the file as soon as they are given, and a group's object header
+//! once its children are written (children before parents, the root last), so memory holds one
+//! dataset and the links of the groups still open — never the file. [`Writer`] takes datasets
+//! and finished [`Group`]s in that order and returns each one's address for its parent's
+//! links; [`Writer::finish`] takes the root:
 //!
-//! Why hand-written: `hdf5-pure`'s `FileBuilder` holds the whole file until `write`, and its
-//! in-place editor rebuilds every group it touches (export/README.md, "Why not streamed", has
-//! the figures). [`Writer`] takes datasets and finished [`Group`]s in that order and returns
-//! each one's address for its parent's links; [`Writer::finish`] takes the root. The layout here is the small subset of the HDF5 format (spec version 3.0) that
-//! robomimic's files need, in the encodings libhdf5 ≥ 1.8 and `hdf5-pure` both read:
+//! ```
+//! use h5stream::{Attr, Group, Writer};
+//! # let dir = tempfile::tempdir().unwrap();
+//! # let path = dir.path().join("demo.hdf5");
+//! let mut w = Writer::create(&path)?;
+//! let mut demo = Group::default();
+//! demo.link("actions", w.dataset(&[2, 3], &[0.1f32, 0.2, 0.3, 0.4, 0.5, 0.6])?); // written now
+//! demo.attr("num_samples", Attr::I64(2));
+//! let mut data = Group::default();
+//! data.link("demo_0", w.group(demo)?); // its header, after its children
+//! data.attr("env_args", Attr::Str(r#"{"env_name": "Lift"}"#.into()));
+//! let mut root = Group::default();
+//! root.link("data", w.group(data)?);
+//! w.finish(root)?; // the root, the heap, the superblock; then fsync
+//! # Ok::<(), std::io::Error>(())
+//! ```
+//!
+//! Why hand-written: `hdf5-pure`'s `FileBuilder` holds the whole file until it writes it, and
+//! its in-place editor rebuilds every group it touches (export/README.md, "Why its own HDF5
+//! writer", has the figures). The layout is the small part of the HDF5 format (specification
+//! 3.0) that robomimic's files need, in encodings libhdf5 ≥ 1.8 and `hdf5-pure` both read:
 //!
 //! * superblock version 2 (offsets and lengths of 8 bytes), rewritten at the end with the root
 //!   group's address and the end of file;
@@ -18,7 +35,8 @@
 //! * datasets with contiguous layout: dataspace, datatype (little-endian integers and IEEE
 //!   floats, fixed-length null-padded ASCII strings), fill value and layout messages;
 //! * attributes in their object's header: int64, float64 and variable-length UTF-8 strings,
-//!   whose bytes sit in global heap collections reserved as the file grows and filled in when full.
+//!   whose bytes sit in global heap collections reserved as the file grows and filled in when
+//!   full.
 //!
 //! What it does not do: chunked or filtered datasets, dense (fractal heap) link storage,
 //! editing. Limits of the format surface as errors, never as a malformed file: one message
@@ -51,7 +69,9 @@ const MSG_ATTRIBUTE: u8 = 0x0C;
 /// An attribute's value (scalar).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Attr {
+    /// A 64-bit signed integer.
     I64(i64),
+    /// A 64-bit IEEE float.
     F64(f64),
     /// A variable-length UTF-8 string (what h5py reads back as `str`).
     Str(String),
