@@ -224,6 +224,12 @@ impl Writer {
     /// Writes a group's object header (its children are already written) and returns its
     /// address.
     pub fn group(&mut self, g: Group) -> io::Result<u64> {
+        // Two links of one name would make a file whose readers disagree on what the name is.
+        let mut names: Vec<&str> = g.links.iter().map(|(n, _)| n.as_str()).collect();
+        names.sort_unstable();
+        if let Some(w) = names.windows(2).find(|w| w[0] == w[1]) {
+            return Err(invalid(format!("two links named {:?} in one group", w[0])));
+        }
         let mut h = Header::default();
         // Link Info version 0: no creation order, no dense storage (fractal heap and name
         // index undefined).
@@ -619,7 +625,7 @@ mod tests {
     }
 
     #[test]
-    fn a_shape_that_the_values_do_not_fill_is_refused() {
+    fn what_the_format_cannot_hold_is_refused() {
         let dir = tempfile::tempdir().unwrap();
         let mut w = Writer::create(&dir.path().join("x.h5")).unwrap();
         let err = w.dataset(&[2, 3], &[1f32; 5]).unwrap_err();
@@ -631,5 +637,10 @@ mod tests {
         let mut g = Group::default();
         g.attr("a\0b", Attr::I64(1));
         assert!(w.group(g).unwrap_err().to_string().contains("attribute name"));
+        let mut g = Group::default();
+        let at = w.dataset(&[1], &[1u8]).unwrap();
+        g.link("actions", at);
+        g.link("actions", at);
+        assert!(w.group(g).unwrap_err().to_string().contains("two links named \"actions\""));
     }
 }
