@@ -38,9 +38,11 @@ pub struct TrainArgs {
     /// The policy's action normaliser, raw = x * SCALE + OFFSET, one value per action dimension:
     /// the verifier takes chunks in the policy's normalised space (the default, identity when
     /// not given). Overrides the config's `action_space`.
-    #[arg(long, num_args = 1.., conflicts_with = "standardize_actions")]
+    /// Negative values are values, not flags (`--action-offset -0.38 0.28`): a LeRobot min-max
+    /// normaliser's offsets are often negative.
+    #[arg(long, num_args = 1.., allow_negative_numbers = true, conflicts_with = "standardize_actions")]
     pub action_scale: Option<Vec<f32>>,
-    #[arg(long, num_args = 1.., requires = "action_scale")]
+    #[arg(long, num_args = 1.., allow_negative_numbers = true, requires = "action_scale")]
     pub action_offset: Option<Vec<f32>>,
     /// Feed raw chunks standardised with train-set statistics instead (the older recipe).
     #[arg(long)]
