@@ -11,6 +11,8 @@
 * :mod:`ufops.torch` — best-of-N and guidance hooks for PyTorch samplers.
 * :class:`SteeringLog` — best-of-N steps recorded on the robot, written as the sidecar
   ``ufops ingest`` keeps with the episodes (``ufops replay`` re-scores them).
+* :mod:`ufops.lerobot` — LeRobot policies: their own encoder features as layers, N chunks from
+  their sampler, and ``SteeredPolicy`` in LeRobot's loops (``import ufops.lerobot``; needs lerobot).
 """
 from __future__ import annotations
 
