@@ -445,7 +445,7 @@ def sample_chunks(
         raise ValueError(f"n must be at least 1; got {n}")
     adapter = adapter_for(policy)
     adapter.observe(policy, batch)
-    with torch.inference_mode() if guide is None else torch.no_grad():
+    with torch.inference_mode():
         cond = adapter.condition(policy)
         x = adapter.sample(policy, cond, n, guide)
     actions = postprocessor(x) if postprocessor is not None else None
@@ -672,9 +672,9 @@ class SteeredPolicy(PreTrainedPolicy):  # type: ignore[misc]
         cond = self.adapter.condition(self.policy)
         rows = self._verifier_rows(cond)
         t1 = time.perf_counter()
+        # The verifier's gradient comes from the verifier core, not from autograd.
         guide = self._guide(rows) if self.mode == "guidance" else None
-        with torch.enable_grad() if guide is not None else torch.no_grad():
-            cands = self.adapter.sample(self.policy, cond, self.n, guide)  # (B, n, steps, A)
+        cands = self.adapter.sample(self.policy, cond, self.n, guide)  # (B, n, steps, A)
         t2 = time.perf_counter()
         b = cands.shape[0]
         scores: Optional[npt.NDArray[np.float32]] = None
