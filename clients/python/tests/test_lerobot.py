@@ -11,7 +11,10 @@ small config) on the repository's LeRobot v3.0 video fixture, ingested with the 
   action queue is refilled (and the sampler run) only at re-plans; a verifier trained on another
   checkpoint's features is refused;
 * ``sample_chunks`` encodes once whatever N, and its two action spaces are the postprocessor apart;
-* guidance with λ = 0 is the policy's own sampler, and λ > 0 moves the chunk.
+* guidance with λ = 0 is the policy's own sampler, and λ > 0 moves the chunk;
+* ``SteeredPolicy`` runs in the policy's place in lerobot-eval's ``eval_policy`` (two environments
+  a batch), re-planning every ``n_action_steps`` and numbering its telemetry as lerobot numbers
+  the episodes.
 """
 from __future__ import annotations
 
@@ -33,6 +36,7 @@ require("lerobot")
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
+import gymnasium as gym  # noqa: E402
 from lerobot.configs.types import FeatureType  # noqa: E402
 from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: E402
 from lerobot.datasets.utils import dataset_to_policy_features  # noqa: E402
@@ -257,3 +261,72 @@ def test_sample_chunks_encodes_once_and_returns_both_action_spaces(setup: Dict[s
     raw = chunks.normalized * torch.tensor(scale, dtype=torch.float32) + torch.tensor(offset, dtype=torch.float32)
     assert torch.allclose(raw, chunks.actions, atol=1e-5)
     assert float(chunks.normalized.std(dim=1).mean()) > 0.01  # the sampler's draws differ
+
+
+class ToyEnv(gym.Env):  # type: ignore[misc]
+    """A gymnasium environment with the fixture's observation and action spaces (a 64x64 camera,
+    6 joint values, 6-d actions), for LeRobot's evaluation loop: each episode lasts 20 steps and
+    succeeds for even seeds."""
+
+    metadata = {"render_fps": 10}
+
+    def __init__(self) -> None:
+        self.observation_space = gym.spaces.Dict({
+            "pixels": gym.spaces.Dict({"front": gym.spaces.Box(0, 255, (64, 64, 3), np.uint8)}),
+            "agent_pos": gym.spaces.Box(-np.inf, np.inf, (6,), np.float32),
+        })
+        self.action_space = gym.spaces.Box(-np.inf, np.inf, (6,), np.float32)
+        self._max_episode_steps = 30
+        self.task = self.task_description = "reach"
+        self.rng = np.random.default_rng(0)
+        self.t = 0
+        self.seed_ = 0
+
+    def _obs(self) -> Dict[str, Any]:
+        self.frame = self.rng.integers(0, 255, (64, 64, 3), dtype=np.uint8)
+        return {"pixels": {"front": self.frame}, "agent_pos": self.rng.normal(size=6).astype(np.float32)}
+
+    def reset(self, *, seed: Any = None, options: Any = None) -> Tuple[Dict[str, Any], Dict[str, Any]]:
+        self.seed_ = int(seed) if seed is not None else self.seed_ + 1
+        self.rng = np.random.default_rng(self.seed_)
+        self.t = 0
+        return self._obs(), {"is_success": False}
+
+    def step(self, action: Any) -> Tuple[Dict[str, Any], float, bool, bool, Dict[str, Any]]:
+        assert np.asarray(action).shape == (6,)
+        self.t += 1
+        done = self.t >= 20
+        success = done and self.seed_ % 2 == 0
+        return self._obs(), float(success), done, False, {"is_success": success}
+
+    def render(self) -> Any:
+        return self.frame
+
+    def close(self) -> None:
+        pass
+
+
+def test_steered_policy_runs_in_lerobots_evaluation_loop(setup: Dict[str, Any], tmp_path: Path) -> None:
+    """SteeredPolicy in the place of the policy in lerobot-eval's eval_policy, two environments a
+    batch: re-plans every n_action_steps, telemetry numbered by lerobot's episode index."""
+    from lerobot.processor import PolicyProcessorPipeline
+    from lerobot.scripts.lerobot_eval import eval_policy
+
+    policy, pre, post = setup["policy"], setup["pre"], setup["post"]
+    log = ufops.SteeringLog()
+    steered = ul.SteeredPolicy(policy, setup["verifier"], pre, n=3, policy_name=POLICY, checkpoint=CHECKPOINT, log=log)
+    env = gym.vector.SyncVectorEnv([ToyEnv, ToyEnv], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    identity = PolicyProcessorPipeline(steps=[])
+    torch.manual_seed(0)
+    with torch.no_grad():
+        info = eval_policy(env=env, policy=steered, env_preprocessor=identity, env_postprocessor=identity,
+                           preprocessor=pre, postprocessor=post, n_episodes=4, start_seed=100)
+    assert [e["seed"] for e in info["per_episode"]] == [100, 101, 102, 103]
+    assert [e["success"] for e in info["per_episode"]] == [True, False, True, False]
+    # 2 batches x 2 rows x re-plans at t = 0, 8, 16 (20 steps each).
+    assert len(steered.timings) == 2 * 3 and len(log) == 4 * 3
+    path = log.write(tmp_path / "steering.parquet")
+    table = pl.read_parquet(path)
+    episode_col = next(c for c in table.columns if c.startswith("episode"))
+    steps = sorted(zip(table[episode_col].to_list(), table["t"].to_list()))
+    assert steps == [(e, t) for e in range(4) for t in (0, 8, 16)]
