@@ -191,6 +191,7 @@ def record_worker(job: Dict[str, Any]) -> Dict[str, Any]:
     if job.get("policy_dir"):
         policy, pre, post = load_policy(Path(job["policy_dir"]))
     out = []
+    raw_frames: Dict[int, List[np.ndarray]] = {}  # the first few episodes' camera, as rendered (the codec gap)
     t0 = time.time()
     for seed in job["seeds"]:
         obs, _ = env.reset(seed=int(seed))
@@ -207,6 +208,8 @@ def record_worker(job: Dict[str, Any]) -> Dict[str, Any]:
                 with torch.inference_mode():
                     action = post(policy.select_action(pre(o)))[0].numpy().astype(np.float32)
             frame = {CAMERA_KEY: obs["pixels"][CAMERA], "observation.state": obs["agent_pos"], "action": action, "task": env.task}
+            if video and len(out) < int(job.get("keep_raw", 0)):
+                raw_frames.setdefault(int(seed), []).append(obs["pixels"][CAMERA].copy())
             obs, reward, term, trunc, info = env.step(action)
             success = bool(info["is_success"])
             frame.update({"next.reward": np.array([reward], np.float32), "next.success": np.array([success]),
@@ -218,6 +221,9 @@ def record_worker(job: Dict[str, Any]) -> Dict[str, Any]:
         out.append({"seed": int(seed), "success": success, "steps": t + 1})
     ds.finalize()
     env.close()
+    if raw_frames:
+        np.savez_compressed(Path(job["root"]).parent / f"{Path(job['root']).name}-raw-frames.npz",
+                            **{str(k): np.stack(v) for k, v in raw_frames.items()})
     return {"root": str(job["root"]), "episodes": out, "seconds": time.time() - t0}
 
 
@@ -391,15 +397,42 @@ def train_policy(roots: List[Path], steps: int, batch_size: int, seed: int, thre
     return info
 
 
+def codec_gap(store: Any, enc: Any, parts: List[Tuple[Path, int]]) -> Dict[str, Any]:
+    """Cosine similarity between the layer's rows (frames decoded from the stored AV1 video) and
+    the policy's features of the same frames as rendered (what SteeredPolicy sees live), over the
+    first episodes of each recorded part (``parts``: its dataset root and ingest version)."""
+    eps = store.episodes(policy=POLICY)
+    cos: List[float] = []
+    for root, version in parts:
+        path = root.parent / f"{root.name}-raw-frames.npz"
+        if not path.is_file():
+            continue
+        raw = np.load(path)
+        for i, key in enumerate(raw.files):  # in recording order: episode_index i
+            ids = eps.filter((eps["version_added"] == version) & (eps["source_index"] == i))["id"].to_list()
+            if len(ids) != 1:
+                raise RuntimeError(f"episode {i} of {root}: {len(ids)} episodes in version {version}")
+            stored = np.asarray(store.steps(ids, layers=[LAYER])[f"obs.{LAYER}"].to_list(), np.float32)
+            live = enc(CAMERA_KEY, raw[key])
+            if len(stored) != len(live):
+                raise RuntimeError(f"episode {ids[0]}: {len(stored)} stored steps, {len(live)} rendered frames")
+            cos += list((stored * live).sum(1) / (np.linalg.norm(stored, axis=1) * np.linalg.norm(live, axis=1) + 1e-12))
+    c = np.asarray(cos, np.float64)
+    if not len(c):
+        return {"frames": 0, "cosine_mean": float("nan"), "cosine_p01": float("nan"), "cosine_min": float("nan")}
+    return {"frames": int(len(c)), "cosine_mean": float(c.mean()), "cosine_median": float(np.median(c)),
+            "cosine_p01": float(np.quantile(c, 0.01)), "cosine_min": float(c.min())}
+
+
 def pct(xs: Sequence[float], q: float) -> float:
     return float(np.percentile(np.asarray(xs, np.float64), q)) if len(xs) else float("nan")
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="the short path (~15 minutes once the policy is cached)")
-    ap.add_argument("--demos", type=int, help="expert demonstrations (default 100; --quick 40)")
-    ap.add_argument("--policy-steps", type=int, help="policy training steps (default 1500; --quick 400)")
+    ap.add_argument("--quick", action="store_true", help="fewer rollouts and pairs, the same (cached) policy")
+    ap.add_argument("--demos", type=int, default=100, help="expert demonstrations")
+    ap.add_argument("--policy-steps", type=int, default=1200, help="policy training steps")
     ap.add_argument("--batch-size", type=int, default=32, help="policy training batch size")
     ap.add_argument("--inference-steps", type=int, default=100, help="the policy's DDPM denoising steps")
     ap.add_argument("--rollouts", type=int, help="rollouts of the policy for the verifier (default 300; --quick 60)")
@@ -413,13 +446,14 @@ def main() -> int:
     ap.add_argument("--cache", help="where trained policies are kept (default: target/steer-lerobot-robosuite/policies)")
     ap.add_argument("--ufops")
     ap.add_argument("--policy-only", action="store_true", help="stop after the policy is trained (and cached)")
+    ap.add_argument("--resume", action="store_true", help="keep the work directory's store, rollouts and verifier "
+                    "(state.json) and run the arms again")
     a = ap.parse_args()
     # Worker processes read it from the environment (they are spawned).
     os.environ["UFOPS_DP_INFERENCE_STEPS"] = str(a.inference_steps)
     global INFERENCE_STEPS
     INFERENCE_STEPS = a.inference_steps
-    demos = a.demos or (40 if a.quick else 100)
-    steps = a.policy_steps or (400 if a.quick else 1500)
+    demos, steps = a.demos, a.policy_steps
     rollouts = a.rollouts or (60 if a.quick else 300)
     round_pairs = a.round or (20 if a.quick else 40)
     max_pairs = a.max_pairs or (40 if a.quick else 400)
@@ -427,12 +461,17 @@ def main() -> int:
     work = Path(a.workdir) if a.workdir else base_dir / ("quick" if a.quick else "full")
     cache = Path(a.cache) if a.cache else base_dir / "policies"
     bin_ = find_ufops(a.ufops)
-    if work.exists():
-        shutil.rmtree(work)
-    work.mkdir(parents=True)
     data_dir = work / "store"
     cli = Cli(bin_, data_dir)
-    cli("init")
+    if not (a.resume and (work / "state.json").is_file()):
+        if work.exists():
+            shutil.rmtree(work)
+        work.mkdir(parents=True)
+        cli("init")
+    else:  # the store as it was before the arms (a failed round's runs are dropped)
+        shutil.rmtree(work / "arms", ignore_errors=True)
+        shutil.rmtree(data_dir)
+        shutil.copytree(work / "store-prepared", data_dir)
     phases = Phases()
     settings = {"demos": demos, "policy_steps": steps, "batch_size": a.batch_size, "seed": a.seed,
                 "policy": "diffusion-resnet18-76-unet64", "lift": "max_steps=120"}
@@ -470,49 +509,69 @@ def main() -> int:
         (work / "report.json").write_text(json.dumps(report, indent=2, default=str))
         return 0
 
-    # 3. The policy's rollouts, recorded with LeRobot's writer, into the store.
-    with phases("3 policy rollouts"):
-        jobs = [{"repo_id": f"ufops/lift-rollouts-{i}", "root": str(work / f"rollouts-{i}"), "seeds": s, "video": True,
-                 "policy_dir": str(policy_dir)} for i, s in enumerate(split_seeds(range(rollouts), a.workers))]
-        recs = run_jobs(record_worker, jobs, a.workers)
-    with phases("4 ingest"):
-        for r in recs:
-            cli("ingest", r["root"], "--policy", POLICY, "--checkpoint", checkpoint, "--format", "lerobot", "--run", "rollouts")
-    eps = [e for r in recs for e in r["episodes"]]
-    k = sum(e["success"] for e in eps)
-    log(f"3. {len(eps)} rollouts of the policy: {k} successful ({100 * k / len(eps):.1f}%), "
-        f"{phases.seconds['3 policy rollouts']:.0f} s; ingested as run `rollouts`")
-    report["rollouts"] = {"episodes": len(eps), "successes": k, "seconds": phases.seconds["3 policy rollouts"]}
+    # 3-5 are kept in state.json: --resume goes on from the arms with the same store and verifier.
+    state_path = work / "state.json"
+    if a.resume and state_path.is_file():
+        state = json.loads(state_path.read_text())
+        report.update(state["report"])
+        art = state["art"]
+        log(f"3-5. resumed: {report['rollouts']['episodes']} rollouts, verifier {art['id']}")
+    else:
+        # 3. The policy's rollouts, recorded with LeRobot's writer, into the store.
+        with phases("3 policy rollouts"):
+            jobs = [{"repo_id": f"ufops/lift-rollouts-{i}", "root": str(work / f"rollouts-{i}"), "seeds": s, "video": True,
+                     "policy_dir": str(policy_dir), "keep_raw": 4} for i, s in enumerate(split_seeds(range(rollouts), a.workers))]
+            recs = run_jobs(record_worker, jobs, a.workers)
+        parts: List[Tuple[Path, int]] = []
+        with phases("4 ingest"):
+            for r in recs:
+                ing = cli.json("ingest", r["root"], "--policy", POLICY, "--checkpoint", checkpoint, "--format", "lerobot",
+                               "--run", "rollouts")
+                parts.append((Path(r["root"]), int(ing["version"])))
+        eps = [e for r in recs for e in r["episodes"]]
+        k = sum(e["success"] for e in eps)
+        log(f"3. {len(eps)} rollouts of the policy: {k} successful ({100 * k / len(eps):.1f}%), "
+            f"{phases.seconds['3 policy rollouts']:.0f} s; ingested as run `rollouts`")
+        report["rollouts"] = {"episodes": len(eps), "successes": k, "seconds": phases.seconds["3 policy rollouts"]}
 
-    # 4. The layer of the policy's own encoder features, and the verifier.
-    import torch
+        # 4. The layer of the policy's own encoder features, and the verifier.
+        import torch
 
-    import ufops
-    from ufops.lerobot import action_space, encoder_of
+        import ufops
+        from ufops.lerobot import action_space, encoder_of
 
-    torch.set_num_threads(max(1, a.workers))
-    policy, pre, _ = load_policy(policy_dir)
-    store = ufops.Store(str(data_dir))
-    with phases("5 features layer"):
-        enc = encoder_of(policy, pre, policy_name=POLICY, checkpoint=checkpoint)
-        rep = enc.compute_layers(store, batch_size=128, commit_every=64, progress=False)[LAYER]
-    log(f"4. layer {LAYER}: {rep.frames} frames in {rep.seconds:.0f} s ({rep.frames_per_second:.0f} frames/s)")
-    with phases("6 verifier"):
-        split = cli.json("split", "create", "--policy", POLICY, "--checkpoint", checkpoint, "--seed", str(a.seed))
-        scale, offset = action_space(pre)
-        art = cli.json("train", "--split", split["id"], "--kind", "classifier", "--obs-keys", f"{LAYER},state",
-                       "--chunk-len", str(policy.config.n_action_steps), "--action-scale", *map(str, scale),
-                       "--action-offset", *map(str, offset))
-    final = art.get("config", {}).get("metrics", {}).get("final", {})
-    sens = final.get("action_sensitivity") or {}
-    verifier_info = {"id": art["id"], "val_auc": final.get("val_auc"), "action_auc": sens.get("action_auc"),
-                     "obs_only_auc": sens.get("obs_only_auc"), "flagged": sens.get("flagged"),
-                     "train_samples": final.get("train_samples"), "seconds": final.get("seconds"),
-                     "split": {k2: split.get(k2) for k2 in ("id", "train_episodes", "val_episodes")}}
-    report["verifier"] = verifier_info
-    log(f"5. verifier {art['id']}: held-out AUROC {verifier_info['val_auc']}, action AUROC {verifier_info['action_auc']} "
-        f"(observation-only twin {verifier_info['obs_only_auc']}), {phases.seconds['6 verifier']:.0f} s")
-    del policy
+        torch.set_num_threads(max(1, a.workers))
+        policy, pre, _ = load_policy(policy_dir)
+        store = ufops.Store(str(data_dir))
+        with phases("5 features layer"):
+            enc = encoder_of(policy, pre, policy_name=POLICY, checkpoint=checkpoint)
+            rep = enc.compute_layers(store, batch_size=128, commit_every=64, progress=False)[LAYER]
+        log(f"4. layer {LAYER}: {rep.frames} frames in {rep.seconds:.0f} s ({rep.frames_per_second:.0f} frames/s)")
+        report["layer"] = {"frames": rep.frames, "seconds": rep.seconds, "producer_hash": rep.producer_hash}
+        report["codec_gap"] = codec_gap(store, enc, parts)
+        g = report["codec_gap"]
+        log(f"   codec gap over {g['frames']} frames: cosine(features of the stored AV1 frame, of the rendered one) "
+            f"mean {g['cosine_mean']:.4f}, 1% quantile {g['cosine_p01']:.4f}, min {g['cosine_min']:.4f}")
+        with phases("6 verifier"):
+            split = cli.json("split", "create", "--policy", POLICY, "--checkpoint", checkpoint, "--seed", str(a.seed))
+            scale, offset = action_space(pre)
+            art = cli.json("train", "--split", split["id"], "--kind", "classifier", "--obs-keys", f"{LAYER},state",
+                           "--chunk-len", str(policy.config.n_action_steps), "--action-scale", *map(str, scale),
+                           "--action-offset", *map(str, offset))
+        final = art.get("config", {}).get("metrics", {}).get("final", {})
+        sens = final.get("action_sensitivity") or {}
+        verifier_info = {"id": art["id"], "val_auc": final.get("val_auc"), "action_auc": sens.get("action_auc"),
+                         "obs_only_auc": sens.get("obs_only_auc"), "flagged": sens.get("flagged"),
+                         "train_samples": final.get("train_samples"), "seconds": final.get("seconds"),
+                         "split": {k2: split.get(k2) for k2 in ("id", "train_episodes", "val_episodes")}}
+        report["verifier"] = verifier_info
+        log(f"5. verifier {art['id']}: held-out AUROC {verifier_info['val_auc']}, action AUROC {verifier_info['action_auc']} "
+            f"(observation-only twin {verifier_info['obs_only_auc']}), {phases.seconds['6 verifier']:.0f} s")
+        del policy
+        state_path.write_text(json.dumps({"report": {k: report[k] for k in (
+            "rollouts", "layer", "codec_gap", "verifier")}, "art": {"id": art["id"]}}, indent=2, default=str))
+        shutil.rmtree(work / "store-prepared", ignore_errors=True)
+        shutil.copytree(data_dir, work / "store-prepared")
 
     # 5. The arms, round by round, through LeRobot's evaluation loop; compare decides.
     arm_b = f"c-bon{a.n}"
@@ -526,20 +585,13 @@ def main() -> int:
     with phases("7 steering arms"):
         while pairs < max_pairs:
             m = min(round_pairs, max_pairs - pairs)
-            jobs = []
-            for arm, n in (("base", 0), (arm_b, a.n)):
-                for part, seeds in enumerate(split_seeds(range(start + pairs, start + pairs + m), max(1, a.workers // 2))):
-                    jobs.append({"out": str(work / "arms" / f"{arm}-r{rounds}-p{part}"), "policy_dir": str(policy_dir),
-                                 "n": n, "store": str(data_dir), "verifier": ref, "checkpoint": checkpoint,
-                                 "episodes": len(seeds), "start_seed": seeds[0], "arm": arm})
-            # Seeds of a part are consecutive for eval_policy: re-split into consecutive blocks.
-            for arm in ("base", arm_b):
-                arm_jobs = [j for j in jobs if j["arm"] == arm]
-                size = math.ceil(m / len(arm_jobs))
-                for i, j in enumerate(arm_jobs):
-                    j["start_seed"] = start + pairs + i * size
-                    j["episodes"] = min(size, m - i * size)
-            jobs = [j for j in jobs if j["episodes"] > 0]
+            # Each arm's seeds of the round in consecutive blocks (eval_policy seeds episode i with
+            # start_seed + i), one job per block; the pool takes the jobs as workers free up.
+            size = math.ceil(m / max(1, a.workers))
+            jobs = [{"out": str(work / "arms" / f"{arm}-r{rounds}-p{i}"), "policy_dir": str(policy_dir), "n": n,
+                     "store": str(data_dir), "verifier": ref, "checkpoint": checkpoint, "arm": arm,
+                     "start_seed": start + pairs + i * size, "episodes": min(size, m - i * size)}
+                    for arm, n in ((arm_b, a.n), ("base", 0)) for i in range(max(1, a.workers)) if m - i * size > 0]
             res = run_jobs(eval_worker, jobs, a.workers)
             for j, r in zip(jobs, res):
                 results[j["arm"]]["successes"] += r["successes"]

@@ -116,11 +116,21 @@ def action_space(preprocessor: Any, key: str = ACTION) -> Tuple[List[float], Lis
     raise ValueError(f"action normalisation {mode} has no affine form ufops can record")
 
 
-def _unnormalize(normalizer: Any, key: str, feature_type: str, x: Tensor) -> Tensor:
-    """The policy's normaliser undone for an observation key (raw values as the store keeps them)."""
-    from lerobot.configs.types import FeatureType
+def _normalize_observation(step: Any, observation: Dict[str, Tensor]) -> Dict[str, Tensor]:
+    """``observation`` through a normaliser (or unnormaliser) step, as the pipeline runs it."""
+    from lerobot.processor import TransitionKey
 
-    return normalizer._apply_transform(x, key, FeatureType(feature_type), inverse=True)
+    return dict(step({TransitionKey.OBSERVATION: observation})[TransitionKey.OBSERVATION])
+
+
+def _unnormalizer(normalizer: Any) -> Any:
+    """The inverse of the preprocessor's normaliser, for observations (the postprocessor's
+    unnormaliser covers only the action)."""
+    from lerobot.processor import UnnormalizerProcessorStep
+
+    return UnnormalizerProcessorStep(
+        features=normalizer.features, norm_map=normalizer.norm_map, stats=normalizer.stats, eps=normalizer.eps
+    )
 
 
 # --- class-specific adapters -------------------------------------------------------------------
@@ -350,7 +360,7 @@ class PolicyEncoder:
 
     def normalize(self, camera: str, images: Tensor) -> Tensor:
         """Images ``(B, C, H, W)`` in [0, 1] through the policy's normaliser (its VISUAL mode and stats)."""
-        return self.normalizer._normalize_observation({camera: images}, inverse=False)[camera]
+        return _normalize_observation(self.normalizer, {camera: images})[camera]
 
     def preprocess(self, camera: str) -> Callable[[npt.NDArray[np.uint8]], Tensor]:
         """uint8 frames ``(B, H, W, C)`` → the camera's normalised ``(B, C, H, W)`` float32 tensor, as
@@ -541,6 +551,7 @@ class SteeredPolicy(PreTrainedPolicy):  # type: ignore[misc]
         self.timings: List[ReplanTiming] = []
         self.last_plan: Optional[Plan] = None
         self.normalizer = _normalizer(preprocessor)
+        self.unnormalizer = _unnormalizer(self.normalizer)
         if mode == "guidance":
             if not self.adapter.guidance:
                 raise NotImplementedError(f"{self.adapter.name}: its sampler takes no guidance hook")
@@ -585,11 +596,11 @@ class SteeredPolicy(PreTrainedPolicy):  # type: ignore[misc]
         self._episodes: Optional[List[int]] = None
         self._t = 0
 
-    def _obs_source(self, key: str) -> Optional[Tuple[str, str]]:
-        """(history key, feature type) of a low-dimensional verifier key."""
-        for name, ftype in ((OBS_STATE, "STATE"), (OBS_ENV_STATE, "ENV")):
+    def _obs_source(self, key: str) -> Optional[str]:
+        """The policy's history key of a low-dimensional verifier key (``state`` → ``observation.state``)."""
+        for name in (OBS_STATE, OBS_ENV_STATE):
             if key in (name, name[len("observation.") :]):
-                return name, ftype
+                return name
         return None
 
     # PreTrainedPolicy's interface.
@@ -634,10 +645,9 @@ class SteeredPolicy(PreTrainedPolicy):  # type: ignore[misc]
             if key in self.layers:
                 v = cond.image_features[self.layers[key]][:, -h:]
             else:
-                src = self._obs_source(key)
-                assert src is not None
-                name, ftype = src
-                v = _unnormalize(self.normalizer, name, ftype, cond.history[name][:, -h:])
+                name = self._obs_source(key)
+                assert name is not None
+                v = _normalize_observation(self.unnormalizer, {name: cond.history[name][:, -h:]})[name]
             if v.shape[-1] != dim:
                 raise ValueError(f"observation key {key!r}: the policy gives {v.shape[-1]} values, the verifier takes {dim}")
             parts.append(v.to(torch.float32))
