@@ -578,7 +578,8 @@ async fn postgres_layers() {
 async fn concurrent_layer_writers(store: Store) {
     let before = ingest(&store, "layers-race", "c1", 6).await.version;
     let eps = store.episodes(&EpisodeFilter::default()).await.unwrap();
-    let producer = serde_json::json!({"encoder": "cnn", "policy": "pol", "checkpoint": "c1", "content_hash": "race"});
+    let producer =
+        serde_json::json!({"encoder": "cnn", "policy": "pol", "checkpoint": "c1", "content_hash": "race"});
     let all: Vec<LayerValues> =
         eps.iter().map(|e| layer_values(&e.id, e.source_index as u32, e.length as usize, 4, 0.5)).collect();
     let writers: Vec<_> = (0..8)

@@ -374,19 +374,22 @@ class LocalRay:
 
     def __init__(self, workers: int, cpus: int, root: Path) -> None:
         port = free_port()
+        self.temp = tempfile.mkdtemp(prefix="ufops-ray-", dir="/tmp")  # short: Ray's socket paths
         self.address = f"127.0.0.1:{port}"
         self.workers = workers
         self.root = root
         root.mkdir(parents=True, exist_ok=True)
         ray_bin = str(Path(sys.executable).parent / "ray")
         # Token authentication, as a cluster should run: every node and the driver (the phase's
-        # child, which inherits this process's environment) hold the same token.
-        os.environ.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=os.urandom(16).hex())
+        # child, which inherits this process's environment) hold the same token; one for the
+        # whole run (Ray reads it once per process).
+        os.environ.setdefault("RAY_AUTH_TOKEN", os.urandom(16).hex())
+        os.environ["RAY_AUTH_MODE"] = "token"
         env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
         common = ["--block", "--disable-usage-stats", "--object-store-memory", str(500 << 20),
                   "--node-ip-address", "127.0.0.1"]
         nodes = [["--head", "--port", str(port), "--num-cpus", "0", "--include-dashboard", "false",
-                  "--temp-dir", str(root / "ray")]]
+                  "--temp-dir", self.temp]]
         nodes += [[f"--address={self.address}", "--num-cpus", str(cpus)] for _ in range(workers)]
         # Nodes on one machine: each its own agent and metrics ports (Ray's defaults are fixed).
         nodes = [[*n, *(a for flag in ("--dashboard-agent-listen-port", "--dashboard-agent-grpc-port",
@@ -408,6 +411,8 @@ class LocalRay:
             deadline = time.monotonic() + 120
             while True:
                 time.sleep(1)
+                if self.procs[-1].poll() is not None:
+                    raise RuntimeError(f"Ray node {k} exited (logs in {self.root})")
                 try:
                     if not ray.is_initialized():
                         ray.init(address=self.address, logging_level="ERROR", log_to_driver=False)
@@ -454,6 +459,7 @@ class LocalRay:
                 pass
         for p in self.procs:
             p.wait(timeout=10)
+        shutil.rmtree(self.temp, ignore_errors=True)
 
 
 def run_phase(ctx: Any, *args: Any) -> Dict[str, Any]:
@@ -495,6 +501,7 @@ def main() -> None:
     if a.out is None:
         tmp = tempfile.TemporaryDirectory(prefix="ufops-features-bench-")
         a.out = Path(tmp.name)
+    a.out = a.out.resolve()  # Ray wants an absolute temp dir
     a.out.mkdir(parents=True, exist_ok=True)
     dataset, data_dir = a.out / "lerobot-v30", a.out / "ufops-data"
     t0 = time.perf_counter()

@@ -339,8 +339,12 @@ impl Store {
         // some of these episodes since they were checked; they are not written again.
         let ids: Vec<String> = todo.iter().map(|e| e.episode_id.clone()).collect();
         let held = episodes_with_layer_in(&mut tx, name, hash, &ids).await?;
-        let (todo, ranges): (Vec<&LayerValues>, Vec<(usize, usize, usize)>) =
-            todo.iter().zip(ranges).filter(|(e, _)| !held.contains(&e.episode_id)).map(|(e, r)| (*e, *r)).unzip();
+        let (todo, ranges): (Vec<&LayerValues>, Vec<(usize, usize, usize)>) = todo
+            .iter()
+            .zip(ranges)
+            .filter(|(e, _)| !held.contains(&e.episode_id))
+            .map(|(e, r)| (*e, *r))
+            .unzip();
         if todo.is_empty() {
             return Ok(None); // the transaction rolls back
         }

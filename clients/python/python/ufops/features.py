@@ -10,7 +10,9 @@ layers=[name])`` then returns it as the column ``obs.<name>``.
 
 * :func:`compute_layer` — resumable and idempotent: episodes that already hold the layer from the
   same producer are skipped, and every ``commit_every`` finished episodes become one store
-  version, so an interrupted run goes on where it stopped.
+  version, so an interrupted run goes on where it stopped. Decoding runs in threads (more of them
+  when the encoder waits for frames); the report says what each stage cost.
+  :func:`ufops.features_ray.compute_layer_on_ray` computes the same rows on a Ray cluster.
 * :func:`encode_frames` — the same preprocessing and encoder call on live frames, so the robot's
   features and the store's come out of one function.
 * :class:`FrameReader` — a camera's frames of an episode as uint8 ``(H, W, C)`` arrays.
