@@ -17,8 +17,9 @@ ensure_python_deps() {
 }
 
 ensure_python_package_deps() {
-  # The Python package's tests (clients/python): pytest, polars, mypy, torch, PyAV and Pillow (ufops.features).
-  if ! python3 -c 'import pytest, polars, mypy, safetensors, torch, av, PIL' 2>/dev/null; then
+  # The Python package's tests (clients/python): pytest, polars, mypy, torch, PyAV and Pillow (ufops.features),
+  # Ray Data (ufops.features_ray).
+  if ! python3 -c 'import pytest, polars, mypy, safetensors, torch, av, PIL, ray.data' 2>/dev/null; then
     python3 -m pip install -q --disable-pip-version-check -r clients/python/requirements-test.txt
   fi
 }

@@ -12,8 +12,14 @@ thread, with the encoder alone measured in the same run:
        and repetition), frames/s over both cameras;
    (b) encode alone: ``encode_frames`` of the same encoder over the same frames, decoded into
        memory first (untimed), in batches of the same size;
-   (a) and (b) alternate ``--reps`` times (default 3); medians are reported, and (a)/(b)
-   (goal >= 0.7: decoding overlapped with encoding) and the peak RSS of (a) (goal <= 1 GB);
+   (r) the same layers by ``ufops.features_ray.compute_layer_on_ray`` on a local Ray cluster
+       started for the phase (``ray start --head`` without CPUs, which runs the driver, and W
+       worker nodes of ``--ray-cpus`` CPUs joining it; W from ``--ray-workers``, default 1 and
+       2): W encoder actors of one torch thread and up to W decoding tasks; the peak RSS of the
+       driver, of each Ray worker process (encoder actor, decoder) and of Ray's own processes;
+   the phases alternate ``--reps`` times (default 3); medians are reported, and (a)/(b)
+   (goal >= 0.7: decoding overlapped with encoding) and the peak RSS of (a) (goal <= 1 GB),
+   and for (a) and (r) the stage that bounded the run (the report's ``bound_by``);
 3. prints a table and writes ``--out``/features_throughput.json.
 
 The encoder: ``--encoder cnn`` (default; 4 stride-2 3x3 conv + ReLU layers 3->32->64->128->256,
@@ -30,13 +36,14 @@ import multiprocessing as mp
 import os
 import platform
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import Any, Dict, List, Tuple
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
@@ -230,7 +237,7 @@ def _vm_hwm_mb() -> float:
 
 
 def _phase(kind: str, data_dir: str, encoder_kind: str, batch_size: int, decoder_threads: Any, rep: int,
-           out: "mp.Queue[Any]") -> None:
+           extra: Dict[str, Any], out: "mp.Queue[Any]") -> None:
     try:
         import torch
 
@@ -260,12 +267,39 @@ def _phase(kind: str, data_dir: str, encoder_kind: str, batch_size: int, decoder
                 name = f"features.bench-{cam.rsplit('.', 1)[-1]}-r{rep}"
                 t0 = time.perf_counter()
                 rep_ = compute_layer(store, enc, name=name, camera=cam, producer=producer, batch_size=batch_size,
-                                     progress=False)
+                                     progress=False, decode_threads=extra.get("decode_threads"))
                 dt = time.perf_counter() - t0
                 res["per_camera"][cam] = {"layer": name, "frames": rep_.frames, "seconds": dt,
-                                          "frames_per_second": rep_.frames / dt, "versions": len(rep_.versions)}
+                                          "frames_per_second": rep_.frames / dt, "versions": len(rep_.versions),
+                                          "stages": {k: v.to_dict() for k, v in rep_.stages.items()},
+                                          "bound_by": rep_.bound_by}
                 frames += rep_.frames
                 seconds += dt
+        elif kind.startswith("ray"):
+            import ray
+
+            from ufops.features_ray import compute_layer_on_ray
+
+            ray.init(address=extra["ray_address"], logging_level="ERROR", log_to_driver=False)
+            res["rss_before_mb"] = _vm_hwm_mb()
+            workers: Dict[int, Any] = {}
+            for cam in CAMERAS:
+                name = f"features.bench-{cam.rsplit('.', 1)[-1]}-{kind}-r{rep}"
+                t0 = time.perf_counter()
+                rep_ = compute_layer_on_ray(store, enc, name=name, camera=cam, producer=producer,
+                                            batch_size=batch_size, encoders=extra["ray_workers"],
+                                            decoders=extra["ray_workers"], torch_threads=1, progress=False)
+                dt = time.perf_counter() - t0
+                res["per_camera"][cam] = {"layer": name, "frames": rep_.frames, "seconds": dt,
+                                          "frames_per_second": rep_.frames / dt, "versions": len(rep_.versions),
+                                          "stages": {k: v.to_dict() for k, v in rep_.stages.items()},
+                                          "bound_by": rep_.bound_by}
+                for pid, w in rep_.workers.items():
+                    workers[pid] = {**w, "peak_rss_mb": max(w["peak_rss_mb"], workers.get(pid, w)["peak_rss_mb"])}
+                frames += rep_.frames
+                seconds += dt
+            res["ray_worker_processes"] = {str(k): v for k, v in workers.items()}
+            ray.shutdown()
         else:
             eps = store.episodes()
             ids, n_frames = eps["id"].to_list(), int(eps["length"].sum())
@@ -302,6 +336,132 @@ def _phase(kind: str, data_dir: str, encoder_kind: str, batch_size: int, decoder
         raise
 
 
+def descendants(roots: "set[int]") -> "dict[int, str]":
+    """pid → command line of the processes under `roots` (their process groups and children:
+    Ray's worker processes are the raylets' children in sessions of their own)."""
+    table: Dict[int, Tuple[int, int, str]] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            fields = stat[stat.rindex(")") + 2 :].split()
+            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            table[int(d.name)] = (int(fields[1]), int(fields[2]), cmd)
+        except (OSError, ValueError):
+            continue
+    mine = {pid for pid, (ppid, pgid, _) in table.items() if pgid in roots or pid in roots}
+    grew = True
+    while grew:
+        more = {pid for pid, (ppid, _, _) in table.items() if ppid in mine and pid not in mine}
+        mine |= more
+        grew = bool(more)
+    return {pid: table[pid][2] for pid in mine}
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+class LocalRay:
+    """A Ray cluster on this machine as on a fleet's: ``ray start --head`` (no CPUs: it runs the
+    driver) and ``workers`` nodes joining it (``ray start --address``), each of ``cpus`` CPUs;
+    every node a process group of ours, stopped by its id."""
+
+    def __init__(self, workers: int, cpus: int, root: Path) -> None:
+        port = free_port()
+        self.temp = tempfile.mkdtemp(prefix="ufops-ray-", dir="/tmp")  # short: Ray's socket paths
+        self.address = f"127.0.0.1:{port}"
+        self.workers = workers
+        self.root = root
+        root.mkdir(parents=True, exist_ok=True)
+        ray_bin = str(Path(sys.executable).parent / "ray")
+        # Token authentication, as a cluster should run: every node and the driver (the phase's
+        # child, which inherits this process's environment) hold the same token; one for the
+        # whole run (Ray reads it once per process).
+        os.environ.setdefault("RAY_AUTH_TOKEN", os.urandom(16).hex())
+        os.environ["RAY_AUTH_MODE"] = "token"
+        env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+        common = ["--block", "--disable-usage-stats", "--object-store-memory", str(500 << 20),
+                  "--node-ip-address", "127.0.0.1"]
+        nodes = [["--head", "--port", str(port), "--num-cpus", "0", "--include-dashboard", "false",
+                  "--temp-dir", self.temp]]
+        nodes += [[f"--address={self.address}", "--num-cpus", str(cpus)] for _ in range(workers)]
+        # Nodes on one machine: each its own agent and metrics ports (Ray's defaults are fixed).
+        nodes = [[*n, *(a for flag in ("--dashboard-agent-listen-port", "--dashboard-agent-grpc-port",
+                                       "--runtime-env-agent-port", "--metrics-export-port")
+                        for a in (flag, str(free_port())))] for n in nodes]
+        self.procs: List["subprocess.Popen[bytes]"] = []
+        self._nodes = [[ray_bin, "start", *common, *args] for args in nodes]
+        self._env = env
+
+    def wait(self) -> None:
+        """Starts the nodes one after the other (two raylets starting at once on one machine
+        can take one node index) and waits for each to join."""
+        import ray
+
+        for k, cmd in enumerate(self._nodes):
+            with open(self.root / f"node{k}.log", "wb") as log:
+                self.procs.append(subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log,
+                                                   stderr=subprocess.STDOUT, env=self._env, start_new_session=True))
+            deadline = time.monotonic() + 120
+            while True:
+                time.sleep(1)
+                if self.procs[-1].poll() is not None:
+                    raise RuntimeError(f"Ray node {k} exited (logs in {self.root})")
+                try:
+                    if not ray.is_initialized():
+                        ray.init(address=self.address, logging_level="ERROR", log_to_driver=False)
+                    if sum(n["Alive"] for n in ray.nodes()) == k + 1:
+                        break
+                except Exception:
+                    if ray.is_initialized():
+                        ray.shutdown()
+                if time.monotonic() > deadline or self.procs[-1].poll() is not None:
+                    raise RuntimeError(f"Ray node {k} did not join in 120 s (logs in {self.root})")
+        ray.shutdown()
+
+    def peak_rss_mb(self) -> Dict[str, float]:
+        """Peak RSS (VmHWM) of the cluster's own processes (gcs_server, raylet, ...) by kind,
+        the largest of each kind; Ray's worker processes are reported by the run itself."""
+        out: Dict[str, float] = {}
+        for pid in descendants({p.pid for p in self.procs}):
+            try:
+                status = Path(f"/proc/{pid}/status").read_text()
+            except OSError:
+                continue
+            name = next(line.split()[1] for line in status.splitlines() if line.startswith("Name:"))
+            hwm = [int(line.split()[1]) / 1024 for line in status.splitlines() if line.startswith("VmHWM:")]
+            if hwm and not name.startswith("ray::"):
+                out[name] = max(out.get(name, 0.0), hwm[0])
+        return out
+
+    def stop(self) -> None:
+        """SIGTERM to each node, then SIGKILL to whatever of them is left after a few seconds."""
+        left = descendants({p.pid for p in self.procs})
+        for p in self.procs:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGTERM)
+        deadline = time.monotonic() + 5
+        for p in self.procs:
+            try:
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
+        for pid in left:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except OSError:
+                pass
+        for p in self.procs:
+            p.wait(timeout=10)
+        shutil.rmtree(self.temp, ignore_errors=True)
+
+
 def run_phase(ctx: Any, *args: Any) -> Dict[str, Any]:
     q = ctx.Queue()
     p = ctx.Process(target=_phase, args=(*args, q))
@@ -326,6 +486,12 @@ def main() -> None:
     p.add_argument("--codec", choices=["av1", "h264"], default="av1")
     p.add_argument("--decoder-threads", type=int, default=None,
                    help="set PyAV's thread_count of the videos ufops opens (default: leave ufops's, i.e. auto)")
+    p.add_argument("--decode-threads", type=int, default=None,
+                   help="compute_layer's decoding threads (default: its own choice, more when the encoder waits)")
+    p.add_argument("--ray-workers", default="1,2",
+                   help="Ray runs: worker nodes of a local cluster, one encoder actor and one decoding task "
+                        "each (comma-separated; '' for none; needs ufops[ray])")
+    p.add_argument("--ray-cpus", type=int, default=2, help="CPUs each Ray worker node offers (default 2)")
     target = os.environ.get("CARGO_TARGET_DIR") or str(Path.home() / ".cache" / "ufops-target")
     p.add_argument("--ufops", default=f"{target}/debug/ufops")
     a = p.parse_args()
@@ -335,6 +501,7 @@ def main() -> None:
     if a.out is None:
         tmp = tempfile.TemporaryDirectory(prefix="ufops-features-bench-")
         a.out = Path(tmp.name)
+    a.out = a.out.resolve()  # Ray wants an absolute temp dir
     a.out.mkdir(parents=True, exist_ok=True)
     dataset, data_dir = a.out / "lerobot-v30", a.out / "ufops-data"
     t0 = time.perf_counter()
@@ -356,12 +523,29 @@ def main() -> None:
 
     ctx = mp.get_context("spawn")
     runs: List[Dict[str, Any]] = []
+    ray_workers = [int(w) for w in a.ray_workers.split(",") if w.strip()]
+    kinds = ["compute_layer", "encode_only", *[f"ray{w}" for w in ray_workers]]
     for rep in range(a.reps):
-        for kind in ("compute_layer", "encode_only"):
-            r = run_phase(ctx, kind, str(data_dir), a.encoder, a.batch_size, a.decoder_threads, rep)
+        for kind in kinds:
+            extra: Dict[str, Any] = {"decode_threads": a.decode_threads}
+            cluster = None
+            if kind.startswith("ray"):
+                w = int(kind[3:])
+                cluster = LocalRay(w, a.ray_cpus, a.out / f"ray-{kind}-r{rep}")
+                cluster.wait()
+                extra.update(ray_address=cluster.address, ray_workers=w)
+            try:
+                r = run_phase(ctx, kind, str(data_dir), a.encoder, a.batch_size, a.decoder_threads, rep, extra)
+                if cluster is not None:
+                    r["ray_system_peak_rss_mb"] = cluster.peak_rss_mb()
+            finally:
+                if cluster is not None:
+                    cluster.stop()
             runs.append(r)
+            bound = {c: v.get("bound_by", "") for c, v in r["per_camera"].items()}
             print(f"  rep {rep} {kind:13s} {r['frames']} frames in {r['seconds']:.1f} s: "
-                  f"{r['frames_per_second']:.0f} frames/s, peak RSS {r['peak_rss_mb']:.0f} MB", flush=True)
+                  f"{r['frames_per_second']:.0f} frames/s, peak RSS {r['peak_rss_mb']:.0f} MB"
+                  + (f", bound by {sorted(set(bound.values()))}" if any(bound.values()) else ""), flush=True)
 
     def med(kind: str, key: str) -> float:
         return float(statistics.median(r[key] for r in runs if r["phase"] == kind))
@@ -381,6 +565,33 @@ def main() -> None:
     print(f"{'(b) encode alone (pre-decoded)':38s} {fps_b:9.0f} {rss_b:12.0f}")
     print(f"{'(-) decode alone (FrameReader)':38s} {fps_dec:9.0f} {'':>12s}")
     print(f"{'(-) child after imports + encoder':38s} {'':>9s} {rss_base:12.0f}")
+    ray_summary: Dict[str, Any] = {}
+    for w in ray_workers:
+        kind = f"ray{w}"
+        these = [r for r in runs if r["phase"] == kind]
+        procs = [p for r in these for p in r["ray_worker_processes"].values()]
+        system: Dict[str, float] = {}
+        for r in these:
+            for k, v in r["ray_system_peak_rss_mb"].items():
+                system[k] = max(system.get(k, 0.0), v)
+        row = {
+            "frames_per_second": med(kind, "frames_per_second"),
+            "ratio_to_compute_layer": med(kind, "frames_per_second") / fps_a,
+            "driver_peak_rss_mb": max(r["peak_rss_mb"] for r in these),
+            "encode_actor_peak_rss_mb": max((p["peak_rss_mb"] for p in procs if p["stage"] == "encode"), default=0.0),
+            "decode_worker_peak_rss_mb": max((p["peak_rss_mb"] for p in procs if p["stage"] == "decode"),
+                                             default=0.0),
+            "system_peak_rss_mb": system,
+            "bound_by": sorted({c["bound_by"] for r in these for c in r["per_camera"].values()}),
+        }
+        ray_summary[kind] = row
+        print(f"{f'(r) Ray, {w} worker node(s) x {a.ray_cpus} CPUs':38s} {row['frames_per_second']:9.0f} "
+              f"{row['driver_peak_rss_mb']:12.0f}  driver; encoder actor {row['encode_actor_peak_rss_mb']:.0f}, "
+              f"decoder {row['decode_worker_peak_rss_mb']:.0f}, "
+              + ", ".join(f"{k} {v:.0f}" for k, v in sorted(system.items())) + f" MB; bound by {row['bound_by']}")
+    bound_a = sorted({c["bound_by"] for r in runs if r["phase"] == "compute_layer" for c in r["per_camera"].values()})
+    print(f"(a) bound by {bound_a}; "
+          + "; ".join(f"{k}/(a) = {v['ratio_to_compute_layer']:.2f}" for k, v in ray_summary.items()))
     print(f"(a)/(b) = {ratio:.2f} (goal >= 0.7); peak RSS of (a) = {rss_a:.0f} MB (goal <= 1024); wall {wall:.0f} s")
     report = {
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
@@ -390,6 +601,7 @@ def main() -> None:
         "encoder": a.encoder, "batch_size": a.batch_size, "torch_threads": 1, "reps": a.reps,
         "decoder_threads": a.decoder_threads,
         "median_frames_per_second": {"compute_layer": fps_a, "encode_only": fps_b, "decode_only": fps_dec},
+        "compute_layer_bound_by": bound_a, "ray": ray_summary, "decode_threads": a.decode_threads,
         "ratio": ratio,
         "peak_rss_mb": {"compute_layer": rss_a, "encode_only": rss_b, "after_imports_and_encoder": rss_base},
         "goals": {"ratio_ge_0.7": ratio >= 0.7, "compute_layer_rss_le_1gb": rss_a <= 1024},

@@ -9,6 +9,10 @@ from __future__ import annotations
 import copy
 import io
 import json
+import os
+import signal
+import threading
+import time
 from pathlib import Path
 from typing import Any, Dict, List
 
@@ -180,10 +184,12 @@ def test_interrupted_run_resumes_and_ends_equal_to_a_clean_run(
 ) -> None:
     s = ufops.Store(ingest(tmp_path_factory, "v30_eval_video").data_dir)
     phash = s.producer_hash(PRODUCER.to_dict())
-    # 12 batches of 16 frames: episodes 0 and 1 (139 frames) are finished, 2 (to frame 203) is not.
+    # 12 batches of up to 16 frames of one episode: episodes 0 and 1 (5 + 4 batches) are
+    # finished, 2 (3 of its 4 batches) is not.
     with pytest.raises(Interrupted):
         features.compute_layer(
-            s, FailsAfter(12), name=LAYER, camera=CAMERA, producer=PRODUCER, batch_size=16, commit_every=4, progress=False
+            s, FailsAfter(12), name=LAYER, camera=CAMERA, producer=PRODUCER, batch_size=16, commit_every=4,
+            progress=False, decode_threads=1,
         )
     index = episode_index(s)
     done = s.layer_episodes(LAYER, phash)
@@ -348,7 +354,7 @@ def test_layer_over_the_api_on_postgres_and_s3(scale_out: Ufops, expected_video:
 
         with pytest.raises(Interrupted):
             features.compute_layer(api, FailsAfter(12), name=LAYER, camera=CAMERA, producer=PRODUCER,
-                                   batch_size=16, commit_every=4, progress=False)
+                                   batch_size=16, commit_every=4, progress=False, decode_threads=1)
         done = client.layer_episodes(LAYER, phash)
         assert sorted(index[i] for i in done) == [0, 1], "the finished episodes are committed before the error"
 
@@ -365,3 +371,74 @@ def test_layer_over_the_api_on_postgres_and_s3(scale_out: Ufops, expected_video:
             rows = client.steps(i, layers=[LAYER]).sort("t")
             got = np.asarray(rows[f"obs.{LAYER}"].to_list(), dtype=np.float32)
             np.testing.assert_allclose(got, expected_video[e], rtol=0, atol=TOL, err_msg=f"episode {e}")
+
+
+def test_decoding_threads_change_no_bit(tmp_path_factory: pytest.TempPathFactory, video_store: Ufops) -> None:
+    """Three decoding threads give the rows one gives, bit for bit: a batch is frames of one
+    episode, whichever thread decoded it."""
+    one = ufops.Store(video_store.data_dir)
+    if not one.layers().height:
+        features.compute_layer(one, ENCODER, name=LAYER, camera=CAMERA, producer=PRODUCER, progress=False)
+    three = ufops.Store(ingest(tmp_path_factory, "v30_eval_video").data_dir)
+    r = features.compute_layer(three, ENCODER, name=LAYER, camera=CAMERA, producer=PRODUCER, progress=False,
+                               decode_threads=3, commit_every=2)
+    assert (r.episodes_written, r.frames, r.stages["decode"].workers) == (8, 519, 3)
+    a, b = layer_values(one, list(episode_index(one))), layer_values(three, list(episode_index(three)))
+    by_e = {e: a[i] for i, e in episode_index(one).items()}
+    for i, e in episode_index(three).items():
+        np.testing.assert_array_equal(b[i], by_e[e], err_msg=f"episode {e}")
+
+
+def test_a_fast_encoder_gets_more_decoders(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """An encoder that outpaces one decoder (here: no work at all) makes compute_layer start
+    more decoding threads by itself; the report and the progress line say what each stage did."""
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("one CPU: compute_layer starts one decoding thread")
+    s = ufops.Store(ingest(tmp_path_factory, "v30_eval_video").data_dir)
+    r = features.compute_layer(s, lambda x: np.zeros((len(x), 4), np.float32), preprocess=lambda f: f,
+                               name="features.zero", camera=CAMERA, producer=features.Producer("zero", "p", "c", "0"),
+                               batch_size=8, progress=False)
+    decode, encode, write = (r.stages[k] for k in features.STAGES)
+    assert decode.workers >= 2 and decode.frames == encode.frames == write.frames == r.frames == 519
+    assert r.bound_by == "decode", {k: v.to_dict() for k, v in r.stages.items()}
+
+
+def test_ctrl_c_then_resume_leaves_the_store_as_one_run(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Ctrl-C (a real SIGINT to this process) in the middle of compute_layer: the finished
+    episodes are committed, the resumed run writes the rest, and the store holds each episode
+    once (the versions' episodes add up to 8) with the rows of an uninterrupted run, bit for bit."""
+    import ray_encoders
+
+    u = ingest(tmp_path_factory, "v30_eval_video")
+    s = ufops.Store(u.data_dir)
+    phash = s.producer_hash(PRODUCER.to_dict())
+
+    def watch() -> None:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and len(s.layer_episodes(LAYER, phash)) < 2:
+            time.sleep(0.02)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    with pytest.raises(KeyboardInterrupt):
+        features.compute_layer(s, ray_encoders.Slow(ENCODER, 0.05), name=LAYER, camera=CAMERA, producer=PRODUCER,
+                               batch_size=16, commit_every=2, progress=False)
+        time.sleep(30)  # the SIGINT lands in the run (a run that ended first fails the test)
+    watcher.join()
+    held = s.layer_episodes(LAYER, phash)
+    assert 2 <= len(held) < 8
+    r = features.compute_layer(s, ENCODER, name=LAYER, camera=CAMERA, producer=PRODUCER, batch_size=16,
+                               progress=False)
+    assert (r.episodes_written, r.episodes_skipped) == (8 - len(held), len(held))
+    per_version = [int(v["message"].rsplit(" on ", 1)[1].split()[0]) for v in u.json("versions", "--json")
+                   if v["kind"] == "layer"]
+    assert sum(per_version) == 8, per_version
+
+    clean = ufops.Store(ingest(tmp_path_factory, "v30_eval_video").data_dir)
+    features.compute_layer(clean, ENCODER, name=LAYER, camera=CAMERA, producer=PRODUCER, batch_size=16,
+                           progress=False)
+    got, want = layer_values(s, list(episode_index(s))), layer_values(clean, list(episode_index(clean)))
+    want_by_e = {e: want[i] for i, e in episode_index(clean).items()}
+    for i, e in episode_index(s).items():
+        np.testing.assert_array_equal(got[i], want_by_e[e], err_msg=f"episode {e}")

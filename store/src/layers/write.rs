@@ -196,6 +196,11 @@ impl Store {
     /// Every episode must be visible now and get one row per stored step; an episode that
     /// already holds this layer from this producer is skipped (no version when all are). A
     /// layer name may not shadow an observation key the episode's steps already have.
+    ///
+    /// Which episodes hold the layer already is decided again inside the version's transaction
+    /// (under the version write lock), so two writers of one producer at once — two runs of a
+    /// computation, on any number of servers — write each episode once: the later commit skips
+    /// what the earlier one wrote.
     pub async fn write_layer(
         &self,
         name: &str,
@@ -207,21 +212,17 @@ impl Store {
         let hash = producer_hash(producer)?;
         let dim = check_layer_values(name, &episodes)?;
         let todo = self.layer_episodes_to_write(name, &hash, dim, &episodes).await?;
-        let skipped = episodes.len() - todo.len();
-        if todo.is_empty() {
-            return Ok(LayerWrite {
-                version: None,
-                producer_hash: hash,
-                episodes_written: 0,
-                episodes_skipped: skipped,
-            });
-        }
-        let version = self.store_layer(name, producer, &hash, dim, &todo, actor).await?;
+        let written = if todo.is_empty() {
+            None
+        } else {
+            self.store_layer(name, producer, &hash, dim, &todo, actor).await?
+        };
+        let (version, episodes_written) = written.map_or((None, 0), |(v, n)| (Some(v), n));
         Ok(LayerWrite {
-            version: Some(version),
+            version,
             producer_hash: hash,
-            episodes_written: todo.len(),
-            episodes_skipped: skipped,
+            episodes_written,
+            episodes_skipped: episodes.len() - episodes_written,
         })
     }
 
@@ -275,7 +276,8 @@ impl Store {
     }
 
     /// Puts the episodes' values in a new layer file (protected from gc as pending until the
-    /// commit) and commits them as a new version: the version.
+    /// commit) and commits them as a new version: the version and the episodes it wrote, or
+    /// none when another writer committed all of them meanwhile (the file is then left to gc).
     async fn store_layer(
         &self,
         name: &str,
@@ -284,7 +286,7 @@ impl Store {
         dim: usize,
         todo: &[&LayerValues],
         actor: &str,
-    ) -> Result<i64, StoreError> {
+    ) -> Result<Option<(i64, usize)>, StoreError> {
         let file = encode_layer_file(todo, dim)?;
         let path = format!("layers/{}.parquet", uuid::Uuid::new_v4());
         let writer = format!("layer-{}", uuid::Uuid::new_v4().simple());
@@ -310,7 +312,7 @@ impl Store {
                 actor,
             )
             .await;
-        if committed.is_err() {
+        if !matches!(committed, Ok(Some(_))) {
             // The file is left for gc (no longer protected).
             self.clear_pending(&writer).await.ok();
         }
@@ -331,8 +333,22 @@ impl Store {
         rows: usize,
         writer: &str,
         actor: &str,
-    ) -> Result<i64, StoreError> {
+    ) -> Result<Option<(i64, usize)>, StoreError> {
         let mut tx = self.db().begin_version_write().await?;
+        // Under the version write lock: a concurrent writer of this producer may have committed
+        // some of these episodes since they were checked; they are not written again.
+        let ids: Vec<String> = todo.iter().map(|e| e.episode_id.clone()).collect();
+        let held = episodes_with_layer_in(&mut tx, name, hash, &ids).await?;
+        let (todo, ranges): (Vec<&LayerValues>, Vec<(usize, usize, usize)>) = todo
+            .iter()
+            .zip(ranges)
+            .filter(|(e, _)| !held.contains(&e.episode_id))
+            .map(|(e, r)| (*e, *r))
+            .unzip();
+        if todo.is_empty() {
+            return Ok(None); // the transaction rolls back
+        }
+        let (todo, ranges) = (todo.as_slice(), ranges.as_slice());
         let version = next_version(&mut tx).await?;
         let now = crate::now_rfc3339();
         sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(writer).execute(&mut *tx).await?;
@@ -370,7 +386,8 @@ impl Store {
             episodes_removed: 0,
             events: Vec::new(),
         };
-        finish_version(self, tx, head, Default::default(), None).await
+        let version = finish_version(self, tx, head, Default::default(), None).await?;
+        Ok(Some((version, todo.len())))
     }
 
     async fn layer_dim(&self, name: &str, hash: &str) -> Result<Option<i64>, StoreError> {
@@ -389,22 +406,34 @@ impl Store {
         producer_hash: &str,
         ids: &[String],
     ) -> Result<HashSet<String>, StoreError> {
-        let mut out = HashSet::new();
-        for chunk in ids.chunks(IDS_PER_QUERY) {
-            let marks: Vec<String> = (3..chunk.len() + 3).map(|i| format!("${i}")).collect();
-            let sql = format!(
-                "SELECT episode_id FROM episode_layers WHERE layer = $1 AND producer_hash = $2 \
-                 AND version_removed IS NULL AND episode_id IN ({})",
-                marks.join(", ")
-            );
-            let mut q = sqlx::query(&sql).bind(name).bind(producer_hash);
-            for id in chunk {
-                q = q.bind(id.as_str());
-            }
-            for r in q.fetch_all(&self.db().pool).await? {
-                out.insert(r.s("episode_id")?);
-            }
-        }
-        Ok(out)
+        let mut conn = self.db().pool.acquire().await?;
+        episodes_with_layer_in(&mut conn, name, producer_hash, ids).await
     }
+}
+
+/// Which of `ids` hold layer `name` from `producer_hash` now, read on `conn` (a transaction's,
+/// to decide under its locks).
+async fn episodes_with_layer_in(
+    conn: &mut sqlx::AnyConnection,
+    name: &str,
+    producer_hash: &str,
+    ids: &[String],
+) -> Result<HashSet<String>, StoreError> {
+    let mut out = HashSet::new();
+    for chunk in ids.chunks(IDS_PER_QUERY) {
+        let marks: Vec<String> = (3..chunk.len() + 3).map(|i| format!("${i}")).collect();
+        let sql = format!(
+            "SELECT episode_id FROM episode_layers WHERE layer = $1 AND producer_hash = $2 \
+             AND version_removed IS NULL AND episode_id IN ({})",
+            marks.join(", ")
+        );
+        let mut q = sqlx::query(&sql).bind(name).bind(producer_hash);
+        for id in chunk {
+            q = q.bind(id.as_str());
+        }
+        for r in q.fetch_all(&mut *conn).await? {
+            out.insert(r.s("episode_id")?);
+        }
+    }
+    Ok(out)
 }

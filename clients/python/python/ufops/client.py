@@ -7,14 +7,19 @@ someone else since it was read raises :class:`~ufops.errors.ConflictError` sayin
 from __future__ import annotations
 
 import json
+import time
 import urllib.error
 import urllib.parse
 import urllib.request
+import uuid
 from typing import Any, Dict, Iterator, List, Optional, Sequence
 
 from ufops.errors import AuthError, ConflictError, FetchError, NotFoundError, UfopsError
 
 JsonObject = Dict[str, Any]
+
+# Tries of a layer write that failed in transit or with a 5xx (one idempotency key for all).
+WRITE_TRIES = 3
 
 
 class Client:
@@ -131,13 +136,20 @@ class Client:
         buf = io.BytesIO()
         frame.write_ipc_stream(buf, compat_level=pl.CompatLevel.oldest())
         q = urllib.parse.urlencode({"producer": json.dumps(producer, sort_keys=True)})
-        raw = self._request_bytes(
-            "POST",
-            f"/v1/layers/{urllib.parse.quote(name, safe='')}?{q}",
-            buf.getvalue(),
-            {"Content-Type": "application/vnd.apache.arrow.stream"},
-        )
-        return json.loads(raw)  # type: ignore[no-any-return]
+        # One key for this group's tries: a retry after a lost response gets the first answer
+        # (its version) replayed instead of writing again.
+        headers = {"Content-Type": "application/vnd.apache.arrow.stream", "Idempotency-Key": f"layer-{uuid.uuid4()}"}
+        for attempt in range(WRITE_TRIES):
+            try:
+                raw = self._request_bytes(
+                    "POST", f"/v1/layers/{urllib.parse.quote(name, safe='')}?{q}", buf.getvalue(), headers
+                )
+                return json.loads(raw)  # type: ignore[no-any-return]
+            except FetchError:
+                if attempt + 1 == WRITE_TRIES:
+                    raise
+                time.sleep(0.5 * 2**attempt)
+        raise AssertionError("unreachable")
 
     def episodes(self, **filters: Any) -> List[JsonObject]:
         """All episodes matching ``filters`` (policy, checkpoint, task, label, label_source, tag,

@@ -10,7 +10,9 @@ layers=[name])`` then returns it as the column ``obs.<name>``.
 
 * :func:`compute_layer` — resumable and idempotent: episodes that already hold the layer from the
   same producer are skipped, and every ``commit_every`` finished episodes become one store
-  version, so an interrupted run goes on where it stopped.
+  version, so an interrupted run goes on where it stopped. Decoding runs in threads (more of them
+  when the encoder waits for frames); the report says what each stage cost.
+  :func:`ufops.features_ray.compute_layer_on_ray` computes the same rows on a Ray cluster.
 * :func:`encode_frames` — the same preprocessing and encoder call on live frames, so the robot's
   features and the store's come out of one function.
 * :class:`FrameReader` — a camera's frames of an episode as uint8 ``(H, W, C)`` arrays.
@@ -29,6 +31,7 @@ import contextlib
 import hashlib
 import importlib
 import io
+import os
 import queue
 import sys
 import threading
@@ -513,8 +516,36 @@ def encode_frames(
 
 
 @dataclass
+class StageStats:
+    """One stage of a layer's computation (``decode``, ``encode``, ``write``): the frames it
+    handled, the seconds its workers were busy (summed over workers; waiting for the next stage
+    is not busy) and how many workers it had. ``frames_per_second`` is one worker's rate while
+    busy; ``capacity`` (rate x workers) is what the stage can give the whole computation."""
+
+    frames: int = 0
+    seconds: float = 0.0
+    workers: int = 1
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def capacity(self) -> float:
+        return self.frames_per_second * self.workers
+
+    def to_dict(self) -> Dict[str, float]:
+        return {**asdict(self), "frames_per_second": self.frames_per_second, "capacity": self.capacity}
+
+
+STAGES = ("decode", "encode", "write")
+
+
+@dataclass
 class LayerReport:
-    """What :func:`compute_layer` did."""
+    """What :func:`compute_layer` (or :func:`ufops.features_ray.compute_layer_on_ray`) did.
+    ``stages`` says what each stage cost (:class:`StageStats`) and ``bound_by`` names the one of
+    least capacity: the stage to give more workers (decoders, encoders) to go faster."""
 
     episodes_written: int
     episodes_skipped: int
@@ -523,90 +554,142 @@ class LayerReport:
     frames_per_second: float
     versions: List[int] = field(default_factory=list)
     producer_hash: str = ""
+    stages: Dict[str, StageStats] = field(default_factory=lambda: {s: StageStats() for s in STAGES})
 
-
-@dataclass
-class _Part:
-    """Rows ``start .. start + count`` of an episode of ``length`` steps, within a batch."""
-
-    episode_id: str
-    length: int
-    start: int
-    count: int
+    @property
+    def bound_by(self) -> str:
+        """The stage of least capacity among those that handled frames ("" before any did)."""
+        busy = {k: s.capacity for k, s in self.stages.items() if s.frames and s.seconds > 0}
+        return min(busy, key=lambda k: busy[k]) if busy else ""
 
 
 @dataclass
 class _Batch:
+    """Rows ``start .. start + len(frames)`` of an episode of ``length`` steps."""
+
     frames: Frames
-    parts: List[_Part]
+    episode_id: str
+    length: int
+    start: int
 
 
 _DONE = object()
 
 
+def _episode_batches(reader: FrameReader, steps: "pl.DataFrame", episode_id: str, batch_size: int) -> Iterator[_Batch]:
+    """An episode's frames in batches of ``batch_size`` from its first step (the last one
+    shorter; a change of frame shape cuts one too). A batch never holds two episodes' frames,
+    so what the encoder sees — and, on one machine, the bits of every row — depends on the
+    episode and ``batch_size`` only: not on which other episodes a run computes, how many
+    decoders run, or where (one process or a Ray cluster)."""
+    length = steps.height
+    if length == 0:
+        raise NotFoundError(f"episode {episode_id} has no steps")
+    if steps["t"].to_list() != list(range(length)):
+        raise IntegrityError(f"episode {episode_id}: its steps are not t = 0..{length - 1} in order")
+    buf: Optional[Frames] = None
+    n = start = 0
+    for t, frame in enumerate(reader.frames(steps)):
+        if buf is None or frame.shape != buf.shape[1:]:
+            if n and buf is not None:
+                yield _Batch(buf[:n], episode_id, length, start)
+            buf, n, start = np.empty((min(batch_size, length - t), *frame.shape), np.uint8), 0, t
+        buf[n] = frame
+        n += 1
+        if n == len(buf):
+            yield _Batch(buf, episode_id, length, start)
+            buf, n = None, 0
+    if n and buf is not None:
+        yield _Batch(buf[:n], episode_id, length, start)
+
+
+class _EpisodeDealer:
+    """The episodes to decode, dealt to decoding threads a run of ``take`` consecutive ones at a
+    time (in storage order: a shared video is decoded forward within a run)."""
+
+    def __init__(self, episodes: Sequence[str], take: int) -> None:
+        self._episodes = list(episodes)
+        self._next = 0
+        self.take_size = max(1, take)
+        self._lock = threading.Lock()
+
+    def remaining(self) -> int:
+        with self._lock:
+            return len(self._episodes) - self._next
+
+    def take(self) -> List[str]:
+        with self._lock:
+            run = self._episodes[self._next : self._next + self.take_size]
+            self._next += len(run)
+            return run
+
+
 def _decode_batches(
-    reader: FrameReader,
-    store: LayerStore,
-    episodes: Iterable[str],
+    store: StepsReader,
+    camera: str,
+    dealer: _EpisodeDealer,
     batch_size: int,
     out: "queue.Queue[Any]",
     stop: threading.Event,
+    stats: StageStats,
+    lock: threading.Lock,
 ) -> None:
-    """The decoding thread: batches of frames (across episodes) into ``out``, then _DONE; an
-    exception goes into ``out`` instead."""
+    """A decoding thread: batches of the episodes it is dealt into ``out``, then _DONE; an
+    exception goes into ``out`` instead. Its busy time (not the time blocked on a full queue)
+    is added to ``stats``."""
 
     def put(item: Any) -> bool:
+        # Up to QUEUED_BATCHES queued per running thread (the queue holds room for the most).
         while not stop.is_set():
-            try:
-                out.put(item, timeout=0.1)
-                return True
-            except queue.Full:
-                pass
+            if out.qsize() < QUEUED_BATCHES * max(1, stats.workers) or not isinstance(item, _Batch):
+                try:
+                    out.put(item, timeout=0.1)
+                    return True
+                except queue.Full:
+                    pass
+            else:
+                time.sleep(0.002)
         return False
 
+    busy_since = time.perf_counter()
+
+    def account(frames: int) -> None:
+        nonlocal busy_since
+        now = time.perf_counter()
+        with lock:
+            stats.frames += frames
+            stats.seconds += now - busy_since
+
     try:
-        buf: Optional[Frames] = None
-        n = 0
-        parts: List[_Part] = []
-        for ep in episodes:
-            steps = store.steps([ep])
-            length = steps.height
-            if length == 0:
-                raise NotFoundError(f"episode {ep} has no steps")
-            if steps["t"].to_list() != list(range(length)):
-                raise IntegrityError(f"episode {ep}: its steps are not t = 0..{length - 1} in order")
-            for t, frame in enumerate(reader.frames(steps)):
-                if buf is None or frame.shape != buf.shape[1:]:
-                    if n and buf is not None and not put(_Batch(buf[:n], parts)):
+        with FrameReader(store, camera) as reader:
+            while not stop.is_set():
+                run = dealer.take()
+                if not run:
+                    break
+                for ep in run:
+                    for batch in _episode_batches(reader, store.steps([ep]), ep, batch_size):
+                        account(len(batch.frames))
+                        if not put(batch):
+                            return
+                        busy_since = time.perf_counter()
+                    if stop.is_set():
                         return
-                    buf, n, parts = np.empty((batch_size, *frame.shape), np.uint8), 0, []
-                buf[n] = frame
-                n += 1
-                if parts and parts[-1].episode_id == ep:
-                    parts[-1].count += 1
-                else:
-                    parts.append(_Part(ep, length, t, 1))
-                if n == batch_size:
-                    if not put(_Batch(buf, parts)):
-                        return
-                    buf, n, parts = None, 0, []
-            if stop.is_set():
-                return
-        if n and buf is not None and not put(_Batch(buf[:n], parts)):
-            return
         put(_DONE)
     except BaseException as e:  # handed to the encoding thread, which raises it
         put(e)
 
 
 class _Progress:
+    """The progress line on stderr: episodes and frames done, the overall rate and each stage's
+    (one worker's, while busy)."""
+
     def __init__(self, name: str, total: int, enabled: bool) -> None:
         self.name, self.total, self.enabled = name, total, enabled
         self.tty = enabled and sys.stderr.isatty()
         self.start = time.monotonic()
         self.last = 0.0
 
-    def update(self, episodes: int, frames: int, final: bool = False) -> None:
+    def update(self, episodes: int, frames: int, final: bool = False, stages: Optional[Mapping[str, StageStats]] = None) -> None:
         if not self.enabled:
             return
         now = time.monotonic()
@@ -615,8 +698,95 @@ class _Progress:
         self.last = now
         rate = frames / max(now - self.start, 1e-9)
         line = f"{self.name}: {episodes}/{self.total} episodes, {frames} frames, {rate:.0f} frames/s"
+        busy = [
+            f"{k} {s.frames_per_second:.0f}" + (f" x{s.workers}" if s.workers > 1 else "")
+            for k, s in (stages or {}).items()
+            if s.frames
+        ]
+        if busy:
+            line += " (" + ", ".join(busy) + " frames/s)"
         sys.stderr.write(("\r" + line + ("\n" if final else "")) if self.tty else line + "\n")
         sys.stderr.flush()
+
+
+class _Assembler:
+    """Encoded batches into whole episodes: an episode's array is handed back once every one of
+    its rows has arrived. A row given twice (a retried task) is written over with the same
+    values, never counted twice."""
+
+    def __init__(self) -> None:
+        self.dim: Optional[int] = None
+        self._filling: Dict[str, Tuple[Features, npt.NDArray[np.bool_]]] = {}
+
+    def __len__(self) -> int:
+        return len(self._filling)
+
+    def add(self, episode_id: str, length: int, start: int, rows: Features) -> Optional[Features]:
+        if self.dim is None:
+            self.dim = rows.shape[1]
+        elif rows.shape[1] != self.dim:
+            raise ValueError(f"the encoder returned {rows.shape[1]} features, earlier {self.dim}")
+        if not np.isfinite(rows).all():
+            raise ValueError(f"episode {episode_id}: the encoder returned non-finite features")
+        if start < 0 or start + len(rows) > length:
+            raise IntegrityError(f"episode {episode_id}: rows {start}..{start + len(rows)} of {length}")
+        entry = self._filling.get(episode_id)
+        if entry is None:
+            entry = self._filling[episode_id] = (np.empty((length, self.dim), np.float32), np.zeros(length, bool))
+        arr, seen = entry
+        arr[start : start + len(rows)] = rows
+        seen[start : start + len(rows)] = True
+        if seen.all():
+            del self._filling[episode_id]
+            return arr
+        return None
+
+
+class _Writer:
+    """Finished episodes into the store, ``commit_every`` at a time, each group one
+    ``write_layer`` call (one version); counts into ``report``."""
+
+    def __init__(self, store: LayerStore, name: str, producer: Dict[str, Any], phash: str, commit_every: int, report: LayerReport) -> None:
+        self.store, self.name, self.producer, self.phash = store, name, producer, phash
+        self.commit_every = commit_every
+        self.report = report
+        self.finished: Dict[str, Features] = {}
+        self.failed = False
+
+    def add(self, episode_id: str, values: Features) -> None:
+        self.finished[episode_id] = values
+        if len(self.finished) >= self.commit_every:
+            self.commit()
+
+    def commit(self) -> None:
+        if not self.finished:
+            return
+        started = time.perf_counter()
+        try:
+            res = self.store.write_layer(self.name, self.producer, dict(self.finished))
+        except BaseException:
+            self.failed = True
+            raise
+        if res.get("producer_hash", self.phash) != self.phash:
+            self.failed = True
+            raise IntegrityError(f"layer {self.name}: the store wrote producer {res['producer_hash']}, not {self.phash}")
+        stage = self.report.stages["write"]
+        stage.frames += sum(len(v) for v in self.finished.values())
+        stage.seconds += time.perf_counter() - started
+        self.report.episodes_written += int(res["episodes_written"])
+        self.report.episodes_skipped += int(res["episodes_skipped"])
+        if res.get("version") is not None:
+            self.report.versions.append(int(res["version"]))
+        self.finished.clear()
+
+    def salvage(self) -> None:
+        """After an error or Ctrl-C: commits the finished episodes, so the next run resumes after
+        them (unless writing was what failed); a second error is only warned about."""
+        if self.finished and not self.failed:
+            try:
+                self.commit()
+            except Exception as e:  # the first error is the one to raise
+                warnings.warn(f"layer {self.name}: could not write the {len(self.finished)} finished episodes: {e}")
 
 
 def _storage_order(store: LayerStore, ids: Optional[Sequence[str]]) -> List[str]:
@@ -640,6 +810,29 @@ def _storage_order(store: LayerStore, ids: Optional[Sequence[str]]) -> List[str]
     return [i for i in order if i in chosen]
 
 
+def _plan(store: LayerStore, name: str, producer: Producer, episodes: Optional[Sequence[str]], batch_size: int,
+          commit_every: int) -> Tuple[Dict[str, Any], List[str], LayerReport]:
+    """The producer as a dict, the episodes still to compute (storage order), and the report
+    started with those skipped."""
+    if batch_size < 1 or commit_every < 1:
+        raise ValueError(f"batch_size and commit_every must be at least 1; got {batch_size}, {commit_every}")
+    producer_dict: Dict[str, Any] = producer.to_dict()
+    phash = store.producer_hash(producer_dict)
+    order = _storage_order(store, episodes)
+    done = set(store.layer_episodes(name, phash))
+    todo = [e for e in order if e not in done]
+    return producer_dict, todo, LayerReport(0, len(order) - len(todo), 0, 0.0, 0.0, [], phash)
+
+
+# The most decoding threads compute_layer starts by itself; it adds one when the encoder waited
+# for frames more than STARVED of its own busy time over at least RAMP_BATCHES batches.
+AUTO_DECODE_THREADS = 4
+STARVED = 0.5
+RAMP_BATCHES = 4
+# Episodes dealt to a decoding thread at a time.
+EPISODES_PER_TAKE = 2
+
+
 def compute_layer(
     store: LayerStore,
     encoder: Callable[[Any], Any],
@@ -653,6 +846,7 @@ def compute_layer(
     preprocess: Optional[Preprocess] = None,
     device: str = "cpu",
     progress: bool = True,
+    decode_threads: Optional[int] = None,
 ) -> LayerReport:
     """Computes the layer ``name`` — ``encoder`` applied to ``camera``'s frames — for
     ``episodes`` (default: every visible episode) and writes it into ``store``.
@@ -662,23 +856,25 @@ def compute_layer(
     mapping a preprocessed batch to ``(B, D)`` features. ``preprocess`` maps uint8
     ``(B, H, W, C)`` frames to the encoder's input (default :func:`to_tensor`); use the policy's
     own. ``camera`` is the store's camera (``images.front``) or the LeRobot key
-    (``observation.images.front``).
+    (``observation.images.front``). A batch is up to ``batch_size`` frames of one episode.
 
     Episodes already holding the layer from ``producer`` are skipped; every ``commit_every``
     finished episodes are one ``store.write_layer`` call (one store version), so a run that is
     stopped (an error, Ctrl-C: the finished episodes are committed first) resumes where it
-    stopped. A thread decodes up to QUEUED_BATCHES batches ahead of the encoder; memory holds
-    those batches and one commit group of features, never a whole video."""
-    if batch_size < 1 or commit_every < 1:
-        raise ValueError(f"batch_size and commit_every must be at least 1; got {batch_size}, {commit_every}")
+    stopped.
+
+    Decoding runs in threads ahead of the encoder, up to QUEUED_BATCHES batches ahead per
+    thread. ``decode_threads=None`` starts one and adds another (up to AUTO_DECODE_THREADS and
+    the CPUs) whenever the encoder waits for frames longer than half its own busy time — an
+    encoder on a GPU outpaces one decoder; an int fixes the number. Memory holds the queued
+    batches, each thread's open videos and one commit group of features, never a whole video.
+    The returned report says what each stage cost and which bounded the run."""
     started = time.monotonic()
-    producer_dict: Dict[str, Any] = producer.to_dict()
-    phash = store.producer_hash(producer_dict)
-    order = _storage_order(store, episodes)
-    done = set(store.layer_episodes(name, phash))
-    todo = [e for e in order if e not in done]
-    report = LayerReport(0, len(order) - len(todo), 0, 0.0, 0.0, [], phash)
-    bar = _Progress(name, len(order), progress)
+    producer_dict, todo, report = _plan(store, name, producer, episodes, batch_size, commit_every)
+    if decode_threads is not None and decode_threads < 1:
+        raise ValueError(f"decode_threads must be at least 1; got {decode_threads}")
+    max_threads = decode_threads or max(1, min(AUTO_DECODE_THREADS, os.cpu_count() or 1))
+    bar = _Progress(name, report.episodes_skipped + len(todo), progress)
 
     module = _is_module(encoder)
     training = module and bool(getattr(encoder, "training"))
@@ -686,82 +882,77 @@ def compute_layer(
         getattr(encoder, "to")(device)
         getattr(encoder, "eval")()
 
-    filling: Dict[str, Features] = {}  # episodes with some rows encoded
-    finished: Dict[str, Features] = {}  # episodes all encoded, not yet written
-    dim: Optional[int] = None
-    write_failed = False
-
-    def commit() -> None:
-        nonlocal write_failed
-        if not finished:
-            return
-        try:
-            res = store.write_layer(name, producer_dict, dict(finished))
-        except BaseException:
-            write_failed = True
-            raise
-        if res.get("producer_hash", phash) != phash:
-            write_failed = True
-            raise IntegrityError(f"layer {name}: the store wrote producer {res['producer_hash']}, not {phash}")
-        report.episodes_written += int(res["episodes_written"])
-        report.episodes_skipped += int(res["episodes_skipped"])
-        if res.get("version") is not None:
-            report.versions.append(int(res["version"]))
-        finished.clear()
-
+    assembler = _Assembler()
+    writer = _Writer(store, name, producer_dict, report.producer_hash, commit_every, report)
+    decode, encode = report.stages["decode"], report.stages["encode"]
+    decode.workers = 0
+    stats_lock = threading.Lock()
     stop = threading.Event()
-    batches: "queue.Queue[Any]" = queue.Queue(maxsize=QUEUED_BATCHES)
-    reader = FrameReader(store, camera)
-    thread = threading.Thread(
-        target=_decode_batches, args=(reader, store, todo, batch_size, batches, stop), name=f"ufops-decode-{name}", daemon=True
-    )
-    thread.start()
+    batches: "queue.Queue[Any]" = queue.Queue(maxsize=QUEUED_BATCHES * max_threads)
+    dealer = _EpisodeDealer(todo, EPISODES_PER_TAKE if max_threads > 1 else len(todo))
+    threads: List[threading.Thread] = []
+
+    def start_thread() -> None:
+        t = threading.Thread(
+            target=_decode_batches,
+            args=(store, camera, dealer, batch_size, batches, stop, decode, stats_lock),
+            name=f"ufops-decode-{name}-{len(threads)}",
+            daemon=True,
+        )
+        threads.append(t)
+        with stats_lock:
+            decode.workers = len(threads)
+        t.start()
+
+    # A fixed number starts at once (no more than there are runs to deal); auto starts one.
+    first = min(decode_threads or 1, -(-len(todo) // dealer.take_size))
+    for _ in range(first):
+        start_thread()
+    running = len(threads)
+    waited = busy = 0.0
+    since_ramp = 0
     try:
         bar.update(report.episodes_skipped, 0)
-        while True:
+        while running:
+            t0 = time.perf_counter()
             item = batches.get()
+            t1 = time.perf_counter()
             if item is _DONE:
-                break
+                running -= 1
+                continue
             if isinstance(item, BaseException):
                 raise item
             feats = _encode(encoder, item.frames, preprocess, device)
-            if dim is None:
-                dim = feats.shape[1]
-            elif feats.shape[1] != dim:
-                raise ValueError(f"the encoder returned {feats.shape[1]} features, earlier {dim}")
-            off = 0
-            for p in item.parts:
-                rows = feats[off : off + p.count]
-                off += p.count
-                if not np.isfinite(rows).all():
-                    raise ValueError(f"episode {p.episode_id}: the encoder returned non-finite features")
-                arr = filling.get(p.episode_id)
-                if arr is None:
-                    arr = filling[p.episode_id] = np.empty((p.length, dim), np.float32)
-                arr[p.start : p.start + p.count] = rows
-                if p.start + p.count == p.length:
-                    finished[p.episode_id] = filling.pop(p.episode_id)
+            t2 = time.perf_counter()
+            encode.frames += len(item.frames)
+            encode.seconds += t2 - t1
             report.frames += len(item.frames)
-            if len(finished) >= commit_every:
-                commit()
-            bar.update(report.episodes_skipped + report.episodes_written + len(finished), report.frames)
-        commit()
+            done = assembler.add(item.episode_id, item.length, item.start, feats)
+            if done is not None:
+                writer.add(item.episode_id, done)
+            # More decoders when this thread waits for frames more than it encodes them.
+            waited, busy, since_ramp = waited + (t1 - t0), busy + (t2 - t1), since_ramp + 1
+            if since_ramp >= RAMP_BATCHES and decode_threads is None:
+                if waited > STARVED * busy and len(threads) < max_threads and dealer.remaining() > 0:
+                    start_thread()
+                    running += 1
+                waited = busy = 0.0
+                since_ramp = 0
+            with stats_lock:
+                bar.update(report.episodes_skipped + report.episodes_written + len(writer.finished), report.frames,
+                           stages=report.stages)
+        writer.commit()
     except BaseException:
         # Keep the finished work: the next run resumes after it.
-        if finished and not write_failed:
-            try:
-                commit()
-            except Exception as e:  # the first error is the one to raise
-                warnings.warn(f"layer {name}: could not write the {len(finished)} finished episodes: {e}")
+        writer.salvage()
         raise
     finally:
         stop.set()
-        thread.join(timeout=60)
-        if not thread.is_alive():
-            reader.close()
+        for t in threads:
+            t.join(timeout=60)
         if training:
             getattr(encoder, "train")()
     report.seconds = time.monotonic() - started
     report.frames_per_second = report.frames / report.seconds if report.seconds > 0 else 0.0
-    bar.update(report.episodes_skipped + report.episodes_written, report.frames, final=True)
+    bar.update(report.episodes_skipped + report.episodes_written, report.frames, final=True, stages=report.stages)
     return report

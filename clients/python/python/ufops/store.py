@@ -6,6 +6,7 @@ Arrow IPC streams. polars is imported on first use (``pip install polars``).
 """
 from __future__ import annotations
 
+import functools
 import io
 import json
 import os
@@ -20,6 +21,11 @@ if TYPE_CHECKING:
     import polars as pl
 
 JsonObject = Dict[str, Any]
+
+
+@functools.lru_cache(maxsize=8)
+def _reopen(data_dir: Optional[str], database_url: Optional[str], object_store: Optional[str]) -> "Store":
+    return Store(data_dir, database_url=database_url, object_store=object_store)
 
 
 def _polars() -> None:
@@ -46,7 +52,7 @@ class Store:
     Composes the native ``_ufops.Store`` (the store's Rust read path): records cross as JSON,
     episodes and steps as Arrow IPC, and this class turns them into polars DataFrames."""
 
-    __slots__ = ("_native",)
+    __slots__ = ("_native", "_opened_with")
 
     def __init__(
         self,
@@ -57,6 +63,13 @@ class Store:
     ) -> None:
         """Opens an existing store (nothing is created: a missing one raises NotFoundError)."""
         self._native = _ufops.Store(data_dir, database_url=database_url, object_store=object_store)
+        self._opened_with = (None if data_dir is None else os.fspath(data_dir), database_url, object_store)
+
+    def __reduce__(self) -> Tuple[Any, Tuple[Optional[str], Optional[str], Optional[str]]]:
+        """Pickled as what opened it, so a worker process (Ray's, multiprocessing's) opens the same
+        store; each process opens it once (`_reopen`). S3 credentials are not pickled: they come
+        from the environment (``AWS_*``) where it is opened."""
+        return (_reopen, self._opened_with)
 
     def __repr__(self) -> str:
         return repr(self._native)
