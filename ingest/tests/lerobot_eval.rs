@@ -134,7 +134,7 @@ fn lerobot_03_output_records_its_seeds() {
     }
     // The seed the file records agrees with --start-seed, or the ingest is refused.
     check_run("v03", "ckpt-a", &seeded(1000));
-    let err = read(&fixtures().join("lerobot_eval/v03/ckpt-a"), &seeded(7)).err().unwrap().to_string();
+    let err = read(&fixtures().join("lerobot_eval/v03/ckpt-a"), &seeded(7)).unwrap_err().to_string();
     assert!(err.contains("--start-seed 7") && err.contains("starting at 1000"), "{err}");
 }
 
@@ -227,7 +227,7 @@ fn videos_past_the_episodes_are_left_out_with_a_note() {
 fn refused_options_and_broken_outputs() {
     let eval = fixtures().join("lerobot_eval/v04/ckpt-a");
     let refused = |opts: ReadOptions, want: &str| {
-        let err = read(&eval, &opts).err().expect("refused").to_string();
+        let err = read(&eval, &opts).expect_err("refused").to_string();
         assert!(err.contains(want), "{err}");
     };
     refused(ReadOptions { success_from_rewards: Some(1.0), ..Default::default() }, "no per-step rewards");
@@ -246,17 +246,17 @@ fn refused_options_and_broken_outputs() {
     let missing = edited_copy(&tmp.path().join("a"), |_, root| {
         std::fs::remove_file(root.join("videos/pusht_0/eval_episode_2.mp4")).unwrap();
     });
-    let err = read(&missing, &seeded(1000)).err().unwrap().to_string();
+    let err = read(&missing, &seeded(1000)).unwrap_err().to_string();
     assert!(err.contains("eval_episode_2.mp4: missing: the video of episode 2"), "{err}");
     let short = edited_copy(&tmp.path().join("b"), |info, _| {
         info["per_task"][0]["metrics"]["max_rewards"].as_array_mut().unwrap().pop();
     });
-    let err = read(&short, &seeded(1000)).err().unwrap().to_string();
+    let err = read(&short, &seeded(1000)).unwrap_err().to_string();
     assert!(err.contains("task pusht_0: 8 successes but 7 max_rewards"), "{err}");
     let not_video = edited_copy(&tmp.path().join("c"), |_, root| {
         std::fs::write(root.join("videos/pusht_0/eval_episode_0.mp4"), b"not a video").unwrap();
     });
-    let err = read(&not_video, &seeded(1000)).err().unwrap().to_string();
+    let err = read(&not_video, &seeded(1000)).unwrap_err().to_string();
     assert!(err.contains("eval_episode_0.mp4: not a readable MP4 video"), "{err}");
 }
 

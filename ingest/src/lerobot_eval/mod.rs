@@ -298,7 +298,7 @@ impl Ctx<'_> {
         if self.video.is_none() {
             md.insert("outcome_only".into(), json!(true));
         }
-        let task = self.opts.task.clone().or_else(|| if self.several { task_name } else { None });
+        let task = self.opts.task.clone().or(task_name.filter(|_| self.several));
         EpisodeInput {
             source_name: self.name,
             source_index: self.index,
