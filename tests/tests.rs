@@ -15,6 +15,7 @@ mod graceful_shutdown;
 mod hostile_corpus;
 mod idempotent_restarts;
 mod ingest_runs;
+mod lerobot_eval_cli;
 mod openapi_contract;
 mod pyarrow_interop;
 mod review_cli;

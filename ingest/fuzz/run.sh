@@ -5,7 +5,7 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 SECS="${1:-60}"; shift || true
-TARGETS=("$@"); [ ${#TARGETS[@]} -eq 0 ] && TARGETS=(robomimic lerobot mcap cdr)
+TARGETS=("$@"); [ ${#TARGETS[@]} -eq 0 ] && TARGETS=(robomimic lerobot lerobot_eval mcap cdr)
 FIX="${UFOPS_FIXTURES:-$(cd ../.. && pwd)/fixtures}"
 command -v cargo-fuzz >/dev/null || cargo install cargo-fuzz
 export RUSTC_BOOTSTRAP=1
@@ -21,6 +21,8 @@ seed() { # seed corpus from the fixtures
       for ds in v30_eval_video v30_unlabeled; do
         { cat "$FIX/lerobot/$ds/meta/info.json"; printf '\0'; cat "$FIX/lerobot/$ds/data/chunk-000/file-000.parquet"; } > "$d/$ds.bin" || true
       done ;;
+    lerobot_eval)
+      { cat "$FIX/lerobot_eval/v04/ckpt-a/eval_info.json"; printf '\0'; cat "$FIX/lerobot_eval/v04/ckpt-a/videos/pusht_0/eval_episode_2.mp4"; } > "$d/v04.bin" || true ;;
     cdr) printf 'string name\nfloat64[] position\n\0\0\1\0\0\2\0\0\0x\0\0\0\1\0\0\0\0\0\0\0\0\0\0\0\0\0\370\77' > "$d/joint.bin" ;;
   esac
 }

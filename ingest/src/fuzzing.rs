@@ -29,6 +29,16 @@ pub fn lerobot_bytes(data: &[u8]) {
     let _ = crate::lerobot::fuzz_entry(info, pq);
 }
 
+/// A lerobot-eval `eval_info.json` and one of its MP4 videos, split at the first NUL byte (before:
+/// the JSON; after: the MP4). Without a NUL, all bytes are tried as both.
+pub fn lerobot_eval_bytes(data: &[u8]) {
+    let (info, mp4) = match data.iter().position(|&b| b == 0) {
+        Some(i) => (&data[..i], &data[i + 1..]),
+        None => (data, data),
+    };
+    let _ = crate::lerobot_eval::fuzz_entry(info, mp4);
+}
+
 /// An MCAP file's bytes (read with the default mapping, and scanned).
 pub fn mcap_bytes(data: &[u8]) {
     let mut sink = CountSink::default();

@@ -107,8 +107,35 @@ pub fn write_corpus(dir: &Path) -> Result<Vec<Case>> {
         std::os::unix::fs::symlink(d.join("secret.txt"), &inside)?;
         Ok(ds)
     })?;
+    // --- lerobot-eval output: the video paths eval_info.json lists -------------------------------
+    add("lerobot_eval_video_path_parent", Attack::Path, "climbs out with `..`", &|d| {
+        std::fs::write(d.join("secret.mp4"), b"a private file")?;
+        lerobot_eval(&d.join("eval"), "outputs/eval/x/videos/../../secret.mp4", None)
+    })?;
+    add("lerobot_eval_video_path_elsewhere", Attack::Path, "not inside a `videos/` folder", &|d| {
+        std::fs::write(d.join("secret.txt"), b"a private key")?;
+        lerobot_eval(&d.join("eval"), &d.join("secret.txt").to_string_lossy(), None)
+    })?;
+    add("lerobot_eval_symlinked_video", Attack::Path, "outside the", &|d| {
+        std::fs::write(d.join("secret.txt"), b"a private key")?;
+        let root = lerobot_eval(&d.join("eval"), LEROBOT_EVAL_VIDEO, None)?;
+        std::os::unix::fs::symlink(d.join("secret.txt"), root.join("videos/pusht_0/eval_episode_0.mp4"))?;
+        Ok(root)
+    })?;
 
     // --- Declared sizes ----------------------------------------------------------------------
+    add("lerobot_eval_huge_eval_info", Attack::Size, "metadata file of", &|d| {
+        let root = lerobot_eval(&d.join("eval"), LEROBOT_EVAL_VIDEO, Some(&mp4_header(10, &[(1, 1)], 1)))?;
+        let mut info = std::fs::read(root.join("eval_info.json"))?;
+        info.resize(info.len() + (17 << 20), b' ');
+        std::fs::write(root.join("eval_info.json"), info)?;
+        Ok(root)
+    })?;
+    add("lerobot_eval_video_declares_frames", Attack::Size, "declares 4294967295 frames", &|d| {
+        // 2^32 - 1 frames, each 1 tick long, in a 200-byte file (the times would take 32 GB)
+        let mp4 = mp4_header(10, &[(u32::MAX, 1)], u32::MAX);
+        lerobot_eval(&d.join("eval"), LEROBOT_EVAL_VIDEO, Some(&mp4))
+    })?;
     add("lerobot_template_width", Attack::Size, "asks for a width of", &|d| {
         lerobot(
             &d.join("ds"),
@@ -181,6 +208,58 @@ pub fn write_corpus(dir: &Path) -> Result<Vec<Case>> {
         aloha_episode(&d.join("episode_0.hdf5"), AlohaFault::FewerFrames)
     })?;
     Ok(cases)
+}
+
+// --- lerobot-eval output ------------------------------------------------------------------------
+
+/// The video path lerobot-eval lists for the first episode of PushT (relative to where it ran).
+const LEROBOT_EVAL_VIDEO: &str = "outputs/eval/x/videos/pusht_0/eval_episode_0.mp4";
+
+/// A lerobot-eval (0.4) output folder under `root`: one task `pusht_0`, one successful episode
+/// whose video is listed as `listed`, and, when given, `video` written where lerobot-eval writes it.
+fn lerobot_eval(root: &Path, listed: &str, video: Option<&[u8]>) -> Result<PathBuf> {
+    let info = json!({
+        "per_task": [{"task_group": "pusht", "task_id": 0, "metrics": {
+            "sum_rewards": [1.0], "max_rewards": [1.0], "successes": [true], "video_paths": [listed]}}],
+        "per_group": {"pusht": {"pc_success": 100.0, "n_episodes": 1, "video_paths": [listed]}},
+        "overall": {"pc_success": 100.0, "n_episodes": 1, "video_paths": [listed]}
+    });
+    std::fs::create_dir_all(root.join("videos/pusht_0"))?;
+    std::fs::write(root.join("eval_info.json"), serde_json::to_vec_pretty(&info)?)?;
+    if let Some(v) = video {
+        std::fs::write(root.join("videos/pusht_0/eval_episode_0.mp4"), v)?;
+    }
+    Ok(root.to_path_buf())
+}
+
+fn mp4_box(kind: &[u8; 4], payload: &[u8]) -> Vec<u8> {
+    let mut v = ((payload.len() + 8) as u32).to_be_bytes().to_vec();
+    v.extend_from_slice(kind);
+    v.extend_from_slice(payload);
+    v
+}
+
+/// An MP4 of headers only (`ftyp`, then `moov` with one H.264 video track): `count` samples
+/// (`stsz`) timed by the `stts` entries `(samples, duration)` at `timescale` ticks a second.
+pub fn mp4_header(timescale: u32, stts: &[(u32, u32)], count: u32) -> Vec<u8> {
+    let mut mdhd = vec![0u8; 24];
+    mdhd[12..16].copy_from_slice(&timescale.to_be_bytes());
+    let mut stsd = vec![0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 16];
+    stsd.extend_from_slice(b"avc1");
+    let mut t = vec![0u8; 4];
+    t.extend_from_slice(&(stts.len() as u32).to_be_bytes());
+    for (n, d) in stts {
+        t.extend_from_slice(&n.to_be_bytes());
+        t.extend_from_slice(&d.to_be_bytes());
+    }
+    let mut sz = vec![0u8; 4];
+    sz.extend_from_slice(&100u32.to_be_bytes());
+    sz.extend_from_slice(&count.to_be_bytes());
+    let stbl = [mp4_box(b"stsd", &stsd), mp4_box(b"stts", &t), mp4_box(b"stsz", &sz)].concat();
+    let minf = [mp4_box(b"vmhd", &[0; 12]), mp4_box(b"stbl", &stbl)].concat();
+    let mdia = [mp4_box(b"mdhd", &mdhd), mp4_box(b"minf", &minf)].concat();
+    let moov = mp4_box(b"moov", &mp4_box(b"trak", &mp4_box(b"mdia", &mdia)));
+    [mp4_box(b"ftyp", b"isom\0\0\x02\0isomavc1"), moov].concat()
 }
 
 // --- ALOHA episodes ----------------------------------------------------------------------------

@@ -1,8 +1,9 @@
 //! ufops ingest: turns a policy's evaluation rollouts (robomimic HDF5, ALOHA/ACT HDF5 episodes,
-//! LeRobot v2.1/v3.0 datasets, MCAP recordings) into one new store version. See `README.md` in this crate.
+//! LeRobot v2.1/v3.0 datasets, `lerobot-eval` output folders, MCAP recordings) into one new store
+//! version. See `README.md` in this crate.
 //!
 //! Layers:
-//! * format readers ([`robomimic`], [`aloha`], [`lerobot`], [`mcapfmt`]) are plain synchronous Rust that push
+//! * format readers ([`robomimic`], [`aloha`], [`lerobot`], [`lerobot_eval`], [`mcapfmt`]) are plain synchronous Rust that push
 //!   a [`sink::SourceMeta`], media files and [`model::EpisodeInput`]s into an [`sink::EpisodeSink`];
 //! * [`read_path`] picks the reader (format detection);
 //! * the async glue ([`ingest`]) runs a reader on a blocking thread, hashes the source on another,
@@ -29,6 +30,7 @@ pub mod hashing;
 #[cfg(any(test, feature = "testing"))]
 pub mod hostile;
 pub mod lerobot;
+pub mod lerobot_eval;
 pub mod mapping;
 pub mod mcapfmt;
 /// The data types readers produce (the store's own model).
@@ -55,7 +57,8 @@ use sink::EpisodeSink;
 const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
 const HDF5_MAGIC: &[u8] = b"\x89HDF\r\n\x1a\n";
 
-/// Decides the format of `path` (a LeRobot folder, an ALOHA folder of `episode_<i>.hdf5`, an
+/// Decides the format of `path` (a LeRobot folder, a `lerobot-eval` output folder holding
+/// `eval_info.json`, an ALOHA folder of `episode_<i>.hdf5`, an
 /// HDF5 file — ALOHA when it has `/observations/qpos` and `/action` and no `/data`, else
 /// robomimic — or an MCAP file).
 pub fn detect(path: &Path) -> Result<Format> {
@@ -64,12 +67,21 @@ pub fn detect(path: &Path) -> Result<Format> {
         if path.join("meta/info.json").is_file() {
             return Ok(Format::Lerobot);
         }
+        if lerobot_eval::looks_like_dir(path) {
+            return Ok(Format::LerobotEval);
+        }
         if aloha::looks_like_dir(path) {
             return Ok(Format::Aloha);
         }
         return Err(IngestError::invalid(
             path.join("meta/info.json"),
-            "missing: a folder is ingested as a LeRobot dataset, which needs meta/info.json (or as an ALOHA folder of episode_<i>.hdf5 files)",
+            "missing: a folder is ingested as a LeRobot dataset, which needs meta/info.json (or as a lerobot-eval output folder with eval_info.json, or an ALOHA folder of episode_<i>.hdf5 files)",
+        ));
+    }
+    if path.file_name().is_some_and(|n| n == lerobot_eval::EVAL_INFO) {
+        return Err(IngestError::invalid(
+            path,
+            "a lerobot-eval result: ingest the folder that holds it (its videos are read from there)",
         ));
     }
     let mut head = [0u8; 8];
@@ -154,10 +166,16 @@ fn read_path_inner(
         f => f,
     };
     let mut notes = Vec::new();
+    if let (Some(s), false) = (opts.start_seed, format == Format::LerobotEval) {
+        return Err(IngestError::Usage(format!(
+            "--start-seed {s}: only lerobot-eval output needs it (its eval_info.json records no seeds); this is {format}"
+        )));
+    }
     match format {
         Format::Robomimic => notes.extend(robomimic::read_file_notes(path, opts, sink)?),
         Format::Aloha => notes.extend(aloha::read_path(path, opts, sink)?),
         Format::Lerobot => lerobot::read_dir(path, opts, sink)?,
+        Format::LerobotEval => notes.extend(lerobot_eval::read_dir(path, opts, sink)?),
         Format::Mcap => {
             let r = mcapfmt::read_file(path, opts, sink)?;
             if let Some(t) = &r.summary.truncated {

@@ -18,6 +18,8 @@ pub enum Format {
     /// ALOHA / ACT: one HDF5 file per episode (a folder of `episode_<i>.hdf5`, or one of them).
     Aloha,
     Lerobot,
+    /// What `lerobot-eval` writes: a folder with `eval_info.json` and `videos/`.
+    LerobotEval,
     Mcap,
 }
 
@@ -28,6 +30,7 @@ impl Format {
             Format::Robomimic => "robomimic",
             Format::Aloha => "aloha",
             Format::Lerobot => "lerobot",
+            Format::LerobotEval => "lerobot-eval",
             Format::Mcap => "mcap",
         }
     }
@@ -41,9 +44,10 @@ impl std::str::FromStr for Format {
             "robomimic" | "hdf5" | "h5" => Ok(Format::Robomimic),
             "aloha" | "act" => Ok(Format::Aloha),
             "lerobot" => Ok(Format::Lerobot),
+            "lerobot-eval" | "lerobot_eval" => Ok(Format::LerobotEval),
             "mcap" => Ok(Format::Mcap),
             other => Err(IngestError::Usage(format!(
-                "unknown format {other:?}: expected auto, robomimic, aloha, lerobot or mcap"
+                "unknown format {other:?}: expected auto, robomimic, aloha, lerobot, lerobot-eval or mcap"
             ))),
         }
     }
@@ -87,6 +91,9 @@ pub struct IngestOptions {
     /// `--intervention-key NAME`: the source's per-step human-takeover flag (a LeRobot feature,
     /// a robomimic demo's or an ALOHA file's dataset) when it is not named `intervention`.
     pub intervention_key: Option<String>,
+    /// `--start-seed S`: the seed of a lerobot-eval output's first episode (lerobot-eval's
+    /// `--seed`; episode i of a task ran with S + i), which lerobot >= 0.4 does not record.
+    pub start_seed: Option<i64>,
     /// `--steering-log FILE`: the source's steering telemetry (a sidecar of best-of-N records,
     /// [`crate::steering`]); by default `<source>.steering.parquet` (a folder's
     /// `steering.parquet`) when it exists.
@@ -224,6 +231,8 @@ pub struct ReadOptions {
     pub checkpoint: String,
     /// The per-step takeover flag's name in the source (see [`IngestOptions::intervention_key`]).
     pub intervention_key: Option<String>,
+    /// lerobot-eval's `--seed` (see [`IngestOptions::start_seed`]).
+    pub start_seed: Option<i64>,
 }
 
 /// The name of a per-step human-takeover flag readers look for when `--intervention-key` names
@@ -252,6 +261,7 @@ impl ReadOptions {
             policy: opts.policy.clone(),
             checkpoint: opts.checkpoint.clone(),
             intervention_key: opts.intervention_key.clone(),
+            start_seed: opts.start_seed,
         })
     }
 

@@ -100,6 +100,27 @@ fn lerobot_mutations_never_panic() {
 }
 
 #[test]
+fn lerobot_eval_mutations_never_panic() {
+    quiet_panics();
+    let f = fixtures().join("lerobot_eval");
+    let mut bases = Vec::new();
+    for (run, video) in
+        [("v04/ckpt-a", "videos/pusht_0/eval_episode_2.mp4"), ("v03/ckpt-b", "videos/eval_episode_0.mp4")]
+    {
+        let mut b = std::fs::read(f.join(run).join("eval_info.json")).unwrap();
+        b.push(0);
+        b.extend(std::fs::read(f.join(run).join(video)).unwrap());
+        bases.push(b);
+    }
+    // the good inputs are read fully
+    let (i, p) = bases[0].split_at(bases[0].iter().position(|&x| x == 0).unwrap());
+    let (episodes, frames) = ingest::lerobot_eval::fuzz_entry(i, &p[1..]);
+    assert_eq!((episodes.unwrap(), frames.unwrap()), (8, 7));
+    let n = run("lerobot_eval", &bases, fuzzing::lerobot_eval_bytes, 5000, Duration::from_secs(6));
+    assert!(n > 100);
+}
+
+#[test]
 fn cdr_mutations_never_panic() {
     quiet_panics();
     let schema = b"std_msgs/Header header\nstring[] name\nfloat64[] position\nfloat64[3] fixed\nint8[<=4] bounded\nbuiltin_interfaces/Time t\n================================================================================\nMSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n================================================================================\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n".to_vec();

@@ -7,5 +7,6 @@ mod common;
 mod end_to_end;
 mod fixtures;
 mod fuzz_mutations;
+mod lerobot_eval;
 mod mcap_no_actions;
 mod video;

@@ -12,7 +12,8 @@ use std::sync::Arc;
 #[derive(clap::Args, Debug)]
 pub struct IngestArgs {
     /// A robomimic .hdf5 file, an ALOHA `episode_<i>.hdf5` file or folder of them, a LeRobot
-    /// dataset folder, or an .mcap recording.
+    /// dataset folder, a `lerobot-eval` output folder (`eval_info.json` + `videos/`), or an .mcap
+    /// recording.
     pub path: PathBuf,
     #[arg(long)]
     pub policy: String,
@@ -20,7 +21,7 @@ pub struct IngestArgs {
     pub checkpoint: String,
     #[arg(long)]
     pub task: Option<String>,
-    /// auto | robomimic | aloha | lerobot | mcap
+    /// auto | robomimic | aloha | lerobot | lerobot-eval | mcap
     #[arg(long, default_value = "auto")]
     pub format: String,
     /// JSON {"demo_0": true, …} or CSV lines demo_0,true.
@@ -48,6 +49,11 @@ pub struct IngestArgs {
     /// the steps' `intervention` column; splits train on the steps before a takeover.
     #[arg(long, value_name = "NAME")]
     pub intervention_key: Option<String>,
+    /// lerobot-eval output: the `--seed` it ran with (1000 unless set). Episode i of each task
+    /// ran with S + i; lerobot >= 0.4 does not record it, and without it the episodes get no
+    /// seed or pair key (`ufops compare` then pairs them in arrival order).
+    #[arg(long, value_name = "S")]
+    pub start_seed: Option<i64>,
     /// The evaluation run these rollouts belong to (a name; see `ufops scoreboard`).
     #[arg(long)]
     pub run: Option<String>,
@@ -101,6 +107,7 @@ pub fn ingest_options(a: &IngestArgs) -> Result<ingest::IngestOptions> {
         memory: Default::default(),
         run: run_input(a.run.as_deref(), a.steering.as_deref(), a.run_artifact.as_deref(), &a.run_tags)?,
         intervention_key: a.intervention_key.clone(),
+        start_seed: a.start_seed,
         steering_log: a.steering_log.clone(),
     })
 }
@@ -254,6 +261,7 @@ async fn ingest_job(store: &store::Store, job: &store::JobRecord) -> Result<serd
         progress: false,
         memory: Default::default(),
         intervention_key: field("intervention_key"),
+        start_seed: s.get("start_seed").and_then(|v| v.as_i64()),
         // The sidecar beside the source, when there is one.
         steering_log: None,
         run: {

@@ -195,7 +195,7 @@ pub(super) const MAX_INFO_BYTES: u64 = 16 << 20;
 pub(super) const MAX_JSONL_BYTES: u64 = 512 << 20;
 
 /// A metadata file read whole, refused when larger than `max` bytes.
-pub(super) fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>> {
+pub(crate) fn read_bounded(path: &Path, max: u64) -> Result<Vec<u8>> {
     use std::io::Read;
     let f = std::fs::File::open(path).map_err(|e| IngestError::io(path, e))?;
     let len = f.metadata().map_err(|e| IngestError::io(path, e))?.len();

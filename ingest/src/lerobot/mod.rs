@@ -39,8 +39,9 @@ use crate::options::ReadOptions;
 use crate::sink::{EpisodeSink, SourceMeta};
 use data::{plan, stream_data};
 use episode::Ctx;
+pub(crate) use info::read_bounded;
+use info::MAX_INFO_BYTES;
 pub use info::{fill_template, parse_info, Feature, Info};
-use info::{read_bounded, MAX_INFO_BYTES};
 use meta::{load_episodes, load_tasks};
 
 /// GR00T's per-frame validity annotation (an index into the tasks: `valid` / `invalid`).
