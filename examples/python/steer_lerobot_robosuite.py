@@ -275,6 +275,22 @@ def eval_worker(job: Dict[str, Any]) -> Dict[str, Any]:
             "seeds": [job["start_seed"] + i for i in range(len(successes))], "timings": timings}
 
 
+def finished_job(job: Dict[str, Any]) -> Optional[Dict[str, Any]]:
+    """What :func:`eval_worker` returned for ``job``, read back from its output folder when an
+    earlier run finished it (``eval_info.json`` for these seeds, and the telemetry of a steered
+    arm); None when it has to run."""
+    out = Path(job["out"])
+    try:
+        info = json.loads((out / "eval_info.json").read_text())
+        successes = [bool(x) for x in info["per_task"][0]["metrics"]["successes"]]
+    except (OSError, ValueError, KeyError, IndexError):
+        return None
+    if len(successes) != job["episodes"] or (job["n"] > 0 and not (out / "steering.parquet").is_file()):
+        return None
+    return {"out": str(out), "seconds": float("nan"), "successes": successes,
+            "seeds": [job["start_seed"] + i for i in range(len(successes))], "timings": []}
+
+
 def latency_worker(job: Dict[str, Any]) -> Dict[str, Any]:
     """Re-plan wall times on the same recorded observations, interleaved: the unsteered policy's
     own re-plan (``predict_action_chunk``) and the steered one (encoder, sampler of N, scoring)."""
@@ -403,6 +419,7 @@ def codec_gap(store: Any, enc: Any, parts: List[Tuple[Path, int]]) -> Dict[str, 
     first episodes of each recorded part (``parts``: its dataset root and ingest version)."""
     eps = store.episodes(policy=POLICY)
     cos: List[float] = []
+    rel: List[float] = []  # |stored - live| / |live|: cosine alone hides a shift of keypoint coordinates
     for root, version in parts:
         path = root.parent / f"{root.name}-raw-frames.npz"
         if not path.is_file():
@@ -417,11 +434,14 @@ def codec_gap(store: Any, enc: Any, parts: List[Tuple[Path, int]]) -> Dict[str, 
             if len(stored) != len(live):
                 raise RuntimeError(f"episode {ids[0]}: {len(stored)} stored steps, {len(live)} rendered frames")
             cos += list((stored * live).sum(1) / (np.linalg.norm(stored, axis=1) * np.linalg.norm(live, axis=1) + 1e-12))
-    c = np.asarray(cos, np.float64)
+            rel += list(np.linalg.norm(stored - live, axis=1) / (np.linalg.norm(live, axis=1) + 1e-12))
+    c, r = np.asarray(cos, np.float64), np.asarray(rel, np.float64)
     if not len(c):
-        return {"frames": 0, "cosine_mean": float("nan"), "cosine_p01": float("nan"), "cosine_min": float("nan")}
+        return {"frames": 0, "cosine_mean": float("nan"), "cosine_p01": float("nan"), "cosine_min": float("nan"),
+                "rel_l2_mean": float("nan"), "rel_l2_p99": float("nan"), "rel_l2_max": float("nan")}
     return {"frames": int(len(c)), "cosine_mean": float(c.mean()), "cosine_median": float(np.median(c)),
-            "cosine_p01": float(np.quantile(c, 0.01)), "cosine_min": float(c.min())}
+            "cosine_p01": float(np.quantile(c, 0.01)), "cosine_min": float(c.min()),
+            "rel_l2_mean": float(r.mean()), "rel_l2_p99": float(np.quantile(r, 0.99)), "rel_l2_max": float(r.max())}
 
 
 def pct(xs: Sequence[float], q: float) -> float:
@@ -434,11 +454,12 @@ def main() -> int:
     ap.add_argument("--demos", type=int, default=100, help="expert demonstrations")
     ap.add_argument("--policy-steps", type=int, default=1200, help="policy training steps")
     ap.add_argument("--batch-size", type=int, default=32, help="policy training batch size")
-    ap.add_argument("--inference-steps", type=int, default=100, help="the policy's DDPM denoising steps")
+    ap.add_argument("--inference-steps", type=int, default=20,
+                    help="the policy's DDPM denoising steps at rollout time (trained with 100)")
     ap.add_argument("--rollouts", type=int, help="rollouts of the policy for the verifier (default 300; --quick 60)")
     ap.add_argument("--n", type=int, default=8, help="best-of-N candidates")
     ap.add_argument("--round", type=int, help="pairs per arm and round of the comparison (default 40; --quick 20)")
-    ap.add_argument("--max-pairs", type=int, help="at most this many pairs per arm (default 400; --quick 40)")
+    ap.add_argument("--max-pairs", type=int, help="at most this many pairs per arm (default 120; --quick 40)")
     ap.add_argument("--latency-replans", type=int, default=40, help="re-plans timed per variant")
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="processes")
     ap.add_argument("--seed", type=int, default=0)
@@ -456,7 +477,7 @@ def main() -> int:
     demos, steps = a.demos, a.policy_steps
     rollouts = a.rollouts or (60 if a.quick else 300)
     round_pairs = a.round or (20 if a.quick else 40)
-    max_pairs = a.max_pairs or (40 if a.quick else 400)
+    max_pairs = a.max_pairs or (40 if a.quick else 120)
     base_dir = REPO / "target" / "steer-lerobot-robosuite"
     work = Path(a.workdir) if a.workdir else base_dir / ("quick" if a.quick else "full")
     cache = Path(a.cache) if a.cache else base_dir / "policies"
@@ -467,9 +488,7 @@ def main() -> int:
         if work.exists():
             shutil.rmtree(work)
         work.mkdir(parents=True)
-        cli("init")
-    else:  # the store as it was before the arms (a failed round's runs are dropped)
-        shutil.rmtree(work / "arms", ignore_errors=True)
+    else:  # the store as it was before the arms; the arms' finished jobs are kept (finished_job)
         shutil.rmtree(data_dir)
         shutil.copytree(work / "store-prepared", data_dir)
     phases = Phases()
@@ -524,6 +543,7 @@ def main() -> int:
             recs = run_jobs(record_worker, jobs, a.workers)
         parts: List[Tuple[Path, int]] = []
         with phases("4 ingest"):
+            cli("init")  # the store, once there is something to put in it
             for r in recs:
                 ing = cli.json("ingest", r["root"], "--policy", POLICY, "--checkpoint", checkpoint, "--format", "lerobot",
                                "--run", "rollouts")
@@ -551,7 +571,8 @@ def main() -> int:
         report["codec_gap"] = codec_gap(store, enc, parts)
         g = report["codec_gap"]
         log(f"   codec gap over {g['frames']} frames: cosine(features of the stored AV1 frame, of the rendered one) "
-            f"mean {g['cosine_mean']:.4f}, 1% quantile {g['cosine_p01']:.4f}, min {g['cosine_min']:.4f}")
+            f"mean {g['cosine_mean']:.4f}, 1% quantile {g['cosine_p01']:.4f}, min {g['cosine_min']:.4f}; relative L2 "
+            f"distance mean {g['rel_l2_mean']:.4f}, 99% quantile {g['rel_l2_p99']:.4f}, max {g['rel_l2_max']:.4f}")
         with phases("6 verifier"):
             split = cli.json("split", "create", "--policy", POLICY, "--checkpoint", checkpoint, "--seed", str(a.seed))
             scale, offset = action_space(pre)
@@ -592,18 +613,26 @@ def main() -> int:
                      "store": str(data_dir), "verifier": ref, "checkpoint": checkpoint, "arm": arm,
                      "start_seed": start + pairs + i * size, "episodes": min(size, m - i * size)}
                     for arm, n in ((arm_b, a.n), ("base", 0)) for i in range(max(1, a.workers)) if m - i * size > 0]
-            res = run_jobs(eval_worker, jobs, a.workers)
+            done = {i: r for i, r in ((i, finished_job(j)) for i, j in enumerate(jobs)) if r is not None}
+            todo = [j for i, j in enumerate(jobs) if i not in done]
+            ran = iter(run_jobs(eval_worker, todo, a.workers) if todo else [])
+            res = [done[i] if i in done else next(ran) for i in range(len(jobs))]
+            if done:
+                log(f"   round {rounds + 1}: {len(done)} of {len(jobs)} jobs kept from an earlier run")
             for j, r in zip(jobs, res):
                 results[j["arm"]]["successes"] += r["successes"]
                 results[j["arm"]]["seeds"] += r["seeds"]
                 results[j["arm"]]["timings"] += r["timings"]
-                cli("ingest", r["out"], "--policy", POLICY, "--checkpoint", checkpoint, "--format", "lerobot-eval",
-                    "--start-seed", str(j["start_seed"]), "--run", j["arm"],
-                    *(["--steering", f"bon:{a.n}", "--run-artifact", art["id"]] if j["n"] else []))
+                out = cli("ingest", r["out"], "--policy", POLICY, "--checkpoint", checkpoint, "--format", "lerobot-eval",
+                          "--start-seed", str(j["start_seed"]), "--run", j["arm"],
+                          *(["--steering", f"bon:{a.n}", "--run-artifact", art["id"]] if j["n"] else []))
+                log(f"   {j['arm']}: {out.strip()}")
             pairs += m
             rounds += 1
             p = cli.run("compare", "--policy", POLICY, "--a", f"{checkpoint}/base", "--b", f"{checkpoint}/{arm_b}",
-                        "--pair-key", "pair_key", "--json", ok=(0, 1, 2))
+                        "--pair-key", "pair_key", "--format", "json", ok=(0, 1, 2))
+            if not p.stdout.strip():
+                sys.exit(f"ufops compare printed nothing (exit {p.returncode}):\n{p.stderr.strip()}")
             decision = json.loads(p.stdout)
             decision["exit_code"] = p.returncode
             kb, kc = sum(results["base"]["successes"]), sum(results[arm_b]["successes"])
