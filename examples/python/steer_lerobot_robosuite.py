@@ -187,10 +187,12 @@ def record_worker(job: Dict[str, Any]) -> Dict[str, Any]:
     }
     ds = LeRobotDataset.create(job["repo_id"], FPS, features, root=job["root"], robot_type="panda", use_videos=video)
     env = LiftEnv()
-    policy = pre = post = None
+    policy: Any = None
+    pre: Any = None
+    post: Any = None
     if job.get("policy_dir"):
         policy, pre, post = load_policy(Path(job["policy_dir"]))
-    out = []
+    out: List[Dict[str, Any]] = []
     raw_frames: Dict[int, List[np.ndarray]] = {}  # the first few episodes' camera, as rendered (the codec gap)
     t0 = time.time()
     for seed in job["seeds"]:
@@ -511,7 +513,7 @@ def main() -> int:
         demo_dir = cache / f"{key}-demos"
         shutil.rmtree(demo_dir, ignore_errors=True)
         with phases("1 expert demonstrations"):
-            jobs = [{"repo_id": f"ufops/lift-demos-{i}", "root": str(demo_dir / f"part{i}"), "seeds": s, "video": False}
+            jobs: List[Dict[str, Any]] = [{"repo_id": f"ufops/lift-demos-{i}", "root": str(demo_dir / f"part{i}"), "seeds": s, "video": False}
                     for i, s in enumerate(split_seeds(range(1_000_000 + a.seed * 10_000, 1_000_000 + a.seed * 10_000 + demos), a.workers))]
             recs = run_jobs(record_worker, jobs, a.workers)
         eps = [e for r in recs for e in r["episodes"]]
