@@ -470,7 +470,7 @@ def main() -> int:
     ap.add_argument("--ufops")
     ap.add_argument("--policy-only", action="store_true", help="stop after the policy is trained (and cached)")
     ap.add_argument("--resume", action="store_true", help="keep the work directory's store, rollouts and verifier "
-                    "(state.json) and run the arms again")
+                    "(state.json) and the arms' finished jobs; run what is missing")
     a = ap.parse_args()
     # Worker processes read it from the environment (they are spawned).
     os.environ["UFOPS_DP_INFERENCE_STEPS"] = str(a.inference_steps)
