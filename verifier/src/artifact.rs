@@ -50,6 +50,12 @@ impl Artifact {
         let config = config.ok_or_else(|| missing(CONFIG_FILE))?;
         let model = model.ok_or_else(|| missing(MODEL_FILE))?;
         let mut a = Self::from_checked_bytes(&config, &model)?;
+        if a.config.schema_version != m.schema_version {
+            return Err(VerifierError::Manifest(format!(
+                "manifest.json has schema_version {}, config.json {}",
+                m.schema_version, a.config.schema_version
+            )));
+        }
         a.id = Some(artifact_id(manifest));
         Ok(a)
     }
@@ -88,7 +94,7 @@ impl ArtifactFiles {
         weights.validate(config)?;
         let model = weights.to_safetensors()?;
         let cfg = config.to_json()?;
-        let manifest = Manifest::of(&cfg, &model).to_json();
+        let manifest = Manifest::of(config.schema_version, &cfg, &model).to_json();
         Ok(ArtifactFiles { id: artifact_id(&manifest), manifest, config: cfg, model })
     }
 

@@ -13,7 +13,7 @@ pub enum VerifierError {
     Manifest(String),
     #[error("sha256 mismatch for {file}: manifest says {expected}, file has {actual}")]
     HashMismatch { file: String, expected: String, actual: String },
-    #[error("unsupported schema_version {0} (this client knows 1)")]
+    #[error("unsupported schema_version {0} (this client knows 1, one network, and 2, an ensemble)")]
     UnknownSchema(u64),
     #[error("unknown architecture.variant {0:?} (known: \"lowdim\", \"features\")")]
     UnknownVariant(String),

@@ -1,6 +1,6 @@
-//! The artifact format (trainer/ARTIFACT.md, schema_version 1): the types of `config.json` and
-//! `manifest.json`, their validation, and the one list of tensors (names, shapes, parameter order)
-//! an architecture needs. The trainer writes these types and every client reads them.
+//! The artifact format (trainer/ARTIFACT.md: schema_version 1, one network; 2, an ensemble of
+//! members): the types of `config.json` and `manifest.json`, their validation, and the one list
+//! of tensors (names, shapes, parameter order) an artifact needs. The trainer writes these types and every client reads them.
 //!
 //! One file past 700 lines: the artifact's types and their validation are the format's one
 //! definition.
@@ -12,7 +12,14 @@ use serde::{Deserialize, Serialize};
 use crate::error::{Result, VerifierError};
 use crate::sha256_hex;
 
+/// The schema of an artifact with one network.
 pub const SCHEMA_VERSION: u32 = 1;
+/// The schema of an ensemble's artifact (`config.json` has `ensemble`; the tensors of member `k`
+/// are prefixed `members.{k}.`). A client that knows only 1 refuses it, as it must: it would
+/// otherwise score with no member at all.
+pub const ENSEMBLE_SCHEMA_VERSION: u32 = 2;
+/// Most members an ensemble may have (each is a whole network in memory and per score).
+pub const MAX_MEMBERS: usize = 64;
 pub const CONFIG_FILE: &str = "config.json";
 pub const MODEL_FILE: &str = "model.safetensors";
 pub const MANIFEST_FILE: &str = "manifest.json";
@@ -484,6 +491,57 @@ impl ActionSpace {
     }
 }
 
+/// `config.json`'s `ensemble` (schema_version 2): `members` networks of one architecture,
+/// trained on one split with different seeds and bootstrap resamples of its episodes, sharing
+/// the input statistics; and the rules steering applies with them (trainer/ARTIFACT.md,
+/// "Ensembles"; their one implementation is [`crate::ensemble`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EnsembleSpec {
+    /// K, at least 2.
+    pub members: usize,
+    /// κ: best-of-N ranks candidates by `mean − κ · spread` of the members' scores.
+    pub pessimism: f64,
+    /// Best-of-N keeps the policy's own first candidate unless at least this share of the
+    /// members score the pick above it.
+    pub min_agreement: f64,
+    /// Guidance: below this mean resultant length `R` of the members' gradients the push is
+    /// zero; above it the push is the mean gradient scaled by `(R − r0) / (1 − r0)`.
+    pub min_gradient_agreement: f64,
+}
+
+impl EnsembleSpec {
+    /// The defaults the trainer records: κ = 1, a pick needs 80% of the members (4 of 5), the
+    /// push needs members' gradients with `R` above 0.5.
+    pub fn new(members: usize) -> Self {
+        EnsembleSpec { members, pessimism: 1.0, min_agreement: 0.8, min_gradient_agreement: 0.5 }
+    }
+
+    /// Members in `2..=MAX_MEMBERS`, κ ≥ 0, the agreements in [0, 1).
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(VerifierError::Config(m));
+        if !(2..=MAX_MEMBERS).contains(&self.members) {
+            return bad(format!("ensemble.members must be in 2..={MAX_MEMBERS}, got {}", self.members));
+        }
+        if !(self.pessimism.is_finite() && self.pessimism >= 0.0) {
+            return bad(format!("ensemble.pessimism must be finite and >= 0, got {}", self.pessimism));
+        }
+        for (name, v) in
+            [("min_agreement", self.min_agreement), ("min_gradient_agreement", self.min_gradient_agreement)]
+        {
+            if !(0.0..1.0).contains(&v) {
+                return bad(format!("ensemble.{name} must be in [0, 1), got {v}"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The prefix of member `k`'s tensor names in an ensemble's `model.safetensors`.
+pub fn member_prefix(k: usize) -> String {
+    format!("members.{k}.")
+}
+
 /// `config.json`'s `input` object: the layout plus the standardisation statistics.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct InputConfig {
@@ -520,6 +578,9 @@ pub struct ArtifactConfig {
     /// Store version, label snapshot, split, episode counts, code version...
     #[serde(default)]
     pub lineage: serde_json::Value,
+    /// An ensemble's members and steering rules (schema_version 2 only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ensemble: Option<EnsembleSpec>,
 }
 
 impl ArtifactConfig {
@@ -530,7 +591,7 @@ impl ArtifactConfig {
         let raw: serde_json::Value = serde_json::from_slice(bytes)
             .map_err(|e| VerifierError::Config(format!("not valid JSON: {e}")))?;
         match raw.get("schema_version").and_then(|v| v.as_u64()) {
-            Some(1) => {}
+            Some(1 | 2) => {}
             Some(v) => return Err(VerifierError::UnknownSchema(v)),
             None => return Err(VerifierError::Config("missing or non-integer schema_version".into())),
         }
@@ -569,15 +630,45 @@ impl ArtifactConfig {
         self.input.act_dim
     }
 
-    /// Every tensor this configuration needs, in parameter order.
+    /// Every tensor this configuration needs, in parameter order: one network's, or each
+    /// member's under its prefix ([`member_prefix`]).
     pub fn tensors(&self) -> Vec<TensorSpec> {
+        let one = self.member_tensors();
+        match &self.ensemble {
+            None => one,
+            Some(e) => (0..e.members)
+                .flat_map(|k| {
+                    let p = member_prefix(k);
+                    one.iter().map(move |t| TensorSpec { name: format!("{p}{}", t.name), ..t.clone() })
+                })
+                .collect(),
+        }
+    }
+
+    /// The tensors of one network (of each member of an ensemble, unprefixed).
+    pub fn member_tensors(&self) -> Vec<TensorSpec> {
         self.architecture.tensors(self.input.obs_dim, self.input.act_dim)
+    }
+
+    /// Networks in the artifact: 1, or the ensemble's members.
+    pub fn members(&self) -> usize {
+        self.ensemble.as_ref().map_or(1, |e| e.members)
     }
 
     /// Schema version, architecture, dimensions, statistics and action space are consistent.
     pub fn validate(&self) -> Result<()> {
-        if self.schema_version != SCHEMA_VERSION {
-            return Err(VerifierError::UnknownSchema(self.schema_version as u64));
+        match (self.schema_version, &self.ensemble) {
+            (SCHEMA_VERSION, None) => {}
+            (ENSEMBLE_SCHEMA_VERSION, Some(e)) => e.validate()?,
+            (ENSEMBLE_SCHEMA_VERSION, None) => {
+                return Err(VerifierError::Config(
+                    "schema_version 2 is an ensemble's, but config.json has no `ensemble`".into(),
+                ))
+            }
+            (SCHEMA_VERSION, Some(_)) => {
+                return Err(VerifierError::Config("`ensemble` needs schema_version 2, not 1".into()))
+            }
+            (v, _) => return Err(VerifierError::UnknownSchema(v as u64)),
         }
         let a = &self.architecture;
         a.validate()?;
@@ -656,10 +747,11 @@ pub struct Manifest {
 }
 
 impl Manifest {
-    /// The manifest of `config.json` and `model.safetensors` bytes.
-    pub fn of(config_json: &[u8], model: &[u8]) -> Self {
+    /// The manifest of `config.json` and `model.safetensors` bytes, at the configuration's
+    /// schema version.
+    pub fn of(schema_version: u32, config_json: &[u8], model: &[u8]) -> Self {
         Manifest {
-            schema_version: SCHEMA_VERSION,
+            schema_version,
             files: BTreeMap::from([
                 (CONFIG_FILE.to_string(), sha256_hex(config_json)),
                 (MODEL_FILE.to_string(), sha256_hex(model)),
@@ -672,7 +764,7 @@ impl Manifest {
         let raw: serde_json::Value = serde_json::from_slice(bytes)
             .map_err(|e| VerifierError::Manifest(format!("not valid JSON: {e}")))?;
         match raw.get("schema_version").and_then(|v| v.as_u64()) {
-            Some(1) => {}
+            Some(1 | 2) => {}
             Some(v) => return Err(VerifierError::UnknownSchema(v)),
             None => return Err(VerifierError::Manifest("missing or non-integer schema_version".into())),
         }

@@ -5,8 +5,9 @@
 //! directory, from bytes, or through any getter so the store and HTTP plug in: [`Artifact`]),
 //! the artifact id, the weights and the one list of tensor names and shapes ([`Weights`],
 //! [`Architecture::tensors`]), the step embedding, and the forward pass and its gradient w.r.t.
-//! the action chunk for every variant ([`Verifier`]), with AVX2/FMA kernels chosen at run time
-//! and a portable fallback ([`kernels`], which the trainer's fused training path shares). It
+//! the action chunk for every variant ([`Verifier`]) — of one network or of an ensemble's
+//! members, with the ensemble's rules for scores, best-of-N picks and guidance ([`ensemble`]) —
+//! with AVX2/FMA kernels chosen at run time and a portable fallback ([`kernels`], which the trainer's fused training path shares). It
 //! also builds the files the trainer writes ([`ArtifactFiles`]), and the verifier's inputs from
 //! episodes ([`samples`]: what the trainer trains on and scorers query), from the store's steps
 //! with feature `steps` (`steps::StepScorer`: how anything scores a stored episode). The failure
@@ -29,6 +30,7 @@
 //! ```
 
 pub mod artifact;
+pub mod ensemble;
 pub mod error;
 pub mod format;
 pub mod kernels;
@@ -47,15 +49,16 @@ pub mod testutil;
 pub mod weights;
 
 pub use artifact::{Artifact, ArtifactFiles};
+pub use ensemble::{Picks, Verifier};
 pub use error::{Result, VerifierError};
 pub use format::{
-    is_plain_name, short_hash, ActionSpace, Activation, Architecture, ArtifactConfig, ExtraInput,
-    ExtraInputSpec, InputConfig, InputLayout, Kind, LinearSpec, Manifest, ObsKey, TensorRole, TensorSpec,
-    Variant, CONFIG_FILE, MANIFEST_FILE, MODEL_FILE, SCHEMA_VERSION,
+    is_plain_name, member_prefix, short_hash, ActionSpace, Activation, Architecture, ArtifactConfig,
+    EnsembleSpec, ExtraInput, ExtraInputSpec, InputConfig, InputLayout, Kind, LinearSpec, Manifest, ObsKey,
+    TensorRole, TensorSpec, Variant, CONFIG_FILE, ENSEMBLE_SCHEMA_VERSION, MANIFEST_FILE, MAX_MEMBERS,
+    MODEL_FILE, SCHEMA_VERSION,
 };
 pub use math::{sigmoid, time_embedding_into};
 pub use monitor::{MonitorRecord, MonitorState, MonitorStep};
-pub use net::Verifier;
 pub use quality::ActionSensitivity;
 pub use samples::{build_samples, EpisodeSeries, ObsSeries, Samples};
 #[cfg(feature = "steps")]

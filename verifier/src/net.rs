@@ -1,5 +1,5 @@
-//! [`Verifier`]: the forward pass of ARTIFACT.md and its gradient w.r.t. the action chunk, for
-//! every variant (lowdim; features with input/encoder LayerNorm and exact GELU; extra inputs;
+//! One network of a verifier ([`crate::Verifier`] holds one, or an ensemble's members): the
+//! forward pass of ARTIFACT.md and its gradient w.r.t. the action chunk, for every variant (lowdim; features with input/encoder LayerNorm and exact GELU; extra inputs;
 //! any trunk length), on weights packed once at load time.
 //!
 //! The observation side (observation encoder, step embedding, extra inputs and their columns
@@ -50,12 +50,12 @@ struct Extra {
     bias: Vec<f32>,
 }
 
-/// A loaded verifier (success classifier or time-to-success Q). Immutable after loading, so it
-/// is `Send + Sync` and one instance serves any number of threads.
+/// One loaded network (success classifier or time-to-success Q). Immutable after loading, so
+/// it is `Send + Sync` and one instance serves any number of threads.
 #[derive(Clone, Debug)]
-pub struct Verifier {
-    config: ArtifactConfig,
-    id: Option<String>,
+pub(crate) struct Net {
+    /// Extra inputs' names, for messages.
+    extra_names: Vec<String>,
     isa: Isa,
     kind: Kind,
     activation: Activation,
@@ -86,7 +86,7 @@ pub struct Verifier {
 
 const _: () = {
     const fn send_sync<T: Send + Sync>() {}
-    send_sync::<Verifier>();
+    send_sync::<Net>();
 };
 
 fn relu(x: f32) -> f32 {
@@ -103,37 +103,18 @@ fn padded(v: &[f32]) -> Vec<f32> {
     p
 }
 
-impl Verifier {
-    /// Load and check an artifact directory (see [`crate::Artifact::load_dir`]).
-    pub fn load_dir(dir: impl AsRef<std::path::Path>) -> Result<Self> {
-        crate::Artifact::load_dir(dir)?.verifier()
-    }
-
-    /// Load through a getter, every file checked (see [`crate::Artifact::load_with`]).
-    pub fn load_with(manifest: &[u8], get: impl FnMut(&str) -> Result<Vec<u8>>) -> Result<Self> {
-        crate::Artifact::load_with(manifest, get)?.verifier()
-    }
-
-    /// From `config.json` and `model.safetensors` bytes the caller has already checked.
-    pub fn from_bytes(config_json: &[u8], safetensors: &[u8]) -> Result<Self> {
-        crate::Artifact::from_checked_bytes(config_json, safetensors)?.verifier()
-    }
-
-    /// From a configuration and its weights (validated here), with the best kernels the CPU has.
-    pub fn new(config: ArtifactConfig, weights: &Weights) -> Result<Self> {
-        Self::with_isa(config, weights, Isa::detect())
-    }
-
-    /// Same, with the given kernels (`Isa::Portable` tests the fallback; a request for AVX2 on
-    /// a CPU without it gets the portable kernels).
-    pub fn with_isa(config: ArtifactConfig, weights: &Weights, isa: Isa) -> Result<Self> {
-        config.validate()?;
-        weights.validate(&config)?;
+impl Net {
+    /// The network whose tensors are named `{prefix}{name}` in `weights` (the caller has
+    /// validated both against each other), with the given kernels.
+    pub(crate) fn build(config: &ArtifactConfig, weights: &Weights, prefix: &str, isa: Isa) -> Result<Self> {
         let a = &config.architecture;
         let i = &config.input;
         let (od, ad, ew, td) = (i.obs_dim, i.act_dim, a.encoder_width, a.t_embed_dim);
         // Every tensor exists with its shape (validated above).
-        let t = |n: &str| weights.get(n).expect("validated").data.as_slice();
+        let t = |n: &str| -> &[f32] {
+            let name = format!("{prefix}{n}");
+            weights.get(&name).map_or(&[][..], |w| w.data.as_slice())
+        };
         let range = |a: usize, b: usize| (a..b).collect::<Vec<usize>>();
         let norm =
             |p: &str| Norm { g: t(&format!("{p}.weight")).to_vec(), b: t(&format!("{p}.bias")).to_vec() };
@@ -194,7 +175,8 @@ impl Verifier {
             norm: norm("trunk.0.ln"),
         }];
         first.extend(trunk);
-        Ok(Verifier {
+        Ok(Net {
+            extra_names: a.extra_inputs.iter().map(|e| e.name.clone()).collect(),
             isa: isa.checked(),
             kind: config.kind,
             activation: a.activation,
@@ -216,83 +198,14 @@ impl Verifier {
             trunk0_act_bwd: Packed::backward(w0, t0, trunk_in, &range(ew, 2 * ew)),
             trunk: first,
             head_w: t("head.weight").to_vec(),
-            head_b: t("head.bias")[0],
+            head_b: t("head.bias").first().copied().unwrap_or(0.0),
             zeros: vec![0.0; pad8(widest)],
-            id: None,
-            config,
         })
     }
 
-    pub(crate) fn set_id(&mut self, id: Option<String>) {
-        self.id = id;
-    }
-
-    /// The artifact id (when loaded through a manifest).
-    pub fn id(&self) -> Option<&str> {
-        self.id.as_deref()
-    }
-    pub fn config(&self) -> &ArtifactConfig {
-        &self.config
-    }
-    /// Refuses to score features from another producer than the one this verifier was trained
-    /// on: `provided` names the producer (sha256) of each layer observation key about to be
-    /// scored (see [`crate::InputLayout::check_producers`]). Call it once when the robot's
-    /// encoder is set up, before the first score.
-    pub fn check_producers<'a>(
-        &self,
-        provided: impl IntoIterator<Item = (&'a str, &'a str)>,
-    ) -> crate::Result<()> {
-        self.config.input.layout.check_producers(provided)
-    }
-    pub fn kind(&self) -> Kind {
-        self.kind
-    }
-    /// Length of one observation-history row.
-    pub fn obs_dim(&self) -> usize {
-        self.od
-    }
-    /// Length of one flattened action chunk (`H * A`).
-    pub fn act_dim(&self) -> usize {
-        self.ad
-    }
-    /// `(name, dim)` of each extra input, in the order `*_ext` calls take them.
-    pub fn extra_inputs(&self) -> Vec<(&str, usize)> {
-        self.config.architecture.extra_inputs.iter().map(|e| (e.name.as_str(), e.dim)).collect()
-    }
-    /// Whether chunks are taken in the policy's normalised space (the paper's choice) rather
-    /// than as raw actions standardised with train-set statistics (older artifacts).
-    pub fn takes_policy_space(&self) -> bool {
-        self.config.input.action_space.is_policy()
-    }
-    /// The kernels in use: `"avx2-fma"` or `"portable"`.
-    pub fn backend_name(&self) -> &'static str {
-        self.isa.name()
-    }
-
-    /// Scores of `n` candidates for each of `B = t.len()` observations: `obs` is `B * obs_dim`,
-    /// `candidates` is `B * n * act_dim` (group-major); returns `B * n` scores (classifier:
-    /// sigmoid(logit), q: the value).
-    pub fn score(&self, obs: &[f32], t: &[u32], candidates: &[f32], n: usize) -> Result<Vec<f32>> {
-        self.score_ext(obs, &[], t, candidates, n)
-    }
-
-    /// [`Self::score`] with extra inputs: `extras[i]` is `B * dim_i`, in [`Self::extra_inputs`] order.
-    pub fn score_ext(
-        &self,
-        obs: &[f32],
-        extras: &[&[f32]],
-        t: &[u32],
-        candidates: &[f32],
-        n: usize,
-    ) -> Result<Vec<f32>> {
-        let m = t.len().checked_mul(n).ok_or_else(|| VerifierError::Input("batch size overflows".into()))?;
-        let mut out = vec![0f32; m];
-        self.score_into(obs, extras, t, candidates, n, &mut out)?;
-        Ok(out)
-    }
-
-    /// [`Self::score_ext`] into a caller's buffer of `B * n` (no allocation for the result).
-    pub fn score_into(
+    /// Scores of `n` candidates for each of `B = t.len()` observations into a buffer of `B * n`
+    /// (classifier: sigmoid(logit), q: the value); shapes as [`crate::Verifier::score_ext`].
+    pub(crate) fn score_into(
         &self,
         obs: &[f32],
         extras: &[&[f32]],
@@ -312,21 +225,9 @@ impl Verifier {
         Ok(())
     }
 
-    /// Guidance gradients for `B = t.len()` chunks (`chunks` is `B * act_dim`): d log C / d chunk
-    /// (classifier) or d Q / d chunk, w.r.t. the chunk as passed; returns `B * act_dim`.
-    pub fn grad(&self, obs: &[f32], t: &[u32], chunks: &[f32]) -> Result<Vec<f32>> {
-        self.grad_ext(obs, &[], t, chunks)
-    }
-
-    /// [`Self::grad`] with extra inputs.
-    pub fn grad_ext(&self, obs: &[f32], extras: &[&[f32]], t: &[u32], chunks: &[f32]) -> Result<Vec<f32>> {
-        let mut out = vec![0f32; chunks.len()];
-        self.grad_into(obs, extras, t, chunks, &mut out)?;
-        Ok(out)
-    }
-
-    /// [`Self::grad_ext`] into a caller's buffer of `B * act_dim`.
-    pub fn grad_into(
+    /// Guidance gradients of `B = t.len()` chunks into a buffer of `B * act_dim`: d log C / d
+    /// chunk (classifier) or d Q / d chunk.
+    pub(crate) fn grad_into(
         &self,
         obs: &[f32],
         extras: &[&[f32]],
@@ -381,15 +282,15 @@ impl Verifier {
             return bad(format!(
                 "the verifier takes {} extra input(s) ({:?}), got {}",
                 ex.len(),
-                self.config.architecture.extra_inputs.iter().map(|e| &e.name).collect::<Vec<_>>(),
+                self.extra_names,
                 extras.len()
             ));
         }
-        for (e, (x, spec)) in ex.iter().zip(extras.iter().zip(&self.config.architecture.extra_inputs)) {
+        for (e, (x, name)) in ex.iter().zip(extras.iter().zip(&self.extra_names)) {
             if Some(x.len()) != b.checked_mul(e.dim) {
                 return bad(format!(
                     "extra input {:?} has length {}, expected batch {b} * dim {}",
-                    spec.name,
+                    name,
                     x.len(),
                     e.dim
                 ));

@@ -124,8 +124,28 @@ impl RandomSpec {
             hyperparameters: serde_json::json!({}),
             metrics: serde_json::json!({}),
             lineage: serde_json::json!({"note": "random weights (verifier::testutil)"}),
+            ensemble: None,
             architecture: arch,
         };
+        let w = random_weights(&config, &mut rng);
+        (config, w)
+    }
+
+    /// An ensemble's configuration and weights: `members` random networks of this spec (each
+    /// drawn from the same seeded stream in member order), sharing [`Self::build`]'s statistics.
+    pub fn build_ensemble(&self, seed: u64, members: usize) -> (ArtifactConfig, Weights) {
+        let (mut config, _) = self.build(seed);
+        config.schema_version = crate::ENSEMBLE_SCHEMA_VERSION;
+        config.ensemble = Some(crate::EnsembleSpec::new(members));
+        let mut rng = SplitMix(seed ^ 0x5eed_0e45_e3b1_e000);
+        let w = random_weights(&config, &mut rng);
+        (config, w)
+    }
+}
+
+/// Every tensor `config` needs, drawn as [`RandomSpec::build`] describes.
+fn random_weights(config: &ArtifactConfig, rng: &mut SplitMix) -> Weights {
+    {
         let mut w = Weights::default();
         for t in config.tensors() {
             let n: usize = t.shape.iter().product();
@@ -139,7 +159,7 @@ impl RandomSpec {
             };
             w.insert(&t.name, t.shape, data).expect("shape and data agree");
         }
-        (config, w)
+        w
     }
 }
 

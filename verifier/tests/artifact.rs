@@ -81,7 +81,7 @@ fn bad_artifacts_are_clear_errors() {
 
     // Unknown schema / variant / kind / activation, each its own error.
     for (field, val) in [
-        ("schema_version", serde_json::json!(2)),
+        ("schema_version", serde_json::json!(3)),
         ("variant", serde_json::json!("conv")),
         ("kind", serde_json::json!("reward")),
         ("activation", serde_json::json!("tanh")),
@@ -95,7 +95,7 @@ fn bad_artifacts_are_clear_errors() {
         rewrite(d.path(), "config.json", &serde_json::to_vec(&c).unwrap(), true);
         let e = Verifier::load_dir(d.path()).expect_err("must fail");
         let ok = match field {
-            "schema_version" => matches!(e, VerifierError::UnknownSchema(2)),
+            "schema_version" => matches!(e, VerifierError::UnknownSchema(3)),
             "variant" => matches!(e, VerifierError::UnknownVariant(_)),
             "kind" => matches!(e, VerifierError::UnknownKind(_)),
             _ => matches!(e, VerifierError::UnknownActivation(_)),

@@ -3,5 +3,6 @@
 //! global allocator to measure memory stays a binary of its own (see Cargo.toml).
 
 mod artifact;
+mod ensemble;
 mod forward;
 mod monitor_conformal;
