@@ -234,8 +234,9 @@ const MAX_TOP_LEVEL_BOXES: usize = 64;
 const MAX_MOOV_BYTES: u64 = 64 << 20;
 
 /// A box header at the start of `b` with `left` bytes up to its parent's end: its type, its total
-/// size and its header's size; `None` when it is cut short or overruns its parent.
-fn box_header(b: &[u8], left: u64) -> Option<([u8; 4], u64, u64)> {
+/// size and its header's size; `None` when it is cut short or overruns its parent. (ISO BMFF box
+/// walking, shared with ingest's MP4 probe.)
+pub fn box_header(b: &[u8], left: u64) -> Option<([u8; 4], u64, u64)> {
     let size = u32::from_be_bytes(b.get(0..4)?.try_into().ok()?) as u64;
     let kind: [u8; 4] = b.get(4..8)?.try_into().ok()?;
     let (total, header) = match size {
@@ -246,8 +247,8 @@ fn box_header(b: &[u8], left: u64) -> Option<([u8; 4], u64, u64)> {
     (total >= header && total <= left).then_some((kind, total, header))
 }
 
-/// The boxes inside a box's payload, as (type, payload).
-fn boxes(mut buf: &[u8]) -> impl Iterator<Item = ([u8; 4], &[u8])> {
+/// The boxes inside a box's payload, as (type, payload); stops at the first malformed one.
+pub fn boxes(mut buf: &[u8]) -> impl Iterator<Item = ([u8; 4], &[u8])> {
     std::iter::from_fn(move || {
         let (kind, total, header) = box_header(buf, buf.len() as u64)?;
         let payload = &buf[header as usize..total as usize];
@@ -256,7 +257,8 @@ fn boxes(mut buf: &[u8]) -> impl Iterator<Item = ([u8; 4], &[u8])> {
     })
 }
 
-fn child<'a>(payload: &'a [u8], kind: &[u8; 4]) -> Option<&'a [u8]> {
+/// The payload of the first box of type `kind` inside `payload`.
+pub fn child<'a>(payload: &'a [u8], kind: &[u8; 4]) -> Option<&'a [u8]> {
     boxes(payload).find(|(k, _)| k == kind).map(|(_, p)| p)
 }
 

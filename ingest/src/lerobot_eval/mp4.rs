@@ -8,6 +8,7 @@ use std::io::{Read, Seek, SeekFrom};
 use std::path::Path;
 
 use crate::error::{IngestError, Result};
+use store::video::{box_header, boxes, child};
 
 /// Top-level boxes looked at for `moov` (an MP4 has a handful: `ftyp`, `free`, `mdat`, `moov`).
 const MAX_TOP_LEVEL_BOXES: usize = 64;
@@ -25,33 +26,6 @@ pub(super) struct VideoInfo {
     pub(super) fps: Option<f64>,
     /// The codec's common name (`H.264` for what lerobot-eval writes through imageio).
     pub(super) codec: String,
-}
-
-/// A box header at the start of `b` with `left` bytes up to its parent's end: its type, total
-/// size and header size; `None` when it is cut short or overruns its parent.
-fn box_header(b: &[u8], left: u64) -> Option<([u8; 4], u64, u64)> {
-    let size = u32::from_be_bytes(b.get(0..4)?.try_into().ok()?) as u64;
-    let kind: [u8; 4] = b.get(4..8)?.try_into().ok()?;
-    let (total, header) = match size {
-        0 => (left, 8),
-        1 => (u64::from_be_bytes(b.get(8..16)?.try_into().ok()?), 16),
-        n => (n, 8),
-    };
-    (total >= header && total <= left).then_some((kind, total, header))
-}
-
-/// The boxes inside a payload, as (type, payload); stops at the first malformed one.
-fn boxes(mut buf: &[u8]) -> impl Iterator<Item = ([u8; 4], &[u8])> {
-    std::iter::from_fn(move || {
-        let (kind, total, header) = box_header(buf, buf.len() as u64)?;
-        let payload = &buf[header as usize..total as usize];
-        buf = &buf[total as usize..];
-        Some((kind, payload))
-    })
-}
-
-fn child<'a>(payload: &'a [u8], kind: &[u8; 4]) -> Option<&'a [u8]> {
-    boxes(payload).find(|(k, _)| k == kind).map(|(_, p)| p)
 }
 
 fn u32_at(b: &[u8], at: usize) -> Option<u32> {
