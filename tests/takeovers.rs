@@ -310,6 +310,7 @@ fn takeovers_survive_ingest_export_ingest_and_bound_on_policy_samples() {
         obs_history: Some(2),
         chunk_len: Some(4),
         step_stride: None,
+        ensemble: None,
     };
     let data = rt.block_on(trainer::load_split(&store, &spec)).unwrap();
     assert_eq!(data.train.len(), TAKEOVERS.len());

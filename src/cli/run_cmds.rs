@@ -47,6 +47,12 @@ pub struct TrainArgs {
     /// Feed raw chunks standardised with train-set statistics instead (the older recipe).
     #[arg(long)]
     pub standardize_actions: bool,
+    /// Train an ensemble of K members (seeds seed+k, bootstrap resamples of the split's training
+    /// episodes) published as one artifact: its score is the members' mean, steering ranks by
+    /// mean − κ·spread and falls back to the policy's own chunk when the members disagree
+    /// (trainer/ARTIFACT.md, "Ensembles"). Costs K times the training (recipe key `ensemble`).
+    #[arg(long, value_name = "K")]
+    pub ensemble: Option<usize>,
     #[arg(long, env = "USER", default_value = "cli")]
     pub actor: String,
     #[arg(long)]
@@ -96,6 +102,7 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
         obs_history: a.obs_history.or(recipe_input.obs_history),
         chunk_len: a.chunk_len.or(recipe_input.chunk_len),
         step_stride: a.step_stride.or(recipe_input.step_stride),
+        ensemble: a.ensemble,
     };
     let job = store.create_job(store::JobKind::Train, &serde_json::to_value(&spec)?, &a.actor).await?;
     let worker = api::worker_identity("cli");
@@ -147,6 +154,9 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
             if let Some(s) = verifier::ActionSensitivity::from_metrics(&rec.config["metrics"]) {
                 println!("{}", s.summary());
             }
+            if rec.config["metrics"]["ensemble"].is_object() {
+                println!("ensemble: {}", rec.config["metrics"]["ensemble"]);
+            }
             Ok(())
         }
         Err(e) => {
@@ -194,6 +204,10 @@ pub async fn score(
     }
     let scores = trainer::score_rows(&v, &rows)?;
     let mut out = serde_json::json!({ "artifact": v.id(), "scores": scores });
+    if v.members() > 1 {
+        out["members"] = v.members().into();
+        out["spread"] = serde_json::to_value(trainer::spread_rows(&v, &rows)?)?;
+    }
     if opts.grad {
         out["grads"] = serde_json::to_value(trainer::grad_rows(&v, &rows)?)?;
     }
@@ -205,6 +219,7 @@ pub async fn demo(
     quick: bool,
     lambdas: Option<Vec<f32>>,
     ablation: Option<Vec<usize>>,
+    ensemble: Option<usize>,
 ) -> Result<()> {
     let store = args.open_or_create().await?;
     let out = args.data_dir.join("demo");
@@ -219,6 +234,14 @@ pub async fn demo(
     if let Some(a) = ablation {
         anyhow::ensure!(a.iter().all(|&s| s > 0), "--ablation-sizes: sizes of at least 1");
         cfg.ablation_sizes = a;
+    }
+    if let Some(k) = ensemble {
+        anyhow::ensure!(
+            (2..=verifier::MAX_MEMBERS).contains(&k),
+            "--ensemble: 2 to {} members",
+            verifier::MAX_MEMBERS
+        );
+        cfg.ensemble = Some(k);
     }
     eprintln!(
         "ufops demo{}: {} rollouts per row, store {}",

@@ -13,8 +13,8 @@ use crate::model::{CandleModel, Kind, ModelSpec, ParamSet};
 use crate::train::Trained;
 
 pub use verifier::{
-    artifact_id, sha256_hex, ActionSpace, ArtifactConfig, ArtifactFiles, InputConfig, Manifest, Verifier,
-    CONFIG_FILE, MANIFEST_FILE, MODEL_FILE, SCHEMA_VERSION,
+    artifact_id, sha256_hex, ActionSpace, ArtifactConfig, ArtifactFiles, EnsembleSpec, InputConfig, Manifest,
+    Verifier, Weights, CONFIG_FILE, ENSEMBLE_SCHEMA_VERSION, MANIFEST_FILE, MODEL_FILE, SCHEMA_VERSION,
 };
 
 /// What [`write_artifact`] wrote.
@@ -40,8 +40,16 @@ pub fn model_spec(cfg: &ArtifactConfig) -> ModelSpec {
 pub fn artifact_config(t: &Trained, lineage: serde_json::Value) -> Result<ArtifactConfig> {
     let mut layout = t.input.clone();
     layout.t_embed_dim = t.spec.arch.t_embed_dim;
+    let ensemble = (!t.members.is_empty()).then(|| EnsembleSpec::new(t.members.len()));
+    let mut metrics = serde_json::json!({
+        "final": t.metrics,
+        "history": t.history,
+    });
+    if let Some(e) = &t.ensemble {
+        metrics["ensemble"] = serde_json::to_value(e)?;
+    }
     Ok(ArtifactConfig {
-        schema_version: SCHEMA_VERSION,
+        schema_version: if ensemble.is_some() { ENSEMBLE_SCHEMA_VERSION } else { SCHEMA_VERSION },
         kind: t.spec.kind,
         architecture: t.spec.arch.clone(),
         input: InputConfig {
@@ -56,19 +64,45 @@ pub fn artifact_config(t: &Trained, lineage: serde_json::Value) -> Result<Artifa
         },
         gamma: (t.spec.kind == Kind::Q).then_some(t.config.gamma),
         hyperparameters: serde_json::to_value(&t.config)?,
-        metrics: serde_json::json!({
-            "final": t.metrics,
-            "history": t.history,
-        }),
+        metrics,
         lineage,
+        ensemble,
     })
+}
+
+/// The weights of a trained model: one network's, or every member's under its prefix.
+pub fn trained_weights(t: &Trained) -> Result<Weights> {
+    if t.members.is_empty() {
+        return Ok(t.params.to_weights()?);
+    }
+    let mut w = Weights::default();
+    for (k, p) in t.members.iter().enumerate() {
+        t.spec.check_params(p)?;
+        let prefix = verifier::member_prefix(k);
+        for ((n, s), v) in p.names.iter().zip(&p.shapes).zip(&p.values) {
+            w.insert(&format!("{prefix}{n}"), s.clone(), v.clone())?;
+        }
+    }
+    Ok(w)
+}
+
+/// The core's verifier of a trained model (no artifact written; no id).
+pub fn verifier_of(t: &Trained) -> Result<Verifier> {
+    let cfg = artifact_config(t, serde_json::Value::Null)?;
+    Ok(Verifier::new(cfg, &trained_weights(t)?)?)
 }
 
 /// Write the artifact files of `trained` into `dir` (created if needed). `lineage` is stored
 /// as-is (store version, label snapshot, split id, episode counts, code version...).
 pub fn write_artifact(dir: &Path, trained: &Trained, lineage: serde_json::Value) -> Result<ArtifactInfo> {
     let cfg = artifact_config(trained, lineage)?;
-    write_parts(dir, &cfg, &trained.params)
+    if trained.members.is_empty() {
+        return write_parts(dir, &cfg, &trained.params);
+    }
+    let files = ArtifactFiles::build(&cfg, &trained_weights(trained)?)?;
+    files.write_dir(dir).with_context(|| format!("writing the artifact into {}", dir.display()))?;
+    let manifest = Manifest::parse(&files.manifest)?;
+    Ok(ArtifactInfo { id: files.id, dir: dir.to_path_buf(), manifest })
 }
 
 /// Write an artifact from its parts (through the core's writer).
@@ -80,7 +114,8 @@ pub fn write_parts(dir: &Path, cfg: &ArtifactConfig, params: &ParamSet) -> Resul
     Ok(ArtifactInfo { id: files.id, dir: dir.to_path_buf(), manifest })
 }
 
-/// A loaded, checked artifact: its configuration, parameters and the core's verifier.
+/// A loaded, checked artifact: its configuration, parameters (an ensemble's member 0) and the
+/// core's verifier (every member).
 pub struct TrainedArtifact {
     pub id: String,
     pub dir: PathBuf,
@@ -95,7 +130,18 @@ pub struct TrainedArtifact {
 pub fn load_artifact(dir: &Path) -> Result<TrainedArtifact> {
     let a = verifier::Artifact::load_dir(dir)?;
     let spec = model_spec(&a.config);
-    let params = ParamSet::from_weights(&spec, &a.weights)?;
+    let params = if a.config.ensemble.is_some() {
+        let prefix = verifier::member_prefix(0);
+        let mut first = Weights::default();
+        for (name, t) in a.weights.iter() {
+            if let Some(rest) = name.strip_prefix(&prefix) {
+                first.insert(rest, t.shape.clone(), t.data.clone())?;
+            }
+        }
+        ParamSet::from_weights(&spec, &first)?
+    } else {
+        ParamSet::from_weights(&spec, &a.weights)?
+    };
     let verifier = a.verifier()?;
     Ok(TrainedArtifact {
         id: a.id.context("an artifact loaded from a directory has an id")?,
@@ -233,6 +279,15 @@ pub fn score_rows(v: &Verifier, rows: &[ScoreRow]) -> Result<Vec<f32>> {
     let (obs, extras, t, act) = batch(v, rows)?;
     let ex: Vec<&[f32]> = extras.iter().map(|e| e.as_slice()).collect();
     Ok(v.score_ext(&obs, &ex, &t, &act, 1)?)
+}
+
+/// The members' spread of each row's score (0 for one network).
+pub fn spread_rows(v: &Verifier, rows: &[ScoreRow]) -> Result<Vec<f32>> {
+    let (obs, extras, t, act) = batch(v, rows)?;
+    let ex: Vec<&[f32]> = extras.iter().map(|e| e.as_slice()).collect();
+    let (mut mean, mut spread) = (vec![0f32; rows.len()], vec![0f32; rows.len()]);
+    v.score_spread_into(&obs, &ex, &t, &act, 1, &mut mean, &mut spread)?;
+    Ok(spread)
 }
 
 /// Guidance gradients of rows (d log C / d action for the classifier, d Q / d action), one

@@ -26,13 +26,18 @@ pub struct TrainJobSpec {
     /// `T_o` (default 2).
     #[serde(default)]
     pub obs_history: Option<usize>,
-    /// `H` when the episodes store no action chunks (default 16, the paper's).
+    /// `H`: the policy's chunk length. Default: the length of the chunks the episodes store;
+    /// required when they store none (an error names it).
     #[serde(default)]
     pub chunk_len: Option<usize>,
     /// Train only on steps `t` with `t % step_stride == 0`: the steps where a chunking policy
     /// re-planned, i.e. the (obs, chunk, t) the verifier is queried on (default 1: every step).
     #[serde(default)]
     pub step_stride: Option<usize>,
+    /// Train an ensemble of this many members (overrides the recipe's `ensemble`; see
+    /// `crate::ensemble`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ensemble: Option<usize>,
 }
 
 /// A split's episodes, ready for training.
@@ -222,6 +227,9 @@ pub async fn run_train_job(
     let variant = if sees { crate::Variant::Features } else { crate::Variant::Lowdim };
     let mut cfg = spec.config.clone().unwrap_or_else(|| TrainConfig::preset(spec.kind, variant));
     cfg.kind = spec.kind;
+    if let Some(k) = spec.ensemble {
+        cfg.ensemble = k;
+    }
     cfg.validate()?;
     let lineage = serde_json::json!({
         "store_version": split.version,

@@ -3,7 +3,8 @@
 //! This crate owns TRAINING: the verifier models as trainable candle graphs (success classifier
 //! and time-to-success Q, `model.rs`, plus a fused fast path for the low-dim architecture in
 //! `fast.rs`), their losses (`loss.rs`), the training loop and recipe (`train.rs`, `optim.rs`,
-//! `metrics.rs`), the standardisation statistics over the core's samples (`data.rs`, no
+//! `metrics.rs`), ensembles of members on bootstrap resamples (`ensemble.rs`), the
+//! standardisation statistics over the core's samples (`data.rs`, no
 //! dependency on the store), writing artifacts and scoring rows (`artifact.rs`), and training
 //! jobs that read a split from the store and publish the artifact back (`job.rs`).
 //!
@@ -14,6 +15,7 @@
 
 pub mod artifact;
 pub mod data;
+pub mod ensemble;
 pub mod fast;
 pub mod job;
 pub mod loss;
@@ -23,8 +25,8 @@ pub mod optim;
 pub mod train;
 
 pub use artifact::{
-    grad_rows, load_artifact, parse_rows, score, score_json, score_rows, write_artifact, ArtifactConfig,
-    ArtifactInfo, ScoreRow, TrainedArtifact,
+    grad_rows, load_artifact, parse_rows, score, score_json, score_rows, spread_rows, write_artifact,
+    ArtifactConfig, ArtifactInfo, ScoreRow, TrainedArtifact,
 };
 pub use data::{build_samples, EpisodeSeries, ExtraInputSpec, InputSpec, ObsKey, ObsSeries, Samples};
 pub use job::{load_split, run_train_job, SplitData, TrainJobSpec};

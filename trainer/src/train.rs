@@ -82,6 +82,17 @@ pub struct TrainConfig {
     /// action_sensitivity`, [`verifier::ActionSensitivity`]). Doubles training time; needs
     /// validation samples.
     pub obs_only_twin: bool,
+    /// K > 1 trains an ensemble of K members on the same split (seeds `seed + k`, bootstrap
+    /// resamples of the training episodes, the full set's statistics), published as one
+    /// artifact (trainer/ARTIFACT.md, "Ensembles"); only the first member has the twin. 1 (the
+    /// default, not written, so one network's recipe and artifact id are what they were)
+    /// trains one network.
+    #[serde(skip_serializing_if = "is_one")]
+    pub ensemble: usize,
+}
+
+fn is_one(k: &usize) -> bool {
+    *k == 1
 }
 
 /// The verifier's input spec as a recipe file may give it (see
@@ -134,6 +145,7 @@ impl Default for TrainConfig {
             threads: 1,
             backend: TrainBackend::Auto,
             obs_only_twin: true,
+            ensemble: 1,
         }
     }
 }
@@ -251,6 +263,12 @@ impl TrainConfig {
         ensure!(self.gamma > 0.0 && self.gamma <= 1.0, "gamma must be in (0, 1]");
         ensure!(self.obs_noise_std >= 0.0 && self.obs_noise_std.is_finite(), "obs_noise_std must be >= 0");
         ensure!(self.std_floor > 0.0 && self.std_floor.is_finite(), "std_floor must be > 0");
+        ensure!(
+            (1..=verifier::MAX_MEMBERS).contains(&self.ensemble),
+            "ensemble must be in 1..={}, got {}",
+            verifier::MAX_MEMBERS,
+            self.ensemble
+        );
         Ok(())
     }
 }
@@ -316,6 +334,12 @@ pub struct Trained {
     pub config: TrainConfig,
     pub metrics: Metrics,
     pub history: Vec<EpochReport>,
+    /// An ensemble's members' best weights in member order (`params` is member 0's), with the
+    /// rules the artifact records; empty for one network.
+    pub members: Vec<ParamSet>,
+    /// The ensemble's held-out figures (`metrics.ensemble` in the artifact); `None` for one
+    /// network.
+    pub ensemble: Option<crate::ensemble::EnsembleMetrics>,
 }
 
 /// Error returned when the cancel flag was raised.
@@ -381,13 +405,30 @@ pub fn train_samples(
     observer: &mut dyn FnMut(&EpochReport),
     cancel: Option<&AtomicBool>,
 ) -> Result<Trained> {
+    if cfg.ensemble > 1 {
+        return crate::ensemble::train_ensemble(tr, va, input, cfg, observer, cancel);
+    }
+    train_one(tr, va, input, cfg, None, observer, cancel)
+}
+
+/// One network (with its twin when the recipe asks): [`train_samples`] for `ensemble = 1`, and
+/// each member of an ensemble, whose statistics `norm` are the whole training set's.
+pub(crate) fn train_one(
+    tr: Samples,
+    va: Samples,
+    input: &InputSpec,
+    cfg: &TrainConfig,
+    norm: Option<&Normalization>,
+    observer: &mut dyn FnMut(&EpochReport),
+    cancel: Option<&AtomicBool>,
+) -> Result<Trained> {
     let twin = (cfg.obs_only_twin && !va.is_empty()).then(|| (without_actions(&tr), without_actions(&va)));
-    let (mut trained, full_val) = fit(tr, va, input, cfg, observer, cancel)?;
+    let (mut trained, full_val) = fit(tr, va, input, cfg, norm, observer, cancel)?;
     if let (Some((ttr, tva)), Some(full_val)) = (twin, full_val) {
         let start = Instant::now();
         // The twin's epochs are not the verifier's: the observer sees only the verifier's.
-        let (_, twin_val) =
-            fit(ttr, tva, input, cfg, &mut |_| {}, cancel).context("training the observation-only twin")?;
+        let (_, twin_val) = fit(ttr, tva, input, cfg, norm, &mut |_| {}, cancel)
+            .context("training the observation-only twin")?;
         if let Some(twin_val) = twin_val {
             let mut s = crate::metrics::action_sensitivity(&full_val.y, &twin_val.y, &full_val.labels, 10);
             s.twin_seconds = start.elapsed().as_secs_f64();
@@ -424,11 +465,12 @@ fn fit(
     mut va: Samples,
     input: &InputSpec,
     cfg: &TrainConfig,
+    norm: Option<&Normalization>,
     observer: &mut dyn FnMut(&EpochReport),
     cancel: Option<&AtomicBool>,
 ) -> Result<(Trained, Option<BestValidation>)> {
     let start = Instant::now();
-    let Prepared { spec, norm, warnings, temb } = prepare(&mut tr, &mut va, input, cfg)?;
+    let Prepared { spec, norm, warnings, temb } = prepare(&mut tr, &mut va, input, cfg, norm)?;
 
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let mut params = spec.init_params(&mut rng);
@@ -571,6 +613,8 @@ fn fit(
         config: cfg.clone(),
         metrics,
         history,
+        members: Vec::new(),
+        ensemble: None,
     };
     Ok((trained, best_validation))
 }
@@ -585,7 +629,13 @@ struct Prepared {
     temb: TimeEmbedTable,
 }
 
-fn prepare(tr: &mut Samples, va: &mut Samples, input: &InputSpec, cfg: &TrainConfig) -> Result<Prepared> {
+fn prepare(
+    tr: &mut Samples,
+    va: &mut Samples,
+    input: &InputSpec,
+    cfg: &TrainConfig,
+    fixed: Option<&Normalization>,
+) -> Result<Prepared> {
     cfg.validate()?;
     let spec = model_spec(input, cfg);
     spec.arch.validate()?;
@@ -599,7 +649,10 @@ fn prepare(tr: &mut Samples, va: &mut Samples, input: &InputSpec, cfg: &TrainCon
     let standardize_actions = !cfg.action_space.is_policy();
     cfg.action_space.raw_to_input(&mut tr.act, input.action_dim);
     cfg.action_space.raw_to_input(&mut va.act, input.action_dim);
-    let Fitted { norm, warnings } = Normalization::fit(tr, input, standardize_actions, cfg.std_floor as f32);
+    let Fitted { norm, warnings } = match fixed {
+        Some(n) => Fitted { norm: n.clone(), warnings: Vec::new() },
+        None => Normalization::fit(tr, input, standardize_actions, cfg.std_floor as f32),
+    };
     for w in &warnings {
         tracing::warn!("{w}");
     }

@@ -5,6 +5,7 @@
 mod artifact;
 mod common;
 mod config_bounds;
+mod ensemble;
 mod losses;
 mod model;
 mod parity;
