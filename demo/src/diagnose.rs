@@ -81,6 +81,15 @@ impl Scorer for TracingScorer<'_> {
     fn score_batch(&self, obs: &[f32], t: &[u32], candidates: &[f32], n: usize) -> steer::Result<Vec<f32>> {
         self.inner.score_batch(obs, t, candidates, n)
     }
+    fn pick_batch(
+        &self,
+        obs: &[f32],
+        t: &[u32],
+        candidates: &[f32],
+        n: usize,
+    ) -> steer::Result<steer::Picks> {
+        self.inner.pick_batch(obs, t, candidates, n)
+    }
     fn grad_batch(&self, obs: &[f32], t: &[u32], chunks: &[f32]) -> steer::Result<Vec<f32>> {
         let g = self.inner.grad_batch(obs, t, chunks)?;
         let ad = self.act_dim();

@@ -61,6 +61,10 @@ pub struct DemoConfig {
     /// Verifier training stops after this many epochs without a better validation loss; `None`
     /// trains every epoch. Either way the best-validation checkpoint is kept.
     pub early_stopping_patience: Option<usize>,
+    /// Also train every verifier of the ensemble rows as an ensemble of this many members and
+    /// steer the rows where one verifier helps and where it hurts with it (`ufops demo
+    /// --ensemble K`; the report's "Ensembles" table).
+    pub ensemble: Option<usize>,
     pub seed: u64,
     pub out_dir: PathBuf,
 }
@@ -80,6 +84,7 @@ impl DemoConfig {
             ablation_sizes: vec![100, 250, 500],
             // The paper's low-dimensional recipe: 200 epochs, the best-validation checkpoint.
             early_stopping_patience: None,
+            ensemble: None,
             seed: 0,
             out_dir: out_dir.to_path_buf(),
         }
@@ -222,7 +227,9 @@ async fn record(
     Ok(())
 }
 
-/// Trains one verifier on a split and loads it through its published artifact (sha256-checked).
+/// Trains one verifier (or an ensemble of `ensemble` members) on a split and loads it through
+/// its published artifact (sha256-checked).
+#[allow(clippy::too_many_arguments)] // the recipe's parts, each set by the demo's step
 async fn train_verifier(
     store: &Store,
     split_id: &str,
@@ -231,6 +238,7 @@ async fn train_verifier(
     stride: usize,
     action_space: &trainer::ActionSpace,
     artifacts_dir: &Path,
+    ensemble: Option<usize>,
 ) -> Result<(store::ArtifactRecord, steer::Verifier)> {
     // The verifier takes chunks in the policy's normalised space (velocity / max_speed), as in
     // the paper; the stored rollouts hold raw velocities, so the trainer gets the normaliser.
@@ -250,8 +258,10 @@ async fn train_verifier(
         obs_history: Some(2),
         chunk_len: None,
         step_stride: Some(stride),
+        ensemble,
     };
-    let pb = stage(&format!("training the {kind:?} verifier on {split_id}"));
+    let what = ensemble.map_or(format!("{kind:?} verifier"), |k| format!("{kind:?} ensemble of {k}"));
+    let pb = stage(&format!("training the {what} on {split_id}"));
     let pb2 = pb.clone();
     let observer = Box::new(move |r: &trainer::EpochReport| {
         pb2.set_message(format!(
@@ -330,11 +340,12 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     let norm = pc.action_normalizer();
     let space = trainer::ActionSpace::policy(norm.scale.clone(), norm.offset.clone());
     let (c_rec, clf) =
-        train_verifier(store, &on_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir).await?;
+        train_verifier(store, &on_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir, None)
+            .await?;
     let (q_rec, q) =
-        train_verifier(store, &on_split.id, trainer::Kind::Q, cfg, stride, &space, &art_dir).await?;
+        train_verifier(store, &on_split.id, trainer::Kind::Q, cfg, stride, &space, &art_dir, None).await?;
     let (off_rec, off_clf) =
-        train_verifier(store, &off_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir)
+        train_verifier(store, &off_split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir, None)
             .await?;
 
     // 4. Steer the unchanged base policy. Common random numbers: every row of the base policy (and
@@ -453,7 +464,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
             .create_split(&store::SplitRequest { max_episodes: Some(size as u64), ..split_req(vec![]) })
             .await?;
         let (rec, v) =
-            train_verifier(store, &split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir)
+            train_verifier(store, &split.id, trainer::Kind::Classifier, cfg, stride, &space, &art_dir, None)
                 .await?;
         let label = format!("C x BoN (N={nn_ablation})");
         let eps = eval(
@@ -544,7 +555,88 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         exact.max_score_difference
     );
 
-    // The learning-curve classifiers were published last: `latest` names the main one again.
+    // 8. Ensembles (`--ensemble K`): the same recipes as K members each, on the rows where one
+    // verifier helps (on-policy C x BoN) and where it hurts (off-policy C x BoN, CG at the
+    // largest strength), from the same starts and noise as every other row.
+    if let Some(k) = cfg.ensemble {
+        let (on, off) = (on_split.id.as_str(), off_split.id.as_str());
+        let (clf_k, q_k) = (trainer::Kind::Classifier, trainer::Kind::Q);
+        let (ce_rec, ce) = train_verifier(store, on, clf_k, cfg, stride, &space, &art_dir, Some(k)).await?;
+        let (qe_rec, qe) = train_verifier(store, on, q_k, cfg, stride, &space, &art_dir, Some(k)).await?;
+        let (oe_rec, oe) = train_verifier(store, off, clf_k, cfg, stride, &space, &art_dir, Some(k)).await?;
+        let lambda = cfg.lambdas.iter().copied().fold(0.0f32, f32::max);
+        let ln = lambda_name(lambda);
+        let settings: [(&str, String, &steer::Verifier, &str, String, Option<f32>); 4] = [
+            ("on-policy", format!("C x BoN (N={nn})"), &ce, &ce_rec.id, format!("c-bon{nn}"), None),
+            (
+                "off-policy (alt rollouts)",
+                format!("C x BoN (N={nn})"),
+                &oe,
+                &oe_rec.id,
+                format!("off-c-bon{nn}"),
+                None,
+            ),
+            (
+                "on-policy",
+                format!("C x CG (lambda={lambda})"),
+                &ce,
+                &ce_rec.id,
+                format!("c-cg{ln}"),
+                Some(lambda),
+            ),
+            (
+                "on-policy",
+                format!("Q x CG (lambda={lambda})"),
+                &qe,
+                &qe_rec.id,
+                format!("q-cg{ln}"),
+                Some(lambda),
+            ),
+        ];
+        let mut rows = Vec::new();
+        for (split, method, v, artifact, single_run, lambda) in settings {
+            let label = format!("{method}, ensemble of {k}");
+            let (choice, steering) = match lambda {
+                None => (ChunkChoice::BestOfN { scorer: v, n: nn }, Steering::Bon { n: nn as u32 }),
+                Some(l) => {
+                    (ChunkChoice::Guided { scorer: v, lambda: l }, Steering::Cg { lambda: lambda_f64(l) })
+                }
+            };
+            let eps = eval(&base, choice, &label, crn)?;
+            let (steps, fell) = eps
+                .iter()
+                .fold((0u64, 0u64), |(s, f), e| (s + e.best_of_n_steps as u64, f + e.fell_back as u64));
+            let run = format!("ens{k}-{single_run}");
+            let r = demo_run(
+                &run,
+                steering,
+                Some(artifact),
+                &[split.split(' ').next().unwrap_or(split), "ensemble"],
+            );
+            let verifier = format!("{split}, ensemble of {k}");
+            record(store, &mut report, &eps, BASE, r, &method, &verifier, pc.horizon, crn).await?;
+            rows.push(report::EnsembleRow::new(
+                &report,
+                &method,
+                split,
+                &single_run,
+                &run,
+                lambda.is_none().then_some((fell, steps)),
+            )?);
+        }
+        report.ensembles = Some(report::Ensembles {
+            members: k,
+            artifacts: [&ce_rec, &qe_rec, &oe_rec]
+                .iter()
+                .map(|r| (r.id.clone(), r.config["metrics"]["ensemble"].clone()))
+                .collect(),
+            rows,
+        });
+        store.set_alias("latest", &q_rec.id).await?;
+    }
+
+    // The learning-curve classifiers (and any ensembles) were published last: `latest` names
+    // the main ones again.
     store.set_alias("latest", &c_rec.id).await?;
 
     // A failure alarm from the same classifier: a threshold on its per-step scores calibrated on

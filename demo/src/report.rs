@@ -36,6 +36,93 @@ pub struct Report {
     pub steering_quality: Option<SteeringQuality>,
     /// Counterfactual replays of the logged best-of-N steps (`ufops replay`).
     pub replays: Vec<ReplayRow>,
+    /// One verifier against an ensemble of K on the same rows (`--ensemble K`).
+    pub ensembles: Option<Ensembles>,
+}
+
+/// The ensemble rows of the demo and the one-verifier rows they are set against.
+#[derive(Debug, Clone, Serialize)]
+pub struct Ensembles {
+    pub members: usize,
+    /// Each ensemble artifact's id and its held-out figures (`metrics.ensemble`).
+    pub artifacts: Vec<(String, serde_json::Value)>,
+    pub rows: Vec<EnsembleRow>,
+}
+
+/// One setting (a method on a split) steered by one verifier and by an ensemble.
+#[derive(Debug, Clone, Serialize)]
+pub struct EnsembleRow {
+    pub method: String,
+    pub split: String,
+    pub single: Row,
+    pub ensemble: Row,
+    /// Best-of-N only: re-planning steps at which the members disagreed, so the policy's own
+    /// first candidate ran, out of all re-planning steps.
+    pub fell_back: Option<(u64, u64)>,
+}
+
+impl EnsembleRow {
+    /// The rows of runs `single_run` and `run` of the base checkpoint, already in `report`.
+    pub fn new(
+        report: &Report,
+        method: &str,
+        split: &str,
+        single_run: &str,
+        run: &str,
+        fell_back: Option<(u64, u64)>,
+    ) -> Result<Self> {
+        let find = |name: &str| {
+            report
+                .rows
+                .iter()
+                .find(|r| r.checkpoint == crate::BASE && r.run == name)
+                .cloned()
+                .ok_or_else(|| anyhow::anyhow!("the report has no row for run {name}"))
+        };
+        Ok(EnsembleRow {
+            method: method.into(),
+            split: split.into(),
+            single: find(single_run)?,
+            ensemble: find(run)?,
+            fell_back,
+        })
+    }
+}
+
+impl Ensembles {
+    pub fn markdown(&self) -> String {
+        let pct = |x: f64| format!("{:.1}", 100.0 * x);
+        let cell = |r: &Row| {
+            format!(
+                "{}/{} = {}% | {} {}",
+                r.successes,
+                r.episodes,
+                pct(r.rate),
+                r.diff_to_base.map(|d| format!("{:+.1} pp", 100.0 * d)).unwrap_or_default(),
+                r.newcombe_95
+                    .map(|(lo, hi)| format!("[{:+.1}, {:+.1}]", 100.0 * lo, 100.0 * hi))
+                    .unwrap_or_default()
+            )
+        };
+        let mut s = format!(
+            "| method | verifier trained on | one verifier: success | Δ to base [Newcombe 95%] | ensemble of {}: success | Δ to base [Newcombe 95%] | fell back |\n|---|---|---|---|---|---|---|\n",
+            self.members
+        );
+        for r in &self.rows {
+            let fb = r
+                .fell_back
+                .map_or("-".into(), |(f, n)| format!("{f}/{n} = {:.1}%", 100.0 * f as f64 / n.max(1) as f64));
+            s.push_str(&format!(
+                "| {} | {} | {} | {} | {} |\n",
+                r.method,
+                r.split,
+                cell(&r.single),
+                cell(&r.ensemble),
+                fb
+            ));
+        }
+        s
+    }
 }
 
 /// One replay of a run's logged best-of-N steps, and the question it answers.
@@ -208,6 +295,7 @@ impl Report {
             monitor: None,
             steering_quality: None,
             replays: Vec::new(),
+            ensembles: None,
         }
     }
 
@@ -318,11 +406,19 @@ impl Report {
              margin is the replaying verifier's score of its own pick minus its score of the logged pick; the logged \
              pick over a random candidate is the logging verifier's score of its choice minus its mean score of the \
              step's candidates.\n\n{}\n\
-             ## What steering did\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
+             {}## What steering did\n\n{}\nTotal runtime: {:.0} s. Figure: `trajectories.png` (success green, failure red).\n",
             self.markdown(),
             self.monitor_markdown(),
             self.steering_quality.as_ref().map(SteeringQuality::markdown).unwrap_or_default(),
             replays_markdown(&self.replays),
+            self.ensembles.as_ref().map_or(String::new(), |e| format!(
+                "## Ensembles\n\nThe same rows steered by one verifier and by an ensemble of {} (seeds seed+k, bootstrap \
+                 resamples of the split's training episodes; best-of-N ranks by mean − κ·spread and keeps the policy's own \
+                 first candidate when fewer than 80% of the members prefer the pick; guidance is scaled by the members' \
+                 gradient agreement).\n\n{}\n",
+                e.members,
+                e.markdown()
+            )),
             crate::diagnose::markdown(&self.diagnostics),
             self.seconds
         );

@@ -11,7 +11,7 @@
 //! It owns which episodes a run names, the replay of one episode's log ([`replay_log`]) and the
 //! report. The observation a logged step is scored on is built from the stored steps by the
 //! verifier core (`verifier::steps::step_inputs`, as for training and the review queue); the choice
-//! is `steer::select_best`, the robot's own argmax; reading is `export`'s episode reader.
+//! is the robot's own (`steer::select_best`, or an ensemble's `Verifier::pick`); reading is `export`'s episode reader.
 
 use std::collections::BTreeSet;
 
@@ -144,9 +144,15 @@ pub fn replay_log(
             })?;
         let mut cands = s.candidates.clone();
         cfg.input.action_space.raw_to_input(&mut cands, action_dim);
-        let scores =
-            verifier.score(&samples.obs[row * od..(row + 1) * od], &[samples.t[row]], &cands, s.n())?;
-        let chosen = steer::select_best(&scores[..k]);
+        let obs = &samples.obs[row * od..(row + 1) * od];
+        let scores = verifier.score(obs, &[samples.t[row]], &cands, s.n())?;
+        // The robot's own rule over the first k: the argmax for one network, an ensemble's
+        // pessimistic pick with its fall-back.
+        let chosen = if verifier.members() > 1 {
+            verifier.pick(obs, &[], &[samples.t[row]], &cands[..k * ad], k)?.index[0]
+        } else {
+            steer::select_best(&scores[..k])
+        };
         out.push(StepReplay { t: s.t, scores, chosen });
     }
     Ok(out)

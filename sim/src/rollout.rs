@@ -59,6 +59,12 @@ pub struct Episode {
     /// only; empty otherwise)
     #[serde(skip)]
     pub steering: Vec<steer::SteeringStep>,
+    /// Best-of-N re-planning steps, and those at which an ensemble verifier's members disagreed
+    /// so the policy's own first candidate was kept ([`steer::BestOfN::fell_back`]).
+    #[serde(default)]
+    pub best_of_n_steps: u32,
+    #[serde(default)]
+    pub fell_back: u32,
 }
 
 /// (successes, episodes, rate)
@@ -103,6 +109,8 @@ pub fn rollout(
             outcome: Outcome::Timeout,
             gap: None,
             steering: Vec::new(),
+            best_of_n_steps: 0,
+            fell_back: 0,
         })
         .collect();
     let ad = pc.act_dim();
@@ -144,15 +152,20 @@ pub fn rollout(
                 let cands = policy.sample_chunks(&rep, None, &mut pol_rng)?;
                 let space = policy.sample_space();
                 let vo = verifier_obs(scorer);
-                if let ChunkChoice::RecordedBestOfN { .. } = steering {
+                let best = if let ChunkChoice::RecordedBestOfN { .. } = steering {
                     let (best, log) = best_of_n_recorded(scorer, Some(&space), &vo, &ts, &cands, n)?;
                     for (&i, record) in alive.iter().zip(log) {
                         eps[i].steering.push(record);
                     }
-                    best.chunks
+                    best
                 } else {
-                    best_of_n_raw(scorer, Some(&space), &vo, &ts, &cands, n)?.chunks
+                    best_of_n_raw(scorer, Some(&space), &vo, &ts, &cands, n)?
+                };
+                for (&i, &f) in alive.iter().zip(&best.fell_back) {
+                    eps[i].best_of_n_steps += 1;
+                    eps[i].fell_back += f as u32;
                 }
+                best.chunks
             }
             ChunkChoice::Guided { scorer, lambda } => {
                 let vo = verifier_obs(scorer);

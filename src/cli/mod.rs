@@ -216,6 +216,10 @@ pub enum Command {
         /// (default 100,250,500; sizes at or above the rollouts per row are skipped).
         #[arg(long, value_delimiter = ',')]
         ablation_sizes: Option<Vec<usize>>,
+        /// Also steer with ensembles of K members (on-policy and off-policy C x BoN, C and Q x CG
+        /// at the largest strength) beside the one-verifier rows: the report's "Ensembles" table.
+        #[arg(long, value_name = "K")]
+        ensemble: Option<usize>,
     },
     /// Success per checkpoint × task × run at a version, with Wilson intervals and Newcombe
     /// intervals against a baseline run.
@@ -278,8 +282,8 @@ pub async fn run(cli: Cli) -> Result<()> {
             let opts = run_cmds::ScoreOptions { grad, raw_actions };
             run_cmds::score(&cli.store, &artifact, &input, api.as_deref(), token.as_deref(), opts).await
         }
-        Command::Demo { quick, lambdas, ablation_sizes } => {
-            run_cmds::demo(&cli.store, quick, lambdas, ablation_sizes).await
+        Command::Demo { quick, lambdas, ablation_sizes, ensemble } => {
+            run_cmds::demo(&cli.store, quick, lambdas, ablation_sizes, ensemble).await
         }
         Command::Scoreboard(a) => scoreboard_cmd::scoreboard(&cli.store, a).await,
         Command::Compare(a) => compare_cmd::compare(&cli.store, a).await,

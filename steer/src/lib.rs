@@ -3,7 +3,9 @@
 //! It owns the policy traits a user implements for their own model ([`NoisePredictor`] for
 //! DDPM, [`VelocityField`] for flow matching) with the [`DdpmSchedule`], the [`Scorer`]
 //! abstraction over verifiers, and the steering strategies of the paper: best-of-N
-//! (Algorithm 1), classifier guidance for DDPM (Algorithm 2) and guidance for flow policies,
+//! (Algorithm 1), classifier guidance for DDPM (Algorithm 2) and guidance for flow policies
+//! (with an ensemble verifier: the pessimistic pick that may fall back to the policy's own
+//! chunk, and the push scaled by the members' agreement, both the core's rules),
 //! and the failure alarm that runs beside them ([`Monitor`]). Best-of-N can record what each
 //! step saw and chose ([`best_of_n_recorded`], steering telemetry) for `ufops replay`.
 //! With the `http` feature it also loads a verifier from a `ufops serve` API ([`http`]).
@@ -32,7 +34,7 @@ pub use schedule::DdpmSchedule;
 pub use telemetry::best_of_n_recorded;
 pub use verifier;
 pub use verifier::SteeringStep;
-pub use verifier::{Kind, Verifier};
+pub use verifier::{Kind, Picks, Verifier};
 
 /// Anything that scores action chunks and gives guidance gradients: implemented by
 /// [`Verifier`]; tests and users may implement it for their own scorers.
@@ -56,6 +58,27 @@ pub trait Scorer {
     /// Guidance gradients for `B = t.len()` rows: d log C / d chunk (classifier) or d Q / d chunk;
     /// returns `B * act_dim`.
     fn grad_batch(&self, obs: &[f32], t: &[u32], chunks: &[f32]) -> Result<Vec<f32>>;
+    /// Best-of-N's choice in each of `B` groups of `n` candidates, with the scores it ranked by.
+    /// The default is the argmax of [`Scorer::score_batch`]; a [`Verifier`] ensemble picks
+    /// pessimistically and may fall back to each group's first candidate
+    /// ([`Verifier::pick`]).
+    fn pick_batch(&self, obs: &[f32], t: &[u32], candidates: &[f32], n: usize) -> Result<Picks> {
+        let scores = self.score_batch(obs, t, candidates, n)?;
+        let b = t.len();
+        if n == 0 || scores.len() != b * n {
+            return Err(SteerError::Input(format!(
+                "{} scores for {b} groups of {n} candidates",
+                scores.len()
+            )));
+        }
+        Ok(Picks {
+            index: scores.chunks(n).map(verifier::ensemble::argmax).collect(),
+            spread: vec![0.0; scores.len()],
+            scores,
+            fell_back: vec![false; b],
+            agreement: vec![1.0; b],
+        })
+    }
 
     /// Scores of N candidate chunks (`N * act_dim`) for one observation history.
     fn score(&self, obs_history: &[f32], candidates: &[f32], t: u32) -> Result<Vec<f32>> {
@@ -101,6 +124,9 @@ impl Scorer for Verifier {
     fn grad_batch(&self, obs: &[f32], t: &[u32], chunks: &[f32]) -> Result<Vec<f32>> {
         Ok(Verifier::grad(self, obs, t, chunks)?)
     }
+    fn pick_batch(&self, obs: &[f32], t: &[u32], candidates: &[f32], n: usize) -> Result<Picks> {
+        Ok(Verifier::pick(self, obs, &[], t, candidates, n)?)
+    }
     fn steering_warning(&self) -> Option<String> {
         Verifier::steering_warning(self)
     }
@@ -124,6 +150,9 @@ impl<S: Scorer + ?Sized> Scorer for &S {
     }
     fn grad_batch(&self, obs: &[f32], t: &[u32], chunks: &[f32]) -> Result<Vec<f32>> {
         (**self).grad_batch(obs, t, chunks)
+    }
+    fn pick_batch(&self, obs: &[f32], t: &[u32], candidates: &[f32], n: usize) -> Result<Picks> {
+        (**self).pick_batch(obs, t, candidates, n)
     }
     fn steering_warning(&self) -> Option<String> {
         (**self).steering_warning()

@@ -231,16 +231,7 @@ fn flow_impl<P: VelocityField + ?Sized, R: Rng + ?Sized>(
 
 /// Index of the largest score (first one on ties; NaN counts as -inf).
 pub fn select_best(scores: &[f32]) -> usize {
-    let mut best = 0;
-    let mut bv = f32::NEG_INFINITY;
-    for (i, &s) in scores.iter().enumerate() {
-        let s = if s.is_nan() { f32::NEG_INFINITY } else { s };
-        if s > bv {
-            best = i;
-            bv = s;
-        }
-    }
-    best
+    verifier::ensemble::argmax(scores)
 }
 
 /// Result of best-of-N for B groups.
@@ -248,10 +239,20 @@ pub fn select_best(scores: &[f32]) -> usize {
 pub struct BestOfN {
     /// chosen candidate index per group
     pub index: Vec<usize>,
-    /// all `B * n` scores
+    /// all `B * n` scores (an ensemble's: the members' mean)
     pub scores: Vec<f32>,
     /// the chosen chunks, `B * act_dim`
     pub chunks: Vec<f32>,
+    /// per group: an ensemble's members disagreed, so the group's first candidate (the policy's
+    /// own sample) was kept ([`verifier::ensemble::pick_group`]); always false for one network
+    pub fell_back: Vec<bool>,
+}
+
+impl BestOfN {
+    /// The share of groups that fell back to their first candidate.
+    pub fn fallback_rate(&self) -> f64 {
+        self.fell_back.iter().filter(|&&f| f).count() as f64 / self.fell_back.len().max(1) as f64
+    }
 }
 
 /// Best-of-N (Algorithm 1): score `n` candidates per group (`candidates` is `B * n * act_dim`,
@@ -265,8 +266,8 @@ pub fn best_of_n(
 ) -> Result<BestOfN> {
     check_n(n)?;
     crate::warn_if_flagged(scorer);
-    let scores = scorer.score_batch(obs, t, candidates, n)?;
-    pick(scorer.act_dim(), scores, t.len(), candidates, n)
+    let picks = scorer.pick_batch(obs, t, candidates, n)?;
+    pick(scorer.act_dim(), picks, t.len(), candidates, n)
 }
 
 /// Best-of-N on raw candidates as the samplers return them (e.g. from [`ddpm_sample`] with each
@@ -282,15 +283,15 @@ pub fn best_of_n_raw(
 ) -> Result<BestOfN> {
     check_n(n)?;
     crate::warn_if_flagged(scorer);
-    let scores = match affine {
+    let picks = match affine {
         Some(a) if scorer.takes_policy_space() => {
             let mut x = raw_candidates.to_vec();
             a.invert(&mut x)?;
-            scorer.score_batch(obs, t, &x, n)?
+            scorer.pick_batch(obs, t, &x, n)?
         }
-        _ => scorer.score_batch(obs, t, raw_candidates, n)?,
+        _ => scorer.pick_batch(obs, t, raw_candidates, n)?,
     };
-    pick(scorer.act_dim(), scores, t.len(), raw_candidates, n)
+    pick(scorer.act_dim(), picks, t.len(), raw_candidates, n)
 }
 
 fn check_n(n: usize) -> Result<()> {
@@ -301,20 +302,21 @@ fn check_n(n: usize) -> Result<()> {
 }
 
 /// `n >= 1` is checked by the callers, before scoring.
-fn pick(ad: usize, scores: Vec<f32>, b: usize, candidates: &[f32], n: usize) -> Result<BestOfN> {
-    if scores.len() != b * n || candidates.len() != b * n * ad {
+fn pick(ad: usize, picks: crate::Picks, b: usize, candidates: &[f32], n: usize) -> Result<BestOfN> {
+    let crate::Picks { index, scores, fell_back, .. } = picks;
+    if scores.len() != b * n || index.len() != b || fell_back.len() != b || candidates.len() != b * n * ad {
         return Err(SteerError::Input(format!(
             "{} scores and {} candidate values for {b} groups of {n} chunks of {ad}",
             scores.len(),
             candidates.len()
         )));
     }
-    let mut index = Vec::with_capacity(b);
     let mut chunks = Vec::with_capacity(b * ad);
-    for g in 0..b {
-        let i = select_best(&scores[g * n..(g + 1) * n]);
-        index.push(i);
+    for (g, &i) in index.iter().enumerate() {
+        if i >= n {
+            return Err(SteerError::Model(format!("the scorer picked candidate {i} of {n}")));
+        }
         chunks.extend_from_slice(&candidates[(g * n + i) * ad..(g * n + i + 1) * ad]);
     }
-    Ok(BestOfN { index, scores, chunks })
+    Ok(BestOfN { index, scores, chunks, fell_back })
 }

@@ -3,5 +3,6 @@
 //! global allocator to measure memory stays a binary of its own (see Cargo.toml).
 
 mod caller_mistakes;
+mod ensemble;
 mod sampling;
 mod steering_warning;
