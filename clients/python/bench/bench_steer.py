@@ -4,12 +4,14 @@ encoders 64, t-embedding 64, trunk 128 -> 64), one thread, random weights, with 
 peer (bench/reference/torch_verifier_epoch.py's model) measured in the same run:
 
 * BoN(10) score: ``Verifier.score`` of 10 candidates for one observation + argmax;
-* CG gradient: ``Verifier.grad`` of one chunk (d log C / d chunk).
+* CG gradient: ``Verifier.grad`` of one chunk (d log C / d chunk);
+* ensemble cost: best-of-30 with an ensemble of K = 5 (``Verifier.pick``: the members' scores,
+  the pessimistic pick, the fall-back) against the same with one verifier, in the same run.
 
 Times include the Python call overhead (array checks, GIL release, the result array). Goals:
-BoN(10) p50 <= 20 us, CG gradient p50 <= 15 us.
+BoN(10) p50 <= 20 us, CG gradient p50 <= 15 us, ensemble BoN(30) p50 <= 3x the one verifier's.
 
-    python3 clients/python/bench/bench_steer.py [--iters 20000] [--no-torch]
+    python3 clients/python/bench/bench_steer.py [--iters 20000] [--no-torch] [--members 5]
 
 It needs the package built with its ``testing`` feature (``write_random_artifact``):
 ``MATURIN_PEP517_ARGS="--features testing" pip install ./clients/python``.
@@ -74,11 +76,15 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--iters", type=int, default=20000)
     p.add_argument("--no-torch", action="store_true")
+    p.add_argument("--members", type=int, default=5)
     args = p.parse_args()
 
     with tempfile.TemporaryDirectory() as d:
         _ufops.write_random_artifact(d, "square", 0)
         v = ufops.Verifier.load(d)
+    with tempfile.TemporaryDirectory() as d:
+        _ufops.write_random_artifact(d, "square", 0, None, args.members)
+        ens = ufops.Verifier.load(d)
     rng = np.random.default_rng(0)
     obs = rng.uniform(-1, 1, 46).astype(np.float32)
     cands = rng.uniform(-1, 1, (10, 160)).astype(np.float32)
@@ -90,6 +96,15 @@ def main() -> None:
     row = lambda name, r: print(f"  {name:<34} p50 {r[0]:>8.1f} us   p99 {r[1]:>8.1f} us")  # noqa: E731
     row("ufops BoN(10) score + argmax", bon)
     row("ufops CG gradient", cg)
+    cands30 = rng.uniform(-1, 1, (30, 160)).astype(np.float32)
+    one30 = measure(args.iters, lambda: v.pick(obs, cands30, 7))
+    ens30 = measure(args.iters, lambda: ens.pick(obs, cands30, 7))
+    ens_cg = measure(args.iters, lambda: ens.grad(obs, chunk, 7))
+    row("one verifier BoN(30) pick", one30)
+    row(f"ensemble of {args.members} BoN(30) pick", ens30)
+    row(f"ensemble of {args.members} CG gradient", ens_cg)
+    print(f"  ensemble / one verifier at p50: BoN(30) {ens30[0] / one30[0]:.2f}x, CG gradient {ens_cg[0] / cg[0]:.2f}x "
+          f"(goal BoN(30) <= 3x: {'met' if ens30[0] <= 3 * one30[0] else 'MISSED'})")
     if not args.no_torch:
         tb, tc = torch_peer(max(2000, args.iters // 10))
         row("PyTorch eager BoN(10) score", tb)

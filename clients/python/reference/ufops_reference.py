@@ -1,8 +1,10 @@
-"""Independent numpy reference of a ufops verifier artifact (schema_version 1, trainer/ARTIFACT.md).
+"""Independent numpy reference of a ufops verifier artifact (trainer/ARTIFACT.md: schema_version 1,
+one network; 2, an ensemble).
 
 Written from the contract alone, in float64, so the Rust verifier core can be checked against it:
-scores and guidance gradients (d log C / d action for the classifier, d Q / d action for q).
-Depends on numpy and safetensors only.
+scores and guidance gradients (d log C / d action for the classifier, d Q / d action for q), and
+for an ensemble the members' mean and spread, best-of-N's pick with its fall-back and the
+agreement-scaled gradient ("Ensembles"). Depends on numpy and safetensors only.
 
     v = load_artifact("path/to/artifact_dir")   # checks every sha256, schema, kind, variant, tensors
     v.score(obs, act, t)                         # obs [N, obs_dim] raw, act [N, act_dim] in the
@@ -12,7 +14,7 @@ Command line (what the Rust tests call):
 
     python3 ufops_reference.py ARTIFACT_DIR ROWS_JSON
     ROWS_JSON: {"rows": [{"obs": [...], "action": [...], "t": 3, "extras": {"name": [...]}}, ...]}
-    prints {"artifact_id": ..., "scores": [...], "grads": [[...], ...]}
+    prints {"artifact_id": ..., "members": K, "scores": [...], "spread": [...], "grads": [[...], ...]}
 """
 import hashlib
 import json
@@ -24,6 +26,7 @@ import numpy as np
 from safetensors.numpy import load_file
 
 SCHEMA_VERSION = 1
+ENSEMBLE_SCHEMA_VERSION = 2
 
 
 class ArtifactError(Exception):
@@ -163,6 +166,17 @@ class Verifier:
         return self._lin(h, "head")[:, 0], act_caches, trunk
 
     # -- API ----------------------------------------------------------------------------------
+    members = 1
+
+    def spread(self, obs, act, t, extras=None):
+        return np.zeros(np.asarray(t).reshape(-1).shape[0])
+
+    def pick(self, obs_row, cands, t, extras=None):
+        """Best-of-N over candidates cands [N, act_dim] at one observation: (index, fell_back)."""
+        n = cands.shape[0]
+        s = self.score(np.repeat(_f64(obs_row, self.obs_dim), n, axis=0), cands, np.full(n, t), extras)
+        return int(_argmax(s)), False
+
     def score(self, obs, act, t, extras=None):
         """Classifier: sigmoid(logit); q: the value. Shape [N]."""
         y, _, _ = self._forward(obs, act, t, extras)
@@ -190,12 +204,73 @@ class Verifier:
         return g / self.act_std
 
 
+def _argmax(x):
+    """First index of the largest value; NaN counts as -inf."""
+    x = np.where(np.isnan(x), -np.inf, x)
+    return int(np.argmax(x))
+
+
+class Ensemble:
+    """K member networks; the rules of trainer/ARTIFACT.md, "Ensembles"."""
+
+    def __init__(self, config, tensors, artifact_id):
+        spec = config.get("ensemble")
+        if not isinstance(spec, dict):
+            raise ArtifactError("schema_version 2 without an ensemble object")
+        known = {"members", "pessimism", "min_agreement", "min_gradient_agreement"}
+        if set(spec) != known:
+            raise ArtifactError(f"ensemble has fields {sorted(spec)}, expected {sorted(known)}")
+        k = spec["members"]
+        if not (isinstance(k, int) and 2 <= k <= 64):
+            raise ArtifactError(f"ensemble.members {k!r} is not in 2..=64")
+        self.config, self.id, self.spec, self.members = config, artifact_id, spec, k
+        self.kind = config["kind"]
+        self.arch = config["architecture"]
+        prefixes = [f"members.{i}." for i in range(k)]
+        stray = [n for n in tensors if not any(n.startswith(p) for p in prefixes)]
+        if stray:
+            raise ArtifactError(f"tensors outside the members: {sorted(stray)}")
+        self.nets = [Verifier(config, {n[len(p):]: v for n, v in tensors.items() if n.startswith(p)}, artifact_id)
+                     for p in prefixes]
+        self.obs_dim, self.act_dim = self.nets[0].obs_dim, self.nets[0].act_dim
+
+    def member_scores(self, obs, act, t, extras=None):
+        """[K, N]"""
+        return np.stack([m.score(obs, act, t, extras) for m in self.nets])
+
+    def score(self, obs, act, t, extras=None):
+        return self.member_scores(obs, act, t, extras).mean(axis=0)
+
+    def spread(self, obs, act, t, extras=None):
+        return self.member_scores(obs, act, t, extras).std(axis=0)
+
+    def pick(self, obs_row, cands, t, extras=None):
+        n = cands.shape[0]
+        s = self.member_scores(np.repeat(_f64(obs_row, self.obs_dim), n, axis=0), cands, np.full(n, t), extras)
+        best = _argmax(s.mean(axis=0) - self.spec["pessimism"] * s.std(axis=0))
+        if best == 0:
+            return 0, False
+        agreement = float((s[:, best] > s[:, 0]).mean())
+        if agreement < self.spec["min_agreement"]:
+            return 0, True
+        return best, False
+
+    def grad(self, obs, act, t, extras=None):
+        g = np.stack([m.grad(obs, act, t, extras) for m in self.nets])  # [K, N, act_dim]
+        mean = g.mean(axis=0)
+        mean_norm = np.linalg.norm(g, axis=2).mean(axis=0)
+        r = np.where(mean_norm > 0, np.linalg.norm(mean, axis=1) / np.where(mean_norm > 0, mean_norm, 1.0), 0.0)
+        r0 = self.spec["min_gradient_agreement"]
+        scale = np.clip((np.minimum(r, 1.0) - r0) / (1.0 - r0), 0.0, 1.0)
+        return mean * scale[:, None]
+
+
 def load_artifact(directory):
     """Load an artifact directory, checking every file against manifest.json first."""
     with open(os.path.join(directory, "manifest.json"), "rb") as f:
         manifest_bytes = f.read()
     manifest = json.loads(manifest_bytes)
-    if manifest.get("schema_version") != SCHEMA_VERSION:
+    if manifest.get("schema_version") not in (SCHEMA_VERSION, ENSEMBLE_SCHEMA_VERSION):
         raise ArtifactError(f"unknown schema_version {manifest.get('schema_version')}")
     files = manifest.get("files", {})
     for name in ("config.json", "model.safetensors"):
@@ -209,8 +284,10 @@ def load_artifact(directory):
             raise ArtifactError(f"sha256 mismatch for {name}: manifest {want}, file {got}")
     with open(os.path.join(directory, "config.json")) as f:
         config = json.load(f)
-    if config.get("schema_version") != SCHEMA_VERSION:
-        raise ArtifactError(f"unknown config schema_version {config.get('schema_version')}")
+    if config.get("schema_version") != manifest["schema_version"]:
+        raise ArtifactError(f"config schema_version {config.get('schema_version')} is not the manifest's")
+    if (config["schema_version"] == ENSEMBLE_SCHEMA_VERSION) != ("ensemble" in config):
+        raise ArtifactError("an ensemble block goes with schema_version 2, and only with it")
     arch = config.get("architecture", {})
     for field, known in (("variant", ("lowdim", "features")), ("activation", ("relu", "gelu"))):
         if arch.get(field) not in known:
@@ -220,7 +297,10 @@ def load_artifact(directory):
     if arch["t_embed_dim"] % 2:
         raise ArtifactError("t_embed_dim must be even")
     tensors = load_file(os.path.join(directory, "model.safetensors"))
-    return Verifier(config, tensors, hashlib.sha256(manifest_bytes).hexdigest()[:16])
+    artifact_id = hashlib.sha256(manifest_bytes).hexdigest()[:16]
+    if config["schema_version"] == ENSEMBLE_SCHEMA_VERSION:
+        return Ensemble(config, tensors, artifact_id)
+    return Verifier(config, tensors, artifact_id)
 
 
 def main(argv):
@@ -234,8 +314,8 @@ def main(argv):
     act = np.array([r["action"] for r in rows])
     t = np.array([r["t"] for r in rows])
     extras = {e["name"]: np.array([r["extras"][e["name"]] for r in rows]) for e in v.arch.get("extra_inputs", [])}
-    out = {"artifact_id": v.id, "scores": v.score(obs, act, t, extras).tolist(),
-           "grads": v.grad(obs, act, t, extras).tolist()}
+    out = {"artifact_id": v.id, "members": v.members, "scores": v.score(obs, act, t, extras).tolist(),
+           "spread": v.spread(obs, act, t, extras).tolist(), "grads": v.grad(obs, act, t, extras).tolist()}
     print(json.dumps(out))
     return 0
 

@@ -16,17 +16,18 @@ use pyo3::prelude::*;
 /// Writes an artifact with random weights (`verifier::testutil`) of the given dimensions
 /// ("square": the paper's Square task; "nav", "nav_features": the 2-D task) into `dir` and
 /// returns its id; `metrics_json` becomes its `config.json` metrics (e.g. a flagged
-/// action-sensitivity figure). For the tests and the benchmark (feature `testing`): it is not a
-/// trained verifier.
+/// action-sensitivity figure); `members` > 1 writes an ensemble of that many random networks.
+/// For the tests and the benchmark (feature `testing`): it is not a trained verifier.
 #[cfg(feature = "testing")]
 #[pyfunction]
-#[pyo3(signature = (dir, dims, seed, metrics_json=None))]
+#[pyo3(signature = (dir, dims, seed, metrics_json=None, members=1))]
 fn write_random_artifact(
     py: Python<'_>,
     dir: std::path::PathBuf,
     dims: &str,
     seed: u64,
     metrics_json: Option<&str>,
+    members: usize,
 ) -> PyResult<String> {
     use ::verifier::testutil::RandomSpec;
     use pyo3::exceptions::PyValueError;
@@ -43,7 +44,8 @@ fn write_random_artifact(
         .transpose()
         .map_err(|e| PyValueError::new_err(format!("metrics_json: {e}")))?;
     py.detach(|| {
-        let (mut config, weights) = spec.build(seed);
+        let (mut config, weights) =
+            if members > 1 { spec.build_ensemble(seed, members) } else { spec.build(seed) };
         if let Some(m) = metrics {
             config.metrics = m;
         }

@@ -29,6 +29,16 @@ struct Chunks {
     lead: Vec<usize>,
 }
 
+/// The arguments of a scoring call, checked: `B` groups of `n` candidates, the output's shape.
+struct ScoreArgs<'py> {
+    obs: PyReadonlyArrayDyn<'py, f32>,
+    act: PyReadonlyArrayDyn<'py, f32>,
+    extras: Vec<PyReadonlyArrayDyn<'py, f32>>,
+    t: Vec<u32>,
+    n: usize,
+    out_shape: Vec<usize>,
+}
+
 impl PyVerifier {
     /// The accepted shapes of chunks with leading dims `lead` ("" or "N, " ...).
     fn chunk_shapes(&self, lead: &str) -> String {
@@ -113,6 +123,45 @@ impl PyVerifier {
         }
         Ok(out)
     }
+
+    /// Checks a scoring call's arguments (see `score`).
+    fn score_args<'py>(
+        &self,
+        obs: &Bound<'py, PyAny>,
+        act: &Bound<'py, PyAny>,
+        t: &Bound<'py, PyAny>,
+        extras: Option<&Bound<'py, PyDict>>,
+    ) -> PyResult<ScoreArgs<'py>> {
+        let od = self.v.obs_dim();
+        let obs = f32_array(obs, "obs", || format!("({od},) or (B, {od})"))?;
+        let batch = self.obs_rows(&obs)?;
+        let expected = || match batch {
+            None => format!("{} for obs of shape ({od},)", self.chunk_shapes("N, ")),
+            Some(b) => format!(
+                "{} or {} for obs of shape ({b}, {od})",
+                self.chunk_shapes(&format!("{b}, N, ")),
+                self.chunk_shapes(&format!("{b}, "))
+            ),
+        };
+        let act = f32_array(act, "act", expected)?;
+        let lead = self.chunks(act.shape()).map(|c| c.lead);
+        // (groups, candidates per group, output shape)
+        let (b, n, out_shape) = match (batch, lead.as_deref()) {
+            (None, Some([n])) => (1, *n, vec![*n]),
+            (Some(b), Some([b2, n])) if *b2 == b => (b, *n, vec![b, *n]),
+            (Some(b), Some([b2])) if *b2 == b => (b, 1, vec![b]),
+            _ => {
+                return Err(PyValueError::new_err(format!(
+                    "act must have shape {}; got {}",
+                    expected(),
+                    shape_str(act.shape())
+                )));
+            }
+        };
+        let t = steps(t, b)?;
+        let extras = self.extras(extras, batch)?;
+        Ok(ScoreArgs { obs, act, extras, t, n, out_shape })
+    }
 }
 
 #[pymethods]
@@ -178,6 +227,12 @@ impl PyVerifier {
         self.v.takes_policy_space()
     }
     /// The kernels in use ("avx2+fma" or "portable").
+    /// Networks behind the scores: 1, or an ensemble's members.
+    #[getter]
+    fn members(&self) -> usize {
+        self.v.members()
+    }
+
     #[getter]
     fn backend(&self) -> &'static str {
         self.v.backend_name()
@@ -263,34 +318,7 @@ impl PyVerifier {
         t: &Bound<'py, PyAny>,
         extras: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-        let od = self.v.obs_dim();
-        let obs = f32_array(obs, "obs", || format!("({od},) or (B, {od})"))?;
-        let batch = self.obs_rows(&obs)?;
-        let expected = || match batch {
-            None => format!("{} for obs of shape ({od},)", self.chunk_shapes("N, ")),
-            Some(b) => format!(
-                "{} or {} for obs of shape ({b}, {od})",
-                self.chunk_shapes(&format!("{b}, N, ")),
-                self.chunk_shapes(&format!("{b}, "))
-            ),
-        };
-        let act = f32_array(act, "act", expected)?;
-        let lead = self.chunks(act.shape()).map(|c| c.lead);
-        // (groups, candidates per group, output shape)
-        let (b, n, out_shape) = match (batch, lead.as_deref()) {
-            (None, Some([n])) => (1, *n, vec![*n]),
-            (Some(b), Some([b2, n])) if *b2 == b => (b, *n, vec![b, *n]),
-            (Some(b), Some([b2])) if *b2 == b => (b, 1, vec![b]),
-            _ => {
-                return Err(PyValueError::new_err(format!(
-                    "act must have shape {}; got {}",
-                    expected(),
-                    shape_str(act.shape())
-                )));
-            }
-        };
-        let t = steps(t, b)?;
-        let extras = self.extras(extras, batch)?;
+        let ScoreArgs { obs, act, extras, t, n, out_shape } = self.score_args(obs, act, t, extras)?;
         let out = PyArrayDyn::<f32>::zeros(py, IxDyn(&out_shape), false);
         // SAFETY: `out` was just created here and is not shared with anything yet.
         let out_slice = unsafe { out.as_slice_mut() }.map_err(|e| PyValueError::new_err(e.to_string()))?;
@@ -302,6 +330,66 @@ impl PyVerifier {
         })
         .map_err(from_verifier)?;
         Ok(out)
+    }
+
+    /// Every member's scores, `(members, *score's shape)` (one network: `(1, …)`); `score` is their
+    /// mean.
+    #[pyo3(signature = (obs, act, t, extras=None))]
+    fn score_members<'py>(
+        &self,
+        py: Python<'py>,
+        obs: &Bound<'py, PyAny>,
+        act: &Bound<'py, PyAny>,
+        t: &Bound<'py, PyAny>,
+        extras: Option<&Bound<'py, PyDict>>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let ScoreArgs { obs, act, extras, t, n, out_shape } = self.score_args(obs, act, t, extras)?;
+        let shape: Vec<usize> = std::iter::once(self.v.members()).chain(out_shape).collect();
+        let out = PyArrayDyn::<f32>::zeros(py, IxDyn(&shape), false);
+        // SAFETY: `out` was just created here and is not shared with anything yet.
+        let out_slice = unsafe { out.as_slice_mut() }.map_err(|e| PyValueError::new_err(e.to_string()))?;
+        let (o, a) = (values(&obs), values(&act));
+        let ex: Vec<_> = extras.iter().map(values).collect();
+        py.detach(|| {
+            let ex: Vec<&[f32]> = ex.iter().map(|c| c.as_ref()).collect();
+            self.v.score_members_into(&o, &ex, &t, &a, n, out_slice)
+        })
+        .map_err(from_verifier)?;
+        Ok(out)
+    }
+
+    /// Best-of-N's choice, the verifier core's rule (`verifier::Verifier::pick`): `obs`
+    /// `(obs_dim,)` with `act` `(N, chunk)`, or `(B, obs_dim)` with `(B, N, chunk)`. Returns
+    /// `(index, scores, spread, fell_back, agreement)`: per group the chosen index, whether an
+    /// ensemble fell back to the first candidate and the share of members preferring the pick
+    /// (lists of B), and every candidate's score and spread shaped like `score`'s result.
+    #[pyo3(signature = (obs, act, t, extras=None))]
+    #[allow(clippy::type_complexity)] // the five results of one pick
+    fn pick<'py>(
+        &self,
+        py: Python<'py>,
+        obs: &Bound<'py, PyAny>,
+        act: &Bound<'py, PyAny>,
+        t: &Bound<'py, PyAny>,
+        extras: Option<&Bound<'py, PyDict>>,
+    ) -> PyResult<(Vec<usize>, Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>, Vec<bool>, Vec<f32>)>
+    {
+        let ScoreArgs { obs, act, extras, t, n, out_shape } = self.score_args(obs, act, t, extras)?;
+        if out_shape.len() == 1 && t.len() > 1 {
+            return Err(PyValueError::new_err(
+                "pick needs groups of candidates: act (N, chunk) for obs (obs_dim,), or (B, N, chunk) for (B, obs_dim)",
+            ));
+        }
+        let (o, a) = (values(&obs), values(&act));
+        let ex: Vec<_> = extras.iter().map(values).collect();
+        let p = py
+            .detach(|| {
+                let ex: Vec<&[f32]> = ex.iter().map(|c| c.as_ref()).collect();
+                self.v.pick(&o, &ex, &t, &a, n)
+            })
+            .map_err(from_verifier)?;
+        let shaped = |v: Vec<f32>| numpy::PyArray1::from_vec(py, v).reshape(IxDyn(&out_shape));
+        Ok((p.index, shaped(p.scores)?, shaped(p.spread)?, p.fell_back, p.agreement))
     }
 
     /// Guidance gradients w.r.t. the chunk as passed: d log C / d act (classifier) or d Q / d act.

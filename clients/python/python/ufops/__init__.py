@@ -31,10 +31,11 @@ from ufops.errors import (
 from ufops.monitor import Monitor, MonitorStep
 from ufops.store import Store
 from ufops.telemetry import SteeringLog, sidecar_for
-from ufops.verifier import SteeringWarning, Verifier
+from ufops.verifier import Pick, SteeringWarning, Verifier
 
 __all__ = [
     "Verifier",
+    "Pick",
     "SteeringWarning",
     "Monitor",
     "MonitorStep",

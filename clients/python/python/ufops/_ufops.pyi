@@ -46,6 +46,8 @@ class Verifier:
     @property
     def backend(self) -> str: ...
     @property
+    def members(self) -> int: ...
+    @property
     def extra_inputs(self) -> list[tuple[str, int]]: ...
     @property
     def required_producers(self) -> dict[str, str]: ...
@@ -56,6 +58,12 @@ class Verifier:
     def score(
         self, obs: ArrayLike, act: ArrayLike, t: StepLike, extras: Optional[Mapping[str, ArrayLike]] = None
     ) -> npt.NDArray[np.float32]: ...
+    def score_members(
+        self, obs: ArrayLike, act: ArrayLike, t: StepLike, extras: Optional[Mapping[str, ArrayLike]] = None
+    ) -> npt.NDArray[np.float32]: ...
+    def pick(
+        self, obs: ArrayLike, act: ArrayLike, t: StepLike, extras: Optional[Mapping[str, ArrayLike]] = None
+    ) -> tuple[list[int], npt.NDArray[np.float32], npt.NDArray[np.float32], list[bool], list[float]]: ...
     def grad(
         self, obs: ArrayLike, act: ArrayLike, t: StepLike, extras: Optional[Mapping[str, ArrayLike]] = None
     ) -> npt.NDArray[np.float32]: ...
@@ -139,10 +147,10 @@ def episodes_ipc_from_json(records_json: str) -> bytes:
 
 # Only in a build with the crate's `testing` feature (the tests and the benchmark, see Cargo.toml).
 def write_random_artifact(
-    dir: Union[str, os.PathLike[str]], dims: str, seed: int, metrics_json: Optional[str] = None
+    dir: Union[str, os.PathLike[str]], dims: str, seed: int, metrics_json: Optional[str] = None, members: int = 1
 ) -> str:
     """Writes an artifact with random weights ("square", "nav" or "nav_features" dims) and returns its id;
-    ``metrics_json`` becomes its config.json ``metrics``."""
+    ``metrics_json`` becomes its config.json ``metrics``; ``members`` > 1 writes an ensemble."""
     ...
 
 def write_steering_log(

@@ -474,6 +474,8 @@ class Plan:
     scores: Optional[npt.NDArray[np.float32]]  # (B, N); None when N = 1 without a log (nothing scored)
     chosen: npt.NDArray[np.int64]  # (B,) index of the executed candidate
     rows: npt.NDArray[np.float32]  # (B, obs_dim) the verifier's observation rows
+    # (B,) an ensemble's members disagreed, so the policy's own first candidate was kept
+    fell_back: Optional[npt.NDArray[np.bool_]] = None
 
 
 @dataclass
@@ -689,6 +691,7 @@ class SteeredPolicy(PreTrainedPolicy):  # type: ignore[misc]
         b = cands.shape[0]
         scores: Optional[npt.NDArray[np.float32]] = None
         pick = np.zeros(b, np.int64)
+        fell_back: Optional[npt.NDArray[np.bool_]] = None
         if self.n == 1 and self.log is None:
             chosen = cands[:, 0]
         else:
@@ -700,11 +703,13 @@ class SteeredPolicy(PreTrainedPolicy):  # type: ignore[misc]
                 scored, raw = self.verifier.telemetry_grid(flat.detach().cpu().numpy())
                 flat = torch.from_numpy(scored).to(device=cands.device, dtype=cands.dtype)
             s0 = time.perf_counter()
-            scores = np.asarray(
-                self.verifier.score(rows, flat.detach().cpu().numpy(), np.full(b, self._t, np.int64))
-            ).reshape(b, self.n)
+            # The verifier core's choice: the argmax, or an ensemble's pessimistic pick that keeps
+            # the policy's own first candidate when the members disagree.
+            picked = self.verifier.pick(rows, flat.detach().cpu().numpy(), np.full(b, self._t, np.int64))
+            scores = np.asarray(picked.scores).reshape(b, self.n)
             score_s = time.perf_counter() - s0
-            pick = scores.argmax(axis=1)
+            pick = picked.chosen
+            fell_back = picked.fell_back
             chosen = flat[torch.arange(b), torch.as_tensor(pick)].reshape(b, *cands.shape[2:])
             cands = flat.reshape(cands.shape)
             if self.log is not None and raw is not None:
@@ -714,7 +719,9 @@ class SteeredPolicy(PreTrainedPolicy):  # type: ignore[misc]
                     self.log.add(ep, self._t, str(self.verifier.id), raw_rows[r], scores[r], int(pick[r]),
                                  int(score_s * 1e6) // b)
         t3 = time.perf_counter()
-        self.last_plan = Plan(t=self._t, candidates=cands, scores=scores, chosen=pick.astype(np.int64), rows=rows)
+        self.last_plan = Plan(
+            t=self._t, candidates=cands, scores=scores, chosen=pick.astype(np.int64), rows=rows, fell_back=fell_back
+        )
         if self.keep_timings:
             self.timings.append(ReplanTiming(encode=t1 - t0, sample=t2 - t1, score=t3 - t2, total=t3 - t0))
         return chosen

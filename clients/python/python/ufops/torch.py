@@ -1,10 +1,14 @@
 """Steering helpers for PyTorch samplers, running the verifier core through :class:`ufops.Verifier`.
 
 * :func:`best_of_n` — the paper's Algorithm 1: sample N candidate chunks, keep the best scored
-  (and, with ``log=``, record the step for ``ufops replay``: :mod:`ufops.telemetry`).
+  (and, with ``log=``, record the step for ``ufops replay``: :mod:`ufops.telemetry`); with an
+  ensemble verifier, the pessimistic pick that falls back to the policy's own chunk when the
+  members disagree.
 * :func:`ddpm_guidance` — Algorithm 2 for a diffusers-style loop: a hook that turns the policy's
   noise prediction into the one whose x̂0 is ``x̂0 + λ ∇ log C(o, x̂0)`` (classifier) or
   ``x̂0 + λ ∇ Q`` (q), so ``scheduler.step`` then takes its posterior mean at the guided x̂0.
+* With an ensemble verifier the guidance gradient is the members' mean scaled by their agreement
+  (zero where they disagree): the verifier core's rule, so nothing changes here.
 * :func:`flow_guidance` — the same for a flow-matching sampler: ``x̂0 = a_t − t·v``, guided, and
   the velocity that reaches it, ``v' = v − λ ∇ / t`` (not applied at t = 1, where x̂0 is noise).
 
@@ -15,13 +19,13 @@ gradients come back on the input's device and dtype. torch is imported by these 
 from __future__ import annotations
 
 import time
-from typing import Any, Callable, Optional, Tuple
+from typing import Any, Callable, List, Optional, Tuple
 
 import numpy as np
 import numpy.typing as npt
 
 from ufops.telemetry import SteeringLog
-from ufops.verifier import Verifier
+from ufops.verifier import Pick, Verifier
 
 Tensor = Any  # torch.Tensor (kept loose so the package imports without torch)
 
@@ -48,6 +52,7 @@ def best_of_n(
     t: Any = 0,
     log: Optional[SteeringLog] = None,
     episode: Any = None,
+    picks: Optional[List[Pick]] = None,
 ) -> Tuple[Tensor, Tensor]:
     """Algorithm 1. ``sample_fn(n)`` returns ``n`` candidate chunks for the observation row
     ``obs`` (shape ``(obs_dim,)``): ``(n, act_dim)`` or ``(n, chunk_len, action_dim)``; with a
@@ -72,10 +77,15 @@ def best_of_n(
         scored, raw = verifier.telemetry_grid(cands.detach().cpu().numpy())
         cands = torch.from_numpy(scored).to(device=cands.device, dtype=cands.dtype)
     started = time.perf_counter()
-    scores = verifier.score(obs, cands, _steps(t))
+    picked = verifier.pick(obs, cands, _steps(t))
     latency_us = int((time.perf_counter() - started) * 1e6)
+    if picks is not None:
+        picks.append(picked)
+    scores = picked.scores
     s = torch.from_numpy(np.ascontiguousarray(scores)).to(cands.device)
-    best = s.argmax(dim=-1)
+    best = torch.from_numpy(picked.chosen).to(cands.device)
+    if s.dim() == 1:
+        best = best[0]
     if log is not None and raw is not None:
         assert verifier.id is not None
         rows = int(s.shape[0]) if s.dim() == 2 else 1
@@ -85,9 +95,9 @@ def best_of_n(
             raise ValueError(f"{len(episodes)} episodes for {rows} rows of candidates")
         score_rows = np.asarray(scores).reshape(rows, n)
         raw_rows = raw.reshape(rows, n, -1)
-        picks = best.reshape(-1).tolist()
+        chosen = best.reshape(-1).tolist()
         for r in range(rows):
-            log.add(int(episodes[r]), int(steps[r]), verifier.id, raw_rows[r], score_rows[r], int(picks[r]),
+            log.add(int(episodes[r]), int(steps[r]), verifier.id, raw_rows[r], score_rows[r], int(chosen[r]),
                     latency_us // rows)
     if s.dim() == 1:
         return cands[best], s

@@ -9,12 +9,30 @@ from __future__ import annotations
 import json
 import os
 import warnings
-from typing import Any, Dict, List, Mapping, Optional, Protocol, Tuple, Union
+from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Protocol, Tuple, Union
 
 import numpy as np
 import numpy.typing as npt
 
 from ufops import _ufops
+
+
+class Pick(NamedTuple):
+    """Best-of-N's choice for B groups of candidates (:meth:`Verifier.pick`)."""
+
+    #: The chosen candidate of each group, ``(B,)``.
+    chosen: npt.NDArray[np.int64]
+    #: Every candidate's score, shaped like :meth:`Verifier.score`'s result (an ensemble's: the
+    #: members' mean).
+    scores: npt.NDArray[np.float32]
+    #: Every candidate's spread over the members (zeros for one network).
+    spread: npt.NDArray[np.float32]
+    #: Per group: an ensemble's members disagreed, so the first candidate (the policy's own
+    #: sample) was kept, ``(B,)``.
+    fell_back: npt.NDArray[np.bool_]
+    #: Per group: the share of members that score the pessimistic pick above the first
+    #: candidate, ``(B,)``.
+    agreement: npt.NDArray[np.float32]
 
 
 class _VerifierSource(Protocol):
@@ -112,6 +130,19 @@ class Verifier:
         return self._native.backend
 
     @property
+    def members(self) -> int:
+        """Networks behind the scores: 1, or an ensemble's members (trainer/ARTIFACT.md,
+        "Ensembles")."""
+        return self._native.members
+
+    @property
+    def ensemble(self) -> Optional[Dict[str, Any]]:
+        """An ensemble's members and steering rules (``pessimism`` κ, ``min_agreement``,
+        ``min_gradient_agreement``); ``None`` for one network."""
+        found = self.config().get("ensemble")
+        return dict(found) if isinstance(found, dict) else None
+
+    @property
     def extra_inputs(self) -> List[Tuple[str, int]]:
         """Inputs beside (obs, chunk, t), by name and width."""
         return list(self._native.extra_inputs)
@@ -155,6 +186,29 @@ class Verifier:
         ``(B,)`` ints)."""
         return self._native.score(obs, act, t, extras)
 
+    def score_members(
+        self, obs: ArrayLike, act: ArrayLike, t: StepLike, extras: Optional[Mapping[str, ArrayLike]] = None
+    ) -> npt.NDArray[np.float32]:
+        """Every member's scores, ``(members, *score's shape)``; :meth:`score` is their mean."""
+        return self._native.score_members(obs, act, t, extras)
+
+    def pick(
+        self, obs: ArrayLike, act: ArrayLike, t: StepLike, extras: Optional[Mapping[str, ArrayLike]] = None
+    ) -> Pick:
+        """Best-of-N's choice among groups of candidates — ``obs`` ``(obs_dim,)`` with ``act``
+        ``(N, chunk)``, or ``(B, obs_dim)`` with ``(B, N, chunk)`` — by the verifier core's rule:
+        the argmax of the score for one network; for an ensemble the argmax of ``mean − κ ·
+        spread``, kept only when at least ``min_agreement`` of the members score it above the
+        group's first candidate (the policy's own sample), else that first candidate."""
+        index, scores, spread, fell_back, agreement = self._native.pick(obs, act, t, extras)
+        return Pick(
+            np.asarray(index, dtype=np.int64),
+            scores,
+            spread,
+            np.asarray(fell_back, dtype=np.bool_),
+            np.asarray(agreement, dtype=np.float32),
+        )
+
     def telemetry_grid(self, act: ArrayLike) -> Tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """Chunks in the space this verifier takes, put on the grid steering telemetry stores:
         ``(scored, raw)`` — the raw actions (the artifact's action normaliser undone) rounded to
@@ -166,5 +220,6 @@ class Verifier:
         self, obs: ArrayLike, act: ArrayLike, t: StepLike, extras: Optional[Mapping[str, ArrayLike]] = None
     ) -> npt.NDArray[np.float32]:
         """Guidance gradients with respect to the chunk as passed: d log C / d act (classifier) or
-        d Q / d act (q), in the chunk's shape (batched like :meth:`score`)."""
+        d Q / d act (q), in the chunk's shape (batched like :meth:`score`). An ensemble's is the
+        members' mean gradient scaled by how much they agree (zero where they do not)."""
         return self._native.grad(obs, act, t, extras)
