@@ -3,12 +3,15 @@
 
 use std::collections::HashMap;
 
-use monitor::{calibrate, evaluate, CalibrateSpec, MonitorError};
+use monitor::{calibrate, calibration_draws, evaluate, CalibrateSpec, MonitorError};
 use store::test_support::{self, open_test_store};
 use store::{
     Backend, EpisodeRecord, Label, NewArtifact, NewMonitor, NewVote, Span, Store, VectorColumn, VerdictData,
 };
-use verifier::monitor::{conformal_threshold, peak, MonitorRecord, Statistic};
+use verifier::monitor::{
+    conformal_threshold, peak, training_conditional_threshold, MonitorRecord, Statistic,
+    SPLIT_CONFORMAL_PEAK, SPLIT_CONFORMAL_PEAK_PAC,
+};
 use verifier::testutil::RandomSpec;
 use verifier::{StepScorer, Verifier};
 
@@ -98,6 +101,7 @@ async fn calibrate_evaluate_and_step(store: Store) {
 
     let spec = CalibrateSpec {
         alpha: 0.2,
+        confidence: None,
         statistic: Statistic::RiskEma { smoothing: 0.5 },
         seed: 11,
         calibration_fraction: 0.5,
@@ -124,6 +128,43 @@ async fn calibrate_evaluate_and_step(store: Store) {
     .await
     .unwrap();
     assert_eq!(cal.record.threshold, conformal_threshold(&peaks, 0.2).unwrap());
+    assert_eq!((cal.record.method.as_str(), cal.record.confidence), (SPLIT_CONFORMAL_PEAK, None));
+    assert!(cal.marginal.is_none());
+
+    // With a confidence: the training-conditional order statistic of the same peaks, its method
+    // and confidence in the record, and the split-conformal one alongside for comparison.
+    let pac =
+        calibrate(&store, &v, &artifact, &CalibrateSpec { confidence: Some(0.9), ..spec }).await.unwrap();
+    assert_eq!(pac.record.threshold, training_conditional_threshold(&peaks, 0.2, 0.1).unwrap());
+    assert_eq!(pac.record.method, SPLIT_CONFORMAL_PEAK_PAC);
+    assert_eq!(pac.record.confidence, Some(0.9));
+    assert_eq!(pac.record.calibration_episodes, cal.record.calibration_episodes);
+    assert!(pac.record.threshold >= cal.record.threshold);
+    let (tau, marginal) = pac.marginal.clone().expect("the marginal threshold for comparison");
+    assert_eq!((tau, &marginal), (cal.record.threshold, &cal.evaluation));
+    assert!(pac.evaluation.false_alarms <= cal.evaluation.false_alarms);
+    assert!(pac.evaluation.detected <= cal.evaluation.detected);
+
+    // Calibration draws: seed s partitions the pool as `calibrate` with seed s does, and each
+    // threshold's figures are what calibrating with it measures.
+    let draws = calibration_draws(&store, &v, &artifact, &CalibrateSpec { confidence: Some(0.9), ..spec }, 4)
+        .await
+        .unwrap();
+    assert_eq!(draws.draws.len(), 4);
+    assert_eq!((draws.successes, draws.calibration, draws.failures), (successes, 30, eps.len() - successes));
+    for seed in [0, 3] {
+        let d = draws.draws[seed as usize];
+        for (confidence, fig) in [(None, d.marginal), (Some(0.9), d.conditional)] {
+            let c =
+                calibrate(&store, &v, &artifact, &CalibrateSpec { seed, confidence, ..spec }).await.unwrap();
+            assert_eq!(fig.threshold, c.record.threshold, "seed {seed} confidence {confidence:?}");
+            assert_eq!(Some(fig.false_alarm_rate), c.evaluation.false_alarm_rate, "seed {seed}");
+            assert_eq!(fig.detection_rate, c.evaluation.detection_rate, "seed {seed}");
+        }
+    }
+    let above = draws.draws.iter().filter(|d| d.conditional.false_alarm_rate > 0.2).count();
+    assert_eq!(draws.conditional.above_alpha, above as f64 / 4.0);
+    assert!(calibration_draws(&store, &v, &artifact, &spec, 4).await.is_err(), "draws need a confidence");
 
     // Stored and read back, the record reproduces the evaluation exactly.
     let json = serde_json::to_vec(&cal.record).unwrap();
@@ -203,6 +244,16 @@ async fn calibrate_evaluate_and_step(store: Store) {
     let strict = CalibrateSpec { alpha: 0.01, ..spec };
     let e = calibrate(&store, &v, &artifact, &strict).await.unwrap_err().to_string();
     assert!(e.contains("needs at least 99 successful episodes"), "{e}");
+    // The training-conditional threshold at α = 0.2 and 1 − δ = 0.999 needs ⌈ln 0.001 / ln 0.8⌉ = 31
+    // calibration successes; the pool gives 30.
+    let sure = CalibrateSpec { confidence: Some(0.999), ..spec };
+    let e = calibrate(&store, &v, &artifact, &sure).await.unwrap_err().to_string();
+    assert!(e.contains("needs at least 31 successful episodes") && e.contains("got 30"), "{e}");
+    let e = calibrate(&store, &v, &artifact, &CalibrateSpec { confidence: Some(1.0), ..spec })
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("must be in (0, 1)"), "{e}");
     assert_eq!(store.monitors(Some("pol"), None, None).await.unwrap().len(), 1);
 }
 

@@ -14,7 +14,9 @@ pub enum MonitorCommand {
     /// Calibrate a monitor for a verifier artifact: a threshold on its per-step scores so that
     /// on a successful episode of the artifact's checkpoint the alarm fires with probability at
     /// most --alpha (split conformal prediction on the labeled successes it did not train on),
-    /// measured on held-out episodes, stored and aliased `latest`.
+    /// measured on held-out episodes, stored and aliased `latest`. The guarantee holds on average
+    /// over calibration draws; with --confidence it holds for this calibration with that
+    /// probability (training-conditional threshold).
     Calibrate {
         /// The verifier artifact: id or POLICY/CHECKPOINT/KIND@ALIAS.
         #[arg(long)]
@@ -22,6 +24,11 @@ pub enum MonitorCommand {
         /// The false-alarm rate on successful episodes to guarantee (at most).
         #[arg(long, default_value_t = 0.1)]
         alpha: f64,
+        /// 1 − δ: set the training-conditional threshold, whose false-alarm rate is at most
+        /// --alpha with probability at least this over the draw of the calibration episodes
+        /// (needs at least ln δ / ln(1 − α) calibration successes: 22 at α = δ = 0.1).
+        #[arg(long)]
+        confidence: Option<f64>,
         /// Weight of the past in the moving average of the risk 1 − score (0: per step).
         #[arg(long, default_value_t = 0.8)]
         smoothing: f64,
@@ -39,6 +46,32 @@ pub enum MonitorCommand {
         alias: Option<String>,
         #[arg(long, env = "USER", default_value = "cli")]
         actor: String,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Repeat the calibration over random draws of the calibration successes (seeds 0, 1, …),
+    /// with the split-conformal and the training-conditional threshold, and measure each draw's
+    /// false-alarm rate on its held-out successes and detection rate on the failures: how often
+    /// each threshold's false-alarm rate exceeds --alpha. Stores nothing.
+    Draws {
+        /// The verifier artifact: id or POLICY/CHECKPOINT/KIND@ALIAS.
+        #[arg(long)]
+        artifact: String,
+        #[arg(long, default_value_t = 0.1)]
+        alpha: f64,
+        /// 1 − δ of the training-conditional threshold.
+        #[arg(long, default_value_t = 0.9)]
+        confidence: f64,
+        /// How many calibration draws.
+        #[arg(long, default_value_t = 200)]
+        draws: u64,
+        #[arg(long, default_value_t = 0.8)]
+        smoothing: f64,
+        #[arg(long, default_value_t = 0.5)]
+        calibration_fraction: f64,
+        #[arg(long)]
+        version: Option<i64>,
+        /// Every draw's figures too, as JSON.
         #[arg(long)]
         json: bool,
     },
@@ -125,6 +158,7 @@ pub async fn run(args: &StoreArgs, command: MonitorCommand) -> Result<()> {
         MonitorCommand::Calibrate {
             artifact,
             alpha,
+            confidence,
             smoothing,
             seed,
             calibration_fraction,
@@ -137,6 +171,7 @@ pub async fn run(args: &StoreArgs, command: MonitorCommand) -> Result<()> {
             let rec = store.artifact(&v.artifact).await?;
             let spec = monitor::CalibrateSpec {
                 alpha,
+                confidence,
                 statistic: verifier::monitor::Statistic::RiskEma { smoothing },
                 seed,
                 calibration_fraction,
@@ -175,7 +210,106 @@ pub async fn run(args: &StoreArgs, command: MonitorCommand) -> Result<()> {
                 cal.record.version,
                 entry.aliases.join(", ")
             );
+            println!("  guarantee: {}", cal.record.guarantee());
             print_evaluation(&cal.evaluation);
+            match &cal.marginal {
+                Some((tau, e)) => {
+                    println!("for comparison, the split-conformal threshold of the same episodes: {tau:.4}");
+                    print_evaluation(e);
+                }
+                None if confidence.is_some() => println!(
+                    "for comparison: too few calibration successes for a split-conformal threshold at alpha {alpha}"
+                ),
+                None => {}
+            }
+            Ok(())
+        }
+        MonitorCommand::Draws {
+            artifact,
+            alpha,
+            confidence,
+            draws,
+            smoothing,
+            calibration_fraction,
+            version,
+            json,
+        } => {
+            let v = StoreVerifier::load(&store, &artifact).await?;
+            let rec = store.artifact(&v.artifact).await?;
+            let spec = monitor::CalibrateSpec {
+                alpha,
+                confidence: Some(confidence),
+                statistic: verifier::monitor::Statistic::RiskEma { smoothing },
+                seed: 0,
+                calibration_fraction,
+                version,
+            };
+            let d = monitor::calibration_draws(&store, &v.verifier, &rec, &spec, draws).await?;
+            if json {
+                return print_json(&d);
+            }
+            println!(
+                "{} calibration draws for artifact {} ({}/{}) at version {}: {} of {} successes calibrate, {} held \
+                 out; {} failures; alpha {alpha}, confidence {confidence} (smoothing {smoothing})",
+                d.draws.len(),
+                rec.id,
+                rec.policy,
+                rec.checkpoint,
+                d.version,
+                d.calibration,
+                d.successes,
+                d.held_out,
+                d.failures
+            );
+            println!(
+                "{:<32} {:>5} {:>14} {:>10} {:>10} {:>10} {:>10} {:>10}",
+                "threshold",
+                "rank",
+                "draws FA > α",
+                "(exact)",
+                "median FA",
+                "mean FA",
+                "median det",
+                "median τ"
+            );
+            let conditional = format!("training-conditional ({confidence})");
+            for (name, s) in
+                [("split conformal (marginal)", &d.marginal), (conditional.as_str(), &d.conditional)]
+            {
+                println!(
+                    "{:<32} {:>5} {:>14} {:>10} {:>10} {:>10} {:>10} {:>10.4}",
+                    name,
+                    s.rank.map_or("-".into(), |k| k.to_string()),
+                    percent(Some(s.above_alpha)),
+                    percent(s.above_alpha_expected),
+                    percent(Some(s.false_alarm_rate_median)),
+                    percent(Some(s.false_alarm_rate_mean)),
+                    percent(s.detection_rate_median),
+                    s.threshold_median
+                );
+            }
+            println!(
+                "FA: false-alarm rate on a draw's {} held-out successes; (exact): the share of all partitions whose \
+                 held-out rate exceeds α for that rank, with distinct peaks, whatever the verifier (a rate measured on \
+                 {} episodes is noisy: the guarantees are about fresh successes); det: detection rate on the failures",
+                d.held_out, d.held_out
+            );
+            let r = &d.resampled;
+            println!(
+                "resampled, the pool's {} successes as the population ({} calibrations of {} drawn with replacement, \
+                 each one's false-alarm rate on the whole pool): rate > α in {} of calibrations split conformal \
+                 (theory {}), {} training-conditional (theory {}, at most δ = {:.2}); mean rate {} vs {}",
+                d.successes,
+                r.draws,
+                d.calibration,
+                percent(Some(r.marginal_above_alpha)),
+                percent(r.marginal_expected),
+                percent(Some(r.conditional_above_alpha)),
+                percent(r.conditional_expected),
+                1.0 - confidence,
+                percent(Some(r.marginal_false_alarm_rate_mean)),
+                percent(Some(r.conditional_false_alarm_rate_mean))
+            );
             Ok(())
         }
         MonitorCommand::Evaluate { monitor: reference, version, trace, json } => {
