@@ -2,7 +2,9 @@
 
 A monitor record (``ufops monitor calibrate``) holds a threshold on a verifier artifact's per-step
 scores, calibrated by split conformal prediction so that on a successful episode the alarm fires
-with probability at most ``alpha``. This class binds a record to the verifier it was calibrated
+with probability at most ``alpha``: on average over calibration draws, or — a record with a
+``confidence`` (``--confidence``, 1 - delta) — for this calibration with that probability (the
+training-conditional threshold). This class binds a record to the verifier it was calibrated
 for (any other is refused) and steps the Rust core's running statistic — the code ``ufops monitor
 evaluate`` runs offline, so both raise the alarm at the same step.
 """
@@ -91,6 +93,20 @@ class Monitor:
         return self._native.alpha
 
     @property
+    def confidence(self) -> Union[float, None]:
+        """1 - delta of a training-conditional threshold: its false-alarm rate is at most ``alpha``
+        with at least this probability over the calibration draw. ``None`` for a split-conformal
+        threshold, whose guarantee holds on average over calibration draws."""
+        c = self.record().get("confidence")
+        return None if c is None else float(c)
+
+    @property
+    def method(self) -> str:
+        """The calibration method the record names (``split_conformal_peak`` or
+        ``split_conformal_peak_training_conditional``)."""
+        return str(self.record()["method"])
+
+    @property
     def artifact_id(self) -> str:
         return self._native.artifact_id
 
@@ -98,4 +114,9 @@ class Monitor:
         return json.loads(self._native.record_json())  # type: ignore[no-any-return]
 
     def __repr__(self) -> str:
-        return f"Monitor(artifact={self.artifact_id}, alpha={self.alpha}, threshold={self.threshold:.4f})"
+        c = self.confidence
+        conf = "" if c is None else f", confidence={c}"
+        return (
+            f"Monitor(artifact={self.artifact_id}, alpha={self.alpha}{conf}, "
+            f"threshold={self.threshold:.4f})"
+        )
