@@ -566,16 +566,12 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
         let (oe_rec, oe) = train_verifier(store, off, clf_k, cfg, stride, &space, &art_dir, Some(k)).await?;
         let lambda = cfg.lambdas.iter().copied().fold(0.0f32, f32::max);
         let ln = lambda_name(lambda);
-        let settings: [(&str, String, &steer::Verifier, &str, String, Option<f32>); 4] = [
-            ("on-policy", format!("C x BoN (N={nn})"), &ce, &ce_rec.id, format!("c-bon{nn}"), None),
-            (
-                "off-policy (alt rollouts)",
-                format!("C x BoN (N={nn})"),
-                &oe,
-                &oe_rec.id,
-                format!("off-c-bon{nn}"),
-                None,
-            ),
+        // (split, method, ensemble, its artifact, the one-verifier run it is set against, λ)
+        type Setting<'a> = (&'static str, String, &'a steer::Verifier, &'a str, String, Option<f32>);
+        let bon = format!("C x BoN (N={nn})");
+        let settings: Vec<Setting> = vec![
+            ("on-policy", bon.clone(), &ce, &ce_rec.id, format!("c-bon{nn}"), None),
+            ("off-policy (alt rollouts)", bon, &oe, &oe_rec.id, format!("off-c-bon{nn}"), None),
             (
                 "on-policy",
                 format!("C x CG (lambda={lambda})"),

@@ -73,7 +73,7 @@ pub fn artifact_config(t: &Trained, lineage: serde_json::Value) -> Result<Artifa
 /// The weights of a trained model: one network's, or every member's under its prefix.
 pub fn trained_weights(t: &Trained) -> Result<Weights> {
     if t.members.is_empty() {
-        return Ok(t.params.to_weights()?);
+        return t.params.to_weights();
     }
     let mut w = Weights::default();
     for (k, p) in t.members.iter().enumerate() {
