@@ -84,6 +84,7 @@ fn main() {
         version: 1,
         seed: 0,
         calibration_episodes: vec![],
+        confidence: None,
     };
     let mut monitor = steer::Monitor::new(fast, Some("bench"), record).unwrap();
     let mut fired = 0usize;
