@@ -148,6 +148,81 @@ fn quick_demo_rows_go_the_way_the_method_says() {
     assert_eq!(listed[0]["id"], monitor["id"]);
     assert_eq!(&listed[0]["evaluation"], e, "the store keeps what the calibration measured");
     assert!(out.contains("Failure alarm (monitor "), "{out}");
+    // One calibration's false-alarm rate can be far above α; the training-conditional threshold
+    // (`--confidence` = 1 − δ) keeps it at most α in at least 1 − δ of calibration draws. 200
+    // calibration draws on the demo's pool at α = δ = 0.1, both ways: `monitor draws`.
+    let classifier = report["meta"]["artifacts"]["classifier"].as_str().unwrap();
+    let draws = t.json(&[
+        "monitor",
+        "draws",
+        "--artifact",
+        classifier,
+        "--alpha",
+        "0.1",
+        "--confidence",
+        "0.9",
+        "--draws",
+        "200",
+        "--json",
+    ]);
+    assert_eq!(draws["draws"].as_array().unwrap().len(), 200);
+    assert_eq!(draws["calibration"], monitor["calibration_episodes"], "{}", draws["calibration"]);
+    let (m, c, r) = (&draws["marginal"], &draws["conditional"], &draws["resampled"]);
+    let f = |s: &serde_json::Value, k: &str| s[k].as_f64().unwrap_or(f64::NAN);
+    eprintln!(
+        "monitor draws on the quick demo's pool ({} successes, {} calibrate, {} held out, {} failures), alpha 0.1, \
+         confidence 0.9. Held-out false-alarm rate > alpha in: split conformal (rank {}) {:.3} of draws (exact {:.3}), \
+         training-conditional (rank {}) {:.3} (exact {:.3}); median held-out false-alarm rate {:.3} vs {:.3}; median \
+         detection {:.3} vs {:.3}; median threshold {:.4} vs {:.4}. Resampled, the pool as the population: rate > \
+         alpha in {:.3} (theory {:.3}) vs {:.3} (theory {:.3}) of calibrations",
+        draws["successes"],
+        draws["calibration"],
+        draws["held_out"],
+        draws["failures"],
+        m["rank"],
+        f(m, "above_alpha"),
+        f(m, "above_alpha_expected"),
+        c["rank"],
+        f(c, "above_alpha"),
+        f(c, "above_alpha_expected"),
+        f(m, "false_alarm_rate_median"),
+        f(c, "false_alarm_rate_median"),
+        f(m, "detection_rate_median"),
+        f(c, "detection_rate_median"),
+        f(m, "threshold_median"),
+        f(c, "threshold_median"),
+        f(r, "marginal_above_alpha"),
+        f(r, "marginal_expected"),
+        f(r, "conditional_above_alpha"),
+        f(r, "conditional_expected"),
+    );
+    // The guarantee is about the false-alarm rate on fresh successes. With the pool's successes as
+    // the population (calibrations resampled from it, each one's rate on all of it), at most δ of
+    // the calibrations exceed α with the training-conditional threshold; the split-conformal
+    // threshold's share is several times that (the test can fail either way).
+    assert!(
+        f(r, "conditional_above_alpha") <= 0.1,
+        "training-conditional threshold over alpha too often: {r}"
+    );
+    assert!(f(r, "marginal_above_alpha") >= 0.2, "the split-conformal share should be well above delta: {r}");
+    // On a draw's held-out half the rate is measured on finitely many episodes, so it exceeds α in
+    // a share of draws fixed by the sizes and the threshold's rank (exact with distinct peaks:
+    // 16.3% for rank 66 of 69 against 69 held out, 50% for the split-conformal rank 63): the draws
+    // follow it within their sampling error (three standard errors of 200 draws), and the
+    // training-conditional threshold exceeds in far fewer draws than the split-conformal one.
+    for s in [m, c] {
+        let (p, got) = (f(s, "above_alpha_expected"), f(s, "above_alpha"));
+        let se = (p * (1.0 - p) / 200.0).sqrt();
+        assert!((got - p).abs() <= 3.0 * se, "held-out share {got} vs exact {p} (±{se:.3}): {s}");
+    }
+    assert!(f(m, "above_alpha") >= f(c, "above_alpha") + 0.2, "{m} vs {c}");
+    assert!(c["rank"].as_u64().unwrap() > m["rank"].as_u64().unwrap(), "{m} vs {c}");
+    assert!(f(c, "threshold_median") >= f(m, "threshold_median"), "{c} vs {m}");
+    let text = t.ok(&["monitor", "draws", "--artifact", classifier, "--draws", "20"]);
+    assert!(
+        text.contains("training-conditional (0.9)") && text.contains("split conformal (marginal)"),
+        "{text}"
+    );
     // The default table and CSV.
     let table = t.ok(&["scoreboard", "--policy", "nav-dp"]);
     assert!(table.contains("| base | two-gap-navigation | c-bon10 (on-policy) | bon:10 |"), "{table}");
@@ -246,4 +321,22 @@ fn quick_demo_rows_go_the_way_the_method_says() {
         md.contains("## Replaying the logged steps") && md.contains("| would Q have picked differently? |"),
         "{md}"
     );
+
+    // A training-conditional monitor (last: it becomes the checkpoint's `latest`): the CLI states
+    // its guarantee and prints the split-conformal threshold of the same episodes beside it, and
+    // its record names the method and the confidence.
+    let text = t.ok(&["monitor", "calibrate", "--artifact", classifier, "--confidence", "0.9"]);
+    assert!(
+        text.contains("guarantee: training-conditional")
+            && text.contains("the split-conformal threshold of the same"),
+        "{text}"
+    );
+    let record = t.json(&["monitor", "show", "nav-dp/base@latest"]);
+    assert_eq!(record["method"], "split_conformal_peak_training_conditional", "{record}");
+    assert_eq!(record["confidence"], 0.9);
+    assert!(record["threshold"].as_f64().unwrap() >= monitor["threshold"].as_f64().unwrap(), "{record}");
+    // Too few calibration successes for the asked confidence: refused with the count it needs.
+    let refused = t.run(&["monitor", "calibrate", "--artifact", classifier, "--confidence", "0.999999"]);
+    let msg = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success() && msg.contains("needs at least 132 successful episodes"), "{msg}");
 }
