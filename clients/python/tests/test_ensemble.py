@@ -36,21 +36,30 @@ def close(got: Any, want: Any, tol: float = 1e-5) -> None:
     assert err.max() <= tol, f"max relative error {err.max()}"
 
 
-@pytest.fixture(scope="session")
-def ensemble_dir(trained: Ufops, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """`ufops train --ensemble 3` on the session store's split: one artifact of three members."""
-    split = trained.json("split", "create", "--policy", "synth", "--checkpoint", "ckpt-0", "--json")["id"]
-    recipe = trained.data_dir / "ensemble.json"
+@pytest.fixture(scope="module")
+def ensembles(tmp_path_factory: pytest.TempPathFactory) -> Ufops:
+    """A store of its own (the session's store keeps exactly its two verifiers) with the same
+    synthetic rollouts and `ufops train --ensemble 3` on their split."""
+    u = Ufops(tmp_path_factory.mktemp("ensemble-store"))
+    u.run("init")
+    u.run("dev", "synth", "--episodes", "40", "--steps", "30", "--seed", "5")
+    split = u.json("split", "create", "--policy", "synth", "--checkpoint", "ckpt-0", "--json")["id"]
+    recipe = u.data_dir / "ensemble.json"
     recipe.write_text(json.dumps({"epochs": 3}))
-    trained.run("train", "--split", split, "--kind", "classifier", "--chunk-len", "16", "--config", str(recipe),
-                "--ensemble", "3", "--action-scale", "0.5", "2.0", "--action-offset", "0.1", "0")
+    u.run("train", "--split", split, "--kind", "classifier", "--chunk-len", "16", "--config", str(recipe),
+          "--ensemble", "3", "--action-scale", "0.5", "2.0", "--action-offset", "0.1", "0")
+    return u
+
+
+@pytest.fixture(scope="module")
+def ensemble_dir(ensembles: Ufops, tmp_path_factory: pytest.TempPathFactory) -> Path:
     d = tmp_path_factory.mktemp("ensemble") / "artifact"
-    trained.run("artifacts", "download", "synth/ckpt-0/classifier@latest", str(d))
+    ensembles.run("artifacts", "download", "synth/ckpt-0/classifier@latest", str(d))
     return d
 
 
 def test_a_trained_ensemble_scores_alike_in_rust_python_and_numpy(
-    trained: Ufops, ensemble_dir: Path, tmp_path: Path
+    ensembles: Ufops, ensemble_dir: Path, tmp_path: Path
 ) -> None:
     v = ufops.Verifier.load(ensemble_dir)
     cfg = v.config()
@@ -71,7 +80,7 @@ def test_a_trained_ensemble_scores_alike_in_rust_python_and_numpy(
 
     rows_file = tmp_path / "rows.json"
     rows_file.write_text(json.dumps(rows(obs, act, t)))
-    cli = trained.json("score", "--artifact", str(ensemble_dir), "--input", str(rows_file), "--grad")
+    cli = ensembles.json("score", "--artifact", str(ensemble_dir), "--input", str(rows_file), "--grad")
     assert cli["artifact"] == v.id and cli["members"] == 3
     close(scores, cli["scores"])
     close(grads, cli["grads"])
