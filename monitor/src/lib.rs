@@ -119,6 +119,24 @@ pub struct Calibration {
     pub marginal: Option<(f64, Evaluation)>,
 }
 
+/// A threshold that could not be set, with the pool it was asked of.
+fn too_few(
+    e: impl std::fmt::Display,
+    successes: usize,
+    artifact: &ArtifactRecord,
+    version: i64,
+    spec: &CalibrateSpec,
+) -> MonitorError {
+    MonitorError::Invalid(format!(
+        "{e} ({successes} labeled successes of {}/{} at version {version} that artifact {} did not train on, \
+         {:.0}% of them for calibration)",
+        artifact.policy,
+        artifact.checkpoint,
+        artifact.id,
+        spec.calibration_fraction * 100.0
+    ))
+}
+
 /// The pool at a version: the checkpoint's labeled episodes the verifier did not train on.
 struct Pool {
     version: i64,
@@ -268,18 +286,8 @@ pub async fn calibrate(
     let (cal, held_out) = successes.split_at(calibration_size(successes.len(), spec.calibration_fraction));
     let cal_scores = scores_of(store, verifier, cal).await?;
     let peaks: Vec<f64> = cal_scores.iter().map(|s| peak(spec.statistic, s)).collect();
-    let (threshold, method) = threshold_of(&peaks, spec).map_err(|e| {
-        MonitorError::Invalid(format!(
-            "{e} ({} labeled successes of {}/{} at version {} that artifact {} did not train on, {:.0}% of them for \
-             calibration)",
-            successes.len(),
-            artifact.policy,
-            artifact.checkpoint,
-            pool.version,
-            artifact.id,
-            spec.calibration_fraction * 100.0
-        ))
-    })?;
+    let (threshold, method) =
+        threshold_of(&peaks, spec).map_err(|e| too_few(e, successes.len(), artifact, pool.version, spec))?;
     let mut calibration_episodes: Vec<String> = cal.iter().map(|e| e.id.clone()).collect();
     calibration_episodes.sort();
     let record = MonitorRecord {
@@ -632,18 +640,8 @@ pub async fn calibration_draws(
     let failure_peaks = peaks_of(scores_of(store, verifier, &pool.failures).await?);
     let successes: Vec<(String, f64)> =
         pool.successes.iter().map(|e| e.id.clone()).zip(success_peaks).collect();
-    let all = draws_from_peaks(&successes, &failure_peaks, spec, draws).map_err(|e| {
-        MonitorError::Invalid(format!(
-            "{e} ({} labeled successes of {}/{} at version {} that artifact {} did not train on, {:.0}% of them for \
-             calibration)",
-            successes.len(),
-            artifact.policy,
-            artifact.checkpoint,
-            pool.version,
-            artifact.id,
-            spec.calibration_fraction * 100.0
-        ))
-    })?;
+    let all = draws_from_peaks(&successes, &failure_peaks, spec, draws)
+        .map_err(|e| too_few(e, successes.len(), artifact, pool.version, spec))?;
     let n_cal = calibration_size(successes.len(), spec.calibration_fraction);
     let held_out = successes.len() - n_cal;
     let with_expectation = |mut s: DrawSummary, rank: Option<usize>| {

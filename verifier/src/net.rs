@@ -84,11 +84,6 @@ pub(crate) struct Net {
     zeros: Vec<f32>,
 }
 
-const _: () = {
-    const fn send_sync<T: Send + Sync>() {}
-    send_sync::<Net>();
-};
-
 fn relu(x: f32) -> f32 {
     if x < 0.0 {
         0.0
