@@ -39,6 +39,24 @@ struct ScoreArgs<'py> {
     out_shape: Vec<usize>,
 }
 
+impl ScoreArgs<'_> {
+    /// Runs `f` on the values (obs, extras, t, candidates, n) with the GIL released.
+    fn detach<T: Send>(
+        &self,
+        py: Python<'_>,
+        f: impl FnOnce(&[f32], &[&[f32]], &[u32], &[f32], usize) -> ::verifier::Result<T> + Send,
+    ) -> PyResult<T> {
+        let (o, a) = (values(&self.obs), values(&self.act));
+        let ex: Vec<_> = self.extras.iter().map(values).collect();
+        let (t, n) = (self.t.as_slice(), self.n);
+        py.detach(|| {
+            let ex: Vec<&[f32]> = ex.iter().map(|c| c.as_ref()).collect();
+            f(&o, &ex, t, &a, n)
+        })
+        .map_err(from_verifier)
+    }
+}
+
 impl PyVerifier {
     /// The accepted shapes of chunks with leading dims `lead` ("" or "N, " ...).
     fn chunk_shapes(&self, lead: &str) -> String {
@@ -318,17 +336,11 @@ impl PyVerifier {
         t: &Bound<'py, PyAny>,
         extras: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-        let ScoreArgs { obs, act, extras, t, n, out_shape } = self.score_args(obs, act, t, extras)?;
-        let out = PyArrayDyn::<f32>::zeros(py, IxDyn(&out_shape), false);
+        let args = self.score_args(obs, act, t, extras)?;
+        let out = PyArrayDyn::<f32>::zeros(py, IxDyn(&args.out_shape), false);
         // SAFETY: `out` was just created here and is not shared with anything yet.
         let out_slice = unsafe { out.as_slice_mut() }.map_err(|e| PyValueError::new_err(e.to_string()))?;
-        let (o, a) = (values(&obs), values(&act));
-        let ex: Vec<_> = extras.iter().map(values).collect();
-        py.detach(|| {
-            let ex: Vec<&[f32]> = ex.iter().map(|c| c.as_ref()).collect();
-            self.v.score_into(&o, &ex, &t, &a, n, out_slice)
-        })
-        .map_err(from_verifier)?;
+        args.detach(py, |o, ex, t, a, n| self.v.score_into(o, ex, t, a, n, out_slice))?;
         Ok(out)
     }
 
@@ -343,18 +355,13 @@ impl PyVerifier {
         t: &Bound<'py, PyAny>,
         extras: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-        let ScoreArgs { obs, act, extras, t, n, out_shape } = self.score_args(obs, act, t, extras)?;
-        let shape: Vec<usize> = std::iter::once(self.v.members()).chain(out_shape).collect();
+        let args = self.score_args(obs, act, t, extras)?;
+        let shape: Vec<usize> =
+            std::iter::once(self.v.members()).chain(args.out_shape.iter().copied()).collect();
         let out = PyArrayDyn::<f32>::zeros(py, IxDyn(&shape), false);
         // SAFETY: `out` was just created here and is not shared with anything yet.
         let out_slice = unsafe { out.as_slice_mut() }.map_err(|e| PyValueError::new_err(e.to_string()))?;
-        let (o, a) = (values(&obs), values(&act));
-        let ex: Vec<_> = extras.iter().map(values).collect();
-        py.detach(|| {
-            let ex: Vec<&[f32]> = ex.iter().map(|c| c.as_ref()).collect();
-            self.v.score_members_into(&o, &ex, &t, &a, n, out_slice)
-        })
-        .map_err(from_verifier)?;
+        args.detach(py, |o, ex, t, a, n| self.v.score_members_into(o, ex, t, a, n, out_slice))?;
         Ok(out)
     }
 
@@ -374,21 +381,14 @@ impl PyVerifier {
         extras: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<(Vec<usize>, Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>, Vec<bool>, Vec<f32>)>
     {
-        let ScoreArgs { obs, act, extras, t, n, out_shape } = self.score_args(obs, act, t, extras)?;
-        if out_shape.len() == 1 && t.len() > 1 {
+        let args = self.score_args(obs, act, t, extras)?;
+        if args.out_shape.len() == 1 && args.t.len() > 1 {
             return Err(PyValueError::new_err(
                 "pick needs groups of candidates: act (N, chunk) for obs (obs_dim,), or (B, N, chunk) for (B, obs_dim)",
             ));
         }
-        let (o, a) = (values(&obs), values(&act));
-        let ex: Vec<_> = extras.iter().map(values).collect();
-        let p = py
-            .detach(|| {
-                let ex: Vec<&[f32]> = ex.iter().map(|c| c.as_ref()).collect();
-                self.v.pick(&o, &ex, &t, &a, n)
-            })
-            .map_err(from_verifier)?;
-        let shaped = |v: Vec<f32>| numpy::PyArray1::from_vec(py, v).reshape(IxDyn(&out_shape));
+        let p = args.detach(py, |o, ex, t, a, n| self.v.pick(o, ex, t, a, n))?;
+        let shaped = |v: Vec<f32>| numpy::PyArray1::from_vec(py, v).reshape(IxDyn(&args.out_shape));
         Ok((p.index, shaped(p.scores)?, shaped(p.spread)?, p.fell_back, p.agreement))
     }
 
