@@ -37,9 +37,9 @@ use crate::error::{IngestError, Result};
 use crate::h5rows::{raw_camera, read_rows_windowed};
 use crate::model::{EpisodeInput, ExtraColumn, Frames, ImageColumn, Label, VectorColumn};
 use crate::options::ReadOptions;
+use crate::h5src::{h5err, Src};
 use crate::robomimic::{
-    check_signature_file, dtype_name, group_attrs, h5err, info, is_numeric, PositionedFile, Src,
-    METADATA_CACHE_BYTES,
+    check_signature_file, dtype_name, group_attrs, info, is_numeric, PositionedFile, METADATA_CACHE_BYTES,
 };
 use crate::sink::{EpisodeSink, SourceMeta};
 

@@ -14,7 +14,7 @@ use store::ExtraPages;
 
 use crate::error::{IngestError, Result};
 use crate::model::{FrameStream, Frames, ImageColumn};
-use crate::robomimic::{h5err, Src};
+use crate::h5src::{h5err, Src};
 
 /// Decoded bytes read at once by [`read_rows_windowed`].
 pub(crate) const WINDOW_BYTES: u64 = 32 << 20;
@@ -82,7 +82,7 @@ impl RawFrames {
         let n = stream_window_rows(row_bytes, self.rows - self.next_row);
         let src = Src::new(&self.path, 0);
         let bytes = read_window(&self.ds, &src, &self.what, self.next_row, n, row_bytes)?;
-        let enc = crate::robomimic::encode_png_frames(&bytes, n as usize, h, w, c)
+        let enc = crate::png::encode_png_frames(&bytes, n as usize, h, w, c)
             .map_err(|e| IngestError::invalid(&self.path, format!("{}: {e}", self.what)))?;
         self.encoded.extend(enc);
         self.next_row += n;

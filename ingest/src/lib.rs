@@ -25,6 +25,7 @@ pub mod error;
 #[cfg(any(test, feature = "testing"))]
 pub mod fuzzing;
 mod h5rows;
+mod h5src;
 pub mod hashing;
 /// The hostile-input corpus of the tests (feature `testing`).
 #[cfg(any(test, feature = "testing"))]
@@ -37,6 +38,7 @@ pub mod mcapfmt;
 pub use store::model;
 pub mod options;
 pub mod pipeline;
+pub mod png;
 pub mod pqfooter;
 pub mod robomimic;
 pub mod ros2msg;

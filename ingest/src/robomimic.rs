@@ -22,6 +22,7 @@ use serde_json::{json, Map, Value};
 use sha2::Digest;
 
 use crate::error::{IngestError, Result};
+use crate::h5src::{h5err, Src, MAX_DATASET_BYTES, MAX_DECLARED_RATIO};
 use crate::model::{EpisodeInput, ExtraColumn, ImageColumn, Label, VectorColumn};
 use crate::options::ReadOptions;
 use crate::sink::{EpisodeSink, SourceMeta};
@@ -37,50 +38,6 @@ pub(crate) const METADATA_CACHE_BYTES: usize = 8 << 20;
 /// Attribute values larger than this (e.g. the ~38 KB MuJoCo `model_file` per demo) are not
 /// copied into episode metadata; their sha256 and length are kept instead.
 const MAX_ATTR_CHARS: usize = 4096;
-
-/// Decoded size of one dataset that is believed whatever the file's size (small datasets
-/// holding only the fill value cost nothing to allow).
-const DECLARED_BYTES_FLOOR: u64 = 1 << 20;
-
-/// Largest believable ratio of a dataset's decoded size to the file's size: deflate, the
-/// strongest filter robomimic files use, cannot exceed 1032:1.
-pub const MAX_DECLARED_RATIO: u64 = 1100;
-
-/// Largest decoded size of one dataset, whatever the file's size: a demo is decoded whole, so
-/// this bounds memory (a 2,000-step demo of 480x640 RGB frames is 1.8 GB).
-pub const MAX_DATASET_BYTES: u64 = 2 << 30;
-
-/// The file being read: its path (errors name it) and how many decoded bytes one of its
-/// datasets may declare. Derefs to the path.
-pub(crate) struct Src<'a> {
-    pub(crate) path: &'a Path,
-    pub(crate) file_len: u64,
-}
-
-impl Src<'_> {
-    pub(crate) fn new(path: &Path, file_len: u64) -> Src<'_> {
-        Src { path, file_len }
-    }
-
-    /// What one dataset may declare: the file's size times [`MAX_DECLARED_RATIO`] (at least
-    /// [`DECLARED_BYTES_FLOOR`]), never more than [`MAX_DATASET_BYTES`].
-    pub(crate) fn max_dataset_bytes(&self) -> u64 {
-        self.file_len.saturating_mul(MAX_DECLARED_RATIO).clamp(DECLARED_BYTES_FLOOR, MAX_DATASET_BYTES)
-    }
-}
-
-impl std::ops::Deref for Src<'_> {
-    type Target = Path;
-    fn deref(&self) -> &Path {
-        self.path
-    }
-}
-
-impl AsRef<Path> for Src<'_> {
-    fn as_ref(&self) -> &Path {
-        self.path
-    }
-}
 
 /// Refuses a dataset whose declared shape x element size (computed with checked arithmetic)
 /// is more than the file can hold: a chunked dataset whose chunks were never written, or a
@@ -171,15 +128,6 @@ pub(crate) fn check_signature_file(path: &Path) -> Result<()> {
         Ok(false) => Err(IngestError::invalid(path, "not an HDF5 file (no HDF5 signature)")),
         Err(e) => Err(IngestError::io(path, e)),
     }
-}
-
-pub(crate) fn h5err(
-    path: &Path,
-    what: impl std::fmt::Display,
-) -> impl FnOnce(hdf5_pure::Error) -> IngestError {
-    let what = what.to_string();
-    let path = path.to_path_buf();
-    move |e| IngestError::invalid(path, format!("{what}: {e}"))
 }
 
 /// Converts an attribute value to JSON.
@@ -874,51 +822,4 @@ fn read_images(
     }
     // Streamed: read and PNG-encoded a window of frames at a time as the store pulls them.
     crate::h5rows::raw_camera(ds, path, what, key, shape)
-}
-
-/// PNG-encodes `t` frames of `h x w x c` u8 (fast compression), on two threads when it pays.
-pub fn encode_png_frames(
-    bytes: &[u8],
-    t: usize,
-    h: usize,
-    w: usize,
-    c: usize,
-) -> std::result::Result<Vec<Vec<u8>>, String> {
-    let frame = h * w * c;
-    let enc = |chunk: &[u8]| -> std::result::Result<Vec<Vec<u8>>, String> {
-        chunk.chunks(frame).map(|f| encode_png(f, h, w, c)).collect()
-    };
-    if t >= 8 && frame * t >= 1 << 20 {
-        let half = t / 2;
-        let (a, b) = bytes.split_at(half * frame);
-        let (ra, rb) = std::thread::scope(|s| {
-            let hb = s.spawn(|| enc(b));
-            let ra = enc(a);
-            (ra, hb.join())
-        });
-        let mut out = ra?;
-        out.extend(rb.map_err(|_| "PNG encoder thread panicked".to_string())??);
-        Ok(out)
-    } else {
-        enc(bytes)
-    }
-}
-
-pub fn encode_png(frame: &[u8], h: usize, w: usize, c: usize) -> std::result::Result<Vec<u8>, String> {
-    let mut out = Vec::with_capacity(frame.len() / 2 + 64);
-    {
-        let mut e = png::Encoder::new(&mut out, w as u32, h as u32);
-        e.set_color(match c {
-            1 => png::ColorType::Grayscale,
-            2 => png::ColorType::GrayscaleAlpha,
-            3 => png::ColorType::Rgb,
-            _ => png::ColorType::Rgba,
-        });
-        e.set_depth(png::BitDepth::Eight);
-        e.set_compression(png::Compression::Fast);
-        let mut wr = e.write_header().map_err(|e| format!("PNG encoding failed: {e}"))?;
-        wr.write_image_data(frame).map_err(|e| format!("PNG encoding failed: {e}"))?;
-        wr.finish().map_err(|e| format!("PNG encoding failed: {e}"))?;
-    }
-    Ok(out)
 }

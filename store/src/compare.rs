@@ -8,7 +8,7 @@
 //! or, with `progress`, a score in [0, 1] from each episode's metadata (partial credit).
 
 use crate::catalog::{bind_val, RowExt, Val};
-use crate::version::covers;
+use crate::spans::covers;
 use crate::{Label, Store, StoreError, NO_RUN};
 use evalstats::sequential::{compare_pairs, pair_by_key, Decision, Pair, PairedCounts, SequentialConfig};
 use serde::{Deserialize, Serialize};

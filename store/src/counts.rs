@@ -9,7 +9,7 @@
 //! (`version.rs`).
 
 use crate::catalog::{bind_val, RowExt, Tx, Val};
-use crate::version::covers;
+use crate::spans::covers;
 use crate::{Backend, Label, Store, StoreError};
 use serde::Serialize;
 use std::collections::BTreeMap;

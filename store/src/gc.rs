@@ -3,7 +3,7 @@
 //!
 //! Writers in flight are protected whatever the grace period: a writer records each object in
 //! `pending_objects` before it uploads it or decides to re-use an existing one (content-addressed
-//! media and artifact files), renews its records while it lives (a lease, [`writer_lease_ms`]),
+//! media and artifact files), renews its records while it lives (a lease, [`writer_lease_ms`](crate::objects::writer_lease_ms)),
 //! and deletes them in the transaction that makes the objects referenced. A killed writer's
 //! records lapse with its lease, and gc collects what it left. gc re-checks every candidate in small batches inside the version write lock
 //! (Postgres: also an exclusive lock on `pending_objects`, which SQLite's single write lock gives
@@ -12,6 +12,7 @@
 //! existence check says so, and it uploads the object again).
 
 use crate::catalog::RowExt;
+use crate::objects::writer_lease_ms;
 use crate::{Store, StoreError};
 use serde::Serialize;
 use std::collections::HashSet;
@@ -43,16 +44,6 @@ struct BatchOutcome {
 
 /// The longest grace period gc accepts: ten years, far beyond any writer in flight.
 pub const MAX_GRACE_SECONDS: u64 = 10 * 365 * 86_400;
-/// How long a writer's pending-object records protect its objects without being renewed: 60 s,
-/// or `UFOPS_WRITER_LEASE_SECONDS` (tests shorten it to see a killed writer's leftovers collected).
-pub fn writer_lease_ms() -> i64 {
-    std::env::var("UFOPS_WRITER_LEASE_SECONDS")
-        .ok()
-        .and_then(|v| v.parse::<f64>().ok())
-        .filter(|s| s.is_finite() && *s > 0.0 && *s <= 86_400.0)
-        .map(|s| (s * 1000.0) as i64)
-        .unwrap_or(60_000)
-}
 /// Candidates re-checked and deleted per locked batch (short lock holds; few SQL parameters).
 const GC_BATCH: usize = 200;
 
@@ -248,7 +239,7 @@ impl Store {
         Ok(())
     }
 
-    /// Renews a writer's pending records (its lease): see [`writer_lease_ms`].
+    /// Renews a writer's pending records (its lease): see [`writer_lease_ms`](crate::objects::writer_lease_ms).
     pub(crate) async fn renew_pending(&self, writer: &str) -> Result<(), StoreError> {
         sqlx::query("UPDATE pending_objects SET created_ms = $1 WHERE writer = $2")
             .bind(crate::now_ms())

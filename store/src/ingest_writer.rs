@@ -413,7 +413,7 @@ impl IngestWriter {
         self.store.register_pending(&self.writer_id, path).await?;
         if self.lease_renewal.is_none() {
             let (store, id) = (self.store.clone(), self.writer_id.clone());
-            let every = std::time::Duration::from_millis((crate::gc::writer_lease_ms() / 3).max(50) as u64);
+            let every = std::time::Duration::from_millis((crate::objects::writer_lease_ms() / 3).max(50) as u64);
             self.lease_renewal = Some(tokio::spawn(async move {
                 loop {
                     tokio::time::sleep(every).await;

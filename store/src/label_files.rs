@@ -9,7 +9,8 @@
 
 use crate::catalog::{RowExt, Tx};
 use crate::steps::{self, LabelRow, LabelsKind};
-use crate::version::{covers, label_cols, label_row, put_pending_labels_file};
+use crate::spans::covers;
+use bytes::Bytes;
 use crate::{Store, StoreError};
 use std::collections::BTreeMap;
 
@@ -169,4 +170,51 @@ async fn attach(tx: &mut Tx, v: i64, path: &str, size: i64, rows: i64) -> Result
     .execute(&mut **tx)
     .await?;
     Ok(true)
+}
+
+/// One row of a labels file, from a query selecting the columns of [`label_cols`].
+pub(crate) fn label_row(r: &sqlx::any::AnyRow, removed: bool) -> Result<steps::LabelRow, StoreError> {
+    Ok(steps::LabelRow {
+        episode_id: r.s("id")?,
+        policy: r.s("policy")?,
+        checkpoint: r.s("checkpoint")?,
+        task: r.os("task")?,
+        length: r.i("length")?,
+        label: r.s("label")?.parse()?,
+        label_source: r.s("label_source")?,
+        revision: r.i("revision")?,
+        data_file: r.s("data_file")?,
+        row_group: r.i("row_group")?,
+        row_offset: r.i("row_offset")?,
+        row_count: r.i("row_count")?,
+        removed,
+    })
+}
+
+/// The columns [`label_row`] reads, the label ones from table alias `l` (`e` is the episode).
+pub(crate) fn label_cols(l: &str, revision: &str) -> String {
+    format!(
+        "e.id, e.policy, e.checkpoint, e.task, e.length, {l}.label AS label, {l}.label_source AS label_source, \
+         {l}.{revision} AS revision, e.run_id, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
+         COALESCE(e.row_count, e.length) AS row_count"
+    )
+}
+
+/// Writes a labels file outside the version lock, recorded as pending (gc keeps it) under a
+/// writer of its own until a transaction references it: its path, size and writer.
+pub(crate) async fn put_pending_labels_file(
+    store: &Store,
+    v: i64,
+    kind: LabelsKind,
+    rows: &[steps::LabelRow],
+) -> Result<(String, i64, String), StoreError> {
+    let data = steps::labels_file(v, kind, rows)?;
+    let path = format!("labels/{}.parquet", uuid::Uuid::new_v4());
+    let writer = format!("labels-{}", uuid::Uuid::new_v4().simple());
+    store.register_pending(&writer, &path).await?;
+    let size = data.len() as i64;
+    store.objects().put_new(&path, Bytes::from(data)).await?;
+    // The upload may have outlasted the lease: renewed, it holds until the commit checks it.
+    store.renew_pending(&writer).await?;
+    Ok((path, size, writer))
 }

@@ -37,6 +37,7 @@ mod read;
 mod review;
 mod runs;
 mod scoreboard;
+mod spans;
 mod spill;
 mod splits;
 pub mod steps;

@@ -15,6 +15,17 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use tokio::io::AsyncReadExt;
 
+/// How long a writer's pending-object records protect its objects without being renewed: 60 s,
+/// or `UFOPS_WRITER_LEASE_SECONDS` (tests shorten it to see a killed writer's leftovers collected).
+pub(crate) fn writer_lease_ms() -> i64 {
+    std::env::var("UFOPS_WRITER_LEASE_SECONDS")
+        .ok()
+        .and_then(|v| v.parse::<f64>().ok())
+        .filter(|s| s.is_finite() && *s > 0.0 && *s <= 86_400.0)
+        .map(|s| (s * 1000.0) as i64)
+        .unwrap_or(60_000)
+}
+
 /// Local files up to this size are copied into the store with one put; larger ones (a LeRobot
 /// mp4 may be 500 MB) stream as a multipart upload in parts of this size, so memory stays bounded
 /// by a few parts whatever the file's size.
@@ -356,7 +367,7 @@ impl Objects {
     ) -> Result<u64, StoreError> {
         let full = mp.full(path);
         let id = mp.s3.create_multipart(&full).await?;
-        let lease = crate::gc::writer_lease_ms();
+        let lease = writer_lease_ms();
         let now = crate::now_ms();
         let mut record = UploadRecord {
             path: path.to_string(),

@@ -1,7 +1,7 @@
 //! Reads: versions, episodes (now or at any past version) and version diffs (steps: read.rs).
 
 use crate::catalog::{bind_val, RowExt, Val};
-use crate::version::covers;
+use crate::spans::covers;
 use crate::{Backend, Label, Store, StoreError};
 use serde::{Deserialize, Serialize};
 

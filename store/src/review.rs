@@ -6,7 +6,7 @@ use crate::catalog::{bind_val, insert_rows, RowExt, Tx, Val};
 use crate::query::{
     episode_conds, episode_from_row, label_conds, push_arg, EpisodeFilter, EpisodeRecord, EPISODE_SELECT,
 };
-use crate::version::covers;
+use crate::spans::covers;
 use crate::{now_rfc3339, Store, StoreError};
 use serde::Serialize;
 

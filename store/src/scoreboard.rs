@@ -10,7 +10,7 @@
 
 use crate::catalog::{bind_val, RowExt, Val};
 use crate::runs::{run_from_row, RunRecord};
-use crate::version::covers;
+use crate::spans::covers;
 use crate::{Label, Store, StoreError};
 use evalstats::{newcombe_diff, rollouts_to_separate, separates, unlabeled_to_flip, wilson, Arm};
 use serde::Serialize;

@@ -15,30 +15,9 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::data::{InputSpec, Normalization, Samples};
-use crate::metrics::{pearson, roc_auc};
+use crate::metrics::{pearson, roc_auc, EnsembleMetrics};
 use crate::model::Kind;
 use crate::train::{train_one, EpochReport, TrainConfig, Trained};
-
-/// What an ensemble measured on the split's held-out samples (`metrics.ensemble`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct EnsembleMetrics {
-    pub members: usize,
-    /// Member `k`'s training seed.
-    pub seeds: Vec<u64>,
-    /// Training episodes, and how many distinct ones each member's resample drew.
-    pub train_episodes: usize,
-    pub distinct_episodes: Vec<usize>,
-    /// Held-out AUROC of the ensemble's score (the members' mean) against success, and of each
-    /// member's.
-    pub val_auc: Option<f64>,
-    pub member_val_auc: Vec<Option<f64>>,
-    /// Q only: Pearson correlation of the mean value with the discounted target.
-    pub val_pearson: Option<f64>,
-    /// Mean over held-out samples of the members' spread.
-    pub val_mean_spread: Option<f64>,
-    /// Wall time of all members' training.
-    pub seconds: f64,
-}
 
 /// The rows of `s` listed in `rows` (repeats kept), as samples of their own.
 fn gather(s: &Samples, rows: &[u32]) -> Samples {

@@ -3,7 +3,7 @@
 //! This crate owns TRAINING: the verifier models as trainable candle graphs (success classifier
 //! and time-to-success Q, `model.rs`, plus a fused fast path for the low-dim architecture in
 //! `fast.rs`), their losses (`loss.rs`), the training loop and recipe (`train.rs`, `optim.rs`,
-//! `metrics.rs`), ensembles of members on bootstrap resamples (`ensemble.rs`), the
+//! `metrics.rs`), the entry points that pick one network or an ensemble (`run.rs`), ensembles of members on bootstrap resamples (`ensemble.rs`), the
 //! standardisation statistics over the core's samples (`data.rs`, no
 //! dependency on the store), writing artifacts and scoring rows (`artifact.rs`), and training
 //! jobs that read a split from the store and publish the artifact back (`job.rs`).
@@ -22,6 +22,7 @@ pub mod loss;
 pub mod metrics;
 pub mod model;
 pub mod optim;
+pub mod run;
 pub mod train;
 
 pub use artifact::{
@@ -31,8 +32,6 @@ pub use artifact::{
 pub use data::{build_samples, EpisodeSeries, ExtraInputSpec, InputSpec, ObsKey, ObsSeries, Samples};
 pub use job::{load_split, run_train_job, SplitData, TrainJobSpec};
 pub use model::{Architecture, Kind, ModelSpec, Variant};
-pub use train::{
-    train, train_samples, train_with, Cancelled, EpochReport, Metrics, RecipeInput, TrainBackend,
-    TrainConfig, Trained,
-};
+pub use run::{train, train_samples, train_with};
+pub use train::{Cancelled, EpochReport, Metrics, RecipeInput, TrainBackend, TrainConfig, Trained};
 pub use verifier::{ActionSpace, Verifier};

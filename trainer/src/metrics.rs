@@ -253,3 +253,24 @@ mod action_sensitivity_tests {
         assert!(s.obs_only_auc.is_none() && !s.flagged, "{s:?}");
     }
 }
+
+/// What an ensemble measured on the split's held-out samples (`metrics.ensemble`).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EnsembleMetrics {
+    pub members: usize,
+    /// Member `k`'s training seed.
+    pub seeds: Vec<u64>,
+    /// Training episodes, and how many distinct ones each member's resample drew.
+    pub train_episodes: usize,
+    pub distinct_episodes: Vec<usize>,
+    /// Held-out AUROC of the ensemble's score (the members' mean) against success, and of each
+    /// member's.
+    pub val_auc: Option<f64>,
+    pub member_val_auc: Vec<Option<f64>>,
+    /// Q only: Pearson correlation of the mean value with the discounted target.
+    pub val_pearson: Option<f64>,
+    /// Mean over held-out samples of the members' spread.
+    pub val_mean_spread: Option<f64>,
+    /// Wall time of all members' training.
+    pub seconds: f64,
+}

@@ -17,7 +17,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
-use crate::data::{build_samples, EpisodeSeries, Fitted, InputSpec, Normalization, Samples, TimeEmbedTable};
+use crate::data::{Fitted, InputSpec, Normalization, Samples, TimeEmbedTable};
 use crate::fast::{BatchSource, FastModel};
 use crate::loss::{objective, objective_host, LossConfig};
 use crate::metrics::{calibration, pearson, roc_auc, Calibration};
@@ -339,38 +339,13 @@ pub struct Trained {
     pub members: Vec<ParamSet>,
     /// The ensemble's held-out figures (`metrics.ensemble` in the artifact); `None` for one
     /// network.
-    pub ensemble: Option<crate::ensemble::EnsembleMetrics>,
+    pub ensemble: Option<crate::metrics::EnsembleMetrics>,
 }
 
 /// Error returned when the cancel flag was raised.
 #[derive(Debug, thiserror::Error)]
 #[error("training cancelled")]
 pub struct Cancelled;
-
-/// Train from episodes (train / validation division by the caller).
-pub fn train(
-    train: &[EpisodeSeries],
-    val: &[EpisodeSeries],
-    input: &InputSpec,
-    cfg: &TrainConfig,
-) -> Result<Trained> {
-    train_with(train, val, input, cfg, &mut |_| {}, None)
-}
-
-/// [`train`] with a per-epoch observer and a cancel flag (checked every step; on cancel the
-/// function returns an error that downcasts to [`Cancelled`]).
-pub fn train_with(
-    train: &[EpisodeSeries],
-    val: &[EpisodeSeries],
-    input: &InputSpec,
-    cfg: &TrainConfig,
-    observer: &mut dyn FnMut(&EpochReport),
-    cancel: Option<&AtomicBool>,
-) -> Result<Trained> {
-    let tr = build_samples(train, input, cfg.gamma).context("building train samples")?;
-    let va = build_samples(val, input, cfg.gamma).context("building validation samples")?;
-    train_samples(tr, va, input, cfg, observer, cancel)
-}
 
 /// The model spec a config and input spec imply.
 pub fn model_spec(input: &InputSpec, cfg: &TrainConfig) -> ModelSpec {
@@ -389,29 +364,7 @@ enum Engine {
     Candle(Box<CandleModel>),
 }
 
-/// Train on prepared (raw, un-normalised) samples. The step embedding width comes from `input`
-/// and must be even (sin/cos pairs), as every client requires. With validation samples and
-/// `cfg.obs_only_twin`, an observation-only twin is trained after the verifier and the
-/// action-sensitivity figure recorded in the metrics.
-///
-/// The seeded stream is drawn in one fixed order (initialisation, each epoch's permutation,
-/// dropout masks, observation noise), which is what makes both backends and every rerun train the
-/// same model; `fit` reads top to bottom in that order.
-pub fn train_samples(
-    tr: Samples,
-    va: Samples,
-    input: &InputSpec,
-    cfg: &TrainConfig,
-    observer: &mut dyn FnMut(&EpochReport),
-    cancel: Option<&AtomicBool>,
-) -> Result<Trained> {
-    if cfg.ensemble > 1 {
-        return crate::ensemble::train_ensemble(tr, va, input, cfg, observer, cancel);
-    }
-    train_one(tr, va, input, cfg, None, observer, cancel)
-}
-
-/// One network (with its twin when the recipe asks): [`train_samples`] for `ensemble = 1`, and
+/// One network (with its twin when the recipe asks): [`crate::train_samples`] for `ensemble = 1`, and
 /// each member of an ensemble, whose statistics `norm` are the whole training set's.
 pub(crate) fn train_one(
     tr: Samples,
