@@ -49,7 +49,7 @@ fn peak_rss_mb() -> f64 {
 async fn child(format: &str, store_dir: &Path, out: &Path) {
     let t0 = Instant::now();
     let store = Store::open(&StoreConfig::local(store_dir)).await.unwrap();
-    let sel = export::select(&store, &export::Selection::default()).await.unwrap();
+    let sel = store::select(&store, &store::Selection::default()).await.unwrap();
     let rep = match format {
         "lerobot" => export::lerobot::export(&store, &sel, out, None).await.unwrap(),
         _ => export::robomimic::export(&store, &sel, out, None).await.unwrap(),

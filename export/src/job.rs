@@ -4,10 +4,12 @@
 //! it. A failed or cancelled export removes what it had copied; a worker that dies leaves files
 //! that gc collects once the job is no longer live (store/src/exports.rs).
 
-use crate::{filter_by_score, select, ExportError, Result, Selection, StepScorer};
+use crate::{ExportError, Result};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
-use store::{ExportFile, Store};
+use store::{select, ExportFile, Selection, Store};
+use verifier::stored::filter_by_score;
+use verifier::StepScorer;
 
 /// The job's spec as the API queues it.
 #[derive(Debug, Clone, Serialize, Deserialize)]

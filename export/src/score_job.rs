@@ -2,11 +2,14 @@
 //! episodes with one verifier artifact and stores each episode's mean step score and per-step
 //! series in the catalog (`Store::put_episode_scores`), so the labeling queue is ordered and the
 //! timeline plotted from stored scores, never by a forward pass per page view. The scoring is
-//! [`crate::score_each_episode`], the one used by `ufops export --score-artifact` and `ufops rank`.
+//! the verifier core's [`score_each_episode`], the one used by `ufops export --score-artifact`
+//! and `ufops rank`.
 
-use crate::{episode_score, score_each_episode, ExportError, Result, StepScorer};
+use crate::{ExportError, Result};
 use serde::{Deserialize, Serialize};
 use store::{EpisodeFilter, Store};
+use verifier::stored::{episode_score, score_each_episode};
+use verifier::StepScorer;
 
 /// The job's spec as the API queues it (the artifact already resolved to an id).
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -6,7 +6,6 @@
 
 use std::path::Path;
 
-use export::{select, Selection};
 use store::test_support::{peak_heap_while, square_rollout, CountingAlloc};
 use store::*;
 

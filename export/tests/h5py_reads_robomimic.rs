@@ -3,9 +3,8 @@
 
 use std::path::PathBuf;
 
-use export::{select, Selection};
 use ingest::{ingest, IngestOptions};
-use store::{SplitRequest, Store, StoreConfig};
+use store::{select, Selection, SplitRequest, Store, StoreConfig};
 
 fn fixtures() -> PathBuf {
     match std::env::var("UFOPS_FIXTURES") {

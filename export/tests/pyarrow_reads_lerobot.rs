@@ -5,9 +5,8 @@
 
 use std::path::PathBuf;
 
-use export::{select, Selection};
 use ingest::{ingest, IngestOptions};
-use store::{Store, StoreConfig};
+use store::{select, Selection, Store, StoreConfig};
 
 fn fixtures() -> PathBuf {
     match std::env::var("UFOPS_FIXTURES") {

@@ -7,9 +7,8 @@
 use std::path::{Path, PathBuf};
 
 use arrow::array::{Array, RecordBatch};
-use export::{select, Selection};
 use ingest::{ingest, IngestOptions};
-use store::{EpisodeFilter, EpisodeRecord, Store, StoreConfig};
+use store::{select, EpisodeFilter, EpisodeRecord, Selection, Store, StoreConfig};
 
 fn fixtures() -> PathBuf {
     match std::env::var("UFOPS_FIXTURES") {

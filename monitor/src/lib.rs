@@ -12,7 +12,9 @@
 //!
 //! The rule itself — the record, the running statistic, the threshold, the alarm — is the
 //! verifier core's (`verifier::monitor`), which the robot (`steer::Monitor`) and the Python
-//! package step the same way. Scoring a stored episode is `export::score_each_episode`.
+//! package step the same way. The pool is selected through the store's selection path
+//! (`store::select`) and scored by the verifier core (`verifier::stored::score_each_episode`),
+//! whose error, [`StoredEpisodesError`], is this crate's.
 
 use std::collections::{HashMap, HashSet};
 
@@ -24,21 +26,10 @@ use verifier::monitor::{
     training_conditional_threshold, MonitorRecord, MonitorStep, Statistic, MONITOR_SCHEMA_VERSION,
     SPLIT_CONFORMAL_PEAK, SPLIT_CONFORMAL_PEAK_PAC,
 };
+use verifier::stored::{score_each_episode, StoredEpisodesError};
 use verifier::Verifier;
 
-#[derive(Debug, thiserror::Error)]
-pub enum MonitorError {
-    #[error(transparent)]
-    Store(#[from] store::StoreError),
-    #[error(transparent)]
-    Export(#[from] export::ExportError),
-    #[error(transparent)]
-    Verifier(#[from] verifier::VerifierError),
-    #[error("{0}")]
-    Invalid(String),
-}
-
-pub type Result<T, E = MonitorError> = std::result::Result<T, E>;
+pub type Result<T, E = StoredEpisodesError> = std::result::Result<T, E>;
 
 /// How to calibrate.
 #[derive(Debug, Clone)]
@@ -126,8 +117,8 @@ fn too_few(
     artifact: &ArtifactRecord,
     version: i64,
     spec: &CalibrateSpec,
-) -> MonitorError {
-    MonitorError::Invalid(format!(
+) -> StoredEpisodesError {
+    StoredEpisodesError::Invalid(format!(
         "{e} ({successes} labeled successes of {}/{} at version {version} that artifact {} did not train on, \
          {:.0}% of them for calibration)",
         artifact.policy,
@@ -146,13 +137,13 @@ struct Pool {
 }
 
 async fn pool(store: &Store, artifact: &ArtifactRecord, version: Option<i64>) -> Result<Pool> {
-    let selection = export::Selection {
+    let selection = store::Selection {
         version,
         policy: Some(artifact.policy.clone()),
         checkpoint: Some(artifact.checkpoint.clone()),
         ..Default::default()
     };
-    let selected = export::select(store, &selection).await?;
+    let selected = store::select(store, &selection).await?;
     let trained_on: HashSet<String> = match &artifact.split_id {
         Some(split) => store
             .split_episodes(split)
@@ -220,17 +211,17 @@ fn calibration_size(n: usize, fraction: f64) -> usize {
 fn check_spec(spec: &CalibrateSpec) -> Result<()> {
     spec.statistic.check()?;
     if !(spec.calibration_fraction > 0.0 && spec.calibration_fraction < 1.0) {
-        return Err(MonitorError::Invalid(format!(
+        return Err(StoredEpisodesError::Invalid(format!(
             "the calibration fraction must be in (0, 1), got {}",
             spec.calibration_fraction
         )));
     }
     if !(spec.alpha > 0.0 && spec.alpha < 1.0) {
-        return Err(MonitorError::Invalid(format!("alpha must be in (0, 1), got {}", spec.alpha)));
+        return Err(StoredEpisodesError::Invalid(format!("alpha must be in (0, 1), got {}", spec.alpha)));
     }
     if let Some(c) = spec.confidence {
         if !(c > 0.0 && c < 1.0) {
-            return Err(MonitorError::Invalid(format!(
+            return Err(StoredEpisodesError::Invalid(format!(
                 "the confidence (1 - delta) must be in (0, 1), got {c}"
             )));
         }
@@ -251,7 +242,7 @@ fn threshold_of(peaks: &[f64], spec: &CalibrateSpec) -> verifier::Result<(f64, &
 /// Scores each episode's steps (in order) and hands back their scores.
 async fn scores_of(store: &Store, verifier: &Verifier, eps: &[EpisodeRecord]) -> Result<Vec<Vec<f32>>> {
     let mut out = vec![Vec::new(); eps.len()];
-    export::score_each_episode(store, eps, verifier, |i, _, s| {
+    score_each_episode(store, eps, verifier, |i, _, s| {
         out[i] = s;
         Ok(())
     })
@@ -261,7 +252,7 @@ async fn scores_of(store: &Store, verifier: &Verifier, eps: &[EpisodeRecord]) ->
 
 fn check_artifact(verifier: &Verifier, artifact: &ArtifactRecord) -> Result<()> {
     if verifier.id() != Some(artifact.id.as_str()) {
-        return Err(MonitorError::Invalid(format!(
+        return Err(StoredEpisodesError::Invalid(format!(
             "the verifier loaded ({}) is not artifact {}",
             verifier.id().unwrap_or("without an id"),
             artifact.id
@@ -305,7 +296,7 @@ pub async fn calibrate(
         calibration_episodes,
     };
     // Every consumer reads the threshold back from the record's JSON: evaluate with what they read.
-    let json = serde_json::to_vec(&record).map_err(|e| MonitorError::Invalid(e.to_string()))?;
+    let json = serde_json::to_vec(&record).map_err(|e| StoredEpisodesError::Invalid(e.to_string()))?;
     let record = MonitorRecord::from_json(&json)?;
     let (evaluation, traces) =
         measure(store, verifier, &record, held_out, &pool.failures, &pool.onsets, pool.version).await?;
@@ -488,7 +479,9 @@ pub fn resampled_draws(
 ) -> Result<Resampled> {
     let mut population: Vec<f64> = success_peaks.iter().copied().filter(|p| p.is_finite()).collect();
     if population.is_empty() || draws == 0 {
-        return Err(MonitorError::Invalid("resampled draws need successes with steps and a draw".into()));
+        return Err(StoredEpisodesError::Invalid(
+            "resampled draws need successes with steps and a draw".into(),
+        ));
     }
     population.sort_by(f64::total_cmp);
     let rate = |tau: f64| {
@@ -554,13 +547,13 @@ pub fn draws_from_peaks(
 ) -> Result<Vec<Draw>> {
     check_spec(spec)?;
     let confidence = spec.confidence.ok_or_else(|| {
-        MonitorError::Invalid(
+        StoredEpisodesError::Invalid(
             "calibration draws compare against the training-conditional threshold: give a confidence".into(),
         )
     })?;
     let n_cal = calibration_size(successes.len(), spec.calibration_fraction);
     if n_cal == successes.len() {
-        return Err(MonitorError::Invalid(format!(
+        return Err(StoredEpisodesError::Invalid(format!(
             "{} successes leave none held out at a calibration fraction of {}",
             successes.len(),
             spec.calibration_fraction
@@ -627,11 +620,11 @@ pub async fn calibration_draws(
 ) -> Result<Draws> {
     check_artifact(verifier, artifact)?;
     check_spec(spec)?;
-    let confidence = spec
-        .confidence
-        .ok_or_else(|| MonitorError::Invalid("calibration draws need a confidence (1 - delta)".into()))?;
+    let confidence = spec.confidence.ok_or_else(|| {
+        StoredEpisodesError::Invalid("calibration draws need a confidence (1 - delta)".into())
+    })?;
     if draws == 0 {
-        return Err(MonitorError::Invalid("calibration draws: give at least one".into()));
+        return Err(StoredEpisodesError::Invalid("calibration draws: give at least one".into()));
     }
     let pool = pool(store, artifact, spec.version).await?;
     let peaks_of =

@@ -3,7 +3,7 @@
 
 use std::collections::HashMap;
 
-use monitor::{calibrate, calibration_draws, evaluate, CalibrateSpec, MonitorError};
+use monitor::{calibrate, calibration_draws, evaluate, CalibrateSpec};
 use store::test_support::{self, open_test_store};
 use store::{
     Backend, EpisodeRecord, Label, NewArtifact, NewMonitor, NewVote, Span, Store, VectorColumn, VerdictData,
@@ -76,8 +76,8 @@ async fn seeded_store(store: &Store, dir: &std::path::Path) -> (store::ArtifactR
 }
 
 async fn episodes(store: &Store) -> Vec<EpisodeRecord> {
-    let sel = export::Selection { policy: Some("pol".into()), ..Default::default() };
-    export::select(store, &sel).await.unwrap().episodes
+    let sel = store::Selection { policy: Some("pol".into()), ..Default::default() };
+    store::select(store, &sel).await.unwrap().episodes
 }
 
 async fn calibrate_evaluate_and_step(store: Store) {
@@ -121,9 +121,9 @@ async fn calibrate_evaluate_and_step(store: Store) {
     let cal_eps: Vec<EpisodeRecord> =
         cal.record.calibration_episodes.iter().map(|id| (*by_id[id.as_str()]).clone()).collect();
     let mut peaks = Vec::new();
-    export::for_each_episode(&store, &cal_eps, |_, _, steps| {
+    store::for_each_episode(&store, &cal_eps, |_, _, steps| {
         peaks.push(peak(spec.statistic, &v.score_steps(&steps).unwrap()));
-        Ok(())
+        Ok::<_, store::StoreError>(())
     })
     .await
     .unwrap();
@@ -197,7 +197,7 @@ async fn calibrate_evaluate_and_step(store: Store) {
     let mut robot = steer::Monitor::for_verifier(&v, record.clone()).unwrap();
     let (od, ad) = (v.obs_dim(), v.act_dim());
     let mut checked = 0;
-    export::for_each_episode(&store, &traced, |i, _, steps| {
+    store::for_each_episode(&store, &traced, |i, _, steps| {
         let inputs = verifier::steps::step_inputs(v.config(), &steps).unwrap();
         robot.reset();
         for (k, want) in traces[i].steps.iter().enumerate() {
@@ -211,7 +211,7 @@ async fn calibrate_evaluate_and_step(store: Store) {
             assert_eq!(got.alarm, want.alarm, "episode {i} step {k}");
             checked += 1;
         }
-        Ok(())
+        Ok::<_, store::StoreError>(())
     })
     .await
     .unwrap();
@@ -223,7 +223,7 @@ async fn calibrate_evaluate_and_step(store: Store) {
     let other_rec = store.artifact(other.id().unwrap()).await.unwrap();
     assert!(matches!(
         evaluate(&store, &other, &other_rec, &record, None).await,
-        Err(MonitorError::Verifier(_))
+        Err(verifier::stored::StoredEpisodesError::Verifier(_))
     ));
     assert!(evaluate(&store, &v, &other_rec, &record, None).await.is_err());
     let refused = store

@@ -11,7 +11,10 @@
 //! It owns which episodes a run names, the replay of one episode's log ([`replay_log`]) and the
 //! report. The observation a logged step is scored on is built from the stored steps by the
 //! verifier core (`verifier::steps::step_inputs`, as for training and the review queue); the choice
-//! is the robot's own (`steer::select_best`, or an ensemble's `Verifier::pick`); reading is `export`'s episode reader.
+//! is the robot's own (`steer::select_best`, or an ensemble's `Verifier::pick`); reading is the
+//! store's selection path (`store::for_each_episode_with_layers`), and the error,
+//! [`StoredEpisodesError`], is the one of every crate that works on stored episodes
+//! (`verifier::stored`).
 
 use std::collections::BTreeSet;
 
@@ -19,24 +22,13 @@ use arrow::array::RecordBatch;
 use serde::Serialize;
 use store::{EpisodeFilter, EpisodeRecord, Store};
 use verifier::steps::{steering_log, step_inputs};
+use verifier::stored::StoredEpisodesError;
 use verifier::{SteeringStep, Verifier};
 
-#[derive(Debug, thiserror::Error)]
-pub enum ReplayError {
-    #[error(transparent)]
-    Store(#[from] store::StoreError),
-    #[error(transparent)]
-    Export(#[from] export::ExportError),
-    #[error(transparent)]
-    Verifier(#[from] verifier::VerifierError),
-    #[error("{0}")]
-    Invalid(String),
-}
+pub type Result<T, E = StoredEpisodesError> = std::result::Result<T, E>;
 
-pub type Result<T, E = ReplayError> = std::result::Result<T, E>;
-
-fn invalid(m: impl Into<String>) -> ReplayError {
-    ReplayError::Invalid(m.into())
+fn invalid(m: impl Into<String>) -> StoredEpisodesError {
+    StoredEpisodesError::Invalid(m.into())
 }
 
 /// What to replay.
@@ -210,14 +202,19 @@ pub async fn replay(
     let (runs, episodes) = run_episodes(store, spec).await?;
     let layers = verifier::StepScorer::layers(verifier);
     let mut acc = Accumulator::default();
-    export::for_each_episode_with_layers(store, &episodes, &layers, spec.version, |_, e, steps| {
-        let log = steering_log(&steps)
-            .map_err(|m| export::ExportError::Invalid(format!("episode {}: {m}", e.id)))?;
-        let replayed = replay_log(verifier, &steps, &log, spec.n)
-            .map_err(|m| export::ExportError::Invalid(format!("episode {}: {m}", e.id)))?;
-        acc.add(&log, &replayed, artifact_id, spec.n);
-        Ok(())
-    })
+    store::for_each_episode_with_layers(
+        store,
+        &episodes,
+        &layers,
+        spec.version,
+        |_, e, steps| -> Result<()> {
+            let log = steering_log(&steps).map_err(|m| invalid(format!("episode {}: {m}", e.id)))?;
+            let replayed = replay_log(verifier, &steps, &log, spec.n)
+                .map_err(|m| invalid(format!("episode {}: {m}", e.id)))?;
+            acc.add(&log, &replayed, artifact_id, spec.n);
+            Ok(())
+        },
+    )
     .await?;
     if acc.steps == 0 {
         return Err(invalid(format!(

@@ -3,31 +3,20 @@
 //! `ufops rank`: the selected episodes ordered by such a score (worst first), the list a team
 //! reviews before deleting or relabeling demonstrations (Demo-SCORE-style curation).
 
-use super::{print_json, StoreArgs};
+use super::{print_json, EpisodeFilterArgs, StoreArgs};
 use anyhow::{bail, Context, Result};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 
-/// Which episodes: shared by `export` and `rank`.
+/// Which episodes `export` and `rank` take: the filters every episode-listing command shares,
+/// a split, and the layers to carry.
 #[derive(clap::Args, Debug)]
 pub struct SelectionArgs {
-    /// Store version (default: the head). Labels are the ones frozen in it.
-    #[arg(long)]
-    pub version: Option<i64>,
+    #[command(flatten)]
+    pub filter: EpisodeFilterArgs,
     /// A split id: its episodes at its version (robomimic: mask/train and mask/valid).
     #[arg(long)]
     pub split: Option<String>,
-    #[arg(long)]
-    pub policy: Option<String>,
-    #[arg(long)]
-    pub checkpoint: Option<String>,
-    #[arg(long)]
-    pub task: Option<String>,
-    /// success | failure | unknown
-    #[arg(long)]
-    pub label: Option<String>,
-    #[arg(long)]
-    pub tag: Option<String>,
     /// Layers to carry as observation columns (an encoder's features; see `ufops layers`):
     /// LeRobot `observation.<layer>`, robomimic `obs/<layer>`. Comma-separated.
     #[arg(long, value_delimiter = ',')]
@@ -35,15 +24,16 @@ pub struct SelectionArgs {
 }
 
 impl SelectionArgs {
-    fn selection(&self, score: Option<::export::ScoreRange>) -> Result<::export::Selection> {
-        Ok(::export::Selection {
-            version: self.version,
+    fn selection(&self, score: Option<store::ScoreRange>) -> Result<store::Selection> {
+        let f = &self.filter;
+        Ok(store::Selection {
+            version: f.version,
             split: self.split.clone(),
-            policy: self.policy.clone(),
-            checkpoint: self.checkpoint.clone(),
-            task: self.task.clone(),
-            label: self.label.as_deref().map(str::parse).transpose()?,
-            tag: self.tag.clone(),
+            policy: f.policy.clone(),
+            checkpoint: f.checkpoint.clone(),
+            task: f.task.clone(),
+            label: f.label()?,
+            tag: f.tag.clone(),
             score,
             layers: self.layers.clone(),
         })
@@ -105,7 +95,7 @@ fn progress_bar(show: bool, len: usize, what: &str) -> Option<indicatif::Progres
     })
 }
 
-/// The progress callback the export crate takes, moving `bar` (if any).
+/// The progress callback the exports and the scoring of stored episodes take, moving `bar` (if any).
 fn ticker(bar: &Option<indicatif::ProgressBar>) -> impl Fn(usize, usize) + Send + Sync + '_ {
     move |done, _total| {
         if let Some(b) = bar {
@@ -120,16 +110,16 @@ pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
         Some(r) => Some(StoreVerifier::load(&store, r).await?),
         None => None,
     };
-    let range = scorer.as_ref().map(|s| ::export::ScoreRange {
+    let range = scorer.as_ref().map(|s| store::ScoreRange {
         artifact: s.artifact.clone(),
         min: a.min_score,
         max: a.max_score,
     });
-    let mut selected = ::export::select(&store, &a.select.selection(range)?).await?;
+    let mut selected = store::select(&store, &a.select.selection(range)?).await?;
     if let Some(s) = &scorer {
         let bar = progress_bar(!a.json, selected.episodes.len(), "episodes scored");
         let tick = ticker(&bar);
-        let r = ::export::filter_by_score(&store, &mut selected, &s.verifier, Some(&tick)).await;
+        let r = verifier::stored::filter_by_score(&store, &mut selected, &s.verifier, Some(&tick)).await;
         if let Some(b) = &bar {
             b.finish_and_clear();
         }
@@ -137,7 +127,7 @@ pub async fn export(args: &StoreArgs, a: ExportArgs) -> Result<()> {
     }
     let bar = progress_bar(!a.json, selected.episodes.len(), "episodes");
     let tick = ticker(&bar);
-    let progress: ::export::Progress<'_> = Some(&tick);
+    let progress: store::Progress<'_> = Some(&tick);
     let report = match a.format.as_str() {
         "lerobot" => ::export::lerobot::export(&store, &selected, &a.out, progress).await,
         "robomimic" => ::export::robomimic::export(&store, &selected, &a.out, progress).await,
@@ -196,10 +186,10 @@ pub struct RankArgs {
 pub async fn rank(args: &StoreArgs, a: RankArgs) -> Result<()> {
     let store = args.open().await?;
     let v = StoreVerifier::load(&store, &a.artifact).await?;
-    let selected = ::export::select(&store, &a.select.selection(None)?).await?;
+    let selected = store::select(&store, &a.select.selection(None)?).await?;
     let bar = progress_bar(!a.json, selected.episodes.len(), "episodes scored");
     let tick = ticker(&bar);
-    let scores = ::export::score_episodes(&store, &selected.episodes, &v.verifier, Some(&tick)).await;
+    let scores = verifier::stored::score_episodes(&store, &selected.episodes, &v.verifier, Some(&tick)).await;
     if let Some(b) = &bar {
         b.finish_and_clear();
     }

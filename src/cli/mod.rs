@@ -73,6 +73,33 @@ impl StoreArgs {
     }
 }
 
+/// The episode filters: one set of flags for `episodes`, `export` and `rank`.
+#[derive(clap::Args, Debug)]
+pub struct EpisodeFilterArgs {
+    /// Store version. `export` and `rank` read the labels frozen in it (default: the head);
+    /// `episodes` reads this past version (default: now, with the latest labels).
+    #[arg(long)]
+    pub version: Option<i64>,
+    #[arg(long)]
+    pub policy: Option<String>,
+    #[arg(long)]
+    pub checkpoint: Option<String>,
+    #[arg(long)]
+    pub task: Option<String>,
+    /// success | failure | unknown (true/false also accepted; `--success` is the older name).
+    #[arg(long, alias = "success")]
+    pub label: Option<String>,
+    #[arg(long)]
+    pub tag: Option<String>,
+}
+
+impl EpisodeFilterArgs {
+    /// The label filter, parsed.
+    pub fn label(&self) -> Result<Option<store::Label>> {
+        Ok(self.label.as_deref().map(str::parse::<store::Label>).transpose()?)
+    }
+}
+
 #[derive(Subcommand, Debug)]
 pub enum Command {
     /// Create the store (catalog + object storage) and apply migrations.

@@ -295,7 +295,7 @@ async fn export_job(
     };
     let progress = |v: serde_json::Value| ctx.progress(v);
     let cancelled = || ctx.is_cancelled();
-    let scorer = scorer.as_ref().map(|s| &s.verifier as &dyn ::export::StepScorer);
+    let scorer = scorer.as_ref().map(|s| &s.verifier as &dyn verifier::StepScorer);
     let r = ::export::job::run_export_job(store, &job.id, &spec, scorer, &progress, &cancelled)
         .await
         .map_err(|e| e.to_string())?;

@@ -1,6 +1,6 @@
 //! Store subcommands: init, versions, episodes, label, history, snapshot, gc.
 
-use super::{print_json, StoreArgs};
+use super::{print_json, EpisodeFilterArgs, StoreArgs};
 use anyhow::{Context, Result};
 use store::{EpisodeFilter, Label, LabelUpdate};
 
@@ -31,21 +31,8 @@ pub async fn versions(args: &StoreArgs, json: bool) -> Result<()> {
 
 #[derive(clap::Args, Debug)]
 pub struct EpisodesArgs {
-    /// Read this past version (default: now, with the latest labels).
-    #[arg(long)]
-    pub version: Option<i64>,
-    #[arg(long)]
-    pub policy: Option<String>,
-    #[arg(long)]
-    pub checkpoint: Option<String>,
-    #[arg(long)]
-    pub task: Option<String>,
-    /// success | failure | unknown (true/false also accepted); the same filter as `export --label`
-    /// (`--success` is the older name).
-    #[arg(long, alias = "success")]
-    pub label: Option<String>,
-    #[arg(long)]
-    pub tag: Option<String>,
+    #[command(flatten)]
+    pub filter: EpisodeFilterArgs,
     /// Only episodes whose id sorts after this one (the next page: pass the last id shown).
     #[arg(long)]
     pub after: Option<String>,
@@ -58,14 +45,15 @@ pub struct EpisodesArgs {
 
 pub async fn episodes(args: &StoreArgs, a: EpisodesArgs) -> Result<()> {
     let store = args.open().await?;
-    let label = a.label.as_deref().map(str::parse::<Label>).transpose()?;
+    let label = a.filter.label()?;
+    let f = a.filter;
     let filter = EpisodeFilter {
-        version: a.version,
-        policy: a.policy,
-        checkpoint: a.checkpoint,
-        task: a.task,
+        version: f.version,
+        policy: f.policy,
+        checkpoint: f.checkpoint,
+        task: f.task,
         label,
-        tag: a.tag,
+        tag: f.tag,
         after: a.after,
         limit: a.limit,
         ..Default::default()

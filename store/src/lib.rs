@@ -37,6 +37,7 @@ mod read;
 mod review;
 mod runs;
 mod scoreboard;
+mod selection;
 mod spans;
 mod spill;
 mod splits;
@@ -90,6 +91,9 @@ pub use review::{
 };
 pub use runs::{RunInput, RunRecord, Steering};
 pub use scoreboard::{BaselineComparison, Scoreboard, ScoreboardRequest, ScoreboardRow, NO_RUN};
+pub use selection::{
+    for_each_episode, for_each_episode_with_layers, select, EpisodeReader, Progress, ScoreRange, Selected, Selection,
+};
 pub use splits::{SplitCheckpointSteps, SplitEpisode, SplitRecord, SplitRequest};
 pub use tokens::{Role, TokenRecord};
 pub use webhooks::{delivery_id, DeadLetter, HeldWebhook, WebhookRecord, MAX_WEBHOOK_ATTEMPTS};

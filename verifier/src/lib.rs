@@ -10,7 +10,9 @@
 //! with AVX2/FMA kernels chosen at run time and a portable fallback ([`kernels`], which the trainer's fused training path shares). It
 //! also builds the files the trainer writes ([`ArtifactFiles`]), and the verifier's inputs from
 //! episodes ([`samples`]: what the trainer trains on and scorers query), from the store's steps
-//! with feature `steps` (`steps::StepScorer`: how anything scores a stored episode). The failure
+//! with feature `steps` (`steps::StepScorer`: how anything scores a stored episode; `stored`: the
+//! scoring of a selection's stored episodes, read through the store's selection path, and the
+//! error of the crates built on it, `monitor` and `replay`). The failure
 //! monitor's record, running statistic and conformal threshold are here too ([`monitor`]), so the
 //! offline evaluation, the robot and Python raise the same alarm at the same step, and so is the
 //! action-sensitivity figure with its flag ([`quality`]), which the trainer records and the
@@ -42,6 +44,10 @@ pub mod samples;
 /// Verifier inputs from the store's steps batches and [`steps::StepScorer`] (feature `steps`).
 #[cfg(feature = "steps")]
 pub mod steps;
+/// Scoring stored episodes: every step, an episode's score, a selection's score filter (feature
+/// `steps`).
+#[cfg(feature = "steps")]
+pub mod stored;
 pub mod telemetry;
 /// Random artifacts for tests and benchmarks (feature `testing`).
 #[cfg(any(test, feature = "testing"))]

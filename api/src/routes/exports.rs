@@ -126,13 +126,13 @@ pub async fn create_export(
             if r.min.zip(r.max).is_some_and(|(lo, hi)| lo > hi) {
                 return Err(ApiError::bad_request("score: min must not exceed max"));
             }
-            Some(::export::ScoreRange { artifact, min: r.min, max: r.max })
+            Some(store::ScoreRange { artifact, min: r.min, max: r.max })
         }
         None => None,
     };
     let spec = ::export::job::ExportJobSpec {
         format: b.format,
-        selection: ::export::Selection {
+        selection: store::Selection {
             version: b.version,
             split: b.split,
             policy: b.policy,
