@@ -6,6 +6,7 @@
 import * as api from './api.js';
 import { $, esc, status } from './dom.js';
 import { LABELS, S, views } from './state.js';
+import { notePage, renderReviewNotice, scoreSeen } from './review_queue.js';
 
 export function readHash() {
   const h = new URLSearchParams(location.hash.slice(1));
@@ -50,11 +51,12 @@ export async function loadQueue(focusId) {
   S.selected.clear();
   $('queue-list').replaceChildren();
   // "all, unknown first": every unknown episode, then every episode not shown yet.
-  S.pager = { base: { policy, checkpoint, task, order }, phases: label ? [label] : ['unknown', ''], phase: 0, after: undefined, done: false, loading: null };
+  S.pager = { base: { policy, checkpoint, task, order }, phases: label ? [label] : ['unknown', ''], phase: 0, after: undefined, done: false, loading: null, scores: scoreSeen() };
   await Promise.all([refreshCounts(), loadMore()]);
   // An empty first phase (no unknown episode left) moves on to the next one.
   while (!S.queue.length && S.pager && !S.pager.done && seq === S.queueSeq) await loadMore();
   if (seq !== S.queueSeq) return;
+  showReviewNotice();
   if (focusId && !S.seen.has(focusId)) await addFocus(focusId);
   renderQueue();
   renderCounts();
@@ -85,6 +87,7 @@ export function loadMore() {
       const label = pg.phases[pg.phase] || undefined;
       const page = await api.episodesPage({ ...pg.base, label }, pg.after, S.pageSize);
       if (pg !== S.pager) return 0;
+      if (page.review) notePage(pg.scores, page);
       const from = S.queue.length;
       for (const e of page.episodes) {
         if (!S.seen.has(e.id)) { S.seen.add(e.id); S.queue.push(e); }
@@ -93,12 +96,21 @@ export function loadMore() {
       else if (pg.phase + 1 < pg.phases.length) { pg.phase += 1; pg.after = undefined; }
       else pg.done = true;
       appendRows(from);
+      if (pg.scores.scored && !$('review-notice').hidden) showReviewNotice();
       return S.queue.length - from;
     } finally {
       pg.loading = null;
     }
   })();
   return pg.loading;
+}
+
+/** The review orders' word on the queue: unscored episodes come last in them, so a first page
+ *  without any score means the order found none to sort by (review_queue.js says what to do). */
+function showReviewNotice() {
+  const sel = $('f-order');
+  const name = sel.selectedOptions[0] ? sel.selectedOptions[0].textContent : S.filters.order;
+  renderReviewNotice($('review-notice'), S.filters.order, name, S.pager ? S.pager.scores : scoreSeen());
 }
 
 /** Keeps a quarter of a page loaded ahead of entry i, so moving on never waits for the server. */
