@@ -7,7 +7,7 @@ import { call, ApiError } from './api.js';
 import { $, el } from './dom.js';
 
 const SVG = 'http://www.w3.org/2000/svg';
-const W = 180;
+const W = 160;
 const H = 16;
 
 const q = (params) => {
