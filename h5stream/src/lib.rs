@@ -2,9 +2,9 @@
 //!
 //! Each dataset's bytes go to the file as soon as they are given, and a group's object header
 //! once its children are written (children before parents, the root last), so memory holds one
-//! dataset and the links of the groups still open — never the file. [`Writer`] takes datasets
-//! and finished [`Group`]s in that order and returns each one's address for its parent's
-//! links; [`Writer::finish`] takes the root:
+//! dataset — or one slice of it, through [`Writer::stream`] — and the links of the groups still
+//! open, never the file. [`Writer`] takes datasets and finished [`Group`]s in that order and
+//! returns each one's address for its parent's links; [`Writer::finish`] takes the root:
 //!
 //! ```
 //! use h5stream::{Attr, Group, Writer};
@@ -26,15 +26,18 @@
 //! Why hand-written: `hdf5-pure`'s `FileBuilder` holds the whole file until it writes it, and
 //! its in-place editor rebuilds every group it touches (export/README.md, "Why its own HDF5
 //! writer", has the figures). The layout is the small part of the HDF5 format (specification
-//! 3.0) that robomimic's files need, in encodings libhdf5 ≥ 1.8 and `hdf5-pure` both read:
+//! 3.0) that robomimic's and ALOHA's files need, in encodings libhdf5 ≥ 1.8 and `hdf5-pure`
+//! both read:
 //!
 //! * superblock version 2 (offsets and lengths of 8 bytes), rewritten at the end with the root
 //!   group's address and the end of file;
 //! * version 2 object headers, one chunk, Jenkins lookup3 checksums;
 //! * groups with compact link storage (Link Info, Group Info and one Link message per child);
-//! * datasets with contiguous layout: dataspace, datatype (little-endian integers and IEEE
-//!   floats, fixed-length null-padded ASCII strings), fill value and layout messages;
-//! * attributes in their object's header: int64, float64 and variable-length UTF-8 strings,
+//! * datasets with contiguous layout: dataspace, datatype (little-endian integers of 8 to 64
+//!   bits, IEEE floats, fixed-length null-padded ASCII strings), fill value and layout
+//!   messages, and attributes;
+//! * attributes in their object's header (a group's or a dataset's), scalar or 1-D: those
+//!   numbers, fixed-length null-padded strings and variable-length strings (ASCII or UTF-8),
 //!   whose bytes sit in global heap collections reserved as the file grows and filled in when
 //!   full.
 //!
@@ -66,7 +69,7 @@ const MSG_LAYOUT: u8 = 0x08;
 const MSG_GROUP_INFO: u8 = 0x0A;
 const MSG_ATTRIBUTE: u8 = 0x0C;
 
-/// An attribute's value (scalar).
+/// An attribute's value: a scalar, a 1-D array of numbers, or strings.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Attr {
     /// A 64-bit signed integer.
@@ -75,21 +78,87 @@ pub enum Attr {
     F64(f64),
     /// A variable-length UTF-8 string (what h5py reads back as `str`).
     Str(String),
+    /// A number of any [`Element`] type, or a 1-D array of them: [`Attr::number`],
+    /// [`Attr::numbers`].
+    Numbers(Numbers),
+    /// One string (a scalar attribute) or a 1-D array of them, stored as `kind` says.
+    Strings {
+        /// The strings; exactly one when `array` is false.
+        values: Vec<String>,
+        /// A 1-D array (else a scalar).
+        array: bool,
+        /// Fixed- or variable-length, ASCII or UTF-8.
+        kind: StrKind,
+    },
+}
+
+/// How an [`Attr::Strings`] is stored; h5py reads ASCII ones back as `bytes`, UTF-8 ones as
+/// `str` (variable-length) or `bytes` (fixed-length). The bytes are written as given: an ASCII
+/// string's are not checked, as libhdf5 does not check them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StrKind {
+    /// Fixed-length UTF-8, null-padded to the longest value (at least one byte).
+    FixedUtf8,
+    /// Fixed-length ASCII, null-padded to the longest value (at least one byte).
+    FixedAscii,
+    /// Variable-length UTF-8 (bytes in the global heap).
+    VarUtf8,
+    /// Variable-length ASCII (bytes in the global heap).
+    VarAscii,
+}
+
+/// The numbers of an [`Attr::Numbers`], little-endian, and whether they are one scalar.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Numbers {
+    dtype: Dtype,
+    bytes: Vec<u8>,
+    /// `None` for a scalar, else the array's length.
+    len: Option<u64>,
+}
+
+impl Attr {
+    /// A scalar attribute of any [`Element`] type.
+    pub fn number<T: Element>(value: T) -> Attr {
+        let mut bytes = Vec::new();
+        T::put(&[value], &mut bytes);
+        Attr::Numbers(Numbers { dtype: T::DTYPE, bytes, len: None })
+    }
+    /// A 1-D array attribute of any [`Element`] type.
+    pub fn numbers<T: Element>(values: &[T]) -> Attr {
+        let mut bytes = Vec::new();
+        T::put(values, &mut bytes);
+        Attr::Numbers(Numbers { dtype: T::DTYPE, bytes, len: Some(values.len() as u64) })
+    }
+    /// One string, stored as `kind` says.
+    pub fn string(value: &str, kind: StrKind) -> Attr {
+        Attr::Strings { values: vec![value.to_string()], array: false, kind }
+    }
+    /// A 1-D array of strings, stored as `kind` says.
+    pub fn strings(values: Vec<String>, kind: StrKind) -> Attr {
+        Attr::Strings { values, array: true, kind }
+    }
 }
 
 /// A dataset's element type; [`Element`] maps Rust numbers onto it.
 #[doc(hidden)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Dtype {
-    U8,
+    I8,
+    I16,
+    I32,
     I64,
+    U8,
+    U16,
+    U32,
+    U64,
     F32,
     F64,
     /// Fixed-length ASCII, null-padded, of this many bytes.
     Ascii(u32),
 }
 
-/// A number a dataset can hold (`u8`, `i64`, `f32`, `f64`), written little-endian.
+/// A number a dataset or an attribute can hold (the signed and unsigned integers of 8 to 64
+/// bits, `f32`, `f64`), written little-endian.
 pub trait Element: Copy + sealed::Sealed {
     #[doc(hidden)]
     const DTYPE: Dtype;
@@ -99,8 +168,14 @@ pub trait Element: Copy + sealed::Sealed {
 
 mod sealed {
     pub trait Sealed {}
-    impl Sealed for u8 {}
+    impl Sealed for i8 {}
+    impl Sealed for i16 {}
+    impl Sealed for i32 {}
     impl Sealed for i64 {}
+    impl Sealed for u8 {}
+    impl Sealed for u16 {}
+    impl Sealed for u32 {}
+    impl Sealed for u64 {}
     impl Sealed for f32 {}
     impl Sealed for f64 {}
 }
@@ -118,10 +193,19 @@ macro_rules! element {
         }
     };
 }
-element!(u8, Dtype::U8);
+element!(i8, Dtype::I8);
+element!(i16, Dtype::I16);
+element!(i32, Dtype::I32);
 element!(i64, Dtype::I64);
+element!(u8, Dtype::U8);
+element!(u16, Dtype::U16);
+element!(u32, Dtype::U32);
+element!(u64, Dtype::U64);
 element!(f32, Dtype::F32);
 element!(f64, Dtype::F64);
+
+/// Values converted to bytes at a time by [`DatasetWriter::write`] (512 KiB of `f64`).
+const WRITE_CHUNK: usize = 64 * 1024;
 
 /// A group being filled: its children's links and its attributes, written by [`Writer::group`].
 #[derive(Debug, Default)]
@@ -181,12 +265,27 @@ impl Writer {
     /// product) and returns its object header's address.
     pub fn dataset<T: Element>(&mut self, shape: &[u64], values: &[T]) -> io::Result<u64> {
         check_count(shape, values.len())?;
-        let mut bytes = std::mem::take(&mut self.scratch);
-        bytes.clear();
-        T::put(values, &mut bytes);
-        let r = self.dataset_bytes(shape, T::DTYPE, &bytes);
-        self.scratch = bytes;
-        r
+        let mut d = self.stream::<T>(shape)?;
+        d.write(values)?;
+        d.finish()
+    }
+
+    /// Starts a dataset of `shape` whose values (row-major) are given a slice at a time
+    /// ([`DatasetWriter::write`]): each slice goes to the file as it comes, so memory holds a
+    /// slice, not the dataset. Nothing else is written until it is finished (it borrows the
+    /// writer); dropped unfinished, its bytes stay in the file, linked from nowhere.
+    pub fn stream<T: Element>(&mut self, shape: &[u64]) -> io::Result<DatasetWriter<'_, T>> {
+        let want = check_shape(shape)?;
+        let data_at = self.eof;
+        Ok(DatasetWriter {
+            w: self,
+            shape: shape.to_vec(),
+            want,
+            written: 0,
+            data_at,
+            attrs: Vec::new(),
+            _element: std::marker::PhantomData,
+        })
     }
 
     /// Writes a 1-D dataset of fixed-length ASCII strings as wide as the longest (at least
@@ -201,12 +300,19 @@ impl Writer {
             slot[..s.len()].copy_from_slice(s.as_bytes());
         }
         let width = u32::try_from(width).map_err(|_| invalid("a string of 4 GiB".into()))?;
-        self.dataset_bytes(&[values.len() as u64], Dtype::Ascii(width), &bytes)
+        let data_at = if bytes.is_empty() { UNDEFINED } else { self.append(&bytes)? };
+        self.dataset_header(&[values.len() as u64], Dtype::Ascii(width), data_at, bytes.len() as u64, &[])
     }
 
-    fn dataset_bytes(&mut self, shape: &[u64], dtype: Dtype, bytes: &[u8]) -> io::Result<u64> {
-        // Contiguous data first, then the header that points at it.
-        let data_at = if bytes.is_empty() { UNDEFINED } else { self.append(bytes)? };
+    /// A dataset's object header, after its contiguous data (`len` bytes at `data_at`).
+    fn dataset_header(
+        &mut self,
+        shape: &[u64],
+        dtype: Dtype,
+        data_at: u64,
+        len: u64,
+        attrs: &[(String, Attr)],
+    ) -> io::Result<u64> {
         let mut h = Header::default();
         h.message(MSG_DATASPACE, &dataspace(shape))?;
         h.message(MSG_DATATYPE, &datatype(dtype))?;
@@ -215,10 +321,20 @@ impl Writer {
         h.message(MSG_FILL_VALUE, &[3, 0x02 | (2 << 2)])?;
         let mut layout = vec![3, 1];
         layout.extend_from_slice(&data_at.to_le_bytes());
-        layout.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+        layout.extend_from_slice(&len.to_le_bytes());
         h.message(MSG_LAYOUT, &layout)?;
+        self.attributes(&mut h, attrs)?;
         let header = h.finish()?;
         self.append(&header)
+    }
+
+    /// The Attribute messages of an object (names checked unique, as a group's links are).
+    fn attributes(&mut self, h: &mut Header, attrs: &[(String, Attr)]) -> io::Result<()> {
+        for (name, value) in attrs {
+            let a = self.attribute(name, value)?;
+            h.message(MSG_ATTRIBUTE, &a)?;
+        }
+        Ok(())
     }
 
     /// Writes a group's object header (its children are already written) and returns its
@@ -251,34 +367,57 @@ impl Writer {
         for (name, address) in &g.links {
             h.message(MSG_LINK, &link(name, *address)?)?;
         }
-        for (name, value) in &g.attrs {
-            let a = self.attribute(name, value)?;
-            h.message(MSG_ATTRIBUTE, &a)?;
-        }
+        self.attributes(&mut h, &g.attrs)?;
         let header = h.finish()?;
         self.append(&header)
     }
 
-    /// An Attribute message (version 3, scalar); a string's bytes go to the global heap.
+    /// An Attribute message (version 3), scalar or 1-D; a variable-length string's bytes go to
+    /// the global heap.
     fn attribute(&mut self, name: &str, value: &Attr) -> io::Result<Vec<u8>> {
         if name.is_empty() || name.contains('\0') {
             return Err(invalid(format!("attribute name {name:?}")));
         }
-        let (dtype, data): (Vec<u8>, Vec<u8>) = match value {
-            Attr::I64(v) => (datatype(Dtype::I64), v.to_le_bytes().to_vec()),
-            Attr::F64(v) => (datatype(Dtype::F64), v.to_le_bytes().to_vec()),
+        let (dtype, space, data): (Vec<u8>, Vec<u8>, Vec<u8>) = match value {
+            Attr::I64(v) => (datatype(Dtype::I64), dataspace(&[]), v.to_le_bytes().to_vec()),
+            Attr::F64(v) => (datatype(Dtype::F64), dataspace(&[]), v.to_le_bytes().to_vec()),
             Attr::Str(s) => {
-                let len =
-                    u32::try_from(s.len()).map_err(|_| invalid(format!("attribute {name} of 4 GiB")))?;
-                let (collection, index) = self.heap_object(s.as_bytes())?;
-                let mut d = Vec::with_capacity(16);
-                d.extend_from_slice(&len.to_le_bytes());
-                d.extend_from_slice(&collection.to_le_bytes());
-                d.extend_from_slice(&index.to_le_bytes());
-                (vlen_utf8_string(), d)
+                (vlen_string(true), dataspace(&[]), self.vlen_refs(name, std::slice::from_ref(s))?)
+            }
+            Attr::Numbers(n) => {
+                let space = match n.len {
+                    None => dataspace(&[]),
+                    Some(len) => dataspace(&[len]),
+                };
+                (datatype(n.dtype), space, n.bytes.clone())
+            }
+            Attr::Strings { values, array, kind } => {
+                let space = if *array {
+                    dataspace(&[values.len() as u64])
+                } else if values.len() == 1 {
+                    dataspace(&[])
+                } else {
+                    return Err(invalid(format!("attribute {name}: {} strings for a scalar", values.len())));
+                };
+                match kind {
+                    StrKind::FixedUtf8 | StrKind::FixedAscii => {
+                        let ascii = *kind == StrKind::FixedAscii;
+                        let width = values.iter().map(|s| s.len()).max().unwrap_or(0).max(1);
+                        let mut bytes = vec![0u8; width * values.len()];
+                        for (slot, s) in bytes.chunks_mut(width).zip(values) {
+                            slot[..s.len()].copy_from_slice(s.as_bytes());
+                        }
+                        let width = u32::try_from(width)
+                            .map_err(|_| invalid(format!("attribute {name} of 4 GiB")))?;
+                        (fixed_string(width, !ascii), space, bytes)
+                    }
+                    StrKind::VarUtf8 | StrKind::VarAscii => {
+                        let utf8 = *kind == StrKind::VarUtf8;
+                        (vlen_string(utf8), space, self.vlen_refs(name, values)?)
+                    }
+                }
             }
         };
-        let space = dataspace(&[]);
         let name_len = u16::try_from(name.len() + 1)
             .map_err(|_| invalid(format!("attribute name of {} bytes", name.len())))?;
         let mut a = vec![3, 0];
@@ -292,6 +431,19 @@ impl Writer {
         a.extend_from_slice(&space);
         a.extend_from_slice(&data);
         Ok(a)
+    }
+
+    /// Each string as a global heap object, and the references to them (16 bytes each).
+    fn vlen_refs(&mut self, name: &str, values: &[String]) -> io::Result<Vec<u8>> {
+        let mut d = Vec::with_capacity(16 * values.len());
+        for s in values {
+            let len = u32::try_from(s.len()).map_err(|_| invalid(format!("attribute {name} of 4 GiB")))?;
+            let (collection, index) = self.heap_object(s.as_bytes())?;
+            d.extend_from_slice(&len.to_le_bytes());
+            d.extend_from_slice(&collection.to_le_bytes());
+            d.extend_from_slice(&index.to_le_bytes());
+        }
+        Ok(d)
     }
 
     /// Stores `bytes` as a global heap object and returns (collection address, index).
@@ -371,16 +523,85 @@ fn invalid(msg: String) -> io::Error {
     io::Error::new(io::ErrorKind::InvalidInput, msg)
 }
 
-fn check_count(shape: &[u64], count: usize) -> io::Result<()> {
+/// The number of values a dataset of `shape` holds (HDF5's rank is at most 32).
+fn check_shape(shape: &[u64]) -> io::Result<u64> {
     // HDF5's largest rank (H5S_MAX_RANK).
     if shape.len() > 32 {
         return Err(invalid(format!("a dataset of rank {} (at most 32)", shape.len())));
     }
-    let want = shape.iter().try_fold(1u64, |a, &d| a.checked_mul(d));
-    if want != Some(count as u64) {
+    shape
+        .iter()
+        .try_fold(1u64, |a, &d| a.checked_mul(d))
+        .ok_or_else(|| invalid(format!("a dataset of shape {shape:?} holds more than 2^64 values")))
+}
+
+fn check_count(shape: &[u64], count: usize) -> io::Result<()> {
+    if check_shape(shape)? != count as u64 {
         return Err(invalid(format!("{count} values do not fill a dataset of shape {shape:?}")));
     }
     Ok(())
+}
+
+/// A dataset being written a slice at a time ([`Writer::stream`]): its values go to the file as
+/// they are given, its header (with its attributes) when it is [finished](Self::finish).
+pub struct DatasetWriter<'w, T: Element> {
+    w: &'w mut Writer,
+    shape: Vec<u64>,
+    /// The values the shape holds, and those written so far.
+    want: u64,
+    written: u64,
+    data_at: u64,
+    attrs: Vec<(String, Attr)>,
+    _element: std::marker::PhantomData<T>,
+}
+
+impl<T: Element> DatasetWriter<'_, T> {
+    /// Writes the next values (row-major); more than the shape holds is refused.
+    pub fn write(&mut self, values: &[T]) -> io::Result<()> {
+        if self.written + values.len() as u64 > self.want {
+            return Err(invalid(format!(
+                "{} values do not fit a dataset of shape {:?}",
+                self.written + values.len() as u64,
+                self.shape
+            )));
+        }
+        let mut bytes = std::mem::take(&mut self.w.scratch);
+        let mut r = Ok(());
+        for chunk in values.chunks(WRITE_CHUNK) {
+            bytes.clear();
+            T::put(chunk, &mut bytes);
+            r = self.w.append(&bytes).map(|_| ());
+            if r.is_err() {
+                break;
+            }
+        }
+        self.w.scratch = bytes;
+        r?;
+        self.written += values.len() as u64;
+        Ok(())
+    }
+
+    /// Sets an attribute of the dataset (a second value under the same name replaces the first).
+    pub fn attr(&mut self, name: &str, value: Attr) {
+        match self.attrs.iter_mut().find(|(n, _)| n == name) {
+            Some(slot) => slot.1 = value,
+            None => self.attrs.push((name.to_string(), value)),
+        }
+    }
+
+    /// Writes the dataset's header and returns its address; refused when fewer values were
+    /// written than the shape holds.
+    pub fn finish(self) -> io::Result<u64> {
+        if self.written != self.want {
+            return Err(invalid(format!(
+                "{} values do not fill a dataset of shape {:?}",
+                self.written, self.shape
+            )));
+        }
+        let len = self.want * std::mem::size_of::<T>() as u64;
+        let data_at = if len == 0 { UNDEFINED } else { self.data_at };
+        self.w.dataset_header(&self.shape, T::DTYPE, data_at, len, &self.attrs)
+    }
 }
 
 /// A version 2 object header being assembled: its messages, then the checksummed whole.
@@ -428,17 +649,25 @@ fn dataspace(shape: &[u64]) -> Vec<u8> {
 /// A Datatype message (version 1 encodings).
 fn datatype(t: Dtype) -> Vec<u8> {
     match t {
-        Dtype::U8 => fixed_point(1, false),
+        Dtype::I8 => fixed_point(1, true),
+        Dtype::I16 => fixed_point(2, true),
+        Dtype::I32 => fixed_point(4, true),
         Dtype::I64 => fixed_point(8, true),
+        Dtype::U8 => fixed_point(1, false),
+        Dtype::U16 => fixed_point(2, false),
+        Dtype::U32 => fixed_point(4, false),
+        Dtype::U64 => fixed_point(8, false),
         Dtype::F32 => floating_point(4, 31, 23, 8, 23, 127),
         Dtype::F64 => floating_point(8, 63, 52, 11, 52, 1023),
-        // Class 3, null-padded (1), ASCII.
-        Dtype::Ascii(width) => {
-            let mut d = vec![0x13, 0x01, 0, 0];
-            d.extend_from_slice(&width.to_le_bytes());
-            d
-        }
+        Dtype::Ascii(width) => fixed_string(width, false),
     }
+}
+
+/// Class 3: a fixed-length string of `width` bytes, null-padded (1), ASCII or UTF-8.
+fn fixed_string(width: u32, utf8: bool) -> Vec<u8> {
+    let mut d = vec![0x13, 0x01 | (u8::from(utf8) << 4), 0, 0];
+    d.extend_from_slice(&width.to_le_bytes());
+    d
 }
 
 /// Class 0: little-endian, zero-padded, signed or not; bit offset 0, full precision.
@@ -461,9 +690,10 @@ fn floating_point(size: u32, sign: u8, exp_at: u8, exp_bits: u8, mantissa_bits: 
     d
 }
 
-/// Class 9: a variable-length null-terminated UTF-8 string of unsigned bytes (h5py's `str`).
-fn vlen_utf8_string() -> Vec<u8> {
-    let mut d = vec![0x19, 0x01, 0x01, 0];
+/// Class 9: a variable-length null-terminated string of unsigned bytes, UTF-8 (h5py's `str`) or
+/// ASCII (h5py's `bytes`).
+fn vlen_string(utf8: bool) -> Vec<u8> {
+    let mut d = vec![0x19, 0x01, u8::from(utf8), 0];
     d.extend_from_slice(&16u32.to_le_bytes());
     d.extend_from_slice(&fixed_point(1, false));
     d
@@ -642,5 +872,19 @@ mod tests {
         g.link("actions", at);
         g.link("actions", at);
         assert!(w.group(g).unwrap_err().to_string().contains("two links named \"actions\""));
+        // A streamed dataset takes exactly its shape's values, and a scalar attribute one string.
+        let mut d = w.stream::<i16>(&[2, 2]).unwrap();
+        d.write(&[1, 2, 3]).unwrap();
+        let err = d.write(&[4, 5]).unwrap_err();
+        assert!(err.to_string().contains("5 values do not fit a dataset of shape [2, 2]"), "{err}");
+        let err = d.finish().unwrap_err();
+        assert!(err.to_string().contains("3 values do not fill"), "{err}");
+        let mut d = w.stream::<u8>(&[1]).unwrap();
+        d.write(&[1]).unwrap();
+        d.attr(
+            "two",
+            Attr::Strings { values: vec!["a".into(), "b".into()], array: false, kind: StrKind::VarUtf8 },
+        );
+        assert!(d.finish().unwrap_err().to_string().contains("2 strings for a scalar"));
     }
 }
