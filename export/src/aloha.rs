@@ -1,5 +1,5 @@
-//! ALOHA / ACT episodes: a folder with one `episode_<i>.hdf5` per episode, written with
-//! `hdf5-pure` as ALOHA's recorders lay them out (`/observations/{qpos,qvel,effort}`,
+//! ALOHA / ACT episodes: a folder with one `episode_<i>.hdf5` per episode, written front to back
+//! by `h5stream` as ALOHA's recorders lay them out (`/observations/{qpos,qvel,effort}`,
 //! `/observations/images/<camera>`, `/action`, `/compress_len`, root attributes `sim`,
 //! `compress`, `success`).
 //!
@@ -11,16 +11,21 @@
 //! cameras as their JPEG bytes padded to the source's row length (the source's non-zero padding
 //! where ingest kept it), `compress_len` as it was, small datasets from the manifest. The
 //! version's frozen label is the `success` attribute (in the source's type when it had one).
-//! Boolean attributes are written as int8 0/1 (`hdf5-pure` writes no enumerated attribute type; h5py reads them as
-//! `np.int8`, which compares equal to the bool).
+//! Boolean attributes are written as int8 0/1 (no enumerated attribute type is written; h5py
+//! reads them as `np.int8`, which compares equal to the bool).
 //!
 //! Other episodes get ALOHA's layout from the store's columns: `obs.<key>` as
 //! `/observations/<key>` (float32), `action`, PNG image columns and video cameras as raw
 //! cameras, JPEG ones as compressed cameras with `compress_len`, `sim` false.
 //!
 //! Episodes are read and written one at a time (an ALOHA episode with raw cameras is 0.5-2 GB),
-//! each file under the staged folder, renamed into place at the end; an episode's video cameras
-//! are fetched and decoded one after the other into that episode's file.
+//! each file under the staged folder, renamed into place at the end. An episode's file is planned
+//! from its steps and manifest (what each dataset is read from), then written a dataset at a
+//! time, each group after its children: float columns straight from their buffers, PNG cameras
+//! decoded a window of frames at a time (8 MiB), JPEG rows padded a window at a time (4 MiB),
+//! video cameras fetched and decoded one at a time as their dataset is written (one camera's
+//! frames in memory). Memory holds the episode's steps (PNG/JPEG bytes) and one window, not the
+//! file.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
@@ -30,15 +35,15 @@ use arrow::datatypes::{
     DataType, Float32Type, Float64Type, Int16Type, Int32Type, Int64Type, Int8Type, UInt16Type, UInt32Type,
     UInt64Type, UInt8Type,
 };
-use hdf5_pure::{AttrValue, DatasetBuilder, FileBuilder, GroupBuilder};
 use serde_json::Value;
 use store::steps::{IMAGE_PREFIX, OBS_PREFIX};
 use store::{EpisodeRecord, Store};
 
-use crate::cameras::{png_frames, Frames, VideoDecoder};
+use crate::cameras::{png_frames, video_cameras, VideoDecoder};
 use crate::{
     count_label, disk_size, EpisodeReader, ExportError, ExportReport, Progress, Result, Selected, Staged,
 };
+use h5stream::{Attr, Element, Group, StrKind, Writer};
 
 fn bad(e: &EpisodeRecord, what: impl std::fmt::Display) -> ExportError {
     ExportError::invalid(format!("episode {}: {what}", e.id))
@@ -73,22 +78,6 @@ impl Values {
             Values::U32(v) => v.len(),
             Values::U64(v) => v.len(),
         }
-    }
-
-    fn put(&self, d: &mut DatasetBuilder, shape: &[u64]) {
-        match self {
-            Values::F32(v) => d.with_f32_data(v),
-            Values::F64(v) => d.with_f64_data(v),
-            Values::I8(v) => d.with_i8_data(v),
-            Values::I16(v) => d.with_i16_data(v),
-            Values::I32(v) => d.with_i32_data(v),
-            Values::I64(v) => d.with_i64_data(v),
-            Values::U8(v) => d.with_u8_data(v),
-            Values::U16(v) => d.with_u16_data(v),
-            Values::U32(v) => d.with_u32_data(v),
-            Values::U64(v) => d.with_u64_data(v),
-        }
-        .with_shape(shape);
     }
 
     /// Values of a JSON list in the dtype named (the manifest's inline datasets).
@@ -167,15 +156,49 @@ impl Values {
     }
 }
 
-/// A dataset to write: name, values, shape, attributes.
-type DatasetSpec = (String, Values, Vec<u64>, Vec<(String, AttrValue)>);
+/// Frames decoded from PNG at a time: as many as fit this many bytes (at least one).
+const PNG_WINDOW_BYTES: usize = 8 << 20;
+/// JPEG rows padded at a time: as many as fit this many bytes (at least one).
+const JPEG_WINDOW_BYTES: usize = 4 << 20;
 
-/// The file being assembled: groups by path, each with its datasets and attributes.
+/// Where a dataset's values come from: read (decoded, padded) while the dataset is written.
+enum Source {
+    /// Values already in memory: the manifest's inline ones, `compress_len`, `intervention`.
+    Values(Values),
+    /// A fixed-size-list column, every row.
+    List(ArrayRef),
+    /// A PNG image column, decoded a window of frames at a time.
+    Png(String),
+    /// A JPEG image column as rows of `width` bytes: each frame, then its kept padding (the
+    /// `pad` column) or zeros.
+    Jpeg { column: String, pad: Option<String>, width: usize },
+    /// A video camera (`media.<camera>`), decoded when its dataset is written; left out when it
+    /// is not H.264 (the decoder warns).
+    Video(String),
+}
+
+/// A dataset to write: where its values come from, its shape (`None`: the frames' own, known
+/// once decoded) and attributes.
+struct Spec {
+    source: Source,
+    shape: Option<Vec<u64>>,
+    attrs: Vec<(String, Attr)>,
+}
+
+/// The file to write: groups by path, each with its datasets (not read yet) and attributes.
 #[derive(Default)]
 struct Node {
-    datasets: Vec<DatasetSpec>,
+    datasets: Vec<(String, Spec)>,
     groups: BTreeMap<String, Node>,
-    attrs: Vec<(String, AttrValue)>,
+    attrs: Vec<(String, Attr)>,
+}
+
+/// Sets `name` in `attrs`, replacing a value of the same name.
+fn set_attr(attrs: &mut Vec<(String, Attr)>, name: &str, value: Attr) {
+    match attrs.iter_mut().find(|(n, _)| n == name) {
+        Some(slot) => slot.1 = value,
+        None => attrs.push((name.to_string(), value)),
+    }
 }
 
 impl Node {
@@ -187,145 +210,128 @@ impl Node {
         n
     }
 
-    fn dataset(&mut self, path: &str, v: Values, shape: Vec<u64>) {
+    fn dataset(&mut self, path: &str, source: Source, shape: Option<Vec<u64>>) {
         let (parent, name) = path.rsplit_once('/').unwrap_or(("", path));
-        self.group(parent).datasets.push((name.to_string(), v, shape, Vec::new()));
+        self.group(parent).datasets.push((name.to_string(), Spec { source, shape, attrs: Vec::new() }));
     }
 
     /// Attributes of the object at `path` (a group, or a dataset already added).
-    fn set_attrs(&mut self, path: &str, attrs: Vec<(String, AttrValue)>) {
+    fn set_attrs(&mut self, path: &str, attrs: Vec<(String, Attr)>) {
         let (parent, name) = path.rsplit_once('/').unwrap_or(("", path));
         let g = self.group(parent);
         if let Some(d) = g.datasets.iter_mut().find(|d| d.0 == name) {
-            d.3.extend(attrs);
+            for (k, a) in attrs {
+                set_attr(&mut d.1.attrs, &k, a);
+            }
         } else {
-            self.group(path).attrs.extend(attrs);
+            let g = self.group(path);
+            for (k, a) in attrs {
+                set_attr(&mut g.attrs, &k, a);
+            }
         }
     }
 
-    fn emit_group(self, g: &mut GroupBuilder) {
-        for (name, v, shape, attrs) in self.datasets {
-            let d = g.create_dataset(&name);
-            v.put(d, &shape);
-            for (k, a) in attrs {
-                d.set_attr(&k, a);
-            }
+    /// The file in the order it is written: each group's datasets and groups before the group.
+    fn into_ops(self, name: String, ops: &mut Vec<Op>) {
+        ops.push(Op::Open(name.clone()));
+        for (dataset, spec) in self.datasets {
+            ops.push(Op::Dataset(dataset, spec));
         }
-        for (name, child) in self.groups {
-            let mut cg = g.create_group(&name);
-            child.emit_group(&mut cg);
-            g.add_group(cg.finish());
+        for (child, node) in self.groups {
+            node.into_ops(child, ops);
         }
-        for (k, a) in self.attrs {
-            g.set_attr(&k, a);
-        }
-    }
-
-    fn emit_file(self, fb: &mut FileBuilder) {
-        for (name, v, shape, attrs) in self.datasets {
-            let d = fb.create_dataset(&name);
-            v.put(d, &shape);
-            for (k, a) in attrs {
-                d.set_attr(&k, a);
-            }
-        }
-        for (name, child) in self.groups {
-            let mut g = fb.create_group(&name);
-            child.emit_group(&mut g);
-            fb.add_group(g.finish());
-        }
-        for (k, a) in self.attrs {
-            fb.set_attr(&k, a);
-        }
+        ops.push(Op::Close(name, self.attrs));
     }
 }
 
+/// One step of writing the file: open a group, write a dataset into the open group, close the
+/// open group (its attributes) and link it into its parent.
+enum Op {
+    Open(String),
+    Dataset(String, Spec),
+    Close(String, Vec<(String, Attr)>),
+}
+
 /// A manifest attribute (`{type, value}`) back as the value ingest read.
-fn attr_value(t: &Value) -> Option<AttrValue> {
+fn attr_value(t: &Value) -> Option<Attr> {
     let ty = t.get("type")?.as_str()?;
     let v = t.get("value")?;
     let strs =
         || -> Option<Vec<String>> { v.as_array()?.iter().map(|s| s.as_str().map(str::to_string)).collect() };
     macro_rules! arr {
-        ($var:ident, $f:expr) => {
-            AttrValue::$var(v.as_array()?.iter().map($f).collect::<Option<Vec<_>>>()?)
+        ($f:expr) => {
+            Attr::numbers(&v.as_array()?.iter().map($f).collect::<Option<Vec<_>>>()?)
         };
     }
     Some(match ty {
-        "bool" => AttrValue::I8(v.as_bool()? as i8),
-        "bool[]" => arr!(I8Array, |x: &Value| x.as_bool().map(|b| b as i8)),
-        "f32" => AttrValue::F32(v.as_f64()? as f32),
-        "f64" => AttrValue::F64(v.as_f64()?),
-        "i8" => AttrValue::I8(i8::try_from(v.as_i64()?).ok()?),
-        "i16" => AttrValue::I16(i16::try_from(v.as_i64()?).ok()?),
-        "i32" => AttrValue::I32(i32::try_from(v.as_i64()?).ok()?),
-        "i64" => AttrValue::I64(v.as_i64()?),
-        "u8" => AttrValue::U8(u8::try_from(v.as_u64()?).ok()?),
-        "u16" => AttrValue::U16(u16::try_from(v.as_u64()?).ok()?),
-        "u32" => AttrValue::U32(u32::try_from(v.as_u64()?).ok()?),
-        "u64" => AttrValue::U64(v.as_u64()?),
-        "f32[]" => arr!(F32Array, |x: &Value| x.as_f64().map(|f| f as f32)),
-        "f64[]" => arr!(F64Array, Value::as_f64),
-        "i8[]" => arr!(I8Array, |x: &Value| x.as_i64().and_then(|i| i8::try_from(i).ok())),
-        "i16[]" => arr!(I16Array, |x: &Value| x.as_i64().and_then(|i| i16::try_from(i).ok())),
-        "i32[]" => arr!(I32Array, |x: &Value| x.as_i64().and_then(|i| i32::try_from(i).ok())),
-        "i64[]" => arr!(I64Array, Value::as_i64),
-        "u8[]" => arr!(U8Array, |x: &Value| x.as_u64().and_then(|i| u8::try_from(i).ok())),
-        "u16[]" => arr!(U16Array, |x: &Value| x.as_u64().and_then(|i| u16::try_from(i).ok())),
-        "u32[]" => arr!(U32Array, |x: &Value| x.as_u64().and_then(|i| u32::try_from(i).ok())),
-        "u64[]" => arr!(U64Array, Value::as_u64),
-        "str" => AttrValue::String(v.as_str()?.to_string()),
-        "ascii" => AttrValue::AsciiString(v.as_str()?.to_string()),
-        "vlen_str" => AttrValue::VarLenString(v.as_str()?.to_string()),
-        "vlen_ascii" => AttrValue::VarLenAsciiString(v.as_str()?.to_string()),
-        "str[]" => AttrValue::StringArray(strs()?),
-        "ascii[]" => AttrValue::AsciiStringArray(strs()?),
-        "vlen_str[]" => AttrValue::VarLenStringArray(strs()?),
-        "vlen_ascii[]" => AttrValue::VarLenAsciiStringArray(strs()?),
+        "bool" => Attr::number(v.as_bool()? as i8),
+        "bool[]" => arr!(|x: &Value| x.as_bool().map(|b| b as i8)),
+        "f32" => Attr::number(v.as_f64()? as f32),
+        "f64" => Attr::number(v.as_f64()?),
+        "i8" => Attr::number(i8::try_from(v.as_i64()?).ok()?),
+        "i16" => Attr::number(i16::try_from(v.as_i64()?).ok()?),
+        "i32" => Attr::number(i32::try_from(v.as_i64()?).ok()?),
+        "i64" => Attr::number(v.as_i64()?),
+        "u8" => Attr::number(u8::try_from(v.as_u64()?).ok()?),
+        "u16" => Attr::number(u16::try_from(v.as_u64()?).ok()?),
+        "u32" => Attr::number(u32::try_from(v.as_u64()?).ok()?),
+        "u64" => Attr::number(v.as_u64()?),
+        "f32[]" => arr!(|x: &Value| x.as_f64().map(|f| f as f32)),
+        "f64[]" => arr!(Value::as_f64),
+        "i8[]" => arr!(|x: &Value| x.as_i64().and_then(|i| i8::try_from(i).ok())),
+        "i16[]" => arr!(|x: &Value| x.as_i64().and_then(|i| i16::try_from(i).ok())),
+        "i32[]" => arr!(|x: &Value| x.as_i64().and_then(|i| i32::try_from(i).ok())),
+        "i64[]" => arr!(Value::as_i64),
+        "u8[]" => arr!(|x: &Value| x.as_u64().and_then(|i| u8::try_from(i).ok())),
+        "u16[]" => arr!(|x: &Value| x.as_u64().and_then(|i| u16::try_from(i).ok())),
+        "u32[]" => arr!(|x: &Value| x.as_u64().and_then(|i| u32::try_from(i).ok())),
+        "u64[]" => arr!(Value::as_u64),
+        "str" => Attr::string(v.as_str()?, StrKind::FixedUtf8),
+        "ascii" => Attr::string(v.as_str()?, StrKind::FixedAscii),
+        "vlen_str" => Attr::string(v.as_str()?, StrKind::VarUtf8),
+        "vlen_ascii" => Attr::string(v.as_str()?, StrKind::VarAscii),
+        "str[]" => Attr::strings(strs()?, StrKind::FixedUtf8),
+        "ascii[]" => Attr::strings(strs()?, StrKind::FixedAscii),
+        "vlen_str[]" => Attr::strings(strs()?, StrKind::VarUtf8),
+        "vlen_ascii[]" => Attr::strings(strs()?, StrKind::VarAscii),
         _ => return None,
     })
 }
 
-/// A JPEG image column as `(T, padded)` rows: each frame, then its kept padding or zeros.
-fn padded_rows(
-    e: &EpisodeRecord,
-    name: &str,
-    col: &ArrayRef,
-    pad: Option<&ArrayRef>,
-    padded: Option<usize>,
-) -> Result<(Vec<u8>, Vec<u64>, Vec<usize>)> {
+/// The byte lengths of a JPEG image column's frames.
+fn jpeg_lens(e: &EpisodeRecord, name: &str, col: &ArrayRef) -> Result<Vec<usize>> {
     let bin = col.as_binary_opt::<i32>().ok_or_else(|| bad(e, format!("{name} is not a binary column")))?;
-    let pad = pad.and_then(|p| p.as_binary_opt::<i32>());
-    let lens: Vec<usize> = (0..bin.len()).map(|r| bin.value(r).len()).collect();
-    let width = padded.unwrap_or_else(|| lens.iter().copied().max().unwrap_or(0));
-    let mut out = vec![0u8; width * bin.len()];
-    for r in 0..bin.len() {
-        let f = bin.value(r);
-        let tail = pad.filter(|p| p.is_valid(r)).map(|p| p.value(r)).unwrap_or(&[]);
-        if f.len() + tail.len() > width {
-            return Err(bad(
-                e,
-                format!("{name} row {r}: {} bytes do not fit rows of {width}", f.len() + tail.len()),
-            ));
-        }
-        let row = &mut out[r * width..(r + 1) * width];
-        row[..f.len()].copy_from_slice(f);
-        row[f.len()..f.len() + tail.len()].copy_from_slice(tail);
-    }
-    Ok((out, vec![bin.len() as u64, width as u64], lens))
+    Ok((0..bin.len()).map(|r| bin.value(r).len()).collect())
 }
 
-/// Builds one episode file from its steps, its video cameras' frames (decoded by the caller)
-/// and the manifest of an ALOHA source.
+/// The item count of a fixed-size-list column of numbers (what [`Values::from_list`] takes).
+fn list_dim(col: &ArrayRef) -> Option<usize> {
+    let l = col.as_fixed_size_list_opt()?;
+    let numbers = matches!(
+        l.value_type(),
+        DataType::Float32
+            | DataType::Float64
+            | DataType::Int8
+            | DataType::Int16
+            | DataType::Int32
+            | DataType::Int64
+            | DataType::UInt8
+            | DataType::UInt16
+            | DataType::UInt32
+            | DataType::UInt64
+    );
+    numbers.then_some(l.value_length() as usize)
+}
+
+/// Plans one episode file from its steps and the manifest of an ALOHA source.
 fn episode_file(
     e: &EpisodeRecord,
     steps: &RecordBatch,
-    videos: BTreeMap<String, Frames>,
     manifest: Option<&Value>,
 ) -> Result<(Node, Vec<String>)> {
     match manifest {
-        Some(m) => episode_from_manifest(e, steps, videos, m),
-        None => Ok((episode_from_columns(e, steps, videos)?, Vec::new())),
+        Some(m) => episode_from_manifest(e, steps, m),
+        None => Ok((episode_from_columns(e, steps)?, Vec::new())),
     }
 }
 
@@ -335,54 +341,54 @@ fn need<'a>(e: &EpisodeRecord, steps: &'a RecordBatch, name: &str) -> Result<&'a
 }
 
 /// ALOHA's layout from the store's columns (an episode whose source was not ALOHA).
-fn episode_from_columns(
-    e: &EpisodeRecord,
-    steps: &RecordBatch,
-    videos: BTreeMap<String, Frames>,
-) -> Result<Node> {
+fn episode_from_columns(e: &EpisodeRecord, steps: &RecordBatch) -> Result<Node> {
     let t = steps.num_rows();
     let mut root = Node::default();
     let schema = steps.schema();
-    let mut jpeg: Vec<(String, ArrayRef)> = Vec::new();
+    let mut jpeg: Vec<(String, String)> = Vec::new();
     for f in schema.fields() {
         let c = need(e, steps, f.name())?;
         if let Some(k) = f.name().strip_prefix(OBS_PREFIX) {
-            let (d, v) =
-                Values::from_list(c).ok_or_else(|| bad(e, format!("{} is not a list column", f.name())))?;
-            root.dataset(&format!("/observations/{k}"), v, vec![t as u64, d as u64]);
+            let d = list_dim(c).ok_or_else(|| bad(e, format!("{} is not a list column", f.name())))?;
+            root.dataset(
+                &format!("/observations/{k}"),
+                Source::List(c.clone()),
+                Some(vec![t as u64, d as u64]),
+            );
         } else if f.name() == store::steps::INTERVENTION_COLUMN {
             // Human takeovers, where ingest reads them back (`/intervention`, 0/1).
             let flags = c.as_boolean_opt().ok_or_else(|| bad(e, "intervention is not a boolean column"))?;
             let flags: Vec<u8> = flags.iter().map(|b| (b == Some(true)) as u8).collect();
-            root.dataset("/intervention", Values::U8(flags), vec![t as u64]);
+            root.dataset("/intervention", Source::Values(Values::U8(flags)), Some(vec![t as u64]));
         } else if let Some(k) = f.name().strip_prefix(IMAGE_PREFIX) {
             if f.metadata().get("ufops.encoding").is_some_and(|x| x == "jpeg") {
-                jpeg.push((k.to_string(), c.clone()));
+                jpeg.push((k.to_string(), f.name().clone()));
             } else {
-                let (v, dims) = png_frames(e, f.name(), c)?.into_dataset();
-                root.dataset(&format!("/observations/images/{k}"), Values::U8(v), dims);
+                root.dataset(&format!("/observations/images/{k}"), Source::Png(f.name().clone()), None);
             }
         }
     }
-    for (k, frames) in videos {
-        let (v, dims) = frames.into_dataset();
-        root.dataset(&format!("/observations/images/{k}"), Values::U8(v), dims);
+    for k in video_cameras(steps) {
+        root.dataset(&format!("/observations/images/{k}"), Source::Video(k.clone()), None);
     }
-    let (d, v) = Values::from_list(need(e, steps, "action")?)
-        .ok_or_else(|| bad(e, "has no actions: ALOHA needs one per step"))?;
-    root.dataset("/action", v, vec![t as u64, d as u64]);
+    let action = need(e, steps, "action")?;
+    let d = list_dim(action).ok_or_else(|| bad(e, "has no actions: ALOHA needs one per step"))?;
+    root.dataset("/action", Source::List(action.clone()), Some(vec![t as u64, d as u64]));
     root.group("/observations/images");
-    let mut attrs = vec![("sim".to_string(), AttrValue::I8(0))];
+    let mut attrs = vec![("sim".to_string(), Attr::number(0i8))];
     if !jpeg.is_empty() {
         jpeg.sort_by(|a, b| a.0.cmp(&b.0));
         let mut lens = Vec::new();
-        for (k, c) in &jpeg {
-            let (rows, shape, l) = padded_rows(e, k, c, None, None)?;
-            root.dataset(&format!("/observations/images/{k}"), Values::U8(rows), shape);
+        for (k, column) in &jpeg {
+            let l = jpeg_lens(e, k, need(e, steps, column)?)?;
+            let width = l.iter().copied().max().unwrap_or(0);
+            let source = Source::Jpeg { column: column.clone(), pad: None, width };
+            root.dataset(&format!("/observations/images/{k}"), source, Some(vec![t as u64, width as u64]));
             lens.extend(l.into_iter().map(|x| x as f32));
         }
-        root.dataset("/compress_len", Values::F32(lens), vec![jpeg.len() as u64, t as u64]);
-        attrs.push(("compress".to_string(), AttrValue::I8(1)));
+        let shape = vec![jpeg.len() as u64, t as u64];
+        root.dataset("/compress_len", Source::Values(Values::F32(lens)), Some(shape));
+        attrs.push(("compress".to_string(), Attr::number(1i8)));
     }
     root.set_attrs("/", attrs);
     Ok(root)
@@ -390,12 +396,7 @@ fn episode_from_columns(
 
 /// The ALOHA source's file as its manifest describes it: groups, datasets and attributes, with
 /// warnings for what could not be written back.
-fn episode_from_manifest(
-    e: &EpisodeRecord,
-    steps: &RecordBatch,
-    mut videos: BTreeMap<String, Frames>,
-    m: &Value,
-) -> Result<(Node, Vec<String>)> {
+fn episode_from_manifest(e: &EpisodeRecord, steps: &RecordBatch, m: &Value) -> Result<(Node, Vec<String>)> {
     let mut root = Node::default();
     let mut warnings = Vec::new();
     for g in m.get("groups").and_then(Value::as_array).into_iter().flatten() {
@@ -404,8 +405,8 @@ fn episode_from_manifest(
         }
     }
     for d in m.get("datasets").and_then(Value::as_array).into_iter().flatten() {
-        if let Some((path, values, shape)) = manifest_dataset(e, steps, &mut videos, d, &mut warnings)? {
-            root.dataset(path, values, shape);
+        if let Some((path, source, shape)) = manifest_dataset(e, steps, d, &mut warnings)? {
+            root.dataset(path, source, Some(shape));
         }
     }
     for (p, a) in m.get("attrs").and_then(Value::as_object).into_iter().flatten() {
@@ -423,16 +424,14 @@ fn episode_from_manifest(
     Ok((root, warnings))
 }
 
-/// One dataset of the manifest as (path, values, shape): its inline values, or its column's
-/// checked against the source's shape; `None` (and a warning) when it was not ingested, `None`
-/// for a camera stored as a video that was not decoded (the caller warns about those).
+/// One dataset of the manifest as (path, source, shape): its inline values, or its column's
+/// checked against the source's shape; `None` (and a warning) when it was not ingested.
 fn manifest_dataset<'m>(
     e: &EpisodeRecord,
     steps: &RecordBatch,
-    videos: &mut BTreeMap<String, Frames>,
     d: &'m Value,
     warnings: &mut Vec<String>,
-) -> Result<Option<(&'m str, Values, Vec<u64>)>> {
+) -> Result<Option<(&'m str, Source, Vec<u64>)>> {
     let path =
         d.get("path").and_then(Value::as_str).ok_or_else(|| bad(e, "manifest: a dataset without a path"))?;
     let dtype = d.get("dtype").and_then(Value::as_str).unwrap_or("");
@@ -448,20 +447,24 @@ fn manifest_dataset<'m>(
     if let Some(v) = d.get("values") {
         let v = Values::from_json(dtype, v)
             .ok_or_else(|| bad(e, format!("manifest: {path} has values that are not {dtype}")))?;
-        return Ok(Some((path, v, shape)));
+        check_len(e, path, v.len() as u64, &shape)?;
+        return Ok(Some((path, Source::Values(v), shape)));
     }
-    let values = match video_camera(steps, d) {
-        Some(k) => match videos.remove(k) {
-            Some(frames) => Values::U8(frames.values),
-            None => return Ok(None),
-        },
-        None => column_values(e, steps, d, path, &shape)?,
+    // A video camera's frame count is checked once it is decoded.
+    let source = match video_camera(steps, d) {
+        Some(k) => Source::Video(k.to_string()),
+        None => column_source(e, steps, d, path, &shape)?,
     };
+    Ok(Some((path, source, shape)))
+}
+
+/// `n` values for the source's `shape`, or an error.
+fn check_len(e: &EpisodeRecord, path: &str, n: u64, shape: &[u64]) -> Result<()> {
     let expected: u64 = shape.iter().product();
-    if values.len() as u64 != expected {
-        return Err(bad(e, format!("{path}: {} values for the source's shape {shape:?}", values.len())));
+    if n != expected {
+        return Err(bad(e, format!("{path}: {n} values for the source's shape {shape:?}")));
     }
-    Ok(Some((path, values, shape)))
+    Ok(())
 }
 
 /// The camera a manifest dataset names (`image.<camera>`) when the steps hold it as a video
@@ -474,48 +477,48 @@ fn video_camera<'m>(steps: &RecordBatch, d: &'m Value) -> Option<&'m str> {
     .then_some(k)
 }
 
-/// A manifest dataset's values from the steps: a camera's frames (JPEG rows padded as the
-/// source's were, or raw frames), else a list column (the exact one when kept), transposed
-/// back where the source's was.
-fn column_values(
+/// Where a manifest dataset's values come from in the steps: a camera's frames (JPEG rows
+/// padded as the source's were, or raw frames), else a list column (the exact one when kept),
+/// transposed back where the source's was.
+fn column_source(
     e: &EpisodeRecord,
     steps: &RecordBatch,
     d: &Value,
     path: &str,
     shape: &[u64],
-) -> Result<Values> {
+) -> Result<Source> {
     let t = steps.num_rows();
-    let col = |name: &str| steps.column_by_name(name);
     let column = d.get("column").and_then(Value::as_str).unwrap_or("");
     let exact = d.get("exact_column").and_then(Value::as_str);
-    let values = if let Some(k) = column.strip_prefix(IMAGE_PREFIX) {
+    if let Some(k) = column.strip_prefix(IMAGE_PREFIX) {
         let c = need(e, steps, column)?;
         if d.get("encoding").and_then(Value::as_str) == Some("jpeg") {
-            let pad = d.get("pad_column").and_then(Value::as_str).and_then(col);
-            let width = shape.get(1).map(|&w| w as usize);
-            let (rows, s, _) = padded_rows(e, k, c, pad, width)?;
+            let pad =
+                d.get("pad_column").and_then(Value::as_str).filter(|p| steps.column_by_name(p).is_some());
+            let lens = jpeg_lens(e, k, c)?;
+            let width = match shape.get(1) {
+                Some(&w) => w as usize,
+                None => lens.iter().copied().max().unwrap_or(0),
+            };
+            let s = vec![lens.len() as u64, width as u64];
             if s != shape {
                 return Err(bad(e, format!("{path}: rows of shape {s:?}, the source's were {shape:?}")));
             }
-            Values::U8(rows)
-        } else {
-            let (v, s) = png_frames(e, column, c)?.into_dataset();
-            if s != shape {
-                return Err(bad(e, format!("{path}: frames of shape {s:?}, the source's were {shape:?}")));
-            }
-            Values::U8(v)
+            return Ok(Source::Jpeg { column: column.to_string(), pad: pad.map(str::to_string), width });
         }
+        // The frames' shape is checked against the source's as they are decoded.
+        return Ok(Source::Png(column.to_string()));
+    }
+    let name = exact.unwrap_or(column);
+    let c = need(e, steps, name)?;
+    let dim = list_dim(c).ok_or_else(|| bad(e, format!("{name} is not a list column")))?;
+    check_len(e, path, (c.len() * dim) as u64, shape)?;
+    if d.get("transposed").and_then(Value::as_bool) == Some(true) {
+        let (_, v) = Values::from_list(c).ok_or_else(|| bad(e, format!("{name} is not a list column")))?;
+        Ok(Source::Values(v.transposed(t, dim)))
     } else {
-        let name = exact.unwrap_or(column);
-        let c = need(e, steps, name)?;
-        let (dim, v) = Values::from_list(c).ok_or_else(|| bad(e, format!("{name} is not a list column")))?;
-        if d.get("transposed").and_then(Value::as_bool) == Some(true) {
-            v.transposed(t, dim)
-        } else {
-            v
-        }
-    };
-    Ok(values)
+        Ok(Source::List(c.clone()))
+    }
 }
 
 /// The label as the root attribute `success`, in the source's type when it had one.
@@ -525,36 +528,300 @@ fn success_attr(root: &mut Node, label: Option<bool>, manifest: Option<&Value>) 
         manifest.and_then(|m| m.pointer("/attrs/~1/success/type")).and_then(Value::as_str).unwrap_or("bool");
     let v = attr_value(&serde_json::json!({"type": ty, "value": if ty == "bool" { Value::Bool(ok) } else { Value::from(ok as u8) }}))
         .or_else(|| attr_value(&serde_json::json!({"type": ty, "value": ok as u8 as f64})))
-        .unwrap_or(AttrValue::I8(ok as i8));
+        .unwrap_or(Attr::number(ok as i8));
     root.attrs.retain(|(k, _)| k != "success");
     root.attrs.push(("success".into(), v));
 }
 
-/// Writes one episode's file at `path`, with the selection's label and curation attributes;
-/// returns what could not be written back.
-fn write_episode(
+/// The episode file being written, its final name (for errors), and what its video cameras are
+/// decoded with.
+struct Out<'a> {
+    w: Writer,
+    path: &'a Path,
+    store: &'a Store,
+    decoder: &'a mut VideoDecoder,
+}
+
+impl Out<'_> {
+    fn err(&self, name: &str, err: std::io::Error) -> ExportError {
+        ExportError::write(self.path, format!("{name}: {err}"))
+    }
+
+    /// Writes `values` as a whole dataset of `shape` with `attrs`.
+    fn put<T: Element>(
+        &mut self,
+        name: &str,
+        shape: &[u64],
+        values: &[T],
+        attrs: &[(String, Attr)],
+    ) -> Result<u64> {
+        let r = (|| {
+            let mut d = self.w.stream::<T>(shape)?;
+            d.write(values)?;
+            for (k, a) in attrs {
+                d.attr(k, a.clone());
+            }
+            d.finish()
+        })();
+        r.map_err(|err| self.err(name, err))
+    }
+
+    fn put_values(&mut self, name: &str, shape: &[u64], v: &Values, attrs: &[(String, Attr)]) -> Result<u64> {
+        match v {
+            Values::F32(v) => self.put(name, shape, v, attrs),
+            Values::F64(v) => self.put(name, shape, v, attrs),
+            Values::I8(v) => self.put(name, shape, v, attrs),
+            Values::I16(v) => self.put(name, shape, v, attrs),
+            Values::I32(v) => self.put(name, shape, v, attrs),
+            Values::I64(v) => self.put(name, shape, v, attrs),
+            Values::U8(v) => self.put(name, shape, v, attrs),
+            Values::U16(v) => self.put(name, shape, v, attrs),
+            Values::U32(v) => self.put(name, shape, v, attrs),
+            Values::U64(v) => self.put(name, shape, v, attrs),
+        }
+    }
+
+    /// A fixed-size-list column's rows, straight from its buffer.
+    fn put_list(
+        &mut self,
+        e: &EpisodeRecord,
+        name: &str,
+        shape: &[u64],
+        col: &ArrayRef,
+        attrs: &[(String, Attr)],
+    ) -> Result<u64> {
+        let l = col.as_fixed_size_list_opt().ok_or_else(|| bad(e, format!("{name} is not a list column")))?;
+        let d = l.value_length() as usize;
+        let (a, b) = (l.offset() * d, (l.offset() + l.len()) * d);
+        let v = l.values();
+        macro_rules! put {
+            ($t:ty) => {
+                self.put(name, shape, &v.as_primitive::<$t>().values()[a..b], attrs)
+            };
+        }
+        match l.value_type() {
+            DataType::Float32 => put!(Float32Type),
+            DataType::Float64 => put!(Float64Type),
+            DataType::Int8 => put!(Int8Type),
+            DataType::Int16 => put!(Int16Type),
+            DataType::Int32 => put!(Int32Type),
+            DataType::Int64 => put!(Int64Type),
+            DataType::UInt8 => put!(UInt8Type),
+            DataType::UInt16 => put!(UInt16Type),
+            DataType::UInt32 => put!(UInt32Type),
+            DataType::UInt64 => put!(UInt64Type),
+            _ => Err(bad(e, format!("{name} is not a list column"))),
+        }
+    }
+
+    /// A PNG image column's frames, decoded a window at a time; checked against `want` (the
+    /// source's shape) when given, else of their own shape.
+    fn put_png(
+        &mut self,
+        e: &EpisodeRecord,
+        name: &str,
+        column: &str,
+        col: &ArrayRef,
+        want: Option<&[u64]>,
+        attrs: &[(String, Attr)],
+    ) -> Result<u64> {
+        let t = col.len();
+        // The first frame gives the frame shape (and the window); none: `T x 0 x 0 x 0`.
+        let first = png_frames(e, column, &col.slice(0, t.min(1)))?;
+        let frame = first.shape;
+        let dims: Vec<u64> = std::iter::once(t as u64).chain(frame.iter().map(|&x| x as u64)).collect();
+        let dims = if t == 0 { vec![0; 4] } else { dims };
+        if let Some(want) = want.filter(|w| *w != dims) {
+            return Err(bad(e, format!("{name}: frames of shape {dims:?}, the source's were {want:?}")));
+        }
+        let window = (PNG_WINDOW_BYTES / frame.iter().product::<usize>().max(1)).max(1);
+        let path = self.path;
+        let werr = |err: std::io::Error| ExportError::write(path, format!("{name}: {err}"));
+        let mut d = self.w.stream::<u8>(&dims).map_err(werr)?;
+        d.write(&first.values).map_err(werr)?;
+        drop(first);
+        let mut r = t.min(1);
+        while r < t {
+            let n = window.min(t - r);
+            let f = png_frames(e, column, &col.slice(r, n))
+                .map_err(|err| ExportError::invalid(format!("{err} (rows counted from row {r})")))?;
+            if f.shape != frame {
+                return Err(bad(e, format!("{column}: frames of different sizes")));
+            }
+            d.write(&f.values).map_err(werr)?;
+            r += n;
+        }
+        for (k, a) in attrs {
+            d.attr(k, a.clone());
+        }
+        d.finish().map_err(werr)
+    }
+
+    /// A JPEG image column as `(T, width)` rows, a window of rows at a time: each frame, then
+    /// its kept padding (`pad`) or zeros.
+    fn put_jpeg(
+        &mut self,
+        e: &EpisodeRecord,
+        name: &str,
+        col: &ArrayRef,
+        pad: Option<&ArrayRef>,
+        width: usize,
+        attrs: &[(String, Attr)],
+    ) -> Result<u64> {
+        let bin =
+            col.as_binary_opt::<i32>().ok_or_else(|| bad(e, format!("{name} is not a binary column")))?;
+        let pad = pad.and_then(|p| p.as_binary_opt::<i32>());
+        let t = bin.len();
+        let path = self.path;
+        let werr = |err: std::io::Error| ExportError::write(path, format!("{name}: {err}"));
+        let mut d = self.w.stream::<u8>(&[t as u64, width as u64]).map_err(werr)?;
+        let window = (JPEG_WINDOW_BYTES / width.max(1)).clamp(1, t.max(1));
+        let mut rows = vec![0u8; window * width];
+        let mut r = 0;
+        while r < t {
+            let n = window.min(t - r);
+            let buf = &mut rows[..n * width];
+            buf.fill(0);
+            for k in 0..n {
+                let row = &mut buf[k * width..(k + 1) * width];
+                let f = bin.value(r + k);
+                let tail = pad.filter(|p| p.is_valid(r + k)).map(|p| p.value(r + k)).unwrap_or(&[]);
+                if f.len() + tail.len() > width {
+                    return Err(bad(
+                        e,
+                        format!(
+                            "{name} row {}: {} bytes do not fit rows of {width}",
+                            r + k,
+                            f.len() + tail.len()
+                        ),
+                    ));
+                }
+                row[..f.len()].copy_from_slice(f);
+                row[f.len()..f.len() + tail.len()].copy_from_slice(tail);
+            }
+            d.write(buf).map_err(werr)?;
+            r += n;
+        }
+        for (k, a) in attrs {
+            d.attr(k, a.clone());
+        }
+        d.finish().map_err(werr)
+    }
+
+    /// Writes one planned dataset; `None` when it is left out (a video that is not H.264).
+    async fn dataset(
+        &mut self,
+        e: &EpisodeRecord,
+        steps: &RecordBatch,
+        name: &str,
+        spec: Spec,
+    ) -> Result<Option<u64>> {
+        let Spec { source, shape, attrs } = spec;
+        let at = match source {
+            Source::Values(v) => {
+                let shape = shape.unwrap_or_else(|| vec![v.len() as u64]);
+                self.put_values(name, &shape, &v, &attrs)?
+            }
+            Source::List(col) => {
+                let shape = shape.ok_or_else(|| bad(e, format!("{name}: no shape")))?;
+                self.put_list(e, name, &shape, &col, &attrs)?
+            }
+            Source::Png(column) => {
+                let col = need(e, steps, &column)?.clone();
+                self.put_png(e, name, &column, &col, shape.as_deref(), &attrs)?
+            }
+            Source::Jpeg { column, pad, width } => {
+                let col = need(e, steps, &column)?.clone();
+                let pad = pad.and_then(|p| steps.column_by_name(&p).cloned());
+                let key = column.strip_prefix(IMAGE_PREFIX).unwrap_or(&column);
+                self.put_jpeg(e, key, &col, pad.as_ref(), width, &attrs)?
+            }
+            Source::Video(cam) => {
+                // This camera's columns alone: its video is decoded now, the others' later.
+                let schema = steps.schema();
+                let prefix = format!("{}{cam}.", store::steps::MEDIA_PREFIX);
+                let cols: Vec<usize> = (0..schema.fields().len())
+                    .filter(|&i| schema.field(i).name().starts_with(&prefix))
+                    .collect();
+                let one = steps.project(&cols).map_err(|err| bad(e, format!("{cam}: {err}")))?;
+                let Some(frames) = self.decoder.episode(self.store, e, &one).await?.remove(&cam) else {
+                    return Ok(None);
+                };
+                let (values, dims) = frames.into_dataset();
+                let shape = match shape {
+                    Some(s) => {
+                        check_len(e, name, values.len() as u64, &s)?;
+                        s
+                    }
+                    None => dims,
+                };
+                self.put(name, &shape, &values, &attrs)?
+            }
+        };
+        Ok(Some(at))
+    }
+}
+
+/// Writes one episode's file at `path` (a dataset at a time, its groups after their children),
+/// with the selection's label and curation attributes; returns what could not be written back.
+#[allow(clippy::too_many_arguments)]
+async fn write_episode(
+    store: &Store,
+    decoder: &mut VideoDecoder,
     sel: &Selected,
     e: &EpisodeRecord,
     steps: &RecordBatch,
-    videos: BTreeMap<String, Frames>,
     manifest: Option<&Value>,
     path: &Path,
 ) -> Result<Vec<String>> {
-    let (mut root, warnings) = episode_file(e, steps, videos, manifest)?;
+    let (mut root, warnings) = episode_file(e, steps, manifest)?;
     success_attr(&mut root, e.label.as_bool(), manifest);
     if let Some(score) = sel.scores.get(&e.id) {
-        root.attrs.push(("verifier_score".into(), AttrValue::F64(*score)));
+        set_attr(&mut root.attrs, "verifier_score", Attr::F64(*score));
     }
     if let Some(c) = crate::failure_cause(sel.label_data.get(&e.id)) {
-        root.attrs.push(("failure_cause".into(), AttrValue::VarLenString(c)));
+        set_attr(&mut root.attrs, "failure_cause", Attr::Str(c));
     }
     if let Some(spans) = crate::label_spans(sel.label_data.get(&e.id)) {
-        root.attrs.push(("label_spans".into(), AttrValue::VarLenString(spans)));
+        set_attr(&mut root.attrs, "label_spans", Attr::Str(spans));
     }
-    let mut fb = FileBuilder::new();
-    root.emit_file(&mut fb);
-    fb.write(path).map_err(|err| ExportError::write(path, err))?;
-    Ok(warnings)
+    let mut ops = Vec::new();
+    root.into_ops(String::new(), &mut ops);
+    let w = Writer::create(path).map_err(|err| ExportError::write(path, err))?;
+    let mut out = Out { w, path, store, decoder };
+    // The groups open (the root first), each with its name.
+    let mut open: Vec<(Group, String)> = Vec::new();
+    for op in ops {
+        match op {
+            Op::Open(name) => open.push((Group::default(), name)),
+            Op::Dataset(name, spec) => {
+                let mut full: String = open.iter().skip(1).map(|g| format!("/{}", g.1)).collect();
+                full.push('/');
+                full.push_str(&name);
+                if let Some(at) = out.dataset(e, steps, &full, spec).await? {
+                    open.last_mut().expect("an open group").0.link(&name, at);
+                }
+            }
+            Op::Close(name, attrs) => {
+                let (mut g, _) = open.pop().expect("an open group");
+                for (k, a) in attrs {
+                    g.attr(&k, a);
+                }
+                match open.last_mut() {
+                    Some(parent) => {
+                        let at = out.w.group(g).map_err(|err| out.err(&name, err))?;
+                        parent.0.link(&name, at);
+                    }
+                    None => {
+                        let Out { w, .. } = out;
+                        w.finish(g).map_err(|err| ExportError::write(path, err))?;
+                        return Ok(warnings);
+                    }
+                }
+            }
+        }
+    }
+    unreachable!("the root group closes last")
 }
 
 /// Writes the selected episodes as an ALOHA folder at `out` (a new folder).
@@ -583,10 +850,9 @@ pub async fn export(
         let mut reader =
             EpisodeReader::new(store, &sel.episodes[i..=i], &sel.selection.layers, Some(sel.version));
         while let Some((_, e, steps)) = reader.next().await? {
-            let videos = decoder.episode(store, e, &steps).await?;
             let manifest = if is_aloha(e) { e.metadata.get("aloha") } else { None };
             let path = staged.tmp.join(format!("{name}.hdf5"));
-            for w in write_episode(sel, e, &steps, videos, manifest, &path)? {
+            for w in write_episode(store, &mut decoder, sel, e, &steps, manifest, &path).await? {
                 if !report.warnings.contains(&w) {
                     report.warnings.push(w);
                 }
@@ -617,11 +883,11 @@ mod tests {
     #[test]
     fn attributes_come_back_in_their_type() {
         let j = serde_json::json!({"type": "bool", "value": true});
-        assert_eq!(attr_value(&j), Some(AttrValue::I8(1)));
+        assert_eq!(attr_value(&j), Some(Attr::number(1i8)));
         let j = serde_json::json!({"type": "vlen_str", "value": "x"});
-        assert_eq!(attr_value(&j), Some(AttrValue::VarLenString("x".into())));
+        assert_eq!(attr_value(&j), Some(Attr::string("x", StrKind::VarUtf8)));
         let j = serde_json::json!({"type": "u64[]", "value": [1, 2]});
-        assert_eq!(attr_value(&j), Some(AttrValue::U64Array(vec![1, 2])));
+        assert_eq!(attr_value(&j), Some(Attr::numbers(&[1u64, 2])));
         assert_eq!(attr_value(&serde_json::json!({"type": "i8", "value": 300})), None);
     }
 
