@@ -12,10 +12,12 @@ target/aloha_big/ (generated data, never in git):
 then, for each: h5py reading the same datasets (cameras a 64-frame slice at a time, qpos, qvel,
 effort, action) for the reference throughput, and `/usr/bin/time -v ufops ingest --format aloha`
 into a fresh store for the ingest's wall time and peak RSS. Throughput is MB of raw frames per
-second; the ratio is ingest / h5py, both in the same run. Results go to
+second; the ratio is ingest / h5py, both in the same run. With `--export`, the stored episode is
+also written back (`/usr/bin/time -v ufops export --format aloha`: its wall time and peak RSS)
+and compared with the source under h5py (tests/python/check_aloha_roundtrip.py). Results go to
 target/aloha_big/results.json and are printed as a table.
 
-    python3 scripts/aloha_big_episode.py [--ufops PATH] [--steps 724] [--keep]
+    python3 scripts/aloha_big_episode.py [--ufops PATH] [--steps 724] [--export] [--keep]
 
 `--ufops` defaults to the shared target dir's debug binary (`cargo build -p ufops` first; a
 release build is `cargo build --release -p ufops` and `--ufops $CARGO_TARGET_DIR/release/ufops`).
@@ -115,6 +117,29 @@ def ingest(ufops, path, store):
     return wall, rss_kb * 1024, " ".join(cmd[2:])
 
 
+def timed(cmd):
+    """Runs `cmd` under GNU time: (wall seconds, peak RSS bytes); exits on failure."""
+    start = time.perf_counter()
+    r = subprocess.run(["/usr/bin/time", "-v", *cmd], capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if r.returncode != 0:
+        sys.exit(f"{' '.join(cmd)} failed:\n{r.stdout}\n{r.stderr}")
+    rss_kb = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", r.stderr).group(1))
+    return wall, rss_kb * 1024
+
+
+def export(ufops, store, src_dir, out):
+    """Exports the store as ALOHA to `out` and compares it with the source folder under h5py."""
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = [ufops, "--data-dir", store, "export", out, "--format", "aloha"]
+    wall, rss = timed(cmd)
+    check = os.path.join(os.path.dirname(__file__), "..", "tests", "python", "check_aloha_roundtrip.py")
+    r = subprocess.run([sys.executable, check, src_dir, out], capture_output=True, text=True)
+    if r.returncode != 0:
+        sys.exit(f"the export differs from the source:\n{r.stdout}\n{r.stderr}")
+    return wall, rss, " ".join(cmd[1:]), r.stdout.strip()
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     target = os.environ.get("CARGO_TARGET_DIR", os.path.expanduser("~/.cache/ufops-target"))
@@ -122,6 +147,7 @@ def main():
     p.add_argument("--steps", type=int, default=724, help="724 steps x 3 cameras x 480x640x3 = 2.0 GB")
     p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "..", "target", "aloha_big"))
     p.add_argument("--keep", action="store_true", help="keep the generated files and stores")
+    p.add_argument("--export", action="store_true", help="also export the episode back and measure it")
     a = p.parse_args()
     out = os.path.abspath(a.out)
     results = []
@@ -145,6 +171,13 @@ def main():
             "peak_rss_mb": rss / 1e6,
             "command": cmd,
         }
+        if a.export:
+            store = os.path.join(out, f"store_{variant}")
+            exp = os.path.join(out, f"export_{variant}")
+            wall, rss, cmd, check = export(a.ufops, store, os.path.dirname(path), exp)
+            r.update(export_s=wall, export_peak_rss_mb=rss / 1e6, export_command=cmd, export_check=check)
+            if not a.keep:
+                shutil.rmtree(exp, ignore_errors=True)
         results.append(r)
         print(json.dumps(r))
         if not a.keep:
@@ -157,8 +190,13 @@ def main():
             f"{r['variant']:<6} {r['file_mb']:>7.0f}MB {r['frames_mb']:>7.0f}MB {r['h5py_mb_s']:>10.0f} "
             f"{r['ingest_mb_s']:>12.1f} {r['ratio']:>6.3f} {r['peak_rss_mb']:>7.0f}MB"
         )
+    for r in results:
+        if "export_s" in r:
+            print(f"{r['variant']:<6} export {r['export_s']:.1f} s, peak RSS {r['export_peak_rss_mb']:.0f}MB; {r['export_check']}")
     if any(r["peak_rss_mb"] > 600 for r in results):
         sys.exit("peak RSS above 600 MB")
+    if any(r.get("export_peak_rss_mb", 0) > 300 for r in results):
+        sys.exit("export peak RSS above 300 MB")
 
 
 if __name__ == "__main__":
