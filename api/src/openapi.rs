@@ -163,9 +163,48 @@ const CHECKED_FIELDS: &[(&str, &str, &str)] = &[
     ("WebhookCreate", "url", WEBHOOK_URL_PATTERN),
     ("WebhookCreate", "policy", NAME_PATTERN),
     ("AutomationCreate", "policy", NAME_PATTERN),
+    // An automation's parameters, which the store checks (`store::check_params`) as names.
+    ("TrainOnLabels", "checkpoint", TOKEN_NAME_PATTERN),
+    ("ScoreOnPublish", "checkpoint", TOKEN_NAME_PATTERN),
+    ("ScoreboardOnRunLabeled", "run", TOKEN_NAME_PATTERN),
+    ("ScoreboardOnRunLabeled", "baseline", TOKEN_NAME_PATTERN),
     // Array fields: the pattern goes on their items.
     ("FailureCauses", "causes", TOKEN_NAME_PATTERN),
 ];
+
+/// Bounds of request-body numbers the store checks, per component schema: `(schema, field,
+/// minimum, maximum)` (`store::check_params` for an automation's `TrainOnLabels`).
+const CHECKED_BOUNDS: &[(&str, &str, Option<f64>, Option<f64>)] = &[
+    ("TrainOnLabels", "val_fraction", Some(0.0), Some(0.99)),
+    ("TrainOnLabels", "obs_history", Some(1.0), None),
+    ("TrainOnLabels", "chunk_len", Some(1.0), None),
+    ("TrainOnLabels", "step_stride", Some(1.0), None),
+];
+
+/// A number of the document: an integer when it is one.
+fn number(x: f64) -> utoipa::Number {
+    if x.fract() == 0.0 {
+        utoipa::Number::Int(x as isize)
+    } else {
+        utoipa::Number::Float(x)
+    }
+}
+
+/// The object schemas of a component: itself, or each inline branch of a `oneOf`.
+fn objects_mut(schema: &mut RefOr<Schema>) -> Vec<&mut utoipa::openapi::schema::Object> {
+    match schema {
+        RefOr::T(Schema::Object(o)) => vec![o],
+        RefOr::T(Schema::OneOf(one)) => one
+            .items
+            .iter_mut()
+            .filter_map(|item| match item {
+                RefOr::T(Schema::Object(o)) => Some(o),
+                _ => None,
+            })
+            .collect(),
+        _ => vec![],
+    }
+}
 
 /// Sets `pattern` on a string schema, on the string branch of a nullable one, or on the items
 /// of an array of strings.
@@ -243,6 +282,16 @@ impl Contract {
                     set_pattern(s, &event_kinds_pattern());
                 }
             }
+            if p.parameter_in == ParameterIn::Query && path == "/v1/layers/{name}" && p.name == "producer" {
+                // A JSON object in the query, with at least one member (`store::producer_hash`):
+                // a parameter with `content`, which utoipa's `Parameter` lacks; its extensions are
+                // serialized inline, so `content` goes there and `schema` goes away.
+                p.schema = None;
+                let content = serde_json::json!({
+                    "application/json": {"schema": {"type": "object", "minProperties": 1}}
+                });
+                p.extensions.get_or_insert_with(Default::default).insert("content".into(), content);
+            }
             if p.parameter_in == ParameterIn::Header && p.name == "If-Match" {
                 p.schema = Some(string_schema(IF_MATCH_PATTERN));
             }
@@ -271,30 +320,64 @@ impl Contract {
         }
         let has_body = op.request_body.is_some();
         let responses = &mut op.responses.responses;
-        let mut add = |status: &str, description: &str| {
-            responses.entry(status.to_string()).or_insert_with(|| problem(description));
-        };
+        // A status the route declares already keeps its description; the idempotency layer's
+        // answers (`also`) come on top of what the route answers with the same status (a 422 for
+        // a body of the wrong shape, a 409 of the store's state), so those declare both reasons.
+        let mut declare =
+            |status: &str, description: &str, also: bool| match responses.entry(status.to_string()) {
+                std::collections::btree_map::Entry::Vacant(e) => {
+                    e.insert(problem(description));
+                }
+                std::collections::btree_map::Entry::Occupied(mut e) => {
+                    if let (true, RefOr::T(r)) = (also, e.get_mut()) {
+                        if r.description.is_empty() {
+                            r.description = description.to_string();
+                        } else if !r.description.contains(description) {
+                            r.description = format!("{}; or {description}", r.description);
+                        }
+                    }
+                }
+            };
         if !params_empty(&op.parameters) || has_body {
-            add("400", "a parameter or the body is invalid");
+            declare("400", "a parameter or the body is invalid", false);
         }
         if has_path || names_version {
-            add("404", "not found");
+            declare("404", "not found", false);
         }
         if has_body {
-            add("413", "the body is larger than the server's limit");
-            add("415", "the body is not of the documented content type");
-            add("422", "the body does not have the documented shape");
+            declare("413", "the body is larger than the server's limit", false);
+            declare("415", "the body is not of the documented content type", false);
+            declare("422", "the body does not have the documented shape", false);
         }
         if mutating && !public {
-            add("409", "a request with this Idempotency-Key is still being served (see Retry-After)");
-            add("422", "the Idempotency-Key was used for another request");
+            declare(
+                "409",
+                "a request with this Idempotency-Key is still being served (`idempotency-key-in-use`, see \
+                 Retry-After), or was done but its server stopped before answering (`idempotent-response-lost`, \
+                 naming the change's event)",
+                true,
+            );
+            declare(
+                "422",
+                "the Idempotency-Key was used for another request (`idempotency-key-reused`: another method, \
+                 path or body)",
+                true,
+            );
         }
         if !public {
-            add("401", "no valid bearer token");
-            add("429", "too many requests in flight for this token, or token checks; see Retry-After");
-            add("503", "the catalog is busy; retry");
+            declare("401", "no valid bearer token", false);
+            declare(
+                "429",
+                "too many requests in flight for this token, or token checks; see Retry-After",
+                false,
+            );
+            declare("503", "the catalog is busy; retry", false);
         }
-        add("500", "a server-side failure (the problem names an incident id the server's log explains)");
+        declare(
+            "500",
+            "a server-side failure (the problem names an incident id the server's log explains)",
+            false,
+        );
         // Every error is a problem document, whatever the annotation said.
         for (status, r) in responses.iter_mut() {
             if status.starts_with('4') || status.starts_with('5') {
@@ -329,10 +412,30 @@ impl Modify for Contract {
                 o.min_length = Some(1);
             }
             for (schema, field, pattern) in CHECKED_FIELDS {
-                if let Some(RefOr::T(Schema::Object(o))) = components.schemas.get_mut(*schema) {
+                for o in components.schemas.get_mut(*schema).map(objects_mut).unwrap_or_default() {
                     if let Some(prop) = o.properties.get_mut(*field) {
                         set_pattern(prop, pattern);
                     }
+                }
+            }
+            for (schema, field, min, max) in CHECKED_BOUNDS {
+                for o in components.schemas.get_mut(*schema).map(objects_mut).unwrap_or_default() {
+                    if let Some(RefOr::T(Schema::Object(prop))) = o.properties.get_mut(*field) {
+                        prop.minimum = min.map(number).or(prop.minimum.take());
+                        prop.maximum = max.map(number).or(prop.maximum.take());
+                    }
+                }
+            }
+            // An automation's verifier kind is a training job's (`store::check_params`).
+            if let Some(RefOr::T(Schema::Object(o))) = components.schemas.get_mut("TrainOnLabels") {
+                if let Some(kind) = o.properties.get_mut("kind") {
+                    let description = match kind {
+                        RefOr::T(Schema::Object(k)) => k.description.take(),
+                        _ => None,
+                    };
+                    let mut r = Ref::from_schema_name("VerifierKind");
+                    r.description = description.unwrap_or_default();
+                    *kind = RefOr::Ref(r);
                 }
             }
         }

@@ -15,18 +15,56 @@ pub(crate) fn router() -> Router<AppState> {
         )
 }
 
-#[derive(Deserialize, ToSchema)]
+/// Declaring an automation: a policy, a rule, and the rule's parameters.
+#[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AutomationCreate {
     policy: String,
-    #[schema(value_type = store::AutomationRule)]
     rule: String,
-    /// The rule's parameters: `TrainOnLabels` (`min_labeled` is required), `ScoreOnPublish` or
-    /// `ScoreboardOnRunLabeled`.
     #[serde(default)]
-    #[schema(value_type = Object)]
     params: Value,
 }
+
+/// The document states the body per rule, one `oneOf` branch each, so that `params` has the
+/// rule's own schema (`TrainOnLabels` requires `min_labeled`; the other rules' parameters are
+/// optional, `null` being none): the store checks them by the rule (`store::check_params`),
+/// and a derived schema could only call them an object. `openapi.rs` adds the policy's pattern.
+impl utoipa::PartialSchema for AutomationCreate {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        let branch = |rule: store::AutomationRule, params: &str, required: bool| {
+            let params = serde_json::json!({"$ref": format!("#/components/schemas/{params}")});
+            let (params, required) = if required {
+                (params, serde_json::json!(["policy", "rule", "params"]))
+            } else {
+                (
+                    serde_json::json!({"oneOf": [params, {"type": "null"}]}),
+                    serde_json::json!(["policy", "rule"]),
+                )
+            };
+            serde_json::json!({
+                "type": "object",
+                "required": required,
+                "properties": {
+                    "policy": {"type": "string"},
+                    "rule": {"type": "string", "enum": [rule.as_str()]},
+                    "params": params,
+                },
+                "additionalProperties": false,
+            })
+        };
+        let schema = serde_json::json!({
+            "description": "Declaring an automation: a policy, a rule, and the rule's parameters (`params`).",
+            "oneOf": [
+                branch(store::AutomationRule::TrainOnLabels, "TrainOnLabels", true),
+                branch(store::AutomationRule::ScoreOnPublish, "ScoreOnPublish", false),
+                branch(store::AutomationRule::ScoreboardOnRunLabeled, "ScoreboardOnRunLabeled", false),
+            ],
+        });
+        serde_json::from_value(schema).expect("the AutomationCreate schema is an OpenAPI schema")
+    }
+}
+
+impl utoipa::ToSchema for AutomationCreate {}
 
 /// Declares an automation (trainer). It acts on the change feed from now on, queueing its jobs on
 /// the job queue and recording each as an `automation.fired` event; see api/README.md.

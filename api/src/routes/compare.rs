@@ -20,7 +20,8 @@ pub struct CompareQuery {
     policy: String,
     /// The baseline arm: `CHECKPOINT` or `CHECKPOINT/RUN` (`-` for episodes without a run).
     a: String,
-    /// The candidate arm.
+    /// The candidate arm: another arm than `a` (the same arm twice is a 400, a rule between two
+    /// parameters that OpenAPI cannot state otherwise).
     b: String,
     /// The version whose labels count (default: the latest).
     version: Option<i64>,
@@ -52,7 +53,7 @@ fn arm(what: &str, s: &str) -> ApiResult<store::ArmSpec> {
 /// Is B better than A yet? Decisions hold at every sample size however often anyone looks.
 #[utoipa::path(get, path = "/v1/compare", tag = "scoreboard", params(CompareQuery),
     responses((status = 200, body = store::Comparison),
-              (status = 400, description = "a bad arm, alpha, margin or plan"),
+              (status = 400, description = "a bad arm, alpha, margin or plan, or arm B is arm A"),
               (status = 404, description = "no such policy or version, or an arm without episodes")))]
 pub async fn get_compare(
     State(s): State<AppState>,

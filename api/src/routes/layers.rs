@@ -75,9 +75,10 @@ pub async fn episode_layers(
 #[derive(Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct LayerWriteQuery {
-    /// The producer, a JSON object (encoder, the policy checkpoint whose encoder it is, the
-    /// weights' content hash, ...): e.g. `{"encoder":"dp-resnet18","policy":"p","checkpoint":"c","content_hash":"…"}`.
-    #[param(pattern = r"^\{.*\}$")]
+    /// The producer, a JSON object with at least one member (encoder, the policy checkpoint whose
+    /// encoder it is, the weights' content hash, ...): e.g.
+    /// `{"encoder":"dp-resnet18","policy":"p","checkpoint":"c","content_hash":"…"}`.
+    // The document states it as a JSON parameter (`openapi.rs`), which the derive cannot.
     producer: String,
 }
 
