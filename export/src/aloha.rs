@@ -533,6 +533,21 @@ fn success_attr(root: &mut Node, label: Option<bool>, manifest: Option<&Value>) 
     root.attrs.push(("success".into(), v));
 }
 
+/// `values` as a whole dataset of `shape` with `attrs`.
+fn write_whole<T: Element>(
+    w: &mut Writer,
+    shape: &[u64],
+    values: &[T],
+    attrs: &[(String, Attr)],
+) -> std::io::Result<u64> {
+    let mut d = w.stream::<T>(shape)?;
+    d.write(values)?;
+    for (k, a) in attrs {
+        d.attr(k, a.clone());
+    }
+    d.finish()
+}
+
 /// The episode file being written, its final name (for errors), and what its video cameras are
 /// decoded with.
 struct Out<'a> {
@@ -555,15 +570,7 @@ impl Out<'_> {
         values: &[T],
         attrs: &[(String, Attr)],
     ) -> Result<u64> {
-        let r = (|| {
-            let mut d = self.w.stream::<T>(shape)?;
-            d.write(values)?;
-            for (k, a) in attrs {
-                d.attr(k, a.clone());
-            }
-            d.finish()
-        })();
-        r.map_err(|err| self.err(name, err))
+        write_whole(&mut self.w, shape, values, attrs).map_err(|err| self.err(name, err))
     }
 
     fn put_values(&mut self, name: &str, shape: &[u64], v: &Values, attrs: &[(String, Attr)]) -> Result<u64> {
@@ -764,7 +771,6 @@ impl Out<'_> {
 
 /// Writes one episode's file at `path` (a dataset at a time, its groups after their children),
 /// with the selection's label and curation attributes; returns what could not be written back.
-#[allow(clippy::too_many_arguments)]
 async fn write_episode(
     store: &Store,
     decoder: &mut VideoDecoder,
