@@ -524,7 +524,9 @@ fn consensus_page_in_headless_chromium() {
 /// The review queue in the page: the Lift rollouts scored by a trained classifier (a score
 /// job through the API), the order selector set to "uncertain first": the page's queue is the
 /// API's order, nearest 0.5 first, and the score is plotted on the timeline (screenshot
-/// `review-uncertain-score-timeline.png`).
+/// `review-uncertain-score-timeline.png`). Before the score job the same order tells the labeler
+/// there are no scores yet and gives the command that stores them, and for a policy with no
+/// classifier (`lift-new`) the commands that train one first (`review-no-scores.png`).
 #[test]
 fn review_queue_in_headless_chromium() {
     if !browser::available() {
@@ -534,9 +536,25 @@ fn review_queue_in_headless_chromium() {
     let t = Target::sqlite(dir.path());
     t.ok(&["init"]);
     common::lift_with_classifier(&t);
+    let synth =
+        ["--checkpoint", "e0", "--seed", "9", "--episodes", "6", "--steps", "20", "--success-rate", "0.5"];
+    t.ok(&[&["dev", "synth", "--policy", "lift-new"][..], &synth[..]].concat());
     let trainer = t.token("curator", "trainer");
     let alice = t.token("alice", "labeler");
     let srv = t.serve(&[]);
+    let (st, page) = api(&srv, "GET", "/v1/episodes?policy=bc&order=uncertain&limit=1000", &alice, None);
+    assert_eq!(st, 200, "{page}");
+    assert!(
+        page["review"].as_array().unwrap().iter().all(|r| r["score"].is_null()),
+        "not scored yet: {page}"
+    );
+    browser::forget_screenshot("review-no-scores.png");
+    browser::run_script(
+        "review_e2e.mjs",
+        &srv.url,
+        &[("UFOPS_TOKEN_A", alice.clone()), ("UFOPS_UNSCORED", "1".into())],
+    );
+    browser::assert_screenshot("review-no-scores.png");
     let (st, job) =
         api(&srv, "POST", "/v1/review/score", &trainer, Some(r#"{"policy": "bc", "checkpoint": "e600"}"#));
     assert_eq!(st, 201, "{job}");

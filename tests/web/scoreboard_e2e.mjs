@@ -26,7 +26,8 @@ function check(cond, msg) {
 const browser = await chromium.launch({ executablePath: EXE, headless: true, args: ['--no-sandbox', '--disable-dev-shm-usage'] });
 const result = {};
 try {
-  const ctx = await browser.newContext({ viewport: { width: 1500, height: 900 } });
+  // A common laptop window: every column, Δ included, must fit it.
+  const ctx = await browser.newContext({ viewport: { width: 1440, height: 900 } });
   const page = await ctx.newPage();
   const errors = [];
   page.on('console', (m) => { if (m.type() === 'error' && !m.text().startsWith('Failed to load resource')) errors.push(m.text()); });
@@ -73,6 +74,21 @@ try {
   // Every row compared with a baseline has its sequential-test badge (decided, or how many more).
   check(first.rows.filter((r) => r.bars === 2).every((r) => r.sequential && r.sequential !== 'error'), `sequential badges: ${JSON.stringify(first.rows.map((r) => r.sequential_text))}`);
   check(first.aliases.length >= 1, 'the aliases panel lists the policy\'s aliases');
+  // The Δ column (header, numbers and bars) ends inside the window and inside the table's panel
+  // (which scrolls sideways rather than overflow the page): nothing of it is cut off.
+  const fit = await page.evaluate(() => {
+    const panel = document.getElementById('rows').closest('.panel');
+    const edge = Math.min(document.documentElement.clientWidth, panel.getBoundingClientRect().right);
+    const th = [...document.querySelectorAll('#rows thead th')].find((h) => h.textContent.startsWith('Δ'));
+    const cells = [th, ...document.querySelectorAll('#rows td.diff')];
+    return { edge, window: window.innerWidth, right: Math.max(...cells.map((c) => c.getBoundingClientRect().right)),
+      cells: cells.length, scrolled: panel.scrollLeft, table: panel.scrollWidth, panel: panel.clientWidth };
+  });
+  log('Δ column', JSON.stringify(fit));
+  check(fit.window === 1440 && fit.cells > 1 && fit.scrolled === 0, `measured at 1440 px: ${JSON.stringify(fit)}`);
+  check(fit.right <= fit.edge, `the Δ column's right edge (${fit.right}px) lies within the view (${fit.edge}px)`);
+  // And these rows' every column fits: the panel need not scroll sideways at 1440 px.
+  check(fit.table <= fit.panel, `the table (${fit.table}px) fits its panel (${fit.panel}px) at 1440 px`);
   await page.screenshot({ path: join(OUT, 'scoreboard.png'), fullPage: true });
   log('screenshot', join(OUT, 'scoreboard.png'));
   // The download links return the same query as CSV and JSON (with the session cookie).
