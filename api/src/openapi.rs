@@ -48,8 +48,8 @@ use utoipa::{Modify, OpenApi};
         routes::create_automation, routes::list_automations, routes::get_automation, routes::delete_automation,
     ),
     components(schemas(
-        Problem, routes::EpisodeSort, routes::EpisodeOrder, routes::ScoreboardFormat, store::TrainOnLabels,
-        store::ScoreOnPublish, store::ScoreboardOnRunLabeled
+        Problem, routes::EpisodeSort, routes::EpisodeOrder, routes::ScoreboardFormat, store_feed::TrainOnLabels,
+        store_feed::ScoreOnPublish, store_feed::ScoreboardOnRunLabeled
     )),
     modifiers(&Bearer, &Contract),
     security(("bearer" = [])),
@@ -105,7 +105,7 @@ pub const IF_MATCH_PATTERN: &str = r#"^(W/)?("[0-9]{1,18}"|[0-9]{1,18})$"#;
 /// An `Idempotency-Key`: 1 to 255 visible ASCII characters.
 pub const IDEMPOTENCY_KEY_PATTERN: &str = r"^[!-~]{1,255}$";
 
-/// A webhook's URL (`store::Store::create_webhook`).
+/// A webhook's URL (`store_feed::Webhooks::create_webhook`).
 pub const WEBHOOK_URL_PATTERN: &str = r"^[hH][tT][tT][pP][sS]?://[^\s]{1,1990}$";
 
 /// `kind` of `GET /v1/events`: event kinds separated by commas.

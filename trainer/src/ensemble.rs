@@ -12,7 +12,6 @@ use std::time::Instant;
 use anyhow::{ensure, Result};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use serde::{Deserialize, Serialize};
 
 use crate::data::{InputSpec, Normalization, Samples};
 use crate::metrics::{pearson, roc_auc, EnsembleMetrics};
