@@ -46,6 +46,7 @@ fn one_line(e: &anyhow::Error) -> String {
 /// Rust ignores SIGPIPE, so printing to a closed pipe (`ufops episodes | head`) panics. A
 /// command-line tool should end quietly instead, as `cat` does. The server and the worker keep
 /// SIGPIPE ignored: a client that hangs up must never kill them.
+#[allow(unsafe_code, reason = "signal(2): std has no safe way to restore a default handler")]
 fn restore_default_sigpipe() {
     #[cfg(unix)]
     // SAFETY: called once at start-up, before any other thread exists; SIG_DFL is a valid handler.
@@ -61,6 +62,7 @@ fn restore_default_sigpipe() {
 /// threshold (a large buffer goes back to the system when freed) held it to 119 MB in the same
 /// time (export/README.md, "Memory"). `MALLOC_ARENA_MAX` / `MALLOC_MMAP_THRESHOLD_` in the
 /// environment still win.
+#[allow(unsafe_code, reason = "mallopt(3): glibc's allocator has no safe interface")]
 fn keep_freed_memory_from_piling_up() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {

@@ -410,7 +410,7 @@ fn labels_train_publish_and_score_by_themselves(t: &Target) {
     let expected: Vec<String> = evs[created..]
         .iter()
         .filter(|e| e["seq"].as_i64().unwrap() <= head)
-        .map(|e| store::delivery_id(&webhook, e["seq"].as_i64().unwrap()))
+        .map(|e| store_feed::delivery_id(&webhook, e["seq"].as_i64().unwrap()))
         .collect();
     for id in &expected {
         assert_eq!(accepted.get(id), Some(&1), "delivery {id}: {:?}", accepted.get(id));

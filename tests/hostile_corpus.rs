@@ -47,6 +47,7 @@ fn own_rss() -> u64 {
 }
 
 /// Runs `ufops ingest` on `source` and measures the child's peak RSS.
+#[allow(unsafe_code, reason = "wait4(2) for the child's peak RSS: std has no safe wrapper")]
 fn ingest(t: &Target, source: &Path) -> Run {
     let stderr_path = t.data_dir.with_extension(format!("stderr-{}", std::process::id()));
     let stderr_file = std::fs::File::create(&stderr_path).unwrap();

@@ -4,6 +4,7 @@
 //! moments. Every request creates exactly one row (counted in the catalog afterwards), and every
 //! answer a request got names the same row.
 
+use store_jobs::JobQueue;
 use crate::common;
 use common::*;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};

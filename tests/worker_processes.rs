@@ -5,6 +5,7 @@
 //! catalog (jobs: state, attempts, worker, lease; artifacts: one per job, naming it) and from the
 //! workers' own `job started` / `job finished` log lines.
 
+use store_jobs::{JobQueue, JobRecord, JobState};
 use crate::common;
 use common::*;
 use serde_json::json;
@@ -12,7 +13,7 @@ use std::collections::HashMap;
 use std::path::Path;
 use std::process::{Child, Stdio};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
-use store::{JobRecord, JobState, Store, StoreConfig};
+use store::{Store, StoreConfig};
 
 const JOBS: usize = 10;
 const LEASE_MS: i64 = 3000;
@@ -146,7 +147,7 @@ fn two_worker_processes_on_postgres_run_each_job_once_and_retry_a_killed_workers
             "split_id": split_id, "kind": "classifier", "policy": "pol", "checkpoint": "c1", "chunk_len": 16,
             "config": {"epochs": EPOCHS, "batch_size": 64, "seed": i},
         });
-        job_ids.push(rt.block_on(store.create_job(store::JobKind::Train, &spec, "test")).unwrap().id);
+        job_ids.push(rt.block_on(store.create_job(store_jobs::JobKind::Train, &spec, "test")).unwrap().id);
         std::thread::sleep(Duration::from_millis(3)); // distinct created_at: claims follow queue order
     }
 

@@ -32,7 +32,7 @@ impl api::JobRunner for Runner {
     fn run<'a>(
         &'a self,
         _: &'a Store,
-        _: &'a store::JobRecord,
+        _: &'a store_jobs::JobRecord,
         _: api::JobContext,
     ) -> futures::future::BoxFuture<'a, Result<Value, String>> {
         Box::pin(async { Err("no jobs in this bench".to_string()) })

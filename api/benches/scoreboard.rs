@@ -9,6 +9,7 @@
 //!
 //! `cargo bench -p api --bench scoreboard [-- --episodes 100000 --requests 200 --no-sqlite --no-postgres]`
 
+use store_compare::Scoreboards;
 use serde_json::Value;
 use std::sync::Arc;
 use std::time::Instant;
@@ -22,7 +23,7 @@ impl api::JobRunner for Runner {
     fn run<'a>(
         &'a self,
         _: &'a Store,
-        _: &'a store::JobRecord,
+        _: &'a store_jobs::JobRecord,
         _: api::JobContext,
     ) -> futures::future::BoxFuture<'a, Result<Value, String>> {
         Box::pin(async { Err("no jobs in this bench".to_string()) })
@@ -220,7 +221,7 @@ async fn run(db: Backend, episodes: usize, requests: usize) -> Vec<Stat> {
     // The references (in process, no HTTP): the same counts by a GROUP BY over the version's
     // labels (and equal to the frozen ones), and listing the version's episodes of the policy
     // (what a scoreboard computed in the server's memory would have to read).
-    let req = store::ScoreboardRequest { policy: "nav".into(), ..Default::default() };
+    let req = store_compare::ScoreboardRequest { policy: "nav".into(), ..Default::default() };
     let mut ms = Vec::new();
     for _ in 0..5 {
         let t = Instant::now();

@@ -1,11 +1,12 @@
 //! Running automations: each server runs [`Automations`] in the feed consumers' loop, which takes the lease of the
 //! automations the feed has gone past (`store::Store::claim_automations`) and advances each
-//! through the events after its cursor (`store::Store::advance_automation`: what a rule decides,
+//! through the events after its cursor (`store_feed::Automations::advance_automation`: what a rule decides,
 //! and the transaction that queues its jobs and moves its cursor, are the store's). The jobs run
 //! on the job queue like any other, under the workers' leases and fencing.
 
 use std::time::Duration;
 use store::Store;
+use store_feed::Automations as _;
 
 /// How long a server holds an automation per claim.
 const LEASE: Duration = Duration::from_secs(30);

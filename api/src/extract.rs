@@ -89,15 +89,8 @@ pub fn check_id(what: &str, s: &str) -> Result<(), ApiError> {
     }
 }
 
-/// A policy, checkpoint or task name given in a URL: 1-200 printable characters, no '/'.
+/// A policy, checkpoint or task name given in a URL: the store's rule for policy and checkpoint
+/// names (`store::model::check_ref_name`: 1-200 printable characters, no '/').
 pub fn check_name(what: &str, s: &str) -> Result<(), ApiError> {
-    let ok = !s.is_empty()
-        && s.chars().count() <= 200
-        && s.trim() == s
-        && !s.chars().any(|c| c.is_control() || c == '/');
-    if ok {
-        Ok(())
-    } else {
-        Err(ApiError::bad_request(format!("invalid {what} name {s:?}: 1-200 printable characters, no '/'")))
-    }
+    store::model::check_ref_name(what, s).map_err(|e| ApiError::bad_request(e.to_string()))
 }

@@ -48,8 +48,8 @@ use utoipa::{Modify, OpenApi};
         routes::create_automation, routes::list_automations, routes::get_automation, routes::delete_automation,
     ),
     components(schemas(
-        Problem, routes::EpisodeSort, routes::EpisodeOrder, routes::ScoreboardFormat, store::TrainOnLabels,
-        store::ScoreOnPublish, store::ScoreboardOnRunLabeled
+        Problem, routes::EpisodeSort, routes::EpisodeOrder, routes::ScoreboardFormat, store_feed::TrainOnLabels,
+        store_feed::ScoreOnPublish, store_feed::ScoreboardOnRunLabeled
     )),
     modifiers(&Bearer, &Contract),
     security(("bearer" = [])),
@@ -81,7 +81,7 @@ pub const ARM_PATTERN: &str = concat!(
     r"(/[^\s\x00-\x1f\x7f-\x9f]([^\x00-\x1f\x7f-\x9f]{0,198}[^\s\x00-\x1f\x7f-\x9f])?)?$"
 );
 
-/// A token or run name (`store::writer::check_name`): printable, no whitespace at either end.
+/// A token or run name (`store::model::check_name`): printable, no whitespace at either end.
 pub const TOKEN_NAME_PATTERN: &str =
     r"^[^\s\x00-\x1f\x7f-\x9f]([^\x00-\x1f\x7f-\x9f]{0,198}[^\s\x00-\x1f\x7f-\x9f])?$";
 /// An artifact reference a handler resolves: an artifact id, or `POLICY/CHECKPOINT/KIND@ALIAS`.
@@ -91,7 +91,7 @@ pub const ARTIFACT_REF_PATTERN: &str = concat!(
     r"[^/\s\x00-\x1f\x7f-\x9f](?:[^/\x00-\x1f\x7f-\x9f]{0,198}[^/\s\x00-\x1f\x7f-\x9f])?/",
     r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}@[A-Za-z0-9_-][A-Za-z0-9._-]{0,127})$"
 );
-/// An ingest's run tags (`run_tags`): comma-separated run names (`store::writer::check_name`,
+/// An ingest's run tags (`run_tags`): comma-separated run names (`store::model::check_name`,
 /// no ','), at most 64; empty items are ignored.
 pub const RUN_TAGS_PATTERN: &str = concat!(
     r"^,*(?:[^,\s\x00-\x1f\x7f-\x9f](?:[^,\x00-\x1f\x7f-\x9f]{0,198}[^,\s\x00-\x1f\x7f-\x9f])?",
@@ -105,7 +105,7 @@ pub const IF_MATCH_PATTERN: &str = r#"^(W/)?("[0-9]{1,18}"|[0-9]{1,18})$"#;
 /// An `Idempotency-Key`: 1 to 255 visible ASCII characters.
 pub const IDEMPOTENCY_KEY_PATTERN: &str = r"^[!-~]{1,255}$";
 
-/// A webhook's URL (`store::Store::create_webhook`).
+/// A webhook's URL (`store_feed::Webhooks::create_webhook`).
 pub const WEBHOOK_URL_PATTERN: &str = r"^[hH][tT][tT][pP][sS]?://[^\s]{1,1990}$";
 
 /// `kind` of `GET /v1/events`: event kinds separated by commas.
@@ -163,7 +163,7 @@ const CHECKED_FIELDS: &[(&str, &str, &str)] = &[
     ("WebhookCreate", "url", WEBHOOK_URL_PATTERN),
     ("WebhookCreate", "policy", NAME_PATTERN),
     ("AutomationCreate", "policy", NAME_PATTERN),
-    // An automation's parameters, which the store checks (`store::check_params`) as names.
+    // An automation's parameters, which the store checks (`store_feed::check_params`) as names.
     ("TrainOnLabels", "checkpoint", TOKEN_NAME_PATTERN),
     ("ScoreOnPublish", "checkpoint", TOKEN_NAME_PATTERN),
     ("ScoreboardOnRunLabeled", "run", TOKEN_NAME_PATTERN),
@@ -173,7 +173,7 @@ const CHECKED_FIELDS: &[(&str, &str, &str)] = &[
 ];
 
 /// Bounds of request-body numbers the store checks, per component schema: `(schema, field,
-/// minimum, maximum)` (`store::check_params` for an automation's `TrainOnLabels`).
+/// minimum, maximum)` (`store_feed::check_params` for an automation's `TrainOnLabels`).
 const CHECKED_BOUNDS: &[(&str, &str, Option<f64>, Option<f64>)] = &[
     ("TrainOnLabels", "val_fraction", Some(0.0), Some(0.99)),
     ("TrainOnLabels", "obs_history", Some(1.0), None),
@@ -426,7 +426,7 @@ impl Modify for Contract {
                     }
                 }
             }
-            // An automation's verifier kind is a training job's (`store::check_params`).
+            // An automation's verifier kind is a training job's (`store_feed::check_params`).
             if let Some(RefOr::T(Schema::Object(o))) = components.schemas.get_mut("TrainOnLabels") {
                 if let Some(kind) = o.properties.get_mut("kind") {
                     let description = match kind {

@@ -21,6 +21,7 @@ use serde_json::json;
 use sha2::Digest;
 use std::sync::atomic::Ordering;
 use store::Role;
+use store_jobs::JobQueue;
 use tokio::io::AsyncWriteExt;
 use utoipa::IntoParams;
 
@@ -49,30 +50,14 @@ pub struct IngestQuery {
     /// How image cameras are stored: `png` (default: lossless, one PNG per step) or `video`
     /// (one H.264 MP4 per episode and camera: lossy, a fraction of the bytes).
     #[param(inline)]
-    images: Option<ImageStorage>,
-}
-
-/// How an ingest stores image cameras (`ufops ingest --images`).
-#[derive(Debug, Clone, Copy, Deserialize, utoipa::ToSchema)]
-#[serde(rename_all = "lowercase")]
-pub enum ImageStorage {
-    Png,
-    Video,
-}
-
-impl ImageStorage {
-    fn as_str(self) -> &'static str {
-        match self {
-            ImageStorage::Png => "png",
-            ImageStorage::Video => "video",
-        }
-    }
+    images: Option<store::ImageStorage>,
 }
 
 /// Free space an upload must leave on the upload dir's filesystem.
 pub const MIN_FREE_BYTES: u64 = 1 << 30;
 
 /// Bytes available to us on the filesystem holding `dir`.
+#[allow(unsafe_code, reason = "statvfs(3) has no safe wrapper in std")]
 fn free_bytes(dir: &std::path::Path) -> Option<u64> {
     use std::os::unix::ffi::OsStrExt;
     let c = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
@@ -111,11 +96,11 @@ pub async fn sweep(
     upload_dir: &std::path::Path,
     orphan_age: std::time::Duration,
 ) -> anyhow::Result<usize> {
-    use store::JobState::*;
+    use store_jobs::JobState::*;
     let Ok(mut rd) = tokio::fs::read_dir(upload_dir).await else { return Ok(0) };
     let mut live = std::collections::HashSet::new();
     let mut named = std::collections::HashSet::new();
-    for j in store.jobs(None).await?.into_iter().filter(|j| j.kind == store::JobKind::Ingest) {
+    for j in store.jobs(None).await?.into_iter().filter(|j| j.kind == store_jobs::JobKind::Ingest) {
         if let Some(d) = j.spec.get("upload_dir").and_then(|v| v.as_str()) {
             named.insert(std::path::PathBuf::from(d));
             if matches!(j.state, Queued | Running) {
@@ -163,7 +148,7 @@ pub fn sanitize_filename(name: &str) -> String {
 /// Uploads a rollout file (raw request body) and queues an ingest job (admin).
 #[utoipa::path(post, path = "/v1/ingest", tag = "admin", params(IngestQuery),
     request_body(content = crate::body_schemas::UploadBytes, content_type = "application/octet-stream", description = "the file, raw (not empty)"),
-    responses((status = 202, description = "the queued ingest job", body = store::JobRecord),
+    responses((status = 202, description = "the queued ingest job", body = store_jobs::JobRecord),
               (status = 413, description = "larger than the server's upload limit"),
               (status = 404, description = "no such run artifact"),
               (status = 403, description = "the token's role is below admin"),
@@ -174,7 +159,7 @@ pub async fn ingest(
     ApiQuery(q): ApiQuery<IngestQuery>,
     headers: axum::http::HeaderMap,
     body: Body,
-) -> ApiResult<(StatusCode, Json<store::JobRecord>)> {
+) -> ApiResult<(StatusCode, Json<store_jobs::JobRecord>)> {
     caller.require(Role::Admin)?;
     check_name("policy", &q.policy)?;
     check_name("checkpoint", &q.checkpoint)?;
@@ -244,9 +229,9 @@ pub async fn ingest(
         "steering": run.as_ref().map(|r| r.steering.to_string()),
         "run_artifact": q.run_artifact,
         "run_tags": run_tags,
-        "images": q.images.map(ImageStorage::as_str),
+        "images": q.images.map(store::ImageStorage::as_str),
     });
-    let job = s.store().create_job(store::JobKind::Ingest, &spec, &caller.name).await?;
+    let job = s.store().create_job(store_jobs::JobKind::Ingest, &spec, &caller.name).await?;
     Ok((StatusCode::ACCEPTED, Json(job)))
 }
 

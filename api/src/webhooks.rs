@@ -17,7 +17,8 @@
 
 use hmac::{Hmac, Mac};
 use std::time::Duration;
-use store::{HeldWebhook, Store};
+use store::Store;
+use store_feed::{HeldWebhook, Webhooks};
 
 /// How long a receiver may take to answer.
 pub const DELIVERY_TIMEOUT: Duration = Duration::from_secs(10);
@@ -102,7 +103,7 @@ async fn deliver_some(
     let mut attempts = w.attempts;
     for event in page.events {
         let body = serde_json::to_vec(&event)?;
-        let delivery = store::delivery_id(&w.id, event.seq);
+        let delivery = store_feed::delivery_id(&w.id, event.seq);
         let sig = signature(&hook.secret, chrono::Utc::now().timestamp(), &body);
         let (agent, url, kind) = (agent.clone(), w.url.clone(), event.kind.as_str());
         let outcome = tokio::task::spawn_blocking(move || -> Result<(), String> {

@@ -10,7 +10,8 @@ use std::future::Future;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use store::{JobRecord, Store};
+use store::Store;
+use store_jobs::{JobQueue, JobRecord};
 
 /// A worker's name, unique across machines and restarts: `ROLE-HOST-PID-RANDOM`. The process id
 /// alone is not (every container's main process is PID 1, so all workers were `worker-1`), and
@@ -211,7 +212,7 @@ pub(crate) async fn run_one(store: &Store, runner: &dyn JobRunner, opts: &Worker
                             Ok(j) => {
                                 j.worker.as_deref() == Some(opts.worker_id.as_str())
                                     && j.attempts == attempt
-                                    && j.state == store::JobState::Running
+                                    && j.state == store_jobs::JobState::Running
                             }
                             Err(_) => false,
                         };
@@ -257,7 +258,7 @@ pub(crate) async fn run_one(store: &Store, runner: &dyn JobRunner, opts: &Worker
     match store.finish_job(&job.id, &opts.worker_id, job.attempts, outcome).await {
         Ok(true) => {
             tracing::info!(worker = %opts.worker_id, job = %job.id, ok, "job finished");
-            if job.kind == store::JobKind::Ingest {
+            if job.kind == store_jobs::JobKind::Ingest {
                 crate::upload::remove_upload(&job.spec).await; // finished: nobody will ingest it again
             }
         }

@@ -5,6 +5,7 @@
 //! and does its work once; another body under the key is a 422; a key being served is a 409;
 //! a request whose change committed before its server died is not done again.
 
+use store_feed::Webhooks;
 use crate::common;
 
 use common::{Db, TestServer};
@@ -459,7 +460,7 @@ async fn webhooks_deliver_each_event_once(db: Db) {
     let seqs: Vec<i64> = accepted.iter().map(|(_, e)| e["seq"].as_i64().unwrap()).collect();
     assert_eq!(seqs, expected, "each event once, in feed order");
     for (delivery, e) in &accepted {
-        assert_eq!(delivery, &store::delivery_id(&hook, e["seq"].as_i64().unwrap()));
+        assert_eq!(delivery, &store_feed::delivery_id(&hook, e["seq"].as_i64().unwrap()));
     }
     use std::sync::atomic::Ordering;
     assert_eq!(receiver.attempts.load(Ordering::SeqCst), expected.len() + 1, "the 500 was retried once");
@@ -479,7 +480,7 @@ async fn webhooks_deliver_each_event_once(db: Db) {
         tokio::time::sleep(Duration::from_millis(50)).await;
     };
     assert_eq!(letters[0]["attempts"], 2);
-    assert_eq!(letters[0]["delivery_id"], store::delivery_id(&down, letters[0]["seq"].as_i64().unwrap()));
+    assert_eq!(letters[0]["delivery_id"], store_feed::delivery_id(&down, letters[0]["seq"].as_i64().unwrap()));
     assert!(letters[0]["last_error"].as_str().unwrap().contains("503"), "{letters}");
     let r = srv.req(Method::DELETE, &format!("/v1/webhooks/{down}"), "admin").send().await.unwrap();
     assert_eq!(r.status(), 204);

@@ -2,6 +2,7 @@
 //! twice at the same time; a worker killed mid-job (its task aborted: no more heartbeats) gets
 //! its job retried by the other after the lease expires. Also: cancel and progress reporting.
 
+use store_jobs::{JobQueue, JobState};
 use crate::common;
 
 use common::{Db, TestRunner};
@@ -9,7 +10,6 @@ use serde_json::json;
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use store::JobState;
 
 const LEASE_MS: i64 = 500;
 
@@ -29,7 +29,7 @@ async fn two_workers_on_postgres_run_each_job_once_and_retry_a_killed_workers_jo
     let runner = TestRunner::new(100);
     let mut job_ids = Vec::new();
     for i in 0..10 {
-        job_ids.push(store.create_job(store::JobKind::Score, &json!({"i": i}), "test").await.unwrap().id);
+        job_ids.push(store.create_job(store_jobs::JobKind::Score, &json!({"i": i}), "test").await.unwrap().id);
         // distinct created_at so the claim order is the creation order
         tokio::time::sleep(Duration::from_millis(2)).await;
     }
@@ -116,7 +116,7 @@ async fn cancel_stops_a_running_job_and_progress_is_recorded() {
     let dir = tempfile::tempdir().unwrap();
     let store = common::open_store(Db::Sqlite, dir.path()).await;
     let runner = TestRunner::new(3_000);
-    let job = store.create_job(store::JobKind::Score, &json!({}), "test").await.unwrap();
+    let job = store.create_job(store_jobs::JobKind::Score, &json!({}), "test").await.unwrap();
     let mut o = api::WorkerOptions::new("w", 300);
     o.poll_interval = Duration::from_millis(20);
     let w = tokio::spawn(api::run_worker_with(

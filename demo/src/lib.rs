@@ -12,6 +12,7 @@ pub mod review_campaign;
 
 pub use report::{MonitorSummary, Report, Row, SteeringQuality, SteeringQualityRow};
 
+use store_compare::Scoreboards;
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use sim::{rollout, ChunkChoice, ChunkPolicy, DiffusionPolicy, EnvConfig, FlowPolicy, PolicyConfig};
@@ -672,7 +673,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
 
     // The table, read back from the store alone: every row must be what the scoreboard says.
     let sb = store
-        .scoreboard(&store::ScoreboardRequest {
+        .scoreboard(&store_compare::ScoreboardRequest {
             policy: POLICY.into(),
             baseline_checkpoint: Some(BASE.into()),
             ..Default::default()

@@ -319,7 +319,7 @@ impl Report {
 
     /// Checks every row against the store's scoreboard of the demo's policy (baseline: the base
     /// run of the base checkpoint): same counts, rate, Wilson and Newcombe intervals.
-    pub fn check_against(&self, sb: &store::Scoreboard) -> Result<()> {
+    pub fn check_against(&self, sb: &store_compare::Scoreboard) -> Result<()> {
         for r in &self.rows {
             let s = sb.rows.iter().find(|s| s.checkpoint == r.checkpoint && s.run_name == r.run).ok_or_else(
                 || anyhow::anyhow!("the store has no scoreboard row for {}/{}", r.checkpoint, r.run),

@@ -49,9 +49,9 @@ pub mod video;
 use std::path::Path;
 
 pub use error::IngestError;
+pub use model::ImageStorage;
 pub use options::{Format, IngestOptions, MemoryBudget, ReadOptions};
 pub use pipeline::{ingest, IngestReport, LabelTally};
-pub use video::ImageStorage;
 
 use error::Result;
 use sink::EpisodeSink;

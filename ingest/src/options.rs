@@ -87,7 +87,7 @@ pub struct IngestOptions {
     pub run: Option<store::RunInput>,
     /// `--images png|video`: image cameras as one PNG per step (lossless, the default) or as
     /// one H.264 MP4 per episode and camera (lossy; see [`crate::video`]).
-    pub images: crate::video::ImageStorage,
+    pub images: crate::model::ImageStorage,
     /// `--intervention-key NAME`: the source's per-step human-takeover flag (a LeRobot feature,
     /// a robomimic demo's or an ALOHA file's dataset) when it is not named `intervention`.
     pub intervention_key: Option<String>,

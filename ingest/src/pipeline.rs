@@ -240,10 +240,10 @@ impl Background {
             .clamp(1, Semaphore::MAX_PERMITS.min(u32::MAX as usize)) as u32;
         let feed = Feed { rx, in_flight: Arc::new(Semaphore::new(budget_kib as usize)) };
         let video_dir = match opts.images {
-            crate::video::ImageStorage::Video => {
+            crate::model::ImageStorage::Video => {
                 Some(tempfile::tempdir().map_err(|e| IngestError::io(Path::new("video temp dir"), e))?)
             }
-            crate::video::ImageStorage::Png => None,
+            crate::model::ImageStorage::Png => None,
         };
         let mut sink = ChannelSink {
             tx,

@@ -43,42 +43,6 @@ pub const MAX_QP: u8 = 20;
 /// A frame's duration when a single frame or the last one has no next step to measure it by.
 const DEFAULT_FRAME_TICKS: u64 = TIMESCALE as u64 / 30;
 
-/// How image cameras are stored (`ufops ingest --images`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum ImageStorage {
-    /// One PNG per step in the steps file: lossless (the default).
-    #[default]
-    Png,
-    /// One H.264 MP4 per episode and camera: lossy, a fraction of the bytes, played by the page.
-    Video,
-}
-
-impl ImageStorage {
-    pub fn as_str(self) -> &'static str {
-        match self {
-            ImageStorage::Png => "png",
-            ImageStorage::Video => "video",
-        }
-    }
-}
-
-impl std::str::FromStr for ImageStorage {
-    type Err = IngestError;
-    fn from_str(s: &str) -> Result<Self> {
-        match s.to_ascii_lowercase().as_str() {
-            "png" => Ok(ImageStorage::Png),
-            "video" | "mp4" | "h264" => Ok(ImageStorage::Video),
-            other => Err(IngestError::Usage(format!("unknown --images {other:?}: expected png or video"))),
-        }
-    }
-}
-
-impl std::fmt::Display for ImageStorage {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
 /// A finished video: the MP4 on disk and the time of each frame in it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EncodedVideo {

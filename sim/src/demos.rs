@@ -77,7 +77,7 @@ pub fn expert_demos(cfg: &EnvConfig, n: usize, seed: u64) -> Vec<Demo> {
                 break;
             }
         }
-        if !cfg.in_goal(*pos.last().unwrap()) {
+        if pos.last().is_none_or(|&p| !cfg.in_goal(p)) {
             pos.push(goal);
         }
         let actions: Vec<[f32; 2]> = pos.windows(2).map(|w| [w[1][0] - w[0][0], w[1][1] - w[0][1]]).collect();

@@ -64,7 +64,7 @@ impl EnvConfig {
             (self.narrow_gap.0 - self.narrow_gap.1, self.narrow_gap.0 + self.narrow_gap.1),
             (self.wide_gap.0 - self.wide_gap.1, self.wide_gap.0 + self.wide_gap.1),
         ];
-        gaps.sort_by(|a, b| a.0.partial_cmp(&b.0).unwrap());
+        gaps.sort_by(|a, b| a.0.total_cmp(&b.0));
         let mut rects = Vec::new();
         let mut y = 0.0f32;
         for (lo, hi) in gaps {

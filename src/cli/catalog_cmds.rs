@@ -1,5 +1,7 @@
 //! Splits, artifacts and tokens: thin wrappers over the store.
 
+use store_compare::PolicyAliases;
+use store_feed::Automations;
 use super::{print_json, StoreArgs};
 use anyhow::{bail, Result};
 use store::{Role, SplitRequest};

@@ -1,6 +1,7 @@
 //! `ufops compare`: the anytime-valid comparison of two arms, as a table or JSON, with a gate's
 //! exit status; `ufops alias`: a policy's aliases, protected ones moved only on a decided comparison.
 
+use store_compare::{Compare, PolicyAliases};
 use super::StoreArgs;
 use anyhow::{bail, Result};
 use std::io::Write;
@@ -56,7 +57,7 @@ fn pct(x: f64) -> String {
     format!("{:+.1}", 100.0 * x)
 }
 
-fn print_slice(s: &store::ComparisonSlice) {
+fn print_slice(s: &store_compare::ComparisonSlice) {
     let needed = match (s.decided_at_pairs, s.more_pairs) {
         (Some(n), _) => format!("decided after {n} pairs ({} rollouts)", 2 * n),
         (None, Some(m)) => format!("about {m} more pairs ({} rollouts) at the observed rates", 2 * m),
@@ -78,7 +79,7 @@ fn print_slice(s: &store::ComparisonSlice) {
 }
 
 /// Prints the comparison as a table.
-pub fn print_comparison(c: &store::Comparison) {
+pub fn print_comparison(c: &store_compare::Comparison) {
     println!(
         "# {}: {} against {} at version {} (alpha {}, margin {} pp{}; {}; {})\n",
         c.policy,
@@ -113,14 +114,14 @@ pub fn print_comparison(c: &store::Comparison) {
     println!("\ngate: {} (exit {}); method: {}", c.gate, c.exit_code, c.method);
 }
 
-fn request(policy: &str, a: store::ArmSpec, b: store::ArmSpec, o: &CompareOptions) -> store::CompareRequest {
-    store::CompareRequest {
+fn request(policy: &str, a: store_compare::ArmSpec, b: store_compare::ArmSpec, o: &CompareOptions) -> store_compare::CompareRequest {
+    store_compare::CompareRequest {
         alpha: o.alpha,
         margin: o.margin,
         plan_effect: o.plan_effect,
         pair_key: o.pair_key.clone(),
         progress: o.progress.clone(),
-        ..store::CompareRequest::new(policy, a, b)
+        ..store_compare::CompareRequest::new(policy, a, b)
     }
 }
 
@@ -130,7 +131,7 @@ pub async fn compare(args: &StoreArgs, a: CompareArgs) -> Result<()> {
         bail!("--format {:?}: table or json", a.format);
     }
     let store = args.open().await?;
-    let req = store::CompareRequest {
+    let req = store_compare::CompareRequest {
         version: a.version,
         task: a.task.clone(),
         ..request(&a.policy, a.a.parse()?, a.b.parse()?, &a.options)
@@ -182,7 +183,7 @@ pub enum AliasCommand {
     },
 }
 
-fn evidence_line(e: Option<&store::Comparison>) -> String {
+fn evidence_line(e: Option<&store_compare::Comparison>) -> String {
     match e {
         None => "no comparison (first or unprotected move)".into(),
         Some(c) => format!(
@@ -201,7 +202,7 @@ fn evidence_line(e: Option<&store::Comparison>) -> String {
 }
 
 /// Prints a policy's aliases (also the tail of `ufops artifacts --policy P`).
-pub fn print_aliases(aliases: &[store::PolicyAlias]) {
+pub fn print_aliases(aliases: &[store_compare::PolicyAlias]) {
     for a in aliases {
         println!(
             "{}@{} -> {}{}  moved {} by {}; evidence: {}",
@@ -227,14 +228,14 @@ pub async fn alias(args: &StoreArgs, command: AliasCommand) -> Result<()> {
             print_aliases(&aliases);
         }
         AliasCommand::Move { policy, alias, to, protect, options, actor } => {
-            let mv = store::MoveAlias {
+            let mv = store_compare::MoveAlias {
                 protect: protect.then_some(true),
                 alpha: options.alpha,
                 margin: options.margin,
                 plan_effect: options.plan_effect,
                 pair_key: options.pair_key.clone(),
                 progress: options.progress.clone(),
-                ..store::MoveAlias::new(&policy, &alias, to.parse()?, &actor)
+                ..store_compare::MoveAlias::new(&policy, &alias, to.parse()?, &actor)
             };
             match store.move_policy_alias(&mv).await {
                 Ok(a) => print_aliases(&[a]),

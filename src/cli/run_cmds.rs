@@ -1,5 +1,6 @@
 //! Training, scoring and the demo: wiring of trainer, steer and demo to the store.
 
+use store_jobs::JobQueue;
 use super::{print_json, StoreArgs};
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -104,7 +105,7 @@ pub async fn train(args: &StoreArgs, a: TrainArgs) -> Result<()> {
         step_stride: a.step_stride.or(recipe_input.step_stride),
         ensemble: a.ensemble,
     };
-    let job = store.create_job(store::JobKind::Train, &serde_json::to_value(&spec)?, &a.actor).await?;
+    let job = store.create_job(store_jobs::JobKind::Train, &serde_json::to_value(&spec)?, &a.actor).await?;
     let worker = api::worker_identity("cli");
     let claimed = store.claim_job(&worker, 3_600_000).await?;
     anyhow::ensure!(

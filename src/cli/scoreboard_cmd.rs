@@ -1,5 +1,6 @@
 //! `ufops scoreboard`: the store's scoreboard as a table, JSON or CSV.
 
+use store_compare::Scoreboards;
 use super::StoreArgs;
 use anyhow::{bail, Result};
 
@@ -35,7 +36,7 @@ pub async fn scoreboard(args: &StoreArgs, a: ScoreboardArgs) -> Result<()> {
         bail!("--format {:?}: table, json or csv", a.format);
     }
     let store = args.open().await?;
-    let req = store::ScoreboardRequest {
+    let req = store_compare::ScoreboardRequest {
         policy: a.policy,
         version: a.version,
         checkpoint: a.checkpoint,
@@ -93,7 +94,7 @@ pub async fn scoreboard(args: &StoreArgs, a: ScoreboardArgs) -> Result<()> {
 
 /// The table's verifier cell: the artifact id with its held-out AUROC and how much of it the
 /// action chunk earns (the trainer's observation-only twin), flagged when unlikely to steer well.
-fn verifier_cell(r: &store::ScoreboardRow) -> String {
+fn verifier_cell(r: &store_compare::ScoreboardRow) -> String {
     let Some(id) = r.run.as_ref().and_then(|x| x.artifact_id.as_deref()) else { return "-".into() };
     let Some(q) = &r.verifier_quality else { return id.to_string() };
     let n = |k: &str| q[k].as_f64().map(|x| format!("{x:.3}"));

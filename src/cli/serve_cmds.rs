@@ -1,6 +1,7 @@
 //! `ingest`, `serve` and `worker`: the ingest crate and the API wired to the store, with the job
 //! runner that executes training and ingest jobs for the API's workers.
 
+use store_feed::Automations;
 use super::StoreArgs;
 use anyhow::Result;
 use futures::future::BoxFuture;
@@ -180,16 +181,16 @@ impl api::JobRunner for Runner {
     fn run<'a>(
         &'a self,
         store: &'a store::Store,
-        job: &'a store::JobRecord,
+        job: &'a store_jobs::JobRecord,
         ctx: api::JobContext,
     ) -> BoxFuture<'a, Result<serde_json::Value, String>> {
         Box::pin(async move {
             match job.kind {
-                store::JobKind::Train => train_job(store, job, ctx).await,
-                store::JobKind::Ingest => ingest_job(store, job).await,
-                store::JobKind::Export => export_job(store, job, &ctx).await,
-                store::JobKind::Score => score_job(store, job, &ctx).await,
-                store::JobKind::Scoreboard => {
+                store_jobs::JobKind::Train => train_job(store, job, ctx).await,
+                store_jobs::JobKind::Ingest => ingest_job(store, job).await,
+                store_jobs::JobKind::Export => export_job(store, job, &ctx).await,
+                store_jobs::JobKind::Score => score_job(store, job, &ctx).await,
+                store_jobs::JobKind::Scoreboard => {
                     store.run_scoreboard_job(&job.spec).await.map_err(|e| e.to_string())
                 }
             }
@@ -200,7 +201,7 @@ impl api::JobRunner for Runner {
 /// A training job: trains, publishes the artifact, reports each epoch; cancelled through `ctx`.
 async fn train_job(
     store: &store::Store,
-    job: &store::JobRecord,
+    job: &store_jobs::JobRecord,
     ctx: api::JobContext,
 ) -> Result<serde_json::Value, String> {
     let mut job_spec = job.spec.clone();
@@ -244,7 +245,7 @@ async fn train_job(
 }
 
 /// An ingest job: the options of `ufops ingest` from the job's spec.
-async fn ingest_job(store: &store::Store, job: &store::JobRecord) -> Result<serde_json::Value, String> {
+async fn ingest_job(store: &store::Store, job: &store_jobs::JobRecord) -> Result<serde_json::Value, String> {
     let s = &job.spec;
     let field = |k: &str| s.get(k).and_then(|v| v.as_str()).map(String::from);
     let path = field("path").ok_or("ingest job has no path")?;
@@ -282,7 +283,7 @@ async fn ingest_job(store: &store::Store, job: &store::JobRecord) -> Result<serd
 /// An export job (curated by a verifier's scores when its selection asks for them).
 async fn export_job(
     store: &store::Store,
-    job: &store::JobRecord,
+    job: &store_jobs::JobRecord,
     ctx: &api::JobContext,
 ) -> Result<serde_json::Value, String> {
     let spec: ::export::job::ExportJobSpec =
@@ -305,7 +306,7 @@ async fn export_job(
 /// A score job: the review queue's scores of a verifier artifact.
 async fn score_job(
     store: &store::Store,
-    job: &store::JobRecord,
+    job: &store_jobs::JobRecord,
     ctx: &api::JobContext,
 ) -> Result<serde_json::Value, String> {
     let spec: ::export::score_job::ScoreJobSpec =

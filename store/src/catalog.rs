@@ -14,9 +14,9 @@ pub enum Backend {
     Postgres,
 }
 
-pub(crate) type Tx = Transaction<'static, Any>;
+pub type Tx = Transaction<'static, Any>;
 
-pub(crate) struct Catalog {
+pub struct Catalog {
     pub pool: AnyPool,
     pub backend: Backend,
     url_for_display: String,
@@ -199,7 +199,7 @@ fn redact(url: &str) -> String {
 }
 
 /// Small helpers to read columns from `Any` rows with a useful error.
-pub(crate) trait RowExt {
+pub trait RowExt {
     fn s(&self, col: &str) -> Result<String, StoreError>;
     fn os(&self, col: &str) -> Result<Option<String>, StoreError>;
     fn i(&self, col: &str) -> Result<i64, StoreError>;
@@ -232,7 +232,7 @@ impl RowExt for AnyRow {
 
 /// A value bound into a dynamically built statement.
 #[derive(Debug, Clone)]
-pub(crate) enum Val {
+pub enum Val {
     I(i64),
     S(String),
     OS(Option<String>),
@@ -272,7 +272,7 @@ impl From<Option<i64>> for Val {
     }
 }
 
-pub(crate) fn bind_val<'q>(
+pub fn bind_val<'q>(
     q: sqlx::query::Query<'q, Any, sqlx::any::AnyArguments<'q>>,
     v: Val,
 ) -> sqlx::query::Query<'q, Any, sqlx::any::AnyArguments<'q>> {
@@ -286,12 +286,12 @@ pub(crate) fn bind_val<'q>(
 }
 
 /// `$1, $2, …, $n`: the parameters of an `IN (…)` list of `n` values.
-pub(crate) fn placeholders(n: usize) -> String {
+pub fn placeholders(n: usize) -> String {
     (1..=n).map(|i| format!("${i}")).collect::<Vec<_>>().join(", ")
 }
 
 /// Inserts many rows in batches of multi-row `INSERT`s (`suffix` may add `ON CONFLICT DO NOTHING`).
-pub(crate) async fn insert_rows(
+pub async fn insert_rows(
     tx: &mut Tx,
     table: &str,
     cols: &[&str],

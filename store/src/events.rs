@@ -280,7 +280,7 @@ fn event_from_row(r: &sqlx::any::AnyRow) -> Result<Event, StoreError> {
 impl Store {
     /// Appends `events` (numbered in commit order) and commits `tx`; the feed's watchers on this
     /// store hear of it at once.
-    pub(crate) async fn commit_with_events(&self, mut tx: Tx, events: &[NewEvent]) -> Result<(), StoreError> {
+    pub async fn commit_with_events(&self, mut tx: Tx, events: &[NewEvent]) -> Result<(), StoreError> {
         let last = append(&mut tx, events).await?;
         tx.commit().await?;
         if let Some(seq) = last {

@@ -4,6 +4,7 @@
 //! running or succeeded, and collects those of failed or cancelled jobs (a worker that died
 //! mid-upload leaves a partial folder) after the grace period.
 
+use crate::catalog::RowExt;
 use crate::{Store, StoreError};
 use serde::Serialize;
 use std::collections::HashSet;
@@ -90,16 +91,15 @@ impl Store {
         Ok(files.len())
     }
 
-    /// Export jobs whose files gc keeps: queued, running or succeeded.
+    /// Export jobs whose files gc keeps: queued, running or succeeded (the jobs table is the
+    /// catalog's; `store-jobs` queues and runs them).
     pub(crate) async fn live_export_ids(&self) -> Result<HashSet<String>, StoreError> {
-        use crate::JobState::*;
-        Ok(self
-            .jobs(None)
-            .await?
-            .into_iter()
-            .filter(|j| j.kind == crate::JobKind::Export && matches!(j.state, Queued | Running | Succeeded))
-            .map(|j| j.id)
-            .collect())
+        let rows = sqlx::query(
+            "SELECT id FROM jobs WHERE kind = 'export' AND state IN ('queued', 'running', 'succeeded')",
+        )
+        .fetch_all(&self.db().pool)
+        .await?;
+        rows.iter().map(|r| r.s("id")).collect()
     }
 }
 

@@ -6,9 +6,9 @@
 
 use crate::catalog::{insert_rows, RowExt, Tx, Val};
 use crate::counts::CountDeltas;
-use crate::model::check_name;
+use crate::model::{check_name, check_ref_name};
 use crate::steps::{self, StepsFileWriter};
-use crate::version::{ensure_checkpoint, finish_version, next_version, VersionHead};
+use crate::version::{finish_version, next_version, VersionHead};
 use crate::{now_rfc3339, EpisodeInput, ExtraColumn, Label, MediaFile, SourceInput, Store, StoreError};
 use std::collections::{HashMap, HashSet};
 
@@ -132,8 +132,8 @@ impl Store {
         policy: &str,
         checkpoint: &str,
     ) -> Result<IngestWriter, StoreError> {
-        check_name("policy", policy)?;
-        check_name("checkpoint", checkpoint)?;
+        check_ref_name("policy", policy)?;
+        check_ref_name("checkpoint", checkpoint)?;
         source.sha256.clear();
         Ok(IngestWriter {
             store: self.clone(),
@@ -413,7 +413,8 @@ impl IngestWriter {
         self.store.register_pending(&self.writer_id, path).await?;
         if self.lease_renewal.is_none() {
             let (store, id) = (self.store.clone(), self.writer_id.clone());
-            let every = std::time::Duration::from_millis((crate::objects::writer_lease_ms() / 3).max(50) as u64);
+            let every =
+                std::time::Duration::from_millis((crate::objects::writer_lease_ms() / 3).max(50) as u64);
             self.lease_renewal = Some(tokio::spawn(async move {
                 loop {
                     tokio::time::sleep(every).await;
@@ -462,7 +463,20 @@ impl IngestWriter {
             .bind(&self.writer_id)
             .execute(&mut *tx)
             .await?;
-        ensure_checkpoint(&mut tx, &self.policy, &self.checkpoint, &now).await?;
+        // The policy and its checkpoint, if they are new.
+        sqlx::query("INSERT INTO policies (name, created_at) VALUES ($1, $2) ON CONFLICT DO NOTHING")
+            .bind(&self.policy)
+            .bind(&now)
+            .execute(&mut *tx)
+            .await?;
+        sqlx::query(
+            "INSERT INTO checkpoints (policy, name, created_at) VALUES ($1, $2, $3) ON CONFLICT DO NOTHING",
+        )
+        .bind(&self.policy)
+        .bind(&self.checkpoint)
+        .bind(&now)
+        .execute(&mut *tx)
+        .await?;
         let run_id = match &self.run {
             Some(run) => Some(crate::runs::ensure_run(&mut tx, run, &now).await?),
             None => None,

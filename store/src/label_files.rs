@@ -8,10 +8,10 @@
 //! version never change, so the file can be built at leisure and attached to the version later.
 
 use crate::catalog::{RowExt, Tx};
-use crate::steps::{self, LabelRow, LabelsKind};
 use crate::spans::covers;
-use bytes::Bytes;
+use crate::steps::{self, LabelRow, LabelsKind};
 use crate::{Store, StoreError};
+use bytes::Bytes;
 use std::collections::BTreeMap;
 
 /// A checkpoint is due once this many delta files follow the last full one...

@@ -1,70 +1,57 @@
-//! The ufops store: the single source of truth for rollouts, labels, splits, artifacts and jobs.
+//! The ufops store: the single source of truth for rollouts, labels, splits and artifacts.
 //!
 //! It owns the catalog (SQL via sqlx: SQLite by default, Postgres for scale-out), the object
-//! storage (a local directory or S3 via `object_store`) and the Parquet layout of episode steps.
-//! Every write creates an immutable, numbered version; data files are written first under unique
-//! names and become visible only when the version's catalog row commits in one transaction.
-//! Every catalog change also records its events in the change feed, in the same transaction
-//! (`events.rs`), which idempotency keys (`idempotency.rs`), webhook subscriptions
-//! (`webhooks.rs`) and automations (`automations.rs`, rules that queue jobs from the feed) build on.
+//! storage (a local directory or S3 via `object_store`) and where the Parquet steps files live
+//! (their layout and the data model are `store-layout`'s, re-exported here). Every write creates
+//! an immutable, numbered version; data files are written first under unique names and become
+//! visible only when the version's catalog row commits in one transaction. Every catalog change
+//! also records its events in the change feed, in the same transaction (`events.rs`), which
+//! idempotency keys (`idempotency.rs`) build on.
+//!
+//! Above it, on its catalog face ([`sql`]), stand the crates that keep rows of their own: the
+//! job queue (`store-jobs`), what the feed drives (`store-feed`: webhooks, automations) and the
+//! comparison of checkpoints (`store-compare`: compare, scoreboard, policy aliases).
 
 mod artifacts;
-mod automations;
 mod catalog;
-mod compare;
 mod consensus;
 mod counts;
 mod episodes_arrow;
-mod error;
 mod events;
 mod exports;
 mod frames;
 mod gc;
 mod idempotency;
 mod ingest_writer;
-mod jobs;
 mod label_files;
 mod labels;
 mod layers;
 mod lru;
 mod media;
-pub mod model;
 mod monitors;
 mod objects;
-mod policy_aliases;
 mod query;
 mod read;
 mod review;
 mod runs;
-mod scoreboard;
 mod selection;
 mod spans;
-mod spill;
 mod splits;
-pub mod steps;
 /// Test support for every crate's tests (feature `testing`, enabled by the dev-dependencies).
 #[cfg(any(test, feature = "testing"))]
 pub mod test_support;
 mod tokens;
 mod version;
 pub mod video;
-mod webhooks;
 
 pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
-pub use automations::{
-    AutomationRecord, AutomationRule, AutomationTarget, ScoreOnPublish, ScoreboardOnRunLabeled, TrainOnLabels,
-};
 pub use catalog::{migration_names, Backend};
-pub use compare::{
-    ArmSpec, CompareRequest, Comparison, ComparisonSlice, EValues, PairTable, DEFAULT_PAIR_KEY,
-};
 pub use consensus::{
     Agreement, Campaign, ConsensusState, Dispute, EpisodeVotes, LabelerCounts, NewVote, PairAgreement, Span,
     VerdictData, Vote, VoteOutcome, CAMPAIGN_CACHE_TTL, MAX_FAILURE_CAUSES, MAX_LABELS_NEEDED, MAX_SPANS,
 };
 pub use counts::{CountFilter, LabelCounts};
 pub use episodes_arrow::{episodes_batch, episodes_schema};
-pub use error::StoreError;
 pub use events::{
     with_request, Event, EventFilter, EventKind, EventPage, NewEvent, RequestContext, MAX_EVENT_PAGE,
 };
@@ -73,7 +60,6 @@ pub use frames::{cameras_of, Camera, CameraKind, FrameLocation};
 pub use gc::{GcReport, MAX_GRACE_SECONDS};
 pub use idempotency::{Claim, IdempotentRequest, StoredResponse, MAX_IDEMPOTENCY_KEY_LEN};
 pub use ingest_writer::{CommitInfo, IngestWriter, SourceRecord, MAX_STEPS_FILE_BYTES};
-pub use jobs::{JobKind, JobRecord, JobState};
 pub use labels::{LabelChange, LabelEvent, LabelUpdate, PreparedLabelSnapshot};
 pub use layers::{
     check_layer_name, producer_hash, EpisodeLayer, LayerRecord, LayerValues, LayerWrite, LAYER_META_KEY,
@@ -83,20 +69,19 @@ pub use media::EpisodeMedia;
 pub use model::*;
 pub use monitors::{MonitorEntry, NewMonitor};
 pub use objects::FetchCounts;
-pub use policy_aliases::{MoveAlias, PolicyAlias, PolicyAliasMove};
 pub use query::{EpisodeFilter, EpisodeRecord, VersionDiff, VersionInfo};
 pub use read::{EpisodeLocation, EpisodeSteps, StepsReadError, StepsStream};
 pub use review::{
     EpisodeScore, ReviewArtifact, ReviewEntry, ReviewOrder, DEFAULT_REVIEW_ALIAS, DEFAULT_REVIEW_KIND,
 };
 pub use runs::{RunInput, RunRecord, Steering};
-pub use scoreboard::{BaselineComparison, Scoreboard, ScoreboardRequest, ScoreboardRow, NO_RUN};
 pub use selection::{
     for_each_episode, for_each_episode_with_layers, select, EpisodeReader, Progress, ScoreRange, Selected, Selection,
 };
-pub use splits::{SplitCheckpointSteps, SplitEpisode, SplitRecord, SplitRequest};
+pub use splits::{SplitCheckpointSteps, SplitEpisode, SplitRecord, SplitRequest, MAX_VAL_FRACTION};
+/// The data model and the steps layout live below the catalog, in `store-layout`.
+pub use store_layout::{model, steps, StoreError};
 pub use tokens::{Role, TokenRecord};
-pub use webhooks::{delivery_id, DeadLetter, HeldWebhook, WebhookRecord, MAX_WEBHOOK_ATTEMPTS};
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -207,16 +192,34 @@ impl Store {
     pub(crate) fn db(&self) -> &catalog::Catalog {
         &self.inner.db
     }
+    /// The catalog itself, for the store's upper crates ([`sql`]).
+    pub fn catalog(&self) -> &sql::Catalog {
+        &self.inner.db
+    }
     pub(crate) fn objects(&self) -> &objects::Objects {
         &self.inner.objects
     }
 }
 
-pub(crate) fn now_rfc3339() -> String {
+/// The catalog face that the store's upper crates (`store-jobs`, `store-feed`, `store-compare`)
+/// keep their rows with: the connection pool and its write transactions, the dialect helpers,
+/// the change feed's commit ([`Store::commit_with_events`]) and the version spans. The tables
+/// are all the catalog's (one migration sequence, `migrations/`); applications use `Store`'s
+/// methods and those crates' traits instead.
+pub mod sql {
+    pub use crate::catalog::{bind_val, insert_rows, placeholders, Catalog, RowExt, Tx, Val};
+    pub use crate::runs::run_from_row;
+    pub use crate::spans::covers;
+    pub use crate::{now_ms, now_rfc3339};
+}
+
+/// Now, as the catalog writes its timestamps (RFC 3339, UTC, milliseconds).
+pub fn now_rfc3339() -> String {
     chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
 }
 
-pub(crate) fn now_ms() -> i64 {
+/// Now, in Unix milliseconds (leases and deadlines).
+pub fn now_ms() -> i64 {
     chrono::Utc::now().timestamp_millis()
 }
 

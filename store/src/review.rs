@@ -76,13 +76,17 @@ pub struct ReviewEntry {
     pub cursor: String,
 }
 
-/// An episode's stored score by one artifact, with the per-step series.
+/// An episode's stored verifier scores by one artifact: one per step, and their mean.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema), schema(as = EpisodeScores))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct EpisodeScore {
     pub episode_id: String,
     pub artifact_id: String,
+    /// The mean of `step_scores` (what orders the queue).
     pub score: f64,
+    /// One score per step, in step order (a classifier's success probability).
     pub step_scores: Vec<f32>,
+    /// The score job that stored them.
     pub job_id: Option<String>,
     pub created_at: String,
 }

@@ -154,7 +154,7 @@ pub struct RunRecord {
     pub created_at: String,
 }
 
-pub(crate) fn run_from_row(r: &sqlx::any::AnyRow) -> Result<RunRecord, StoreError> {
+pub fn run_from_row(r: &sqlx::any::AnyRow) -> Result<RunRecord, StoreError> {
     Ok(RunRecord {
         id: r.s("id")?,
         name: r.s("name")?,

@@ -3,7 +3,7 @@
 
 /// `alias`'s span `[version_from, version_to)` covers the version bound as `p`: the SQL every
 /// read of a past version's labels and counts goes through (migration 0019).
-pub(crate) fn covers(alias: &str, p: &str) -> String {
+pub fn covers(alias: &str, p: &str) -> String {
     let a = if alias.is_empty() { String::new() } else { format!("{alias}.") };
     format!("{a}version_from <= {p} AND ({a}version_to IS NULL OR {a}version_to > {p})")
 }

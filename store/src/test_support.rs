@@ -281,6 +281,7 @@ fn heap_grew(by: usize) {
 }
 
 // SAFETY: every call is forwarded to the system allocator unchanged; only counters move.
+#[allow(unsafe_code, reason = "a global allocator is an unsafe trait")]
 unsafe impl std::alloc::GlobalAlloc for CountingAlloc {
     unsafe fn alloc(&self, layout: std::alloc::Layout) -> *mut u8 {
         let p = unsafe { std::alloc::System.alloc(layout) };

@@ -18,29 +18,6 @@ pub(crate) async fn next_version(tx: &mut Tx) -> Result<i64, StoreError> {
     Ok(row.i("version")? + 1)
 }
 
-/// Registers the policy and its checkpoint if they are new (inside the version's transaction).
-pub(crate) async fn ensure_checkpoint(
-    tx: &mut Tx,
-    policy: &str,
-    checkpoint: &str,
-    now: &str,
-) -> Result<(), StoreError> {
-    sqlx::query("INSERT INTO policies (name, created_at) VALUES ($1, $2) ON CONFLICT DO NOTHING")
-        .bind(policy)
-        .bind(now)
-        .execute(&mut **tx)
-        .await?;
-    sqlx::query(
-        "INSERT INTO checkpoints (policy, name, created_at) VALUES ($1, $2, $3) ON CONFLICT DO NOTHING",
-    )
-    .bind(policy)
-    .bind(checkpoint)
-    .bind(now)
-    .execute(&mut **tx)
-    .await?;
-    Ok(())
-}
-
 /// The row a new version adds to `versions`, and the head it moves to.
 pub(crate) struct VersionHead {
     pub version: i64,

@@ -216,22 +216,6 @@ async fn versions_labels_time_travel(store: Store) {
     std::fs::write(dir.path().join("model.safetensors"), b"tampered").unwrap();
     assert!(store.publish_artifact(new()).await.is_err());
 
-    // Jobs: claimed once, leases expire, cancel.
-    let j =
-        store.create_job(store::JobKind::Train, &serde_json::json!({"split": s1.id}), "alice").await.unwrap();
-    let claimed = store.claim_job("w1", 60_000).await.unwrap().unwrap();
-    assert_eq!((claimed.id.as_str(), claimed.state, claimed.attempts), (j.id.as_str(), JobState::Running, 1));
-    assert!(store.claim_job("w2", 60_000).await.unwrap().is_none());
-    assert!(store.heartbeat_job(&j.id, "w1", 1, 1, &serde_json::json!({"epoch": 1})).await.unwrap());
-    tokio::time::sleep(std::time::Duration::from_millis(20)).await;
-    let again = store.claim_job("w2", 60_000).await.unwrap().unwrap();
-    assert_eq!((again.id.as_str(), again.attempts), (j.id.as_str(), 2));
-    assert!(!store.heartbeat_job(&j.id, "w1", 1, 60_000, &serde_json::json!({})).await.unwrap());
-    assert!(store.finish_job(&j.id, "w2", 2, Ok(serde_json::json!({"artifact": a.id}))).await.unwrap());
-    assert_eq!(store.job(&j.id).await.unwrap().state, JobState::Succeeded);
-    let j2 = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
-    assert_eq!(store.cancel_job(&j2.id).await.unwrap().state, JobState::Cancelled);
-
     // Tokens are stored hashed and can be revoked.
     let (secret, tok) = store.create_token("ci", Role::Labeler).await.unwrap();
     assert_eq!(store.verify_token(&secret).await.unwrap().unwrap().role, Role::Labeler);

@@ -2,14 +2,10 @@
 //! (one link of the whole dependency tree instead of one per file). A file that installs a
 //! global allocator to measure memory stays a binary of its own (see Cargo.toml).
 
-mod automations;
 mod campaign_cache;
 mod catalog_lists;
-mod compare;
 mod gc_in_flight;
-mod job_fencing;
 mod review_index;
-mod scoreboard;
 mod split_sample;
 mod store;
 mod version_history;

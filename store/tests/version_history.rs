@@ -7,6 +7,7 @@
 
 use std::collections::BTreeMap;
 use store::*;
+use store_compare::{ScoreboardRequest, Scoreboards};
 
 /// xorshift64*: a seeded history without a dependency.
 struct Rng(u64);

@@ -9,6 +9,7 @@
 //!
 //! One file past 700 lines: the fused forward and backward passes and their buffers are read
 //! against each other.
+#![allow(unsafe_code, reason = "the fused AVX2 training kernels: target-feature calls")]
 
 use anyhow::{ensure, Result};
 
@@ -270,7 +271,7 @@ impl FastModel {
     pub fn new(spec: &ModelSpec, params: &ParamSet, batch: usize, threads: usize) -> Result<Self> {
         ensure!(supports(spec), "fast path supports lowdim without extras only");
         spec.check_params(params)?;
-        let idx = |n: &str| params.index(n).unwrap();
+        let idx = |n: &str| params.index(n).expect("check_params: every tensor the spec names is present");
         let lin = |name: &str| {
             let w = idx(&format!("{name}.weight"));
             Lin {
@@ -291,8 +292,8 @@ impl FastModel {
         let cap = batch.div_ceil(threads);
         let trunk_in = spec.arch.trunk_in();
         let w = spec.arch.encoder_width;
-        let zdim = *spec.arch.trunk_dims.last().unwrap();
-        let widest = trunk.iter().map(|l| l.lin.input).max().unwrap();
+        let zdim = spec.arch.z_dim();
+        let widest = trunk.iter().map(|l| l.lin.input).max().unwrap_or(0);
         let workers = (0..threads)
             .map(|_| Worker {
                 cap,
@@ -339,7 +340,7 @@ impl FastModel {
     }
 
     fn zdim(&self) -> usize {
-        *self.spec.arch.trunk_dims.last().unwrap()
+        self.spec.arch.z_dim()
     }
 
     /// Head outputs of the last forward pass.
@@ -397,7 +398,7 @@ impl FastModel {
         let mut off = 0;
         for w in &workers {
             self.y[off..off + w.rows].copy_from_slice(&w.y[..w.rows]);
-            let zl = w.out.last().unwrap();
+            let zl = w.out.last().expect("a worker holds one output per trunk layer");
             self.z[off * zdim..(off + w.rows) * zdim].copy_from_slice(&zl[..w.rows * zdim]);
             off += w.rows;
         }
@@ -630,7 +631,7 @@ impl Ctx<'_> {
                     true,
                 );
             }
-            let z = w.out.last().unwrap();
+            let z = w.out.last().expect("a worker holds one output per trunk layer");
             let h = m.head;
             dispatch!(m.isa, head_fwd(&z[..n * h.input], mask, &p[h.w], p[h.b][0], &mut w.y[..n]));
         }

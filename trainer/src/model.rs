@@ -212,7 +212,7 @@ impl CandleModel {
     pub fn inference_params(&self) -> Result<ParamSet> {
         let mut p = self.params()?;
         if self.spec.arch.spectral_norm {
-            let sn = self.sn.lock().unwrap();
+            let sn = self.sn.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
             for (name, st) in sn.iter() {
                 let i = p.index(&format!("{name}.weight")).context("sn weight")?;
                 let sigma = sigma_uv(&p.values[i], &st.u, &st.v);
@@ -228,7 +228,7 @@ impl CandleModel {
         if !self.spec.arch.spectral_norm {
             return Ok(());
         }
-        let mut sn = self.sn.lock().unwrap();
+        let mut sn = self.sn.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         for (name, st) in sn.iter_mut() {
             let w = self.var(&format!("{name}.weight"))?.as_tensor().flatten_all()?.to_vec1::<f32>()?;
             power_iterate(&w, st.u.len(), st.v.len(), &mut st.u, &mut st.v, iters);
@@ -238,7 +238,7 @@ impl CandleModel {
 
     /// Largest-singular-value estimate `u^T W v` of a spectrally normalised layer.
     pub fn sigma(&self, layer: &str) -> Result<f32> {
-        let sn = self.sn.lock().unwrap();
+        let sn = self.sn.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         let st = sn.get(layer).with_context(|| format!("{layer} has no spectral norm"))?;
         let w = self.var(&format!("{layer}.weight"))?.as_tensor().flatten_all()?.to_vec1::<f32>()?;
         Ok(sigma_uv(&w, &st.u, &st.v))
@@ -246,7 +246,7 @@ impl CandleModel {
 
     fn weight(&self, layer: &str) -> Result<Tensor> {
         let w = self.var(&format!("{layer}.weight"))?.as_tensor().clone();
-        let sn = self.sn.lock().unwrap();
+        let sn = self.sn.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         if let Some(st) = sn.get(layer) {
             // sigma = u^T W v with u, v constants: the gradient flows through sigma into W.
             let u = Tensor::from_slice(&st.u, (1, st.u.len()), &self.device)?;

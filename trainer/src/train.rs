@@ -434,7 +434,7 @@ fn fit(
     let steps_per_epoch = n.div_ceil(bs);
     let total_steps = (steps_per_epoch * cfg.epochs) as u64;
     let mut opt = AdamW::new(cfg.optimizer, params.values.iter().map(|v| v.len()));
-    let mut dropout = DropoutMask::new(spec.arch.dropout, bs, *spec.arch.trunk_dims.last().unwrap());
+    let mut dropout = DropoutMask::new(spec.arch.dropout, bs, spec.arch.z_dim());
     let noise = if cfg.obs_noise_std > 0.0 { Some(Normal::new(0.0, cfg.obs_noise_std)?) } else { None };
     let target_of = |s: &Samples| -> Vec<f32> {
         match cfg.kind {
@@ -768,7 +768,7 @@ fn candle_step(
     let b = rows.len();
     model.power_iteration(1)?;
     let bt = gather_tensors(model, samples, temb, rows)?;
-    let zdim = *model.spec.arch.trunk_dims.last().unwrap();
+    let zdim = model.spec.arch.z_dim();
     let dev = model.device();
     let noise = crate::model::TrainNoise {
         drop_mask: mask.map(|m| Tensor::from_slice(m, (b, zdim), dev)).transpose()?,
@@ -825,7 +825,7 @@ fn evaluate(
     temb: &TimeEmbedTable,
     cfg: &TrainConfig,
 ) -> Result<(Vec<f32>, f64)> {
-    let zdim = *spec.arch.trunk_dims.last().unwrap();
+    let zdim = spec.arch.z_dim();
     let mut ys = Vec::with_capacity(order.len());
     let mut loss = 0f64;
     for rows in order.chunks(cfg.batch_size) {

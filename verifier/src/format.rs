@@ -152,6 +152,12 @@ impl Architecture {
         2 * self.encoder_width + self.t_embed_dim + self.extra_inputs.iter().map(|e| e.width).sum::<usize>()
     }
 
+    /// Width of the penultimate layer `z` (the trunk's last), which the contrastive loss and
+    /// dropout act on; 0 for an architecture without a trunk (which `validate` refuses).
+    pub fn z_dim(&self) -> usize {
+        self.trunk_dims.last().copied().unwrap_or(0)
+    }
+
     /// Whether an activation follows encoder linear `i` (0 or 1): lowdim after both, features
     /// between them only.
     pub fn encoder_activation_after(&self, i: usize) -> bool {

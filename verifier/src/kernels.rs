@@ -5,6 +5,7 @@
 //!
 //! One file past 700 lines: each kernel sits beside its portable twin and the tests that hold them
 //! equal.
+#![allow(unsafe_code, reason = "the AVX2/FMA kernels: target-feature functions and intrinsics")]
 
 /// Which instruction set the kernels use.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

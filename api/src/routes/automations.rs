@@ -1,8 +1,9 @@
 //! Automations: rules declared per policy that queue jobs from the change feed (train a verifier
 //! when a checkpoint has enough labels, score its review queue when one is published, snapshot a
 //! run's scoreboard rows when its episodes are all labeled). Running them is `automations.rs` at
-//! the crate root; what they decide is the store's (`store/src/automations.rs`).
+//! the crate root; what they decide is `store-feed`'s (`store-feed/src/automations.rs`).
 
+use store_feed::Automations;
 use super::*;
 
 /// The routes of this resource (behind the token check).
@@ -27,11 +28,11 @@ pub struct AutomationCreate {
 
 /// The document states the body per rule, one `oneOf` branch each, so that `params` has the
 /// rule's own schema (`TrainOnLabels` requires `min_labeled`; the other rules' parameters are
-/// optional, `null` being none): the store checks them by the rule (`store::check_params`),
+/// optional, `null` being none): the store checks them by the rule (`store_feed::check_params`),
 /// and a derived schema could only call them an object. `openapi.rs` adds the policy's pattern.
 impl utoipa::PartialSchema for AutomationCreate {
     fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
-        let branch = |rule: store::AutomationRule, params: &str, required: bool| {
+        let branch = |rule: store_feed::AutomationRule, params: &str, required: bool| {
             let params = serde_json::json!({"$ref": format!("#/components/schemas/{params}")});
             let (params, required) = if required {
                 (params, serde_json::json!(["policy", "rule", "params"]))
@@ -55,9 +56,9 @@ impl utoipa::PartialSchema for AutomationCreate {
         let schema = serde_json::json!({
             "description": "Declaring an automation: a policy, a rule, and the rule's parameters (`params`).",
             "oneOf": [
-                branch(store::AutomationRule::TrainOnLabels, "TrainOnLabels", true),
-                branch(store::AutomationRule::ScoreOnPublish, "ScoreOnPublish", false),
-                branch(store::AutomationRule::ScoreboardOnRunLabeled, "ScoreboardOnRunLabeled", false),
+                branch(store_feed::AutomationRule::TrainOnLabels, "TrainOnLabels", true),
+                branch(store_feed::AutomationRule::ScoreOnPublish, "ScoreOnPublish", false),
+                branch(store_feed::AutomationRule::ScoreboardOnRunLabeled, "ScoreboardOnRunLabeled", false),
             ],
         });
         serde_json::from_value(schema).expect("the AutomationCreate schema is an OpenAPI schema")
@@ -69,17 +70,17 @@ impl utoipa::ToSchema for AutomationCreate {}
 /// Declares an automation (trainer). It acts on the change feed from now on, queueing its jobs on
 /// the job queue and recording each as an `automation.fired` event; see api/README.md.
 #[utoipa::path(post, path = "/v1/automations", tag = "automations", request_body = AutomationCreate,
-    responses((status = 201, body = store::AutomationRecord),
+    responses((status = 201, body = store_feed::AutomationRecord),
               (status = 400, description = "an unknown rule or bad parameters", body = Problem, content_type = "application/problem+json"),
               (status = 403, description = "the token's role is below trainer")))]
 pub async fn create_automation(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
     ApiJson(b): ApiJson<AutomationCreate>,
-) -> ApiResult<(StatusCode, Json<store::AutomationRecord>)> {
+) -> ApiResult<(StatusCode, Json<store_feed::AutomationRecord>)> {
     caller.require(Role::Trainer)?;
     check_name("policy", &b.policy)?;
-    let rule: store::AutomationRule = b.rule.parse()?;
+    let rule: store_feed::AutomationRule = b.rule.parse()?;
     let a = s.store().create_automation(&b.policy, rule, &b.params, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(a)))
 }
@@ -93,11 +94,11 @@ pub struct AutomationQuery {
 
 /// Every automation, oldest first, with its cursor in the feed and how many jobs it queued.
 #[utoipa::path(get, path = "/v1/automations", tag = "automations", params(AutomationQuery),
-    responses((status = 200, body = Vec<store::AutomationRecord>)))]
+    responses((status = 200, body = Vec<store_feed::AutomationRecord>)))]
 pub async fn list_automations(
     State(s): State<AppState>,
     ApiQuery(q): ApiQuery<AutomationQuery>,
-) -> ApiResult<Json<Vec<store::AutomationRecord>>> {
+) -> ApiResult<Json<Vec<store_feed::AutomationRecord>>> {
     if let Some(p) = &q.policy {
         check_name("policy", p)?;
     }
@@ -107,11 +108,11 @@ pub async fn list_automations(
 /// One automation, with what it knows of each target it has seen (a checkpoint or a run: the
 /// last change, what its verifier covers, its last job): why it fired, or did not.
 #[utoipa::path(get, path = "/v1/automations/{id}", tag = "automations", params(("id" = String, Path,)),
-    responses((status = 200, body = store::AutomationRecord), (status = 404, description = "no such automation")))]
+    responses((status = 200, body = store_feed::AutomationRecord), (status = 404, description = "no such automation")))]
 pub async fn get_automation(
     State(s): State<AppState>,
     ApiPath(id): ApiPath<String>,
-) -> ApiResult<Json<store::AutomationRecord>> {
+) -> ApiResult<Json<store_feed::AutomationRecord>> {
     check_id("automation id", &id)?;
     Ok(Json(s.store().automation(&id).await?))
 }

@@ -2,6 +2,7 @@
 //! pooled, with the gate's answer), and the policy aliases it guards (`prod` moves only on a
 //! decided "not worse", the comparison kept as the move's evidence).
 
+use store_compare::{Compare, PolicyAliases};
 use super::*;
 
 /// The routes of this resource (behind the token check).
@@ -43,8 +44,8 @@ pub struct CompareQuery {
     progress: Option<String>,
 }
 
-fn arm(what: &str, s: &str) -> ApiResult<store::ArmSpec> {
-    let spec: store::ArmSpec =
+fn arm(what: &str, s: &str) -> ApiResult<store_compare::ArmSpec> {
+    let spec: store_compare::ArmSpec =
         s.parse().map_err(|e: store::StoreError| ApiError::bad_request(format!("{what}: {e}")))?;
     check_name(what, &spec.checkpoint)?;
     Ok(spec)
@@ -52,18 +53,18 @@ fn arm(what: &str, s: &str) -> ApiResult<store::ArmSpec> {
 
 /// Is B better than A yet? Decisions hold at every sample size however often anyone looks.
 #[utoipa::path(get, path = "/v1/compare", tag = "scoreboard", params(CompareQuery),
-    responses((status = 200, body = store::Comparison),
+    responses((status = 200, body = store_compare::Comparison),
               (status = 400, description = "a bad arm, alpha, margin or plan, or arm B is arm A"),
               (status = 404, description = "no such policy or version, or an arm without episodes")))]
 pub async fn get_compare(
     State(s): State<AppState>,
     ApiQuery(q): ApiQuery<CompareQuery>,
-) -> ApiResult<Json<store::Comparison>> {
+) -> ApiResult<Json<store_compare::Comparison>> {
     check_name("policy", &q.policy)?;
     if let Some(t) = &q.task {
         check_name("task", t)?;
     }
-    let req = store::CompareRequest {
+    let req = store_compare::CompareRequest {
         version: q.version,
         task: q.task,
         alpha: q.alpha.unwrap_or(0.05),
@@ -71,7 +72,7 @@ pub async fn get_compare(
         plan_effect: q.plan_effect,
         pair_key: q.pair_key,
         progress: q.progress,
-        ..store::CompareRequest::new(&q.policy, arm("a", &q.a)?, arm("b", &q.b)?)
+        ..store_compare::CompareRequest::new(&q.policy, arm("a", &q.a)?, arm("b", &q.b)?)
     };
     Ok(Json(s.store().compare(&req).await?))
 }
@@ -79,11 +80,11 @@ pub async fn get_compare(
 /// A policy's aliases with the evidence of their last move.
 #[utoipa::path(get, path = "/v1/policies/{policy}/aliases", tag = "scoreboard",
     params(("policy" = String, Path)),
-    responses((status = 200, body = Vec<store::PolicyAlias>)))]
+    responses((status = 200, body = Vec<store_compare::PolicyAlias>)))]
 pub async fn list_policy_aliases(
     State(s): State<AppState>,
     ApiPath(policy): ApiPath<String>,
-) -> ApiResult<Json<Vec<store::PolicyAlias>>> {
+) -> ApiResult<Json<Vec<store_compare::PolicyAlias>>> {
     check_name("policy", &policy)?;
     Ok(Json(s.store().policy_aliases(&policy).await?))
 }
@@ -110,7 +111,7 @@ pub struct PolicyAliasMoveBody {
 #[utoipa::path(put, path = "/v1/policies/{policy}/aliases/{alias}", tag = "scoreboard",
     params(("policy" = String, Path), ("alias" = String, Path)),
     request_body = PolicyAliasMoveBody,
-    responses((status = 200, body = store::PolicyAlias),
+    responses((status = 200, body = store_compare::PolicyAlias),
               (status = 400, description = "a bad target or comparison setting"),
               (status = 404, description = "the target has no episodes"),
               (status = 409, description = "the alias is protected and the comparison has not decided \"not worse\""),
@@ -120,18 +121,18 @@ pub async fn move_policy_alias(
     Extension(caller): Extension<Caller>,
     ApiPath((policy, alias)): ApiPath<(String, String)>,
     ApiJson(b): ApiJson<PolicyAliasMoveBody>,
-) -> ApiResult<Json<store::PolicyAlias>> {
+) -> ApiResult<Json<store_compare::PolicyAlias>> {
     caller.require(Role::Trainer)?;
     check_name("policy", &policy)?;
     check_id("alias", &alias)?;
-    let mv = store::MoveAlias {
+    let mv = store_compare::MoveAlias {
         protect: b.protect.then_some(true),
         alpha: b.alpha.unwrap_or(0.05),
         margin: b.margin.unwrap_or(0.0),
         plan_effect: b.plan_effect,
         pair_key: b.pair_key,
         progress: b.progress,
-        ..store::MoveAlias::new(&policy, &alias, arm("to", &b.to)?, &caller.name)
+        ..store_compare::MoveAlias::new(&policy, &alias, arm("to", &b.to)?, &caller.name)
     };
     Ok(Json(s.store().move_policy_alias(&mv).await?))
 }
@@ -139,11 +140,11 @@ pub async fn move_policy_alias(
 /// An alias's moves, oldest first, each with its evidence.
 #[utoipa::path(get, path = "/v1/policies/{policy}/aliases/{alias}/history", tag = "scoreboard",
     params(("policy" = String, Path), ("alias" = String, Path)),
-    responses((status = 200, body = Vec<store::PolicyAliasMove>)))]
+    responses((status = 200, body = Vec<store_compare::PolicyAliasMove>)))]
 pub async fn policy_alias_history(
     State(s): State<AppState>,
     ApiPath((policy, alias)): ApiPath<(String, String)>,
-) -> ApiResult<Json<Vec<store::PolicyAliasMove>>> {
+) -> ApiResult<Json<Vec<store_compare::PolicyAliasMove>>> {
     check_name("policy", &policy)?;
     check_id("alias", &alias)?;
     Ok(Json(s.store().policy_alias_history(&policy, &alias).await?))

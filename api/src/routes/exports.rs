@@ -5,6 +5,7 @@
 
 use super::*;
 use axum::routing::delete;
+use store_jobs::JobQueue;
 
 /// The routes of this resource (behind the token check).
 pub(crate) fn router() -> Router<AppState> {
@@ -76,14 +77,14 @@ pub struct ExportScore {
 /// An export job and, once it succeeded, its files.
 #[derive(Serialize, ToSchema)]
 pub struct ExportStatus {
-    job: store::JobRecord,
+    job: store_jobs::JobRecord,
     files: Vec<store::ExportFile>,
 }
 
-async fn export_job(s: &AppState, id: &str) -> ApiResult<store::JobRecord> {
+async fn export_job(s: &AppState, id: &str) -> ApiResult<store_jobs::JobRecord> {
     check_id("export id", id)?;
     let job = s.store().job(id).await?;
-    if job.kind != store::JobKind::Export {
+    if job.kind != store_jobs::JobKind::Export {
         return Err(ApiError::not_found(format!("export {id} not found")));
     }
     Ok(job)
@@ -91,13 +92,13 @@ async fn export_job(s: &AppState, id: &str) -> ApiResult<store::JobRecord> {
 
 /// Queues an export; the job's spec is `{format, selection}` (export::job::ExportJobSpec).
 #[utoipa::path(post, path = "/v1/exports", tag = "exports", request_body = ExportCreate,
-    responses((status = 201, description = "the queued export job", body = store::JobRecord),
+    responses((status = 201, description = "the queued export job", body = store_jobs::JobRecord),
               (status = 403, description = "the token's role is below trainer"), (status = 404, description = "no such split, version or artifact")))]
 pub async fn create_export(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
     ApiJson(b): ApiJson<ExportCreate>,
-) -> ApiResult<(StatusCode, Json<store::JobRecord>)> {
+) -> ApiResult<(StatusCode, Json<store_jobs::JobRecord>)> {
     caller.require(Role::Trainer)?;
     for (what, v) in
         [("policy", &b.policy), ("checkpoint", &b.checkpoint), ("task", &b.task), ("tag", &b.tag)]
@@ -146,16 +147,16 @@ pub async fn create_export(
     };
     spec.check().map_err(|e| ApiError::bad_request(e.to_string()))?;
     let spec = serde_json::to_value(&spec).map_err(|e| ApiError::internal(e.to_string()))?;
-    let job = s.store().create_job(store::JobKind::Export, &spec, &caller.name).await?;
+    let job = s.store().create_job(store_jobs::JobKind::Export, &spec, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(job)))
 }
 
 /// Export jobs, newest first.
 #[utoipa::path(get, path = "/v1/exports", tag = "exports",
-    responses((status = 200, body = Vec<store::JobRecord>)))]
-pub async fn list_exports(State(s): State<AppState>) -> ApiResult<Json<Vec<store::JobRecord>>> {
-    let mut jobs: Vec<store::JobRecord> =
-        s.store().jobs(None).await?.into_iter().filter(|j| j.kind == store::JobKind::Export).collect();
+    responses((status = 200, body = Vec<store_jobs::JobRecord>)))]
+pub async fn list_exports(State(s): State<AppState>) -> ApiResult<Json<Vec<store_jobs::JobRecord>>> {
+    let mut jobs: Vec<store_jobs::JobRecord> =
+        s.store().jobs(None).await?.into_iter().filter(|j| j.kind == store_jobs::JobKind::Export).collect();
     jobs.sort_by(|a, b| b.created_at.cmp(&a.created_at));
     Ok(Json(jobs))
 }
@@ -168,8 +169,11 @@ pub async fn get_export(
     ApiPath(id): ApiPath<String>,
 ) -> ApiResult<Json<ExportStatus>> {
     let job = export_job(&s, &id).await?;
-    let files =
-        if job.state == store::JobState::Succeeded { s.store().export_files(&id).await? } else { Vec::new() };
+    let files = if job.state == store_jobs::JobState::Succeeded {
+        s.store().export_files(&id).await?
+    } else {
+        Vec::new()
+    };
     Ok(Json(ExportStatus { job, files }))
 }
 
@@ -185,7 +189,7 @@ pub async fn export_file(
     headers: HeaderMap,
 ) -> ApiResult<Response> {
     let job = export_job(&s, &id).await?;
-    if job.state != store::JobState::Succeeded {
+    if job.state != store_jobs::JobState::Succeeded {
         return Err(ApiError::not_found(format!("export {id} has no files (job {})", job.state.as_str())));
     }
     let (object, size) = s.store().export_object(&id, &path).await?;
@@ -203,7 +207,7 @@ pub async fn delete_export(
 ) -> ApiResult<Json<ExportDeleted>> {
     caller.require(Role::Trainer)?;
     let job = export_job(&s, &id).await?;
-    if matches!(job.state, store::JobState::Queued | store::JobState::Running) {
+    if matches!(job.state, store_jobs::JobState::Queued | store_jobs::JobState::Running) {
         return Err(ApiError::new(
             StatusCode::CONFLICT,
             "conflict",

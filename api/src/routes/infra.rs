@@ -1,6 +1,7 @@
 //! Infrastructure routes: liveness, Prometheus metrics, the 404 fallback.
 
 use super::*;
+use store_jobs::JobQueue;
 
 /// The routes of this resource (behind the token check).
 pub(crate) fn router() -> Router<AppState> {

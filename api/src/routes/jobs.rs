@@ -1,6 +1,7 @@
 //! Jobs: training (and ingest) jobs queued for workers, their state, cancellation.
 
 use super::*;
+use store_jobs::JobQueue;
 
 /// The routes of this resource (behind the token check).
 pub(crate) fn router() -> Router<AppState> {
@@ -51,13 +52,13 @@ pub struct JobCreate {
 /// Queues a training job; the job's spec is `{split_id, kind, config, obs_keys, obs_history,
 /// chunk_len, step_stride, policy, checkpoint}` (the input spec fields only when given).
 #[utoipa::path(post, path = "/v1/jobs", tag = "jobs", request_body = JobCreate,
-    responses((status = 201, description = "the queued job", body = store::JobRecord),
+    responses((status = 201, description = "the queued job", body = store_jobs::JobRecord),
               (status = 403, description = "the token's role is below trainer"), (status = 404, description = "no such split")))]
 pub async fn create_job(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
     ApiJson(b): ApiJson<JobCreate>,
-) -> ApiResult<(StatusCode, Json<store::JobRecord>)> {
+) -> ApiResult<(StatusCode, Json<store_jobs::JobRecord>)> {
     caller.require(Role::Trainer)?;
     check_id("split id", &b.split_id)?;
     if b.kind != "classifier" && b.kind != "q" {
@@ -84,19 +85,19 @@ pub async fn create_job(
             spec[key] = v;
         }
     }
-    let job = s.store().create_job(store::JobKind::Train, &spec, &caller.name).await?;
+    let job = s.store().create_job(store_jobs::JobKind::Train, &spec, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(job)))
 }
 
 #[derive(Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct JobQuery {
-    #[param(value_type = Option<store::JobState>)]
+    #[param(value_type = Option<store_jobs::JobState>)]
     state: Option<String>,
 }
 
-fn parse_state(s: &str) -> ApiResult<store::JobState> {
-    use store::JobState::*;
+fn parse_state(s: &str) -> ApiResult<store_jobs::JobState> {
+    use store_jobs::JobState::*;
     Ok(match s {
         "queued" => Queued,
         "running" => Running,
@@ -109,35 +110,35 @@ fn parse_state(s: &str) -> ApiResult<store::JobState> {
 
 /// Jobs, optionally by state.
 #[utoipa::path(get, path = "/v1/jobs", tag = "jobs", params(JobQuery),
-    responses((status = 200, body = Vec<store::JobRecord>)))]
+    responses((status = 200, body = Vec<store_jobs::JobRecord>)))]
 pub async fn list_jobs(
     State(s): State<AppState>,
     ApiQuery(q): ApiQuery<JobQuery>,
-) -> ApiResult<Json<Vec<store::JobRecord>>> {
+) -> ApiResult<Json<Vec<store_jobs::JobRecord>>> {
     let state = q.state.as_deref().map(parse_state).transpose()?;
     Ok(Json(s.store().jobs(state).await?))
 }
 
 /// A job: state, progress (epoch, losses), result (metrics, artifact), error.
 #[utoipa::path(get, path = "/v1/jobs/{id}", tag = "jobs", params(("id" = String, Path)),
-    responses((status = 200, body = store::JobRecord), (status = 404, description = "no such job")))]
+    responses((status = 200, body = store_jobs::JobRecord), (status = 404, description = "no such job")))]
 pub async fn get_job(
     State(s): State<AppState>,
     ApiPath(id): ApiPath<String>,
-) -> ApiResult<Json<store::JobRecord>> {
+) -> ApiResult<Json<store_jobs::JobRecord>> {
     check_id("job id", &id)?;
     Ok(Json(s.store().job(&id).await?))
 }
 
 /// Cancels a job: at once when queued, at its next heartbeat when running.
 #[utoipa::path(post, path = "/v1/jobs/{id}/cancel", tag = "jobs", params(("id" = String, Path)),
-    responses((status = 200, body = store::JobRecord), (status = 404, description = "no such job"),
+    responses((status = 200, body = store_jobs::JobRecord), (status = 404, description = "no such job"),
               (status = 403, description = "the token's role is below trainer")))]
 pub async fn cancel_job(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
     ApiPath(id): ApiPath<String>,
-) -> ApiResult<Json<store::JobRecord>> {
+) -> ApiResult<Json<store_jobs::JobRecord>> {
     caller.require(Role::Trainer)?;
     check_id("job id", &id)?;
     Ok(Json(s.store().cancel_job(&id).await?))

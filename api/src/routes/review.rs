@@ -3,6 +3,7 @@
 //! queue (a campaign here is a policy).
 
 use super::*;
+use store_jobs::JobQueue;
 
 /// The routes of this resource (behind the token check).
 pub(crate) fn router() -> Router<AppState> {
@@ -70,23 +71,9 @@ pub struct ScoresQuery {
     artifact: Option<String>,
 }
 
-/// An episode's stored verifier scores: one per step, and their mean.
-#[derive(Serialize, ToSchema)]
-pub struct EpisodeScores {
-    pub episode_id: String,
-    pub artifact_id: String,
-    /// The mean of `step_scores` (what orders the queue).
-    pub score: f64,
-    /// One score per step, in step order (a classifier's success probability).
-    pub step_scores: Vec<f32>,
-    /// The score job that stored them.
-    pub job_id: Option<String>,
-    pub created_at: String,
-}
-
 /// The per-step verifier scores of an episode (for the timeline), as a score job stored them.
 #[utoipa::path(get, path = "/v1/episodes/{id}/scores", tag = "review", params(("id" = String, Path), ScoresQuery),
-    responses((status = 200, body = EpisodeScores),
+    responses((status = 200, body = store::EpisodeScore),
               (status = 400, body = Problem, content_type = "application/problem+json"),
               (status = 401, body = Problem, content_type = "application/problem+json"),
               (status = 404, description = "no such episode, no review artifact, or not scored yet", body = Problem,
@@ -95,20 +82,12 @@ pub async fn get_episode_scores(
     State(s): State<AppState>,
     ApiPath(id): ApiPath<String>,
     ApiQuery(q): ApiQuery<ScoresQuery>,
-) -> ApiResult<Json<EpisodeScores>> {
+) -> ApiResult<Json<store::EpisodeScore>> {
     check_id("episode id", &id)?;
     if let Some(a) = &q.artifact {
         check_id("artifact id", a)?;
     }
-    let e = s.store().episode_score(&id, q.artifact.as_deref()).await?;
-    Ok(Json(EpisodeScores {
-        episode_id: e.episode_id,
-        artifact_id: e.artifact_id,
-        score: e.score,
-        step_scores: e.step_scores,
-        job_id: e.job_id,
-        created_at: e.created_at,
-    }))
+    Ok(Json(s.store().episode_score(&id, q.artifact.as_deref()).await?))
 }
 
 /// The artifact that scores a policy's review queue.
@@ -238,7 +217,7 @@ pub struct ScoreJobCreate {
 /// Queues a `score` job: a worker scores the episodes with the artifact and stores each one's
 /// mean and per-step scores, which `GET /v1/episodes?order=…` and `/v1/episodes/{id}/scores` read.
 #[utoipa::path(post, path = "/v1/review/score", tag = "review", request_body = ScoreJobCreate,
-    responses((status = 201, description = "the queued job (kind `score`, spec {artifact_id, policy, checkpoint})", body = store::JobRecord),
+    responses((status = 201, description = "the queued job (kind `score`, spec {artifact_id, policy, checkpoint})", body = store_jobs::JobRecord),
               (status = 400, body = Problem, content_type = "application/problem+json"),
               (status = 401, body = Problem, content_type = "application/problem+json"),
               (status = 403, body = Problem, content_type = "application/problem+json"),
@@ -248,7 +227,7 @@ pub async fn create_score_job(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
     ApiJson(b): ApiJson<ScoreJobCreate>,
-) -> ApiResult<(StatusCode, Json<store::JobRecord>)> {
+) -> ApiResult<(StatusCode, Json<store_jobs::JobRecord>)> {
     caller.require(Role::Trainer)?;
     check_name("policy", &b.policy)?;
     if let Some(c) = &b.checkpoint {
@@ -277,6 +256,6 @@ pub async fn create_score_job(
         }
     };
     let spec = json!({"artifact_id": artifact_id, "policy": b.policy, "checkpoint": b.checkpoint});
-    let job = s.store().create_job(store::JobKind::Score, &spec, &caller.name).await?;
+    let job = s.store().create_job(store_jobs::JobKind::Score, &spec, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(job)))
 }

@@ -3,6 +3,7 @@
 //! could flip the answer), as JSON or CSV; and the evaluation runs themselves.
 
 use super::*;
+use store_compare::Scoreboards;
 
 /// The routes of this resource (behind the token check).
 pub(crate) fn router() -> Router<AppState> {
@@ -39,7 +40,7 @@ pub struct ScoreboardQuery {
 /// The scoreboard of a policy, computed in SQL from a version's frozen labels.
 #[utoipa::path(get, path = "/v1/scoreboard", tag = "scoreboard", params(ScoreboardQuery),
     responses((status = 200, description = "the scoreboard (JSON) or its rows as CSV",
-               content((store::Scoreboard = "application/json"), (String = "text/csv"))),
+               content((store_compare::Scoreboard = "application/json"), (String = "text/csv"))),
               (status = 404, description = "no such policy or version")))]
 pub async fn get_scoreboard(
     State(s): State<AppState>,
@@ -61,7 +62,7 @@ pub async fn get_scoreboard(
         Some("csv") => true,
         Some(other) => return Err(ApiError::bad_request(format!("unknown format {other:?}: json or csv"))),
     };
-    let req = store::ScoreboardRequest {
+    let req = store_compare::ScoreboardRequest {
         policy: q.policy,
         version: q.version,
         checkpoint: q.checkpoint,

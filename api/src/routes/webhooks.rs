@@ -2,6 +2,7 @@
 //! `webhooks.rs` at the crate root.
 
 use super::*;
+use store_feed::Webhooks;
 
 /// The routes of this resource (behind the token check).
 pub(crate) fn router() -> Router<AppState> {
@@ -35,7 +36,7 @@ pub struct WebhookCreate {
 /// A new subscription and the secret its deliveries are signed with (shown only here).
 #[derive(Serialize, ToSchema)]
 pub struct WebhookCreated {
-    webhook: store::WebhookRecord,
+    webhook: store_feed::WebhookRecord,
     secret: String,
 }
 
@@ -65,18 +66,18 @@ pub async fn create_webhook(
 
 /// Every subscription with its delivery state (admin).
 #[utoipa::path(get, path = "/v1/webhooks", tag = "webhooks",
-    responses((status = 200, body = Vec<store::WebhookRecord>), (status = 403, description = "the token's role is below admin")))]
-pub async fn list_webhooks(State(s): State<AppState>) -> ApiResult<Json<Vec<store::WebhookRecord>>> {
+    responses((status = 200, body = Vec<store_feed::WebhookRecord>), (status = 403, description = "the token's role is below admin")))]
+pub async fn list_webhooks(State(s): State<AppState>) -> ApiResult<Json<Vec<store_feed::WebhookRecord>>> {
     Ok(Json(s.store().webhooks().await?))
 }
 
 /// One subscription (admin).
 #[utoipa::path(get, path = "/v1/webhooks/{id}", tag = "webhooks", params(("id" = String, Path,)),
-    responses((status = 200, body = store::WebhookRecord), (status = 403, description = "the token's role is below admin")))]
+    responses((status = 200, body = store_feed::WebhookRecord), (status = 403, description = "the token's role is below admin")))]
 pub async fn get_webhook(
     State(s): State<AppState>,
     ApiPath(id): ApiPath<String>,
-) -> ApiResult<Json<store::WebhookRecord>> {
+) -> ApiResult<Json<store_feed::WebhookRecord>> {
     check_id("webhook id", &id)?;
     Ok(Json(s.store().webhook(&id).await?))
 }
@@ -96,11 +97,11 @@ pub async fn delete_webhook(
 /// The events a subscription gave up on after `max_attempts` failed deliveries (admin); read
 /// them again from `GET /v1/events?after=SEQ-1`.
 #[utoipa::path(get, path = "/v1/webhooks/{id}/dead-letters", tag = "webhooks", params(("id" = String, Path,)),
-    responses((status = 200, body = Vec<store::DeadLetter>), (status = 403, description = "the token's role is below admin")))]
+    responses((status = 200, body = Vec<store_feed::DeadLetter>), (status = 403, description = "the token's role is below admin")))]
 pub async fn list_dead_letters(
     State(s): State<AppState>,
     ApiPath(id): ApiPath<String>,
-) -> ApiResult<Json<Vec<store::DeadLetter>>> {
+) -> ApiResult<Json<Vec<store_feed::DeadLetter>>> {
     check_id("webhook id", &id)?;
     Ok(Json(s.store().dead_letters(&id).await?))
 }

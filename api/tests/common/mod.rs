@@ -10,6 +10,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 pub use store::test_support::{episode, source};
 use store::*;
+use store_jobs::JobRecord;
 
 pub mod load;
 
@@ -153,7 +154,7 @@ impl TestRunner {
             }
         }
         let out = match job.kind {
-            store::JobKind::Train => {
+            store_jobs::JobKind::Train => {
                 let split_id = job.spec["split_id"].as_str().ok_or("no split_id")?;
                 let kind = job.spec["kind"].as_str().ok_or("no kind")?;
                 let split = store.split(split_id).await.map_err(|e| e.to_string())?;
@@ -176,7 +177,7 @@ impl TestRunner {
                     .map_err(|e| e.to_string())?;
                 json!({"artifact_id": a.id, "metrics": {"val_loss": 0.5}})
             }
-            store::JobKind::Ingest => {
+            store_jobs::JobKind::Ingest => {
                 let path = job.spec["path"].as_str().ok_or("no path")?;
                 let data = std::fs::read(path).map_err(|e| e.to_string())?;
                 let doc: Value = serde_json::from_slice(&data).map_err(|e| e.to_string())?;
@@ -203,7 +204,7 @@ impl TestRunner {
                 json!({"version": c.version, "episodes": c.episodes})
             }
             // The other kinds only take their time here (the lease and retry tests use them).
-            store::JobKind::Export | store::JobKind::Score | store::JobKind::Scoreboard => {
+            store_jobs::JobKind::Export | store_jobs::JobKind::Score | store_jobs::JobKind::Scoreboard => {
                 json!({"slept_ms": self.run_ms})
             }
         };

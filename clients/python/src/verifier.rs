@@ -327,6 +327,7 @@ impl PyVerifier {
     /// Scores of action chunks: `obs` `(obs_dim,)` with `act` `(N, act_dim)` → `(N,)`;
     /// `obs` `(B, obs_dim)` with `act` `(B, N, act_dim)` → `(B, N)` or `(B, act_dim)` → `(B,)`.
     /// A chunk may also be `(chunk_len, action_dim)`. `t` is the step (an int, or `(B,)` ints).
+    #[allow(unsafe_code, reason = "filling the numpy array this call just created")]
     #[pyo3(signature = (obs, act, t, extras=None))]
     fn score<'py>(
         &self,
@@ -346,6 +347,7 @@ impl PyVerifier {
 
     /// Every member's scores, `(members, *score's shape)` (one network: `(1, …)`); `score` is their
     /// mean.
+    #[allow(unsafe_code, reason = "filling the numpy array this call just created")]
     #[pyo3(signature = (obs, act, t, extras=None))]
     fn score_members<'py>(
         &self,
@@ -395,6 +397,7 @@ impl PyVerifier {
     /// Guidance gradients w.r.t. the chunk as passed: d log C / d act (classifier) or d Q / d act.
     /// `obs` `(obs_dim,)` with `act` a chunk → the chunk's shape; `obs` `(B, obs_dim)` with `act`
     /// `(B, chunk)` → `(B, chunk)`; a chunk is `(act_dim,)` or `(chunk_len, action_dim)`.
+    #[allow(unsafe_code, reason = "filling the numpy array this call just created")]
     #[pyo3(signature = (obs, act, t, extras=None))]
     fn grad<'py>(
         &self,

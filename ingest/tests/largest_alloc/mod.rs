@@ -9,6 +9,7 @@ struct Largest;
 
 pub static LARGEST: AtomicUsize = AtomicUsize::new(0);
 
+#[allow(unsafe_code, reason = "a global allocator is an unsafe trait")]
 unsafe impl GlobalAlloc for Largest {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         LARGEST.fetch_max(layout.size(), Ordering::Relaxed);

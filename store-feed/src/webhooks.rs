@@ -3,10 +3,12 @@
 //! loop is the API's (`api/src/webhooks.rs`); every step it takes is a row update here, fenced by
 //! the subscription's lease, so a restart or a second server loses or doubles nothing.
 
-use crate::catalog::RowExt;
-use crate::events::{EventFilter, EventKind};
-use crate::{now_ms, now_rfc3339, Store, StoreError};
 use serde::Serialize;
+use std::future::Future;
+use store::sql::RowExt;
+use store::sql::{now_ms, now_rfc3339};
+use store::{EventFilter, EventKind};
+use store::{Store, StoreError};
 
 /// A subscription, without its secret.
 #[derive(Debug, Clone, Serialize)]
@@ -89,17 +91,69 @@ fn from_row(r: &sqlx::any::AnyRow) -> Result<HeldWebhook, StoreError> {
     })
 }
 
-impl Store {
+/// Webhook subscriptions on a [`Store`]: registered, listed, claimed by one deliverer at a
+/// time, their attempts and dead letters recorded.
+pub trait Webhooks {
     /// Subscribes `url` to the events after the feed's head now; returns the subscription and
     /// its signing secret (shown once).
-    pub async fn create_webhook(
+    fn create_webhook(
+        &self,
+        url: &str,
+        filter: &EventFilter,
+        max_attempts: i64,
+        actor: &str,
+    ) -> impl Future<Output = Result<(WebhookRecord, String), StoreError>> + Send;
+
+    fn webhook(&self, id: &str) -> impl Future<Output = Result<WebhookRecord, StoreError>> + Send;
+
+    fn webhooks(&self) -> impl Future<Output = Result<Vec<WebhookRecord>, StoreError>> + Send;
+
+    /// Whether any subscription exists.
+    fn has_webhooks(&self) -> impl Future<Output = Result<bool, StoreError>> + Send;
+
+    /// Deletes a subscription and its dead letters.
+    fn delete_webhook(&self, id: &str) -> impl Future<Output = Result<(), StoreError>> + Send;
+
+    fn dead_letters(
+        &self,
+        webhook_id: &str,
+    ) -> impl Future<Output = Result<Vec<DeadLetter>, StoreError>> + Send;
+
+    /// Takes the lease of every subscription due for a delivery attempt that no live lease
+    /// holds and that the feed has gone past, for `owner` (an idle subscription costs no write).
+    fn claim_webhooks(
+        &self,
+        owner: &str,
+        lease_ms: i64,
+    ) -> impl Future<Output = Result<Vec<HeldWebhook>, StoreError>> + Send;
+
+    /// Records the outcome of delivering event `seq` (the one after the cursor) while `owner`
+    /// holds the lease: `Ok` moves the cursor past it; `Err` counts a failed attempt and
+    /// schedules the next after `retry_after_ms`, or, at the subscription's `max_attempts`,
+    /// records a dead letter and moves past it. `None` moves the cursor to `seq` with nothing
+    /// delivered (no matching event up to it). Returns `false` when the lease was lost.
+    fn record_webhook_attempt(
+        &self,
+        id: &str,
+        owner: &str,
+        seq: i64,
+        outcome: Option<Result<(), String>>,
+        retry_after_ms: i64,
+    ) -> impl Future<Output = Result<bool, StoreError>> + Send;
+
+    /// Gives a held subscription's lease back (its next delivery may go to any server).
+    fn release_webhook(&self, id: &str, owner: &str) -> impl Future<Output = Result<(), StoreError>> + Send;
+}
+
+impl Webhooks for Store {
+    async fn create_webhook(
         &self,
         url: &str,
         filter: &EventFilter,
         max_attempts: i64,
         actor: &str,
     ) -> Result<(WebhookRecord, String), StoreError> {
-        crate::model::check_name("actor", actor)?;
+        store::model::check_name("actor", actor)?;
         let lower = url.to_ascii_lowercase();
         if !(lower.starts_with("http://") || lower.starts_with("https://")) || url.len() > 2000 {
             return Err(StoreError::invalid(format!(
@@ -126,36 +180,34 @@ impl Store {
         .bind(head)
         .bind(actor)
         .bind(now_rfc3339())
-        .execute(&self.db().pool)
+        .execute(&self.catalog().pool)
         .await?;
         Ok((self.webhook(&id).await?, secret))
     }
 
-    pub async fn webhook(&self, id: &str) -> Result<WebhookRecord, StoreError> {
+    async fn webhook(&self, id: &str) -> Result<WebhookRecord, StoreError> {
         let row = sqlx::query(&format!("SELECT {COLS} FROM webhooks WHERE id = $1"))
             .bind(id)
-            .fetch_optional(&self.db().pool)
+            .fetch_optional(&self.catalog().pool)
             .await?
             .ok_or_else(|| StoreError::not_found("webhook", id))?;
         Ok(from_row(&row)?.record)
     }
 
-    pub async fn webhooks(&self) -> Result<Vec<WebhookRecord>, StoreError> {
+    async fn webhooks(&self) -> Result<Vec<WebhookRecord>, StoreError> {
         let rows = sqlx::query(&format!("SELECT {COLS} FROM webhooks ORDER BY created_at, id"))
-            .fetch_all(&self.db().pool)
+            .fetch_all(&self.catalog().pool)
             .await?;
         rows.iter().map(|r| Ok(from_row(r)?.record)).collect()
     }
 
-    /// Whether any subscription exists.
-    pub async fn has_webhooks(&self) -> Result<bool, StoreError> {
-        let row = sqlx::query("SELECT id FROM webhooks LIMIT 1").fetch_optional(&self.db().pool).await?;
+    async fn has_webhooks(&self) -> Result<bool, StoreError> {
+        let row = sqlx::query("SELECT id FROM webhooks LIMIT 1").fetch_optional(&self.catalog().pool).await?;
         Ok(row.is_some())
     }
 
-    /// Deletes a subscription and its dead letters.
-    pub async fn delete_webhook(&self, id: &str) -> Result<(), StoreError> {
-        let mut tx = self.db().begin_write().await?;
+    async fn delete_webhook(&self, id: &str) -> Result<(), StoreError> {
+        let mut tx = self.catalog().begin_write().await?;
         sqlx::query("DELETE FROM webhook_dead_letters WHERE webhook_id = $1")
             .bind(id)
             .execute(&mut *tx)
@@ -168,14 +220,14 @@ impl Store {
         Ok(())
     }
 
-    pub async fn dead_letters(&self, webhook_id: &str) -> Result<Vec<DeadLetter>, StoreError> {
+    async fn dead_letters(&self, webhook_id: &str) -> Result<Vec<DeadLetter>, StoreError> {
         self.webhook(webhook_id).await?;
         let rows = sqlx::query(
             "SELECT webhook_id, seq, delivery_id, attempts, last_error, created_at FROM webhook_dead_letters \
              WHERE webhook_id = $1 ORDER BY seq",
         )
         .bind(webhook_id)
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter()
             .map(|r| {
@@ -191,9 +243,7 @@ impl Store {
             .collect()
     }
 
-    /// Takes the lease of every subscription due for a delivery attempt that no live lease
-    /// holds and that the feed has gone past, for `owner` (an idle subscription costs no write).
-    pub async fn claim_webhooks(&self, owner: &str, lease_ms: i64) -> Result<Vec<HeldWebhook>, StoreError> {
+    async fn claim_webhooks(&self, owner: &str, lease_ms: i64) -> Result<Vec<HeldWebhook>, StoreError> {
         let now = now_ms();
         let rows = sqlx::query(&format!(
             "UPDATE webhooks SET lease_owner = $1, lease_until_ms = $2 \
@@ -203,17 +253,12 @@ impl Store {
         .bind(owner)
         .bind(now + lease_ms)
         .bind(now)
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter().map(from_row).collect()
     }
 
-    /// Records the outcome of delivering event `seq` (the one after the cursor) while `owner`
-    /// holds the lease: `Ok` moves the cursor past it; `Err` counts a failed attempt and
-    /// schedules the next after `retry_after_ms`, or, at the subscription's `max_attempts`,
-    /// records a dead letter and moves past it. `None` moves the cursor to `seq` with nothing
-    /// delivered (no matching event up to it). Returns `false` when the lease was lost.
-    pub async fn record_webhook_attempt(
+    async fn record_webhook_attempt(
         &self,
         id: &str,
         owner: &str,
@@ -222,7 +267,7 @@ impl Store {
         retry_after_ms: i64,
     ) -> Result<bool, StoreError> {
         let now = now_ms();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let row = sqlx::query(
             "SELECT attempts, max_attempts, cursor_seq FROM webhooks WHERE id = $1 AND lease_owner = $2 AND lease_until_ms >= $3",
         )
@@ -295,14 +340,13 @@ impl Store {
         Ok(true)
     }
 
-    /// Gives a held subscription's lease back (its next delivery may go to any server).
-    pub async fn release_webhook(&self, id: &str, owner: &str) -> Result<(), StoreError> {
+    async fn release_webhook(&self, id: &str, owner: &str) -> Result<(), StoreError> {
         sqlx::query(
             "UPDATE webhooks SET lease_owner = NULL, lease_until_ms = 0 WHERE id = $1 AND lease_owner = $2",
         )
         .bind(id)
         .bind(owner)
-        .execute(&self.db().pool)
+        .execute(&self.catalog().pool)
         .await?;
         Ok(())
     }

@@ -7,11 +7,13 @@
 //! then their index in their source. Outcomes are success labels (1/0; unlabeled episodes wait)
 //! or, with `progress`, a score in [0, 1] from each episode's metadata (partial credit).
 
-use crate::catalog::{bind_val, RowExt, Val};
-use crate::spans::covers;
-use crate::{Label, Store, StoreError, NO_RUN};
+use crate::NO_RUN;
 use evalstats::sequential::{compare_pairs, pair_by_key, Decision, Pair, PairedCounts, SequentialConfig};
 use serde::{Deserialize, Serialize};
+use std::future::Future;
+use store::sql::covers;
+use store::sql::{bind_val, RowExt, Val};
+use store::{Label, Store, StoreError};
 
 /// The metadata field rollouts are paired by unless the request names another.
 pub const DEFAULT_PAIR_KEY: &str = "pair_key";
@@ -32,10 +34,10 @@ impl std::str::FromStr for ArmSpec {
             Some((c, r)) => (c, Some(r)),
             None => (s, None),
         };
-        crate::model::check_name("checkpoint", checkpoint)?;
+        store::model::check_name("checkpoint", checkpoint)?;
         if let Some(r) = run {
             if r != NO_RUN {
-                crate::model::check_name("run", r)?;
+                store::model::check_name("run", r)?;
             }
         }
         Ok(ArmSpec { checkpoint: checkpoint.to_string(), run: run.map(str::to_string) })
@@ -194,10 +196,15 @@ struct Rollout {
     outcome: Option<f64>,
 }
 
-impl Store {
+/// Comparing two arms of a policy (checkpoints, runs, aliases) on a [`Store`].
+pub trait Compare {
     /// Compares arm B with arm A (see the module docs).
-    pub async fn compare(&self, req: &CompareRequest) -> Result<Comparison, StoreError> {
-        crate::model::check_name("policy", &req.policy)?;
+    fn compare(&self, req: &CompareRequest) -> impl Future<Output = Result<Comparison, StoreError>> + Send;
+}
+
+impl Compare for Store {
+    async fn compare(&self, req: &CompareRequest) -> Result<Comparison, StoreError> {
+        store::model::check_name("policy", &req.policy)?;
         req.config(req.alpha).validate().map_err(StoreError::invalid)?;
         if req.a == req.b {
             return Err(StoreError::invalid(format!("arm A and arm B are both {}", req.a)));
@@ -214,8 +221,8 @@ impl Store {
             Some("") => None,
             Some(k) => Some(k),
         };
-        let a = self.arm_rollouts(req, &req.a, version, pair_key).await?;
-        let b = self.arm_rollouts(req, &req.b, version, pair_key).await?;
+        let a = arm_rollouts(self, req, &req.a, version, pair_key).await?;
+        let b = arm_rollouts(self, req, &req.b, version, pair_key).await?;
         if a.is_empty() || b.is_empty() {
             let which = if a.is_empty() { &req.a } else { &req.b };
             return Err(StoreError::not_found(
@@ -271,77 +278,75 @@ impl Store {
             exit_code,
         })
     }
+}
 
-    /// An arm's rollouts at `version`, in arrival order.
-    async fn arm_rollouts(
-        &self,
-        req: &CompareRequest,
-        arm: &ArmSpec,
-        version: i64,
-        pair_key: Option<&str>,
-    ) -> Result<Vec<Rollout>, StoreError> {
-        let mut args = vec![Val::I(version), Val::S(req.policy.clone()), Val::S(arm.checkpoint.clone())];
-        let mut sql = format!(
-            "SELECT COALESCE(e.task, '') AS task, e.metadata AS metadata, e.version_added AS version_added, \
-             e.source_index AS source_index, e.source_name AS source_name, l.label AS label FROM version_labels l \
-             JOIN episodes e ON e.id = l.episode_id LEFT JOIN runs r ON r.id = e.run_id \
-             WHERE {} AND e.policy = $2 AND e.checkpoint = $3",
-            covers("l", "$1")
-        );
-        match arm.run.as_deref() {
-            Some(NO_RUN) => sql.push_str(" AND e.run_id IS NULL"),
-            Some(run) => {
-                args.push(Val::S(run.to_string()));
-                sql.push_str(&format!(" AND r.name = ${}", args.len()));
-            }
-            None => {}
+/// An arm's rollouts at `version`, in arrival order.
+async fn arm_rollouts(
+    store: &Store,
+    req: &CompareRequest,
+    arm: &ArmSpec,
+    version: i64,
+    pair_key: Option<&str>,
+) -> Result<Vec<Rollout>, StoreError> {
+    let mut args = vec![Val::I(version), Val::S(req.policy.clone()), Val::S(arm.checkpoint.clone())];
+    let mut sql = format!(
+        "SELECT COALESCE(e.task, '') AS task, e.metadata AS metadata, e.version_added AS version_added, \
+         e.source_index AS source_index, e.source_name AS source_name, l.label AS label FROM version_labels l \
+         JOIN episodes e ON e.id = l.episode_id LEFT JOIN runs r ON r.id = e.run_id \
+         WHERE {} AND e.policy = $2 AND e.checkpoint = $3",
+        covers("l", "$1")
+    );
+    match arm.run.as_deref() {
+        Some(NO_RUN) => sql.push_str(" AND e.run_id IS NULL"),
+        Some(run) => {
+            args.push(Val::S(run.to_string()));
+            sql.push_str(&format!(" AND r.name = ${}", args.len()));
         }
-        if let Some(t) = &req.task {
-            args.push(Val::S(t.clone()));
-            sql.push_str(&format!(" AND e.task = ${}", args.len()));
-        }
-        sql.push_str(" ORDER BY e.version_added, e.source_index, e.id");
-        let mut q = sqlx::query(&sql);
-        for v in args {
-            q = bind_val(q, v);
-        }
-        let rows = q.fetch_all(&self.db().pool).await?;
-        let mut out = Vec::with_capacity(rows.len());
-        for r in rows {
-            let metadata: serde_json::Value = serde_json::from_str(&r.s("metadata")?)?;
-            let outcome = match &req.progress {
-                Some(field) => match metadata.get(field) {
-                    None | Some(serde_json::Value::Null) => None,
-                    Some(v) => Some(v.as_f64().filter(|x| (0.0..=1.0).contains(x)).ok_or_else(|| {
-                        StoreError::invalid(format!(
-                            "progress field {field:?} holds {v}, not a number in [0, 1]"
-                        ))
-                    })?),
-                },
-                None => match r.s("label")?.parse::<Label>()? {
-                    Label::Success => Some(1.0),
-                    Label::Failure => Some(0.0),
-                    Label::Unknown => None,
-                },
-            };
-            let key = match pair_key {
-                None => None,
-                Some("source_index") => Some(r.i("source_index")?.to_string()),
-                Some("source_name") => Some(r.s("source_name")?),
-                Some(k) => metadata.get(k).and_then(|v| match v {
-                    serde_json::Value::Null => None,
-                    serde_json::Value::String(s) => Some(s.clone()),
-                    other => Some(other.to_string()),
-                }),
-            };
-            // Arrival: the version that added the rollout, then its index in its source (both
-            // far below 2^32 in practice).
-            let arrival = (r.i("version_added")?.max(0) as u64) << 32
-                | (r.i("source_index")?.max(0) as u64 & 0xffff_ffff);
-            out.push(Rollout { task: r.s("task")?, arrival, key, outcome });
-        }
-        Ok(out)
+        None => {}
     }
+    if let Some(t) = &req.task {
+        args.push(Val::S(t.clone()));
+        sql.push_str(&format!(" AND e.task = ${}", args.len()));
+    }
+    sql.push_str(" ORDER BY e.version_added, e.source_index, e.id");
+    let mut q = sqlx::query(&sql);
+    for v in args {
+        q = bind_val(q, v);
+    }
+    let rows = q.fetch_all(&store.catalog().pool).await?;
+    let mut out = Vec::with_capacity(rows.len());
+    for r in rows {
+        let metadata: serde_json::Value = serde_json::from_str(&r.s("metadata")?)?;
+        let outcome = match &req.progress {
+            Some(field) => match metadata.get(field) {
+                None | Some(serde_json::Value::Null) => None,
+                Some(v) => Some(v.as_f64().filter(|x| (0.0..=1.0).contains(x)).ok_or_else(|| {
+                    StoreError::invalid(format!("progress field {field:?} holds {v}, not a number in [0, 1]"))
+                })?),
+            },
+            None => match r.s("label")?.parse::<Label>()? {
+                Label::Success => Some(1.0),
+                Label::Failure => Some(0.0),
+                Label::Unknown => None,
+            },
+        };
+        let key = match pair_key {
+            None => None,
+            Some("source_index") => Some(r.i("source_index")?.to_string()),
+            Some("source_name") => Some(r.s("source_name")?),
+            Some(k) => metadata.get(k).and_then(|v| match v {
+                serde_json::Value::Null => None,
+                serde_json::Value::String(s) => Some(s.clone()),
+                other => Some(other.to_string()),
+            }),
+        };
+        // Arrival: the version that added the rollout, then its index in its source (both
+        // far below 2^32 in practice).
+        let arrival =
+            (r.i("version_added")?.max(0) as u64) << 32 | (r.i("source_index")?.max(0) as u64 & 0xffff_ffff);
+        out.push(Rollout { task: r.s("task")?, arrival, key, outcome });
+    }
+    Ok(out)
 }
 
 fn slice(

@@ -6,6 +6,7 @@
 
 use evalstats::{compare_pairs, Pair, SequentialConfig};
 use store::*;
+use store_compare::*;
 
 use evalstats::splitmix::SplitMix64 as Rng;
 

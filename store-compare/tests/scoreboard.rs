@@ -6,6 +6,7 @@
 
 use std::collections::BTreeMap;
 use store::*;
+use store_compare::*;
 
 /// Ingests `n` episodes of `pol/ckpt` as `run`; episode i's label is `labels[i % len]`.
 async fn ingest(

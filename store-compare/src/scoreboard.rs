@@ -8,13 +8,14 @@
 //! over the version's frozen labels (the reference the tests hold it to). The arithmetic is
 //! `evalstats`'.
 
-use crate::catalog::{bind_val, RowExt, Val};
-use crate::runs::{run_from_row, RunRecord};
-use crate::spans::covers;
-use crate::{Label, Store, StoreError};
 use evalstats::{newcombe_diff, rollouts_to_separate, separates, unlabeled_to_flip, wilson, Arm};
 use serde::Serialize;
 use std::collections::BTreeMap;
+use std::future::Future;
+use store::sql::covers;
+use store::sql::{bind_val, RowExt, Val};
+use store::{sql::run_from_row, RunRecord};
+use store::{Label, Store, StoreError};
 
 /// The run name the rows of episodes ingested without a run go by.
 pub const NO_RUN: &str = "-";
@@ -172,7 +173,7 @@ impl Scoreboard {
 }
 
 /// What the scoreboard shows of an artifact's training metrics (`config.metrics.final`).
-fn verifier_quality(a: &crate::ArtifactRecord) -> serde_json::Value {
+fn verifier_quality(a: &store::ArtifactRecord) -> serde_json::Value {
     let m = &a.config["metrics"]["final"];
     let c = &m["val_calibration"];
     serde_json::json!({
@@ -196,7 +197,7 @@ fn verifier_quality(a: &crate::ArtifactRecord) -> serde_json::Value {
 
 /// What the scoreboard shows of the artifact's latest failure monitor: its α and what its
 /// calibration measured on held-out episodes.
-fn monitor_summary(m: &crate::MonitorEntry) -> serde_json::Value {
+fn monitor_summary(m: &store::MonitorEntry) -> serde_json::Value {
     let e = m.evaluation.clone().unwrap_or(serde_json::Value::Null);
     serde_json::json!({
         "id": m.id,
@@ -230,92 +231,59 @@ fn add_cell(
     }
 }
 
-impl Store {
-    /// The counts per (checkpoint, task, run) of `req.policy` at `version`: from the frozen
-    /// `version_run_counts`, or (`recount`) with a `GROUP BY` over the version's labels.
-    async fn scoreboard_cells(
-        &self,
-        req: &ScoreboardRequest,
-        version: i64,
-        recount: bool,
-    ) -> Result<Cells, StoreError> {
-        let mut args = vec![Val::I(version), Val::S(req.policy.clone())];
-        let (mut sql, col) = if recount {
-            (
-                format!(
-                    "SELECT e.checkpoint AS checkpoint, COALESCE(e.task, '') AS task, COALESCE(e.run_id, '') AS run_id, \
-                     l.label AS label, COUNT(*) AS n FROM version_labels l JOIN episodes e ON e.id = l.episode_id \
-                     WHERE {} AND e.policy = $2",
-                    covers("l", "$1")
-                ),
-                "e.",
-            )
-        } else {
-            (
-                format!(
-                    "SELECT checkpoint, task, run_id, label, n FROM version_run_counts WHERE {} AND policy = $2",
-                    covers("", "$1")
-                ),
-                "",
-            )
-        };
-        for (name, v) in [("checkpoint", &req.checkpoint), ("task", &req.task)] {
-            if let Some(v) = v {
-                args.push(Val::S(v.clone()));
-                sql.push_str(&format!(" AND {col}{name} = ${}", args.len()));
-            }
-        }
-        if recount {
-            sql.push_str(" GROUP BY e.checkpoint, COALESCE(e.task, ''), COALESCE(e.run_id, ''), l.label");
-        }
-        let mut q = sqlx::query(&sql);
-        for a in args {
-            q = bind_val(q, a);
-        }
-        let mut cells = Cells::new();
-        let some = |s: String| if s.is_empty() { None } else { Some(s) };
-        for r in q.fetch_all(&self.db().pool).await? {
-            add_cell(
-                &mut cells,
-                r.s("checkpoint")?,
-                some(r.s("task")?),
-                some(r.s("run_id")?),
-                r.s("label")?.parse()?,
-                r.i("n")?,
-            );
-        }
-        Ok(cells)
-    }
-
+/// The scoreboard of a policy on a [`Store`]: success counts per checkpoint and run, with
+/// their intervals and verifier quality.
+pub trait Scoreboards {
     /// The scoreboard's counts computed from the version's labels (O(episodes)): the reference
     /// the frozen counts are checked against (tests, the scoreboard bench). Rows of
     /// `(checkpoint, task, run id, [successes, failures, unlabeled])`.
     #[allow(clippy::type_complexity)]
-    pub async fn recount_scoreboard(
+    fn recount_scoreboard(
         &self,
         req: &ScoreboardRequest,
         version: i64,
-    ) -> Result<Vec<(String, Option<String>, Option<String>, [u64; 3])>, StoreError> {
-        self.version(version).await?;
-        let cells = self.scoreboard_cells(req, version, true).await?;
-        Ok(cells.into_iter().map(|((c, t, r), n)| (c, t, r, n)).collect())
-    }
+    ) -> impl Future<Output = Result<Vec<(String, Option<String>, Option<String>, [u64; 3])>, StoreError>> + Send;
 
     /// The frozen counts in the same shape as [`Self::recount_scoreboard`].
     #[allow(clippy::type_complexity)]
-    pub async fn scoreboard_counts(
+    fn scoreboard_counts(
+        &self,
+        req: &ScoreboardRequest,
+        version: i64,
+    ) -> impl Future<Output = Result<Vec<(String, Option<String>, Option<String>, [u64; 3])>, StoreError>> + Send;
+
+    /// The scoreboard of a policy at a version (see the module docs).
+    fn scoreboard(
+        &self,
+        req: &ScoreboardRequest,
+    ) -> impl Future<Output = Result<Scoreboard, StoreError>> + Send;
+}
+
+impl Scoreboards for Store {
+    #[allow(clippy::type_complexity)]
+    async fn recount_scoreboard(
         &self,
         req: &ScoreboardRequest,
         version: i64,
     ) -> Result<Vec<(String, Option<String>, Option<String>, [u64; 3])>, StoreError> {
         self.version(version).await?;
-        let cells = self.scoreboard_cells(req, version, false).await?;
+        let cells = scoreboard_cells(self, req, version, true).await?;
         Ok(cells.into_iter().map(|((c, t, r), n)| (c, t, r, n)).collect())
     }
 
-    /// The scoreboard of a policy at a version (see the module docs).
-    pub async fn scoreboard(&self, req: &ScoreboardRequest) -> Result<Scoreboard, StoreError> {
-        crate::model::check_name("policy", &req.policy)?;
+    #[allow(clippy::type_complexity)]
+    async fn scoreboard_counts(
+        &self,
+        req: &ScoreboardRequest,
+        version: i64,
+    ) -> Result<Vec<(String, Option<String>, Option<String>, [u64; 3])>, StoreError> {
+        self.version(version).await?;
+        let cells = scoreboard_cells(self, req, version, false).await?;
+        Ok(cells.into_iter().map(|((c, t, r), n)| (c, t, r, n)).collect())
+    }
+
+    async fn scoreboard(&self, req: &ScoreboardRequest) -> Result<Scoreboard, StoreError> {
+        store::model::check_name("policy", &req.policy)?;
         let version = match req.version {
             Some(v) => {
                 self.version(v).await?;
@@ -332,18 +300,18 @@ impl Store {
         };
         let cells = match &other_baseline {
             Some(_) => {
-                self.scoreboard_cells(&ScoreboardRequest { checkpoint: None, ..req.clone() }, version, false)
+                scoreboard_cells(self, &ScoreboardRequest { checkpoint: None, ..req.clone() }, version, false)
                     .await?
             }
-            None => self.scoreboard_cells(req, version, false).await?,
+            None => scoreboard_cells(self, req, version, false).await?,
         };
-        let runs = self.scoreboard_runs(&cells).await?;
+        let runs = scoreboard_runs(self, &cells).await?;
         let mut rows = scoreboard_rows(req, &baseline, cells, &runs);
         compare_with_baselines(&mut rows, req.baseline_checkpoint.as_ref());
         if let Some(c) = &other_baseline {
             rows.retain(|r| &r.checkpoint == c || r.is_baseline);
         }
-        self.attach_verifier_quality(&mut rows).await?;
+        attach_verifier_quality(self, &mut rows).await?;
         Ok(Scoreboard {
             version,
             policy: req.policy.clone(),
@@ -352,48 +320,103 @@ impl Store {
             rows,
         })
     }
+}
 
-    /// The runs named by the cells (a few dozen at most), by id.
-    async fn scoreboard_runs(&self, cells: &Cells) -> Result<BTreeMap<String, RunRecord>, StoreError> {
-        let ids: std::collections::BTreeSet<String> = cells.keys().filter_map(|k| k.2.clone()).collect();
-        let mut runs: BTreeMap<String, RunRecord> = BTreeMap::new();
-        for id in ids {
-            let row = sqlx::query(
-                "SELECT id, name, steering, artifact_id, tags, created_at FROM runs WHERE id = $1",
-            )
-            .bind(&id)
-            .fetch_one(&self.db().pool)
-            .await?;
-            runs.insert(id, run_from_row(&row)?);
+/// The counts per (checkpoint, task, run) of `req.policy` at `version`: from the frozen
+/// `version_run_counts`, or (`recount`) with a `GROUP BY` over the version's labels.
+async fn scoreboard_cells(
+    store: &Store,
+    req: &ScoreboardRequest,
+    version: i64,
+    recount: bool,
+) -> Result<Cells, StoreError> {
+    let mut args = vec![Val::I(version), Val::S(req.policy.clone())];
+    let (mut sql, col) = if recount {
+        (
+            format!(
+                "SELECT e.checkpoint AS checkpoint, COALESCE(e.task, '') AS task, COALESCE(e.run_id, '') AS run_id, \
+                 l.label AS label, COUNT(*) AS n FROM version_labels l JOIN episodes e ON e.id = l.episode_id \
+                 WHERE {} AND e.policy = $2",
+                covers("l", "$1")
+            ),
+            "e.",
+        )
+    } else {
+        (
+            format!(
+                "SELECT checkpoint, task, run_id, label, n FROM version_run_counts WHERE {} AND policy = $2",
+                covers("", "$1")
+            ),
+            "",
+        )
+    };
+    for (name, v) in [("checkpoint", &req.checkpoint), ("task", &req.task)] {
+        if let Some(v) = v {
+            args.push(Val::S(v.clone()));
+            sql.push_str(&format!(" AND {col}{name} = ${}", args.len()));
         }
-        Ok(runs)
     }
+    if recount {
+        sql.push_str(" GROUP BY e.checkpoint, COALESCE(e.task, ''), COALESCE(e.run_id, ''), l.label");
+    }
+    let mut q = sqlx::query(&sql);
+    for a in args {
+        q = bind_val(q, a);
+    }
+    let mut cells = Cells::new();
+    let some = |s: String| if s.is_empty() { None } else { Some(s) };
+    for r in q.fetch_all(&store.catalog().pool).await? {
+        add_cell(
+            &mut cells,
+            r.s("checkpoint")?,
+            some(r.s("task")?),
+            some(r.s("run_id")?),
+            r.s("label")?.parse()?,
+            r.i("n")?,
+        );
+    }
+    Ok(cells)
+}
 
-    /// Sets each row's verifier quality from its run's artifact, reading each artifact once
-    /// (none when the artifact is gone).
-    async fn attach_verifier_quality(&self, rows: &mut [ScoreboardRow]) -> Result<(), StoreError> {
-        let mut quality: BTreeMap<String, Option<serde_json::Value>> = BTreeMap::new();
-        for r in rows.iter_mut() {
-            let Some(id) = r.run.as_ref().and_then(|x| x.artifact_id.clone()) else { continue };
-            if !quality.contains_key(&id) {
-                let q = match self.artifact(&id).await {
-                    Ok(a) => {
-                        let mut q = verifier_quality(&a);
-                        q["monitor"] = self
-                            .latest_monitor(&id)
-                            .await?
-                            .map_or(serde_json::Value::Null, |m| monitor_summary(&m));
-                        Some(q)
-                    }
-                    Err(StoreError::NotFound { .. }) => None,
-                    Err(e) => return Err(e),
-                };
-                quality.insert(id.clone(), q);
-            }
-            r.verifier_quality = quality[&id].clone();
-        }
-        Ok(())
+/// The runs named by the cells (a few dozen at most), by id.
+async fn scoreboard_runs(store: &Store, cells: &Cells) -> Result<BTreeMap<String, RunRecord>, StoreError> {
+    let ids: std::collections::BTreeSet<String> = cells.keys().filter_map(|k| k.2.clone()).collect();
+    let mut runs: BTreeMap<String, RunRecord> = BTreeMap::new();
+    for id in ids {
+        let row =
+            sqlx::query("SELECT id, name, steering, artifact_id, tags, created_at FROM runs WHERE id = $1")
+                .bind(&id)
+                .fetch_one(&store.catalog().pool)
+                .await?;
+        runs.insert(id, run_from_row(&row)?);
     }
+    Ok(runs)
+}
+
+/// Sets each row's verifier quality from its run's artifact, reading each artifact once
+/// (none when the artifact is gone).
+async fn attach_verifier_quality(store: &Store, rows: &mut [ScoreboardRow]) -> Result<(), StoreError> {
+    let mut quality: BTreeMap<String, Option<serde_json::Value>> = BTreeMap::new();
+    for r in rows.iter_mut() {
+        let Some(id) = r.run.as_ref().and_then(|x| x.artifact_id.clone()) else { continue };
+        if !quality.contains_key(&id) {
+            let q = match store.artifact(&id).await {
+                Ok(a) => {
+                    let mut q = verifier_quality(&a);
+                    q["monitor"] = store
+                        .latest_monitor(&id)
+                        .await?
+                        .map_or(serde_json::Value::Null, |m| monitor_summary(&m));
+                    Some(q)
+                }
+                Err(StoreError::NotFound { .. }) => None,
+                Err(e) => return Err(e),
+            };
+            quality.insert(id.clone(), q);
+        }
+        r.verifier_quality = quality[&id].clone();
+    }
+    Ok(())
 }
 
 /// One row per cell with its rate and Wilson interval (compared with its baseline later), in

@@ -1,14 +1,16 @@
 //! A policy's aliases (`prod`, `canary`): names for one of its checkpoints or one steered run of it,
 //! which deployment scripts resolve. A protected alias is evidence-gated: it moves to a new target
-//! only when [`Store::compare`] of the new target (B) against the current one (A) at the head
+//! only when [`crate::Compare::compare`] of the new target (B) against the current one (A) at the head
 //! version has decided "not worse" on every task and pooled; the comparison is stored with the
 //! move (in the alias and in the append-only `policy_alias_moves`), so anyone can recompute it at
 //! the same version and get the same decision.
 
-use crate::catalog::RowExt;
-use crate::compare::{ArmSpec, CompareRequest, Comparison};
-use crate::{now_rfc3339, Store, StoreError};
+use crate::compare::{ArmSpec, Compare, CompareRequest, Comparison};
 use serde::{Deserialize, Serialize};
+use std::future::Future;
+use store::sql::now_rfc3339;
+use store::sql::RowExt;
+use store::{Store, StoreError};
 
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -87,30 +89,59 @@ fn alias_from_row(r: &sqlx::any::AnyRow) -> Result<PolicyAlias, StoreError> {
 
 const ALIAS_COLS: &str = "policy, alias, target, protected, evidence, actor, updated_at";
 
-impl Store {
+/// Policy aliases (`prod`, `candidate`) on a [`Store`]: moved only when the comparison that
+/// the move names holds, with their history.
+pub trait PolicyAliases {
     /// A policy's aliases, by name.
-    pub async fn policy_aliases(&self, policy: &str) -> Result<Vec<PolicyAlias>, StoreError> {
+    fn policy_aliases(
+        &self,
+        policy: &str,
+    ) -> impl Future<Output = Result<Vec<PolicyAlias>, StoreError>> + Send;
+
+    fn policy_alias(
+        &self,
+        policy: &str,
+        alias: &str,
+    ) -> impl Future<Output = Result<PolicyAlias, StoreError>> + Send;
+
+    /// An alias's moves, oldest first.
+    fn policy_alias_history(
+        &self,
+        policy: &str,
+        alias: &str,
+    ) -> impl Future<Output = Result<Vec<PolicyAliasMove>, StoreError>> + Send;
+
+    /// Points an alias at `req.to`. A protected alias that points elsewhere moves only when the
+    /// comparison of the new target against the current one decides "not worse" on every task
+    /// (else [`StoreError::Conflict`] naming the decision, and nothing changes).
+    fn move_policy_alias(
+        &self,
+        req: &MoveAlias,
+    ) -> impl Future<Output = Result<PolicyAlias, StoreError>> + Send;
+}
+
+impl PolicyAliases for Store {
+    async fn policy_aliases(&self, policy: &str) -> Result<Vec<PolicyAlias>, StoreError> {
         let rows =
             sqlx::query(&format!("SELECT {ALIAS_COLS} FROM policy_aliases WHERE policy = $1 ORDER BY alias"))
                 .bind(policy)
-                .fetch_all(&self.db().pool)
+                .fetch_all(&self.catalog().pool)
                 .await?;
         rows.iter().map(alias_from_row).collect()
     }
 
-    pub async fn policy_alias(&self, policy: &str, alias: &str) -> Result<PolicyAlias, StoreError> {
+    async fn policy_alias(&self, policy: &str, alias: &str) -> Result<PolicyAlias, StoreError> {
         let row =
             sqlx::query(&format!("SELECT {ALIAS_COLS} FROM policy_aliases WHERE policy = $1 AND alias = $2"))
                 .bind(policy)
                 .bind(alias)
-                .fetch_optional(&self.db().pool)
+                .fetch_optional(&self.catalog().pool)
                 .await?
                 .ok_or_else(|| StoreError::not_found("policy alias", format!("{policy}@{alias}")))?;
         alias_from_row(&row)
     }
 
-    /// An alias's moves, oldest first.
-    pub async fn policy_alias_history(
+    async fn policy_alias_history(
         &self,
         policy: &str,
         alias: &str,
@@ -121,7 +152,7 @@ impl Store {
         )
         .bind(policy)
         .bind(alias)
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter()
             .map(|r| {
@@ -137,12 +168,9 @@ impl Store {
             .collect()
     }
 
-    /// Points an alias at `req.to`. A protected alias that points elsewhere moves only when the
-    /// comparison of the new target against the current one decides "not worse" on every task
-    /// (else [`StoreError::Conflict`] naming the decision, and nothing changes).
-    pub async fn move_policy_alias(&self, req: &MoveAlias) -> Result<PolicyAlias, StoreError> {
-        crate::model::check_name("policy", &req.policy)?;
-        crate::model::check_name("alias", &req.alias)?;
+    async fn move_policy_alias(&self, req: &MoveAlias) -> Result<PolicyAlias, StoreError> {
+        store::model::check_name("policy", &req.policy)?;
+        store::model::check_name("alias", &req.alias)?;
         if req.alias.contains('/') || req.alias.contains('@') {
             return Err(StoreError::invalid(format!("alias {:?} may not contain '@' or '/'", req.alias)));
         }
@@ -160,7 +188,7 @@ impl Store {
             )));
         }
         // The target must hold episodes of the policy (a typo must not become an alias).
-        if !self.arm_exists(&req.policy, &req.to).await? {
+        if !arm_exists(self, &req.policy, &req.to).await? {
             return Err(StoreError::not_found("episodes of arm", format!("{}/{}", req.policy, target)));
         }
         let evidence = match &current {
@@ -197,7 +225,7 @@ impl Store {
         let protected = req.protect.unwrap_or(protected_now);
         let evidence_json = evidence.as_ref().map(serde_json::to_string).transpose()?;
         let now = now_rfc3339();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         // Moved under our feet since we compared: refuse rather than overwrite (the caller retries).
         let row = sqlx::query("SELECT target FROM policy_aliases WHERE policy = $1 AND alias = $2")
             .bind(&req.policy)
@@ -239,8 +267,8 @@ impl Store {
         .bind(&now)
         .execute(&mut *tx)
         .await?;
-        let event = crate::events::NewEvent::new(
-            crate::events::EventKind::AliasMoved,
+        let event = store::NewEvent::new(
+            store::EventKind::AliasMoved,
             req.alias.clone(),
             serde_json::json!({
                 "target": "policy",
@@ -255,32 +283,36 @@ impl Store {
         self.commit_with_events(tx, &[event]).await?;
         self.policy_alias(&req.policy, &req.alias).await
     }
+}
 
-    /// Whether the policy has an episode in this arm (any version).
-    async fn arm_exists(&self, policy: &str, arm: &ArmSpec) -> Result<bool, StoreError> {
-        let row = match arm.run.as_deref() {
-            Some(crate::NO_RUN) => sqlx::query(
-                "SELECT 1 AS one FROM episodes WHERE policy = $1 AND checkpoint = $2 AND run_id IS NULL LIMIT 1",
-            )
-            .bind(policy)
-            .bind(&arm.checkpoint)
-            .fetch_optional(&self.db().pool)
-            .await?,
-            Some(run) => sqlx::query(
+/// Whether the policy has an episode in this arm (any version).
+async fn arm_exists(store: &Store, policy: &str, arm: &ArmSpec) -> Result<bool, StoreError> {
+    let row = match arm.run.as_deref() {
+        Some(crate::NO_RUN) => sqlx::query(
+            "SELECT 1 AS one FROM episodes WHERE policy = $1 AND checkpoint = $2 AND run_id IS NULL LIMIT 1",
+        )
+        .bind(policy)
+        .bind(&arm.checkpoint)
+        .fetch_optional(&store.catalog().pool)
+        .await?,
+        Some(run) => {
+            sqlx::query(
                 "SELECT 1 AS one FROM episodes e JOIN runs r ON r.id = e.run_id \
-                 WHERE e.policy = $1 AND e.checkpoint = $2 AND r.name = $3 LIMIT 1",
+             WHERE e.policy = $1 AND e.checkpoint = $2 AND r.name = $3 LIMIT 1",
             )
             .bind(policy)
             .bind(&arm.checkpoint)
             .bind(run)
-            .fetch_optional(&self.db().pool)
-            .await?,
-            None => sqlx::query("SELECT 1 AS one FROM episodes WHERE policy = $1 AND checkpoint = $2 LIMIT 1")
+            .fetch_optional(&store.catalog().pool)
+            .await?
+        }
+        None => {
+            sqlx::query("SELECT 1 AS one FROM episodes WHERE policy = $1 AND checkpoint = $2 LIMIT 1")
                 .bind(policy)
                 .bind(&arm.checkpoint)
-                .fetch_optional(&self.db().pool)
-                .await?,
-        };
-        Ok(row.is_some())
-    }
+                .fetch_optional(&store.catalog().pool)
+                .await?
+        }
+    };
+    Ok(row.is_some())
 }

@@ -2,10 +2,13 @@
 //! succeeded | failed | cancelled. A job whose worker stops heartbeating is claimed again (up to
 //! `max_attempts`); no job runs twice at once. Postgres claims with `FOR UPDATE SKIP LOCKED`.
 
-use crate::catalog::{Backend, RowExt};
-use crate::events::{EventKind, NewEvent};
-use crate::{now_ms, now_rfc3339, Store, StoreError};
 use serde::Serialize;
+use std::future::Future;
+use store::sql::RowExt;
+use store::sql::{now_ms, now_rfc3339};
+use store::Backend;
+use store::{EventKind, NewEvent};
+use store::{Store, StoreError};
 
 /// What a job does; its spec's type follows from it.
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
@@ -21,7 +24,7 @@ pub enum JobKind {
     /// Score episodes with a verifier for the review queue.
     Score,
     /// Freeze the labels into a version and compute a run's scoreboard rows
-    /// (`Store::run_scoreboard_job`; queued by an automation).
+    /// (`store_feed::Automations::run_scoreboard_job`; queued by an automation).
     Scoreboard,
 }
 
@@ -164,7 +167,7 @@ fn job_events(rows: &[sqlx::any::AnyRow]) -> Result<Vec<NewEvent>, StoreError> {
             out.push(scope(NewEvent::new(
                 EventKind::ExportFinished,
                 job.id.clone(),
-                serde_json::json!({"result": job.result, "files_prefix": format!("{}/{}/", crate::EXPORTS_PREFIX, job.id)}),
+                serde_json::json!({"result": job.result, "files_prefix": format!("{}/{}/", store::EXPORTS_PREFIX, job.id)}),
             )));
         }
     }
@@ -172,8 +175,8 @@ fn job_events(rows: &[sqlx::any::AnyRow]) -> Result<Vec<NewEvent>, StoreError> {
 }
 
 /// Queues a job inside `tx`: its id and the events the transaction must append.
-pub(crate) async fn insert_job(
-    tx: &mut crate::catalog::Tx,
+pub async fn insert_job(
+    tx: &mut store::sql::Tx,
     kind: JobKind,
     spec: &serde_json::Value,
     actor: &str,
@@ -195,42 +198,102 @@ pub(crate) async fn insert_job(
     Ok((id, events))
 }
 
-impl Store {
-    pub async fn create_job(
+/// The job queue's operations on a [`Store`]: queue, claim with a lease, heartbeat, finish,
+/// release and cancel. Every change commits with its `job.changed` event.
+pub trait JobQueue {
+    fn create_job(
+        &self,
+        kind: JobKind,
+        spec: &serde_json::Value,
+        actor: &str,
+    ) -> impl Future<Output = Result<JobRecord, StoreError>> + Send;
+
+    fn job(&self, id: &str) -> impl Future<Output = Result<JobRecord, StoreError>> + Send;
+
+    fn jobs(
+        &self,
+        state: Option<JobState>,
+    ) -> impl Future<Output = Result<Vec<JobRecord>, StoreError>> + Send;
+
+    /// Claims the oldest runnable job (queued, or running with an expired lease) for `worker`.
+    fn claim_job(
+        &self,
+        worker: &str,
+        lease_ms: i64,
+    ) -> impl Future<Output = Result<Option<JobRecord>, StoreError>> + Send;
+
+    /// Extends the lease and records progress. Returns `false` when the worker no longer owns
+    /// the job (lease lost, or a later attempt holds it) or a cancel was requested: the worker
+    /// must stop. `attempt` is the claim's `attempts`: it fences a stale runner of the same
+    /// worker that re-claimed the job after its own lease expired.
+    fn heartbeat_job(
+        &self,
+        id: &str,
+        worker: &str,
+        attempt: i64,
+        lease_ms: i64,
+        progress: &serde_json::Value,
+    ) -> impl Future<Output = Result<bool, StoreError>> + Send;
+
+    /// Ends a job the worker owns (this `attempt` of it): succeeded with a result, or
+    /// failed/cancelled with an error. Returns `false` when the job is no longer this attempt's.
+    fn finish_job(
+        &self,
+        id: &str,
+        worker: &str,
+        attempt: i64,
+        outcome: Result<serde_json::Value, String>,
+    ) -> impl Future<Output = Result<bool, StoreError>> + Send;
+
+    /// Gives back a job this attempt holds, when its worker stops before finishing it: queued
+    /// again without counting the attempt (a graceful restart is not a failure), or cancelled
+    /// if a cancel was requested. Returns `false` when the job was no longer this attempt's.
+    fn release_job(
+        &self,
+        id: &str,
+        worker: &str,
+        attempt: i64,
+    ) -> impl Future<Output = Result<bool, StoreError>> + Send;
+
+    /// Requests cancellation: a queued job is cancelled at once, a running one at its next heartbeat.
+    fn cancel_job(&self, id: &str) -> impl Future<Output = Result<JobRecord, StoreError>> + Send;
+}
+
+impl JobQueue for Store {
+    async fn create_job(
         &self,
         kind: JobKind,
         spec: &serde_json::Value,
         actor: &str,
     ) -> Result<JobRecord, StoreError> {
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let (id, events) = insert_job(&mut tx, kind, spec, actor).await?;
         self.commit_with_events(tx, &events).await?;
         self.job(&id).await
     }
 
-    pub async fn job(&self, id: &str) -> Result<JobRecord, StoreError> {
+    async fn job(&self, id: &str) -> Result<JobRecord, StoreError> {
         let row = sqlx::query(&format!("SELECT {JOB_COLS} FROM jobs WHERE id = $1"))
             .bind(id)
-            .fetch_optional(&self.db().pool)
+            .fetch_optional(&self.catalog().pool)
             .await?
             .ok_or_else(|| StoreError::not_found("job", id))?;
         job_from_row(&row)
     }
 
-    pub async fn jobs(&self, state: Option<JobState>) -> Result<Vec<JobRecord>, StoreError> {
+    async fn jobs(&self, state: Option<JobState>) -> Result<Vec<JobRecord>, StoreError> {
         let rows = sqlx::query(&format!(
             "SELECT {JOB_COLS} FROM jobs WHERE ($1 = '' OR state = $1) ORDER BY created_at, id"
         ))
         .bind(state.map(|s| s.as_str()).unwrap_or(""))
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter().map(job_from_row).collect()
     }
 
-    /// Claims the oldest runnable job (queued, or running with an expired lease) for `worker`.
-    pub async fn claim_job(&self, worker: &str, lease_ms: i64) -> Result<Option<JobRecord>, StoreError> {
+    async fn claim_job(&self, worker: &str, lease_ms: i64) -> Result<Option<JobRecord>, StoreError> {
         let now = now_ms();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         // A cancelled job whose worker died (lease expired) is cancelled now, not left running.
         let mut ended =
             sqlx::query(&format!("{CANCEL_ORPHANS} AND lease_until_ms < $2 RETURNING {JOB_COLS}"))
@@ -278,11 +341,7 @@ impl Store {
         Ok(Some(self.job(&id).await?))
     }
 
-    /// Extends the lease and records progress. Returns `false` when the worker no longer owns
-    /// the job (lease lost, or a later attempt holds it) or a cancel was requested: the worker
-    /// must stop. `attempt` is the claim's `attempts`: it fences a stale runner of the same
-    /// worker that re-claimed the job after its own lease expired.
-    pub async fn heartbeat_job(
+    async fn heartbeat_job(
         &self,
         id: &str,
         worker: &str,
@@ -300,14 +359,12 @@ impl Store {
         .bind(id)
         .bind(worker)
         .bind(attempt)
-        .execute(&self.db().pool)
+        .execute(&self.catalog().pool)
         .await?;
         Ok(r.rows_affected() == 1)
     }
 
-    /// Ends a job the worker owns (this `attempt` of it): succeeded with a result, or
-    /// failed/cancelled with an error. Returns `false` when the job is no longer this attempt's.
-    pub async fn finish_job(
+    async fn finish_job(
         &self,
         id: &str,
         worker: &str,
@@ -318,7 +375,7 @@ impl Store {
             Ok(v) => ("succeeded", Some(serde_json::to_string(&v)?), None),
             Err(e) => ("failed", None, Some(e)),
         };
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let rows = sqlx::query(&format!(
             "UPDATE jobs SET state = CASE WHEN cancel_requested = 1 AND CAST($1 AS TEXT) = 'failed' THEN 'cancelled' ELSE CAST($1 AS TEXT) END, \
              result = $2, error = $3, lease_until_ms = NULL, updated_at = $4 \
@@ -338,11 +395,8 @@ impl Store {
         Ok(rows.len() == 1)
     }
 
-    /// Gives back a job this attempt holds, when its worker stops before finishing it: queued
-    /// again without counting the attempt (a graceful restart is not a failure), or cancelled
-    /// if a cancel was requested. Returns `false` when the job was no longer this attempt's.
-    pub async fn release_job(&self, id: &str, worker: &str, attempt: i64) -> Result<bool, StoreError> {
-        let mut tx = self.db().begin_write().await?;
+    async fn release_job(&self, id: &str, worker: &str, attempt: i64) -> Result<bool, StoreError> {
+        let mut tx = self.catalog().begin_write().await?;
         let rows = sqlx::query(&format!(
             "UPDATE jobs SET state = CASE WHEN cancel_requested = 1 THEN 'cancelled' ELSE 'queued' END, \
              attempts = CASE WHEN cancel_requested = 1 THEN attempts ELSE attempts - 1 END, \
@@ -360,10 +414,9 @@ impl Store {
         Ok(rows.len() == 1)
     }
 
-    /// Requests cancellation: a queued job is cancelled at once, a running one at its next heartbeat.
-    pub async fn cancel_job(&self, id: &str) -> Result<JobRecord, StoreError> {
+    async fn cancel_job(&self, id: &str) -> Result<JobRecord, StoreError> {
         let now = now_rfc3339();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let mut rows = sqlx::query(&format!(
             "UPDATE jobs SET state = 'cancelled', cancel_requested = 1, updated_at = $1 WHERE id = $2 AND state = 'queued' \
              RETURNING {JOB_COLS}"

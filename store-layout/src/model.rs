@@ -429,7 +429,7 @@ impl EpisodeInput {
 /// `next_obs/<key>`, large demo attributes), kept so an export can give the source back. Stored
 /// as the steps column `extra.<name>`; `values` has one row per step (null rows allowed), any
 /// Arrow type; `metadata` becomes the field's metadata (e.g. `ufops.dtype`, `ufops.shape`).
-/// Passed beside the episode ([`crate::IngestWriter::push_episode_with_extras`]).
+/// Passed beside the episode (`store::IngestWriter::push_episode_with_extras`).
 #[derive(Debug, Clone)]
 pub struct ExtraColumn {
     pub name: String,
@@ -574,11 +574,64 @@ pub struct SourceInput {
 
 /// The rule for every name the store keeps (policy, checkpoint, task, run, alias, layer, actor…):
 /// 1-200 printable characters without surrounding spaces.
-pub(crate) fn check_name(what: &str, s: &str) -> Result<(), crate::StoreError> {
+pub fn check_name(what: &str, s: &str) -> Result<(), crate::StoreError> {
     if s.is_empty() || s.chars().count() > 200 || s.chars().any(|c| c.is_control()) || s.trim() != s {
         return Err(crate::StoreError::invalid(format!(
             "invalid {what} name {s:?}: 1-200 printable characters without surrounding spaces"
         )));
     }
     Ok(())
+}
+
+/// Policy and checkpoint names: [`check_name`]'s rule, and no '/', since artifact references
+/// (`POLICY/CHECKPOINT/KIND@ALIAS`), comparison arms (`CHECKPOINT/RUN`) and URL paths join them
+/// with it. The store refuses them at ingest, the API in every request that names one.
+pub fn check_ref_name(what: &str, s: &str) -> Result<(), crate::StoreError> {
+    check_name(what, s)?;
+    if s.contains('/') {
+        return Err(crate::StoreError::invalid(format!(
+            "invalid {what} name {s:?}: 1-200 printable characters without surrounding spaces, no '/'"
+        )));
+    }
+    Ok(())
+}
+
+/// How an ingest stores image cameras (`ufops ingest --images`, the API's `images`).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ImageStorage {
+    /// One PNG per step in the steps file: lossless (the default).
+    #[default]
+    Png,
+    /// One H.264 MP4 per episode and camera: lossy, a fraction of the bytes, played by the page.
+    Video,
+}
+
+impl ImageStorage {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ImageStorage::Png => "png",
+            ImageStorage::Video => "video",
+        }
+    }
+}
+
+impl std::fmt::Display for ImageStorage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for ImageStorage {
+    type Err = crate::StoreError;
+    fn from_str(s: &str) -> Result<Self, crate::StoreError> {
+        match s.to_ascii_lowercase().as_str() {
+            "png" => Ok(ImageStorage::Png),
+            "video" | "mp4" | "h264" => Ok(ImageStorage::Video),
+            other => {
+                Err(crate::StoreError::invalid(format!("unknown --images {other:?}: expected png or video")))
+            }
+        }
+    }
 }

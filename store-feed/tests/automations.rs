@@ -5,6 +5,8 @@
 //! never fires twice); and a run's `scoreboard` job only once all its episodes are labeled.
 
 use store::*;
+use store_feed::*;
+use store_jobs::*;
 
 /// Ingests `n` unlabeled episodes of `pol/ckpt` (optionally as `run`); returns their ids.
 async fn ingest(store: &Store, tag: &str, ckpt: &str, run: Option<RunInput>, n: u32) -> Vec<String> {

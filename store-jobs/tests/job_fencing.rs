@@ -3,7 +3,8 @@
 //! job whose worker died is finished as cancelled, not left running forever.
 
 use std::time::Duration;
-use store::{JobState, Store, StoreConfig};
+use store::{Store, StoreConfig};
+use store_jobs::{JobKind, JobQueue, JobState};
 
 async fn open() -> (tempfile::TempDir, Store) {
     let dir = tempfile::tempdir().unwrap();
@@ -20,7 +21,7 @@ async fn open() -> (tempfile::TempDir, Store) {
 #[tokio::test]
 async fn a_stale_attempt_cannot_heartbeat_or_finish_the_new_one() {
     let (_d, store) = open().await;
-    let j = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
+    let j = store.create_job(JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
     let first = store.claim_job("w1", 20).await.unwrap().unwrap();
     assert_eq!(first.attempts, 1);
     tokio::time::sleep(Duration::from_millis(40)).await;
@@ -42,7 +43,7 @@ async fn a_stale_attempt_cannot_heartbeat_or_finish_the_new_one() {
 async fn a_cancelled_job_whose_worker_died_is_cancelled_not_left_running() {
     let (_d, store) = open().await;
     // Cancel requested while running; the worker dies before its next heartbeat.
-    let a = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
+    let a = store.create_job(JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
     // A lease long enough for the two reads below on a loaded machine (20 ms was not).
     store.claim_job("dead-worker", 1_000).await.unwrap().unwrap();
     assert!(store.cancel_job(&a.id).await.unwrap().cancel_requested);
@@ -54,12 +55,12 @@ async fn a_cancelled_job_whose_worker_died_is_cancelled_not_left_running() {
     assert_eq!(a.state, JobState::Cancelled);
     assert!(a.error.unwrap().contains("worker stopped"));
     // Cancelling a job whose worker is already gone finishes it at once.
-    let b = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
+    let b = store.create_job(JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
     store.claim_job("dead-worker", 20).await.unwrap().unwrap();
     tokio::time::sleep(Duration::from_millis(40)).await;
     assert_eq!(store.cancel_job(&b.id).await.unwrap().state, JobState::Cancelled);
     // A cancel of a live job is still only a request (its worker winds it down).
-    let c = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
+    let c = store.create_job(JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
     store.claim_job("w3", 60_000).await.unwrap().unwrap();
     let c = store.cancel_job(&c.id).await.unwrap();
     assert_eq!((c.state, c.cancel_requested), (JobState::Running, true));
@@ -68,7 +69,7 @@ async fn a_cancelled_job_whose_worker_died_is_cancelled_not_left_running() {
 #[tokio::test]
 async fn a_released_job_is_queued_again_without_losing_an_attempt() {
     let (_d, store) = open().await;
-    let j = store.create_job(store::JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
+    let j = store.create_job(JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
     store.claim_job("w1", 60_000).await.unwrap().unwrap();
     assert!(!store.release_job(&j.id, "w2", 1).await.unwrap(), "only the holder releases");
     assert!(store.release_job(&j.id, "w1", 1).await.unwrap());
@@ -80,4 +81,22 @@ async fn a_released_job_is_queued_again_without_losing_an_attempt() {
     store.cancel_job(&j.id).await.unwrap();
     assert!(store.release_job(&j.id, "w2", 1).await.unwrap());
     assert_eq!(store.job(&j.id).await.unwrap().state, JobState::Cancelled);
+}
+
+#[tokio::test]
+async fn a_job_is_claimed_once_its_lease_expires_and_it_cancels() {
+    let (_d, store) = open().await;
+    let j = store.create_job(JobKind::Train, &serde_json::json!({"split": "split-1"}), "alice").await.unwrap();
+    let claimed = store.claim_job("w1", 60_000).await.unwrap().unwrap();
+    assert_eq!((claimed.id.as_str(), claimed.state, claimed.attempts), (j.id.as_str(), JobState::Running, 1));
+    assert!(store.claim_job("w2", 60_000).await.unwrap().is_none());
+    assert!(store.heartbeat_job(&j.id, "w1", 1, 1, &serde_json::json!({"epoch": 1})).await.unwrap());
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    let again = store.claim_job("w2", 60_000).await.unwrap().unwrap();
+    assert_eq!((again.id.as_str(), again.attempts), (j.id.as_str(), 2));
+    assert!(!store.heartbeat_job(&j.id, "w1", 1, 60_000, &serde_json::json!({})).await.unwrap());
+    assert!(store.finish_job(&j.id, "w2", 2, Ok(serde_json::json!({"artifact": "a-1"}))).await.unwrap());
+    assert_eq!(store.job(&j.id).await.unwrap().state, JobState::Succeeded);
+    let j2 = store.create_job(JobKind::Train, &serde_json::json!({}), "alice").await.unwrap();
+    assert_eq!(store.cancel_job(&j2.id).await.unwrap().state, JobState::Cancelled);
 }

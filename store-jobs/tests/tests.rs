@@ -1,0 +1,3 @@
+//! The integration tests of this crate, one binary: each file of `tests/` is a module here.
+
+mod job_fencing;
