@@ -4,12 +4,12 @@
 //! moments. Every request creates exactly one row (counted in the catalog afterwards), and every
 //! answer a request got names the same row.
 
-use store_jobs::JobQueue;
 use crate::common;
 use common::*;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
+use store_jobs::JobQueue;
 
 /// A small seeded generator (splitmix64): the test needs no statistics, only variety.
 struct Rng(u64);

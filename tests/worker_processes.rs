@@ -5,7 +5,6 @@
 //! catalog (jobs: state, attempts, worker, lease; artifacts: one per job, naming it) and from the
 //! workers' own `job started` / `job finished` log lines.
 
-use store_jobs::{JobQueue, JobRecord, JobState};
 use crate::common;
 use common::*;
 use serde_json::json;
@@ -14,6 +13,7 @@ use std::path::Path;
 use std::process::{Child, Stdio};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use store::{Store, StoreConfig};
+use store_jobs::{JobQueue, JobRecord, JobState};
 
 const JOBS: usize = 10;
 const LEASE_MS: i64 = 3000;

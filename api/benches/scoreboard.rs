@@ -9,11 +9,11 @@
 //!
 //! `cargo bench -p api --bench scoreboard [-- --episodes 100000 --requests 200 --no-sqlite --no-postgres]`
 
-use store_compare::Scoreboards;
 use serde_json::Value;
 use std::sync::Arc;
 use std::time::Instant;
 use store::{Backend, Role, Store, StoreConfig};
+use store_compare::Scoreboards;
 
 const PER_SOURCE: usize = 1000;
 const RUNS: usize = 10;

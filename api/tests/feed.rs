@@ -5,8 +5,8 @@
 //! and does its work once; another body under the key is a 422; a key being served is a 409;
 //! a request whose change committed before its server died is not done again.
 
-use store_feed::Webhooks;
 use crate::common;
+use store_feed::Webhooks;
 
 use common::{Db, TestServer};
 use futures::FutureExt;
@@ -480,7 +480,10 @@ async fn webhooks_deliver_each_event_once(db: Db) {
         tokio::time::sleep(Duration::from_millis(50)).await;
     };
     assert_eq!(letters[0]["attempts"], 2);
-    assert_eq!(letters[0]["delivery_id"], store_feed::delivery_id(&down, letters[0]["seq"].as_i64().unwrap()));
+    assert_eq!(
+        letters[0]["delivery_id"],
+        store_feed::delivery_id(&down, letters[0]["seq"].as_i64().unwrap())
+    );
     assert!(letters[0]["last_error"].as_str().unwrap().contains("503"), "{letters}");
     let r = srv.req(Method::DELETE, &format!("/v1/webhooks/{down}"), "admin").send().await.unwrap();
     assert_eq!(r.status(), 204);

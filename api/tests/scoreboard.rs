@@ -1,8 +1,8 @@
 //! `GET /v1/scoreboard` and `GET /v1/runs` over HTTP on SQLite and Postgres: the JSON equals the
 //! store's scoreboard, the CSV carries the same rows, hostile queries are 4xx naming the problem.
 
-use store_compare::{Compare, CompareRequest, ScoreboardRequest, Scoreboards};
 use crate::common;
+use store_compare::{Compare, CompareRequest, ScoreboardRequest, Scoreboards};
 
 use common::*;
 use reqwest::Method;

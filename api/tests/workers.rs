@@ -2,8 +2,8 @@
 //! twice at the same time; a worker killed mid-job (its task aborted: no more heartbeats) gets
 //! its job retried by the other after the lease expires. Also: cancel and progress reporting.
 
-use store_jobs::{JobQueue, JobState};
 use crate::common;
+use store_jobs::{JobQueue, JobState};
 
 use common::{Db, TestRunner};
 use serde_json::json;
@@ -29,7 +29,8 @@ async fn two_workers_on_postgres_run_each_job_once_and_retry_a_killed_workers_jo
     let runner = TestRunner::new(100);
     let mut job_ids = Vec::new();
     for i in 0..10 {
-        job_ids.push(store.create_job(store_jobs::JobKind::Score, &json!({"i": i}), "test").await.unwrap().id);
+        job_ids
+            .push(store.create_job(store_jobs::JobKind::Score, &json!({"i": i}), "test").await.unwrap().id);
         // distinct created_at so the claim order is the creation order
         tokio::time::sleep(Duration::from_millis(2)).await;
     }

@@ -12,13 +12,13 @@ pub mod review_campaign;
 
 pub use report::{MonitorSummary, Report, Row, SteeringQuality, SteeringQualityRow};
 
-use store_compare::Scoreboards;
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use sim::{rollout, ChunkChoice, ChunkPolicy, DiffusionPolicy, EnvConfig, FlowPolicy, PolicyConfig};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use store::{EpisodeInput, Label, RunInput, SourceInput, Steering, Store, VectorColumn};
+use store_compare::Scoreboards;
 
 pub const POLICY: &str = "nav-dp";
 pub const BASE: &str = "base";

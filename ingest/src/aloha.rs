@@ -35,9 +35,9 @@ use serde_json::{json, Map, Value};
 
 use crate::error::{IngestError, Result};
 use crate::h5rows::{raw_camera, read_rows_windowed};
+use crate::h5src::{h5err, Src};
 use crate::model::{EpisodeInput, ExtraColumn, Frames, ImageColumn, Label, VectorColumn};
 use crate::options::ReadOptions;
-use crate::h5src::{h5err, Src};
 use crate::robomimic::{
     check_signature_file, dtype_name, group_attrs, info, is_numeric, PositionedFile, METADATA_CACHE_BYTES,
 };

@@ -13,8 +13,8 @@ use hdf5_pure::Dataset;
 use store::ExtraPages;
 
 use crate::error::{IngestError, Result};
-use crate::model::{FrameStream, Frames, ImageColumn};
 use crate::h5src::{h5err, Src};
+use crate::model::{FrameStream, Frames, ImageColumn};
 
 /// Decoded bytes read at once by [`read_rows_windowed`].
 pub(crate) const WINDOW_BYTES: u64 = 32 << 20;

@@ -152,8 +152,7 @@ fn write_lerobot_v3(root: &Path, episodes: usize) {
 
 /// A LeRobot `image` column (`struct<bytes, path>`) of `frames` (`h x w x 3` each) as PNGs.
 fn png_column(frames: &[Vec<u8>], h: usize, w: usize) -> ArrayRef {
-    let pngs: Vec<Vec<u8>> =
-        frames.iter().map(|f| ingest::png::encode_png(f, h, w, 3).unwrap()).collect();
+    let pngs: Vec<Vec<u8>> = frames.iter().map(|f| ingest::png::encode_png(f, h, w, 3).unwrap()).collect();
     Arc::new(StructArray::from(vec![
         (
             Arc::new(Field::new("bytes", DataType::Binary, true)),

@@ -5,7 +5,9 @@ use std::collections::HashMap;
 
 use monitor::{calibrate, calibration_draws, evaluate, CalibrateSpec};
 use store::test_support::{self, open_test_store};
-use store::{Backend, EpisodeRecord, Label, NewArtifact, NewMonitor, NewVote, Span, Store, VectorColumn, VerdictData};
+use store::{
+    Backend, EpisodeRecord, Label, NewArtifact, NewMonitor, NewVote, Span, Store, VectorColumn, VerdictData,
+};
 use verifier::monitor::{
     conformal_threshold, peak, training_conditional_threshold, MonitorRecord, Statistic,
     SPLIT_CONFORMAL_PEAK, SPLIT_CONFORMAL_PEAK_PAC,

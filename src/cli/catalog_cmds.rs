@@ -1,10 +1,10 @@
 //! Splits, artifacts and tokens: thin wrappers over the store.
 
-use store_compare::PolicyAliases;
-use store_feed::Automations;
 use super::{print_json, StoreArgs};
 use anyhow::{bail, Result};
 use store::{Role, SplitRequest};
+use store_compare::PolicyAliases;
+use store_feed::Automations;
 
 #[derive(clap::Subcommand, Debug)]
 pub enum SplitCommand {

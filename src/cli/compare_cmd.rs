@@ -1,10 +1,10 @@
 //! `ufops compare`: the anytime-valid comparison of two arms, as a table or JSON, with a gate's
 //! exit status; `ufops alias`: a policy's aliases, protected ones moved only on a decided comparison.
 
-use store_compare::{Compare, PolicyAliases};
 use super::StoreArgs;
 use anyhow::{bail, Result};
 use std::io::Write;
+use store_compare::{Compare, PolicyAliases};
 
 /// How to compare (shared by `compare` and `alias move`).
 #[derive(clap::Args, Debug, Clone)]
@@ -114,7 +114,12 @@ pub fn print_comparison(c: &store_compare::Comparison) {
     println!("\ngate: {} (exit {}); method: {}", c.gate, c.exit_code, c.method);
 }
 
-fn request(policy: &str, a: store_compare::ArmSpec, b: store_compare::ArmSpec, o: &CompareOptions) -> store_compare::CompareRequest {
+fn request(
+    policy: &str,
+    a: store_compare::ArmSpec,
+    b: store_compare::ArmSpec,
+    o: &CompareOptions,
+) -> store_compare::CompareRequest {
     store_compare::CompareRequest {
         alpha: o.alpha,
         margin: o.margin,

@@ -1,10 +1,10 @@
 //! Training, scoring and the demo: wiring of trainer, steer and demo to the store.
 
-use store_jobs::JobQueue;
 use super::{print_json, StoreArgs};
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
+use store_jobs::JobQueue;
 
 #[derive(clap::Args, Debug)]
 pub struct TrainArgs {

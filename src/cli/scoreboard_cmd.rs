@@ -1,8 +1,8 @@
 //! `ufops scoreboard`: the store's scoreboard as a table, JSON or CSV.
 
-use store_compare::Scoreboards;
 use super::StoreArgs;
 use anyhow::{bail, Result};
+use store_compare::Scoreboards;
 
 #[derive(clap::Args, Debug)]
 pub struct ScoreboardArgs {

@@ -1,7 +1,6 @@
 //! `ingest`, `serve` and `worker`: the ingest crate and the API wired to the store, with the job
 //! runner that executes training and ingest jobs for the API's workers.
 
-use store_feed::Automations;
 use super::StoreArgs;
 use anyhow::Result;
 use futures::future::BoxFuture;
@@ -9,6 +8,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+use store_feed::Automations;
 
 #[derive(clap::Args, Debug)]
 pub struct IngestArgs {

@@ -86,7 +86,8 @@ async fn a_released_job_is_queued_again_without_losing_an_attempt() {
 #[tokio::test]
 async fn a_job_is_claimed_once_its_lease_expires_and_it_cancels() {
     let (_d, store) = open().await;
-    let j = store.create_job(JobKind::Train, &serde_json::json!({"split": "split-1"}), "alice").await.unwrap();
+    let j =
+        store.create_job(JobKind::Train, &serde_json::json!({"split": "split-1"}), "alice").await.unwrap();
     let claimed = store.claim_job("w1", 60_000).await.unwrap().unwrap();
     assert_eq!((claimed.id.as_str(), claimed.state, claimed.attempts), (j.id.as_str(), JobState::Running, 1));
     assert!(store.claim_job("w2", 60_000).await.unwrap().is_none());

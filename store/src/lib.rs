@@ -76,7 +76,8 @@ pub use review::{
 };
 pub use runs::{RunInput, RunRecord, Steering};
 pub use selection::{
-    for_each_episode, for_each_episode_with_layers, select, EpisodeReader, Progress, ScoreRange, Selected, Selection,
+    for_each_episode, for_each_episode_with_layers, select, EpisodeReader, Progress, ScoreRange, Selected,
+    Selection,
 };
 pub use splits::{SplitCheckpointSteps, SplitEpisode, SplitRecord, SplitRequest, MAX_VAL_FRACTION};
 /// The data model and the steps layout live below the catalog, in `store-layout`.

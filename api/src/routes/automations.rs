@@ -3,8 +3,8 @@
 //! run's scoreboard rows when its episodes are all labeled). Running them is `automations.rs` at
 //! the crate root; what they decide is `store-feed`'s (`store-feed/src/automations.rs`).
 
-use store_feed::Automations;
 use super::*;
+use store_feed::Automations;
 
 /// The routes of this resource (behind the token check).
 pub(crate) fn router() -> Router<AppState> {

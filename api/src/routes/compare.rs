@@ -2,8 +2,8 @@
 //! pooled, with the gate's answer), and the policy aliases it guards (`prod` moves only on a
 //! decided "not worse", the comparison kept as the move's evidence).
 
-use store_compare::{Compare, PolicyAliases};
 use super::*;
+use store_compare::{Compare, PolicyAliases};
 
 /// The routes of this resource (behind the token check).
 pub(crate) fn router() -> Router<AppState> {
