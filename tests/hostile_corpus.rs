@@ -62,9 +62,10 @@ fn ingest(t: &Target, source: &Path) -> Run {
         .expect("run ufops");
     let pid = child.id() as libc::pid_t;
     let mut status: libc::c_int = 0;
+    // SAFETY: rusage is plain integers, for which all zeroes is a valid value.
+    let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
     // SAFETY: plain FFI; `ru` is a valid out-parameter and `pid` is our own child (std's
     // `Child` is never waited on afterwards).
-    let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
     let r = unsafe { libc::wait4(pid, &mut status, 0, &mut ru) };
     assert_eq!(r, pid, "wait4: {}", std::io::Error::last_os_error());
     drop(child);

@@ -13,6 +13,11 @@
 //! The filled SQLite catalog is cached under `<target>/catalog_scale/` between runs (delete it to
 //! refill); the Postgres one is filled in a fresh schema every run and dropped at the end (kept
 //! with `CATALOG_SCALE_KEEP_SCHEMA=1`).
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 
 use serde_json::Value;
 use std::path::PathBuf;

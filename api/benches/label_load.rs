@@ -12,6 +12,11 @@
 //!
 //! Each run prints its figures with the machine's load average (the box is shared: other
 //! processes' CPU use moves the figures); with `--runs N` the medians are printed at the end.
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 
 #[path = "../tests/common/mod.rs"]
 mod common;

@@ -8,6 +8,11 @@
 //! and listing the version's episodes of the policy (what an in-memory scoreboard would read).
 //!
 //! `cargo bench -p api --bench scoreboard [-- --episodes 100000 --requests 200 --no-sqlite --no-postgres]`
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 
 use serde_json::Value;
 use std::sync::Arc;

@@ -40,6 +40,10 @@ const MAX_STORED_BODY: usize = 1 << 20;
 /// Response headers a replay carries besides the body.
 const KEPT_HEADERS: [HeaderName; 3] = [header::CONTENT_TYPE, header::ETAG, header::LOCATION];
 
+#[allow(
+    clippy::too_many_lines,
+    reason = "the idempotency protocol's states in order: claim, replay, conflict, store"
+)]
 pub(crate) async fn guard(
     State(state): State<AppState>,
     req: Request,

@@ -249,6 +249,10 @@ fn string_schema(pattern: &str) -> RefOr<Schema> {
 }
 
 impl Contract {
+    #[allow(
+        clippy::too_many_lines,
+        reason = "one pass that writes every rule of an operation into the document"
+    )]
     fn operation(op: &mut Operation, path: &str, public: bool, mutating: bool) {
         let params = op.parameters.get_or_insert_with(Vec::new);
         if mutating && !public {

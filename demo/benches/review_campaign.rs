@@ -6,6 +6,11 @@
 //!
 //! `cargo bench -p demo --bench review_campaign` (quick: a few minutes on 2 cores);
 //! `UFOPS_CAMPAIGN_POOL`, `UFOPS_CAMPAIGN_BUDGET`, `UFOPS_CAMPAIGN_SEED` for other runs.
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 
 use anyhow::Result;
 use demo::review_campaign::{run, table, AskOrder, Campaign, CurvePoint};

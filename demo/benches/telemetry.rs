@@ -11,6 +11,11 @@
 //! `cargo bench --profile dev --workspace --bench telemetry` (about two minutes on 2 cores;
 //! the dev profile optimises the numeric crates and reuses the test build);
 //! `UFOPS_TELEMETRY_EPISODES` (default 200), `UFOPS_TELEMETRY_N` (30), `UFOPS_TELEMETRY_REPS` (5).
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 
 use anyhow::Result;
 use sim::{rollout, ChunkChoice, DiffusionPolicy, EnvConfig, PolicyConfig};

@@ -43,6 +43,11 @@
 //! stderr.
 //!
 //! `cargo bench -p evalstats --bench sequential` (about a minute on 2 cores).
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 
 use evalstats::sequential::{fisher_exact_two_sided, ln_choose};
 use evalstats::splitmix::SplitMix64 as Rng;

@@ -1,6 +1,11 @@
 //! The sequential comparison: published worked examples, an independent computation in Python
 //! (scipy), and its guarantees by simulation at a size a unit test affords (the full-size
 //! simulation is `cargo bench -p evalstats --bench sequential`).
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "tests: a failed unwrap is a failed test, and a scenario reads top to bottom"
+)]
 
 use evalstats::sequential::{confidence_sequence, fisher_exact_two_sided};
 use evalstats::{compare_pairs, pair_by_key, Decision, Pair, PairedCounts, SequentialConfig, SequentialTest};

@@ -7,6 +7,11 @@
 //! The store: 5,000 generated Square-like rollouts (obs 23 floats in 4 keys, action 7, 150-400
 //! steps, 1.38 M steps), made once under the target dir and reused.
 //! `cargo bench -p export --bench export` (`EXPORT_BENCH_N` for another count).
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

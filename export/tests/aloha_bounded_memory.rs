@@ -4,6 +4,11 @@
 //! (1.97 GB RSS for a 1.1 GB episode).
 //!
 //! Its own test binary: the allocator counts the whole process.
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "tests: a failed unwrap is a failed test, and a scenario reads top to bottom"
+)]
 
 use export::aloha;
 use h5stream::{Attr, Group, Writer};

@@ -3,6 +3,11 @@
 //! with `hdf5-pure`'s `FileBuilder`, which holds the file until it writes it, failed here.
 //!
 //! Its own test binary: the allocator counts the whole process.
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "tests: a failed unwrap is a failed test, and a scenario reads top to bottom"
+)]
 
 use std::path::Path;
 

@@ -5,6 +5,11 @@
 //! UTF-8 names), read back with h5py and compared exactly (`h5py_check.py`: dtypes, shapes, the
 //! values' bytes, string kinds and widths). Seeds 0-49, fixed: a failure names its seed and
 //! reproduces.
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "tests: a failed unwrap is a failed test, and a scenario reads top to bottom"
+)]
 
 use std::path::{Path, PathBuf};
 

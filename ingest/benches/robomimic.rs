@@ -6,6 +6,11 @@
 //! The input is generated once with `bench/reference/gen_robomimic.py OUT --demos 1000` into the
 //! target directory (never into git). Env: `UFOPS_BENCH_RUNS` (default 3), `UFOPS_BENCH_FILE`,
 //! `UFOPS_BENCH_INGEST_ONLY` (time the whole ingest only, e.g. under `perf record`).
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -7,6 +7,11 @@
 //! Inputs: the real robomimic renders of `fixtures/robomimic/lift_rollouts_image.hdf5` (84×84)
 //! and an ALOHA-size episode written by `scripts/gen_aloha.py` (3 cameras at 480×640, 400 steps;
 //! generated into the target directory, never into git; needs python3 with h5py and Pillow).
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

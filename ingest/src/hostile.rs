@@ -44,6 +44,7 @@ pub struct Case {
 
 /// Writes every case under `dir` (one sub-folder per case) and lists them.
 // Past 100 lines on purpose: the list of cases, one short block each, read as a catalogue.
+#[allow(clippy::too_many_lines, reason = "the hostile corpus, one case after another")]
 pub fn write_corpus(dir: &Path) -> Result<Vec<Case>> {
     let mut cases = Vec::new();
     let mut add = |name: &'static str,

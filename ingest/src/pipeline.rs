@@ -285,6 +285,10 @@ enum Fed {
 
 /// Ingests `path` into `store` as one new version (or reports the version that already holds
 /// the same content). On any error nothing is committed and the error names the file.
+#[allow(
+    clippy::too_many_lines,
+    reason = "the ingest pipeline in its order: detect, hash, read, write, commit, report"
+)]
 pub async fn ingest(store: &store::Store, path: &Path, opts: &IngestOptions) -> Result<IngestReport> {
     if opts.policy.trim().is_empty() || opts.checkpoint.trim().is_empty() {
         return Err(IngestError::Usage("--policy and --checkpoint are required".into()));

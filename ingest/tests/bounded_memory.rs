@@ -6,6 +6,11 @@
 //! A reader that loads the source whole (robomimic did, up to 2 GiB files), a writer that keeps
 //! encoded row groups until the end, or a channel without a byte bound all make the larger
 //! source's peak grow with it, and fail here.
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "tests: a failed unwrap is a failed test, and a scenario reads top to bottom"
+)]
 
 mod common;
 

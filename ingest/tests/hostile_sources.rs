@@ -2,6 +2,11 @@
 //! expected error, and no single allocation comes near what the sources declare (a counting global
 //! allocator records the largest request). The same corpus through the `ufops` binary, with the
 //! child's peak RSS and the store checked, is `tests/hostile_corpus.rs` at the workspace root.
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "tests: a failed unwrap is a failed test, and a scenario reads top to bottom"
+)]
 
 mod largest_alloc;
 use largest_alloc::LARGEST;

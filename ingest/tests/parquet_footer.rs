@@ -2,6 +2,11 @@
 //! ~9 GB": `data/corrupt_footer_huge_list.parquet` (36 bytes) is a footer whose row-group list
 //! claims 10^8 elements. The LeRobot reader must refuse it with an error, and no single allocation
 //! may come anywhere near that size (a counting global allocator records the largest request).
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "tests: a failed unwrap is a failed test, and a scenario reads top to bottom"
+)]
 
 mod largest_alloc;
 use largest_alloc::LARGEST;

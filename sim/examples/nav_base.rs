@@ -1,5 +1,6 @@
 //! Train the base DDPM (and flow) policy on expert demos and report its success rate under test
 //! noise; writes a trajectory plot. `cargo run -p sim --example nav_base -- [episodes] [train_steps] [out_dir]`
+#![allow(clippy::unwrap_used, reason = "examples stay short: a failed unwrap ends the example")]
 use sim::plot::{plot_panels, Panel};
 use sim::rollout::summary;
 use sim::*;

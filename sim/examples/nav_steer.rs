@@ -1,6 +1,7 @@
 //! Quick end-to-end check of the steering plumbing on the navigation task, with a HAND-MADE scorer
 //! (no training: it prefers chunks that head for the wide gap). Not a verifier trainer.
 //! `cargo run -p sim --example nav_steer -- [episodes]`
+#![allow(clippy::unwrap_used, reason = "examples stay short: a failed unwrap ends the example")]
 use sim::rollout::summary;
 use sim::*;
 use steer::{Result as SResult, Scorer};

@@ -87,6 +87,10 @@ pub fn obs_history(hist: &[[f32; 2]], t_o: usize, out: &mut Vec<f32>) {
 /// Roll out `n_episodes` episodes in lockstep with test-time noise. `seed` fixes the start
 /// positions and the environment noise (one RNG) and the policy's sampling (another), so base and
 /// steered runs with the same seed face the same starts and noise sequence.
+#[allow(
+    clippy::too_many_lines,
+    reason = "one rollout's loop: policy, steering, environment and record, step by step"
+)]
 pub fn rollout(
     policy: &dyn ChunkPolicy,
     env_cfg: &EnvConfig,

@@ -1,3 +1,8 @@
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "tests: a failed unwrap is a failed test, and a scenario reads top to bottom"
+)]
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sim::env::Gap;

@@ -3,6 +3,11 @@
 //! through the `Scorer` trait (the verifier core's kernels: AVX2/FMA and the portable fallback),
 //! and the PyTorch eager peer (bench/reference/torch_bon_latency.py) measured in the same run
 //! when `python3 -c "import torch"` works. Run with `cargo bench -p steer`.
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;

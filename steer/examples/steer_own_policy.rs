@@ -9,6 +9,7 @@
 //! The policy here is a stand-in whose samples spread around zero; put your
 //! network's forward pass in `predict_noise`. Everything else is what a robot loop does at each
 //! re-planning step.
+#![allow(clippy::unwrap_used, reason = "examples stay short: a failed unwrap ends the example")]
 
 use rand::SeedableRng;
 use steer::{

@@ -168,6 +168,10 @@ impl PolicyAliases for Store {
             .collect()
     }
 
+    #[allow(
+        clippy::too_many_lines,
+        reason = "the alias move's checks and its comparison, in the transaction that moves it"
+    )]
     async fn move_policy_alias(&self, req: &MoveAlias) -> Result<PolicyAlias, StoreError> {
         store::model::check_name("policy", &req.policy)?;
         store::model::check_name("alias", &req.alias)?;

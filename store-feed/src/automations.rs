@@ -451,6 +451,10 @@ impl Automations for Store {
         Ok(())
     }
 
+    #[allow(
+        clippy::too_many_lines,
+        reason = "one automation's pass over the feed, decided per rule in the transaction that queues"
+    )]
     async fn advance_automation(&self, a: &AutomationRecord, owner: &str) -> Result<Option<i64>, StoreError> {
         let filter = EventFilter { kinds: a.rule.kinds(), policy: Some(a.policy.clone()) };
         let page = match self.events_after(a.cursor_seq, PAGE, &filter).await {

@@ -15,6 +15,11 @@
 //!
 //! `cargo bench -p store --bench read_path` (`READ_PATH_SIZES=5000` to run one size,
 //! `READ_PATH_OLD=0` to skip the old path, `READ_PATH_DIR` for where the stores are made).
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 
 #[path = "../../tests/common/seaweedfs.rs"]
 #[allow(dead_code)]

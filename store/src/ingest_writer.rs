@@ -433,6 +433,10 @@ impl IngestWriter {
     }
 
     /// Makes everything added so far visible as one new version.
+    #[allow(
+        clippy::too_many_lines,
+        reason = "the commit protocol reads top to bottom: checks, rows, counts, the version"
+    )]
     pub async fn commit(mut self, message: &str) -> Result<CommitInfo, StoreError> {
         if self.episodes.is_empty() {
             return Err(StoreError::invalid(format!(

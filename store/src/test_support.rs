@@ -284,6 +284,7 @@ fn heap_grew(by: usize) {
 #[allow(unsafe_code, reason = "a global allocator is an unsafe trait")]
 unsafe impl std::alloc::GlobalAlloc for CountingAlloc {
     unsafe fn alloc(&self, layout: std::alloc::Layout) -> *mut u8 {
+        // SAFETY: the caller's layout, forwarded unchanged.
         let p = unsafe { std::alloc::System.alloc(layout) };
         if !p.is_null() {
             heap_grew(layout.size());
@@ -291,6 +292,7 @@ unsafe impl std::alloc::GlobalAlloc for CountingAlloc {
         p
     }
     unsafe fn alloc_zeroed(&self, layout: std::alloc::Layout) -> *mut u8 {
+        // SAFETY: the caller's layout, forwarded unchanged.
         let p = unsafe { std::alloc::System.alloc_zeroed(layout) };
         if !p.is_null() {
             heap_grew(layout.size());
@@ -298,10 +300,12 @@ unsafe impl std::alloc::GlobalAlloc for CountingAlloc {
         p
     }
     unsafe fn dealloc(&self, ptr: *mut u8, layout: std::alloc::Layout) {
+        // SAFETY: `ptr` came from this allocator (the system's) with this layout.
         unsafe { std::alloc::System.dealloc(ptr, layout) };
         HEAP_LIVE.fetch_sub(layout.size(), std::sync::atomic::Ordering::Relaxed);
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: std::alloc::Layout, new_size: usize) -> *mut u8 {
+        // SAFETY: `ptr` came from this allocator (the system's) with this layout.
         let p = unsafe { std::alloc::System.realloc(ptr, layout, new_size) };
         if !p.is_null() {
             HEAP_LIVE.fetch_sub(layout.size(), std::sync::atomic::Ordering::Relaxed);

@@ -5,6 +5,11 @@
 //! Env: `UFOPS_BENCH_SAMPLES` (default 302400), `UFOPS_BENCH_EPOCHS` (default 2),
 //! `UFOPS_BENCH_BACKENDS` (default "fast", comma list of fast,candle), `UFOPS_BENCH_THREADS`
 //! (default "1,2"), `UFOPS_BENCH_NO_TORCH` (skip the peer).
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "benchmarks: a failed unwrap is a failed run, and a measurement reads top to bottom"
+)]
 
 use std::time::Instant;
 

@@ -205,8 +205,11 @@ macro_rules! dispatch {
     ($isa:expr, $f:ident ( $($arg:expr),* )) => {
         match $isa {
             #[allow(unused_unsafe)]
+            // SAFETY: `Isa::Avx2Fma` is only ever detected on a CPU with AVX2 and FMA; the
+            // kernels take slices, no raw pointers.
             Isa::Avx2Fma => unsafe { k_avx2::$f($($arg),*) },
             #[allow(unused_unsafe)]
+            // SAFETY: the portable build of the same kernels needs no CPU feature.
             Isa::Portable => unsafe { k_base::$f($($arg),*) },
         }
     };
@@ -493,6 +496,10 @@ struct Ctx<'a> {
 impl Ctx<'_> {
     // Past 100 lines on purpose: the network's forward pass in one place, each layer's kernel
     // dispatched in turn, so `backward` can be read against it.
+    #[allow(
+        clippy::too_many_lines,
+        reason = "a fused pass: each layer's kernel calls in order, read against the candle graph"
+    )]
     fn forward(
         &self,
         w: &mut Worker,
@@ -526,6 +533,8 @@ impl Ctx<'_> {
                 *o += e;
             }
         }
+        // SAFETY: the kernel calls below run the instruction set `m.isa` was detected for, on
+        // slices (no raw pointers).
         unsafe {
             // Encoders.
             let l = m.o0;
@@ -639,6 +648,10 @@ impl Ctx<'_> {
 
     // Past 100 lines on purpose: the hand-derived backward pass, layer by layer in reverse, reads
     // line for line against `forward`; helpers would hide which buffer each step reuses.
+    #[allow(
+        clippy::too_many_lines,
+        reason = "a fused pass: each layer's kernel calls in reverse, read against forward"
+    )]
     fn backward(&self, w: &mut Worker, dy: &[f32], dz: &[f32], mask: Option<&[f32]>) {
         let m = self.m;
         let p = &self.p.values;
@@ -666,6 +679,8 @@ impl Ctx<'_> {
             );
             gb[0] += s;
         }
+        // SAFETY: the kernel calls below run the instruction set `m.isa` was detected for, on
+        // slices (no raw pointers).
         unsafe {
             // Trunk, last to first. `cur` holds d/d out[i] on entry.
             let mut cur: Vec<f32> = std::mem::take(&mut w.dz);

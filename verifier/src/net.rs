@@ -423,6 +423,7 @@ impl Net {
     /// Input gradients for B rows into `out` (`B * act_dim`).
     // Past 100 lines on purpose: the hand-derived backward pass, layer by layer in reverse, reads
     // line for line against `forward`; helpers would hide which buffer each step reuses.
+    #[allow(clippy::too_many_lines, reason = "the gradient's layers in reverse, read against forward")]
     fn backward(&self, obs: &[f32], extras: &[&[f32]], t: &[u32], chunks: &[f32], out: &mut [f32]) {
         let m = t.len();
         let (ad, ew, eps, isa) = (self.ad, self.ew, self.eps, self.isa);

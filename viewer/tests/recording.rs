@@ -1,6 +1,11 @@
 //! Writes recordings from a temp store with synthetic success/failure episodes and reads the
 //! `.rrd` back with re_log_encoding's decoder: entities, timelines, rows per episode, blueprint.
 //! `check_rrd_with_official_rerun_sdk` also runs `viewer/scripts/check_rrd.sh` (PyPI rerun-sdk).
+#![allow(
+    clippy::unwrap_used,
+    clippy::too_many_lines,
+    reason = "tests: a failed unwrap is a failed test, and a scenario reads top to bottom"
+)]
 
 use arrow::array::RecordBatch;
 use re_sdk::log::{Chunk, LogMsg};
