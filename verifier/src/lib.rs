@@ -44,8 +44,6 @@ pub mod samples;
 /// Verifier inputs from the store's steps batches and [`steps::StepScorer`] (feature `steps`).
 #[cfg(feature = "steps")]
 pub mod steps;
-/// Scoring stored episodes: every step, an episode's score, a selection's score filter (feature
-/// `steps`).
 #[cfg(feature = "steps")]
 pub mod stored;
 pub mod telemetry;
