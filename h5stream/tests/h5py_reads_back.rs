@@ -13,21 +13,18 @@
 
 use std::path::{Path, PathBuf};
 
+use evalstats::splitmix::SplitMix64;
 use h5stream::{Attr, Element, Group, StrKind, Writer};
 use serde_json::{json, Map, Value};
 
 const CASES: u64 = 50;
 
-/// SplitMix64: small, seeded, the same sequence everywhere.
-struct Rng(u64);
+/// The seeded generator of every case (evalstats' SplitMix64), with the draws the trees need.
+struct Rng(SplitMix64);
 
 impl Rng {
     fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
+        self.0.next_u64()
     }
     fn below(&mut self, n: u64) -> u64 {
         self.next() % n
@@ -256,7 +253,7 @@ fn fill_group(
 
 /// Writes the file of `seed` and returns what h5py should read in it.
 fn write_case(dir: &Path, seed: u64) -> Value {
-    let mut rng = Rng(seed);
+    let mut rng = Rng(SplitMix64(seed));
     let file = dir.join(format!("case-{seed}.h5"));
     let mut w = Writer::create(&file).unwrap();
     let mut root = Group::default();

@@ -111,7 +111,7 @@ impl Store {
             self.objects().put_content_addressed(&format!("{prefix}/{name}"), Bytes::from(data)).await?;
         }
         let now = now_rfc3339();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let inserted = sqlx::query(&format!(
             "INSERT INTO artifacts ({ART_COLS}) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10) ON CONFLICT DO NOTHING"
         ))
@@ -158,7 +158,7 @@ impl Store {
     pub async fn artifact(&self, id: &str) -> Result<ArtifactRecord, StoreError> {
         let row = sqlx::query(&format!("SELECT {ART_COLS} FROM artifacts WHERE id = $1"))
             .bind(id)
-            .fetch_optional(&self.db().pool)
+            .fetch_optional(&self.catalog().pool)
             .await?
             .ok_or_else(|| StoreError::not_found("artifact", id))?;
         let mut rec = artifact_from_row(&row)?;
@@ -179,7 +179,7 @@ impl Store {
         .bind(policy.unwrap_or(""))
         .bind(checkpoint.unwrap_or(""))
         .bind(kind.unwrap_or(""))
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         let mut out = Vec::with_capacity(rows.len());
         for r in &rows {
@@ -193,7 +193,7 @@ impl Store {
     async fn aliases_of(&self, id: &str) -> Result<Vec<String>, StoreError> {
         let rows = sqlx::query("SELECT alias FROM artifact_aliases WHERE artifact_id = $1 ORDER BY alias")
             .bind(id)
-            .fetch_all(&self.db().pool)
+            .fetch_all(&self.catalog().pool)
             .await?;
         rows.iter().map(|r| r.s("alias")).collect()
     }
@@ -205,7 +205,7 @@ impl Store {
             return Err(StoreError::invalid(format!("alias {alias:?} may not contain '@' or '/'")));
         }
         let a = self.artifact(artifact_id).await?;
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         upsert_alias(&mut tx, &a.policy, &a.checkpoint, &a.kind, alias, &a.id, &now_rfc3339()).await?;
         let event = alias_moved(&a.policy, &a.checkpoint, &a.kind, alias, &a.id);
         self.commit_with_events(tx, &[event]).await?;
@@ -227,7 +227,7 @@ impl Store {
         .bind(checkpoint)
         .bind(kind)
         .bind(alias)
-        .fetch_optional(&self.db().pool)
+        .fetch_optional(&self.catalog().pool)
         .await?
         .ok_or_else(|| StoreError::not_found("artifact alias", format!("{policy}/{checkpoint}/{kind}@{alias}")))?;
         self.artifact(&row.s("artifact_id")?).await

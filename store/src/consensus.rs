@@ -383,7 +383,7 @@ impl Store {
             "SELECT labels_needed, blind, updated_by, updated_at FROM campaigns WHERE policy = $1",
         )
         .bind(policy)
-        .fetch_optional(&self.db().pool)
+        .fetch_optional(&self.catalog().pool)
         .await?;
         campaign_from(policy, r)
     }
@@ -400,7 +400,7 @@ impl Store {
             "SELECT c.labels_needed FROM episodes e JOIN campaigns c ON c.policy = e.policy WHERE e.id = $1",
         )
         .bind(episode_id)
-        .fetch_optional(&self.db().pool)
+        .fetch_optional(&self.catalog().pool)
         .await?;
         Ok(match r {
             Some(r) => r.i("labels_needed")? > 1,
@@ -426,7 +426,7 @@ impl Store {
             }
             let wanted: std::collections::HashMap<&str, i64> =
                 chunk.iter().map(|(id, rev)| (id.as_str(), *rev)).collect();
-            for r in q.fetch_all(&self.db().pool).await? {
+            for r in q.fetch_all(&self.catalog().pool).await? {
                 let id = r.s("episode_id")?;
                 if wanted.get(id.as_str()) == Some(&r.i("revision")?) {
                     let d = serde_json::from_str(&r.s("data")?)
@@ -450,7 +450,7 @@ impl Store {
             return Ok(p);
         }
         let rows = sqlx::query("SELECT policy FROM campaigns WHERE labels_needed > 1")
-            .fetch_all(&self.db().pool)
+            .fetch_all(&self.catalog().pool)
             .await?;
         let policies = Arc::new(rows.iter().map(|r| r.s("policy")).collect::<Result<HashSet<_>, _>>()?);
         cache.store(policies.clone());
@@ -472,7 +472,7 @@ impl Store {
                 "labels_needed must be 1 to {MAX_LABELS_NEEDED}, not {labels_needed}"
             )));
         }
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         sqlx::query(
             "INSERT INTO campaigns (policy, labels_needed, blind, updated_by, updated_at) VALUES ($1, $2, $3, $4, $5) \
              ON CONFLICT (policy) DO UPDATE SET labels_needed = excluded.labels_needed, blind = excluded.blind, \
@@ -502,7 +502,7 @@ impl Store {
     pub async fn failure_causes(&self, task: &str) -> Result<Vec<String>, StoreError> {
         let rows = sqlx::query("SELECT task, causes FROM failure_causes WHERE task = $1 OR task = '*'")
             .bind(task)
-            .fetch_all(&self.db().pool)
+            .fetch_all(&self.catalog().pool)
             .await?;
         let pick = rows.iter().find(|r| r.s("task").ok().as_deref() == Some(task)).or_else(|| rows.first());
         match pick {
@@ -533,7 +533,7 @@ impl Store {
             }
         }
         let text = serde_json::to_string(causes).map_err(|e| StoreError::invalid(e.to_string()))?;
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         sqlx::query(
             "INSERT INTO failure_causes (task, causes, updated_by, updated_at) VALUES ($1, $2, $3, $4) \
              ON CONFLICT (task) DO UPDATE SET causes = excluded.causes, updated_by = excluded.updated_by, \
@@ -596,13 +596,13 @@ impl Store {
         let backend = self.backend();
         // The taxonomy is read outside the write transaction (SQLite has one connection writing).
         let pre = {
-            let mut tx = self.db().pool.begin().await?;
+            let mut tx = self.catalog().pool.begin().await?;
             let h = episode_head(&mut tx, Backend::Sqlite, &vote.episode_id).await?;
             tx.rollback().await?;
             h
         };
         self.check_data(&pre, vote.label, &vote.data).await?;
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let head = episode_head(&mut tx, backend, &vote.episode_id).await?;
         let campaign = campaign_in(&mut tx, &head.policy).await?;
         let data_text = if vote.data.is_empty() {
@@ -665,7 +665,7 @@ impl Store {
     /// An episode's votes (each labeler's latest) and their state, unfiltered: the API hides
     /// the others' votes from a blind labeler with [`EpisodeVotes::hide_others`].
     pub async fn episode_votes(&self, episode_id: &str) -> Result<EpisodeVotes, StoreError> {
-        let mut tx = self.db().pool.begin().await?;
+        let mut tx = self.catalog().pool.begin().await?;
         let head = episode_head(&mut tx, Backend::Sqlite, episode_id).await?;
         let campaign = campaign_in(&mut tx, &head.policy).await?;
         let latest = latest_by_actor(votes_in(&mut tx, episode_id).await?);
@@ -698,14 +698,14 @@ impl Store {
             return Err(StoreError::invalid("label note is longer than 4000 bytes"));
         }
         let pre = {
-            let mut tx = self.db().pool.begin().await?;
+            let mut tx = self.catalog().pool.begin().await?;
             let h = episode_head(&mut tx, Backend::Sqlite, episode_id).await?;
             tx.rollback().await?;
             h
         };
         self.check_data(&pre, label, &data).await?;
         let backend = self.backend();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         episode_head(&mut tx, backend, episode_id).await?;
         let latest = latest_by_actor(votes_in(&mut tx, episode_id).await?);
         let mut d = merged_data(&latest);
@@ -728,7 +728,7 @@ impl Store {
     ) -> Result<Vec<Dispute>, StoreError> {
         let votes = self.policy_votes(policy).await?;
         let mut out = Vec::new();
-        let mut tx = self.db().pool.begin().await?;
+        let mut tx = self.catalog().pool.begin().await?;
         for (id, (pol, label, revision, latest)) in votes {
             if out.len() >= limit {
                 break;
@@ -759,7 +759,7 @@ impl Store {
              WHERE e.version_removed IS NULL AND (CAST($1 AS TEXT) IS NULL OR e.policy = $1) ORDER BY v.id",
         )
         .bind(policy)
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         let mut all: BTreeMap<String, (String, Label, i64, Vec<Vote>)> = BTreeMap::new();
         for r in &rows {
@@ -796,7 +796,7 @@ impl Store {
             pairs: Vec::new(),
             krippendorff_alpha: None,
         };
-        let mut tx = self.db().pool.begin().await?;
+        let mut tx = self.catalog().pool.begin().await?;
         for (id, (_, _, _, latest)) in &votes {
             let mut state = state_of(latest, campaign.labels_needed, false);
             if state == ConsensusState::Disputed && adjudicated_after_votes(&mut tx, id).await? {

@@ -149,7 +149,7 @@ async fn counts_query(store: &Store, sql: &str, args: Vec<Val>) -> Result<LabelC
         q = bind_val(q, a);
     }
     let mut out = LabelCounts::default();
-    for r in q.fetch_all(&store.db().pool).await? {
+    for r in q.fetch_all(&store.catalog().pool).await? {
         out.add(r.s("label")?.parse()?, r.i("n")?);
     }
     Ok(out)
@@ -205,7 +205,7 @@ impl Store {
     /// that has already added its deltas finish first (the recount then sees its label), and one
     /// that has not yet wait until the recount committed (its deltas then apply on top of it).
     pub async fn rebuild_episode_counts(&self) -> Result<(), StoreError> {
-        let mut tx = self.db().begin_version_write().await?;
+        let mut tx = self.catalog().begin_version_write().await?;
         if self.backend() == Backend::Postgres {
             sqlx::query("LOCK TABLE episode_counts IN EXCLUSIVE MODE").execute(&mut *tx).await?;
         }

@@ -308,7 +308,7 @@ impl Store {
     /// The feed's newest sequence number and the highest one retention deleted.
     pub async fn event_head(&self) -> Result<(i64, i64), StoreError> {
         let r = sqlx::query("SELECT seq, pruned_through FROM event_head WHERE id = 1")
-            .fetch_one(&self.db().pool)
+            .fetch_one(&self.catalog().pool)
             .await?;
         Ok((r.i("seq")?, r.i("pruned_through")?))
     }
@@ -338,7 +338,7 @@ impl Store {
         for k in &filter.kinds {
             q = q.bind(k.as_str());
         }
-        let rows = q.fetch_all(&self.db().pool).await?;
+        let rows = q.fetch_all(&self.catalog().pool).await?;
         let first =
             rows.first().ok_or_else(|| StoreError::Corrupt("the event_head row is missing".into()))?;
         let (head, pruned_through) = (first.i("head_seq")?, first.i("pruned_through")?);
@@ -404,7 +404,7 @@ impl Store {
             let mid = lo + (hi - lo + 1) / 2;
             let created = sqlx::query("SELECT created_ms FROM events WHERE seq >= $1 ORDER BY seq LIMIT 1")
                 .bind(mid)
-                .fetch_optional(&self.db().pool)
+                .fetch_optional(&self.catalog().pool)
                 .await?
                 .map(|r| r.i("created_ms"))
                 .transpose()?;
@@ -416,7 +416,7 @@ impl Store {
         if lo <= pruned {
             return Ok(0);
         }
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let deleted = sqlx::query("DELETE FROM events WHERE seq <= $1").bind(lo).execute(&mut *tx).await?;
         sqlx::query("UPDATE event_head SET pruned_through = $1 WHERE id = 1 AND pruned_through < $1")
             .bind(lo)

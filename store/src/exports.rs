@@ -97,7 +97,7 @@ impl Store {
         let rows = sqlx::query(
             "SELECT id FROM jobs WHERE kind = 'export' AND state IN ('queued', 'running', 'succeeded')",
         )
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter().map(|r| r.s("id")).collect()
     }

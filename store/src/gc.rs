@@ -50,7 +50,7 @@ const GC_BATCH: usize = 200;
 impl Store {
     /// Paths of every object some catalog row points at.
     pub async fn referenced_objects(&self) -> Result<HashSet<String>, StoreError> {
-        let pool = &self.db().pool;
+        let pool = &self.catalog().pool;
         let mut set = HashSet::new();
         for r in sqlx::query("SELECT path FROM data_files").fetch_all(pool).await? {
             set.insert(r.s("path")?);
@@ -177,7 +177,7 @@ impl Store {
     /// pending records blocked) and deletes those still unreferenced and not pending before
     /// releasing it.
     async fn delete_unreferenced(&self, paths: &[String], dry_run: bool) -> Result<BatchOutcome, StoreError> {
-        let mut tx = self.db().begin_version_write().await?;
+        let mut tx = self.catalog().begin_version_write().await?;
         if self.backend() == crate::Backend::Postgres {
             sqlx::query("LOCK TABLE pending_objects IN EXCLUSIVE MODE").execute(&mut *tx).await?;
         }
@@ -234,7 +234,7 @@ impl Store {
             .bind(path)
             .bind(writer)
             .bind(crate::now_ms())
-            .execute(&self.db().pool)
+            .execute(&self.catalog().pool)
             .await?;
         Ok(())
     }
@@ -244,7 +244,7 @@ impl Store {
         sqlx::query("UPDATE pending_objects SET created_ms = $1 WHERE writer = $2")
             .bind(crate::now_ms())
             .bind(writer)
-            .execute(&self.db().pool)
+            .execute(&self.catalog().pool)
             .await?;
         Ok(())
     }
@@ -274,7 +274,7 @@ impl Store {
     pub(crate) async fn clear_pending(&self, writer: &str) -> Result<(), StoreError> {
         sqlx::query("DELETE FROM pending_objects WHERE writer = $1")
             .bind(writer)
-            .execute(&self.db().pool)
+            .execute(&self.catalog().pool)
             .await?;
         Ok(())
     }

@@ -85,7 +85,7 @@ impl Store {
             )));
         }
         let now = now_ms();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let lock = if self.backend() == crate::Backend::Postgres { " FOR UPDATE" } else { "" };
         let row = sqlx::query(&format!(
             "SELECT method, path, request_sha256, lease_until_ms, committed_seq, status, headers, body, \
@@ -180,7 +180,7 @@ impl Store {
         .bind(now_ms() + lease_ms)
         .bind(principal)
         .bind(key)
-        .execute(&self.db().pool)
+        .execute(&self.catalog().pool)
         .await?;
         Ok(r.rows_affected() == 1)
     }
@@ -204,7 +204,7 @@ impl Store {
                 .bind(resp.body.clone())
                 .bind(principal)
                 .bind(key)
-                .execute(&self.db().pool)
+                .execute(&self.catalog().pool)
                 .await?;
             }
             None => {
@@ -214,7 +214,7 @@ impl Store {
                 )
                 .bind(principal)
                 .bind(key)
-                .execute(&self.db().pool)
+                .execute(&self.catalog().pool)
                 .await?;
             }
         }
@@ -226,7 +226,7 @@ impl Store {
         let r = sqlx::query("SELECT committed_seq FROM idempotency_keys WHERE principal = $1 AND key = $2")
             .bind(principal)
             .bind(key)
-            .fetch_optional(&self.db().pool)
+            .fetch_optional(&self.catalog().pool)
             .await?;
         Ok(match r {
             Some(r) => r.oi("committed_seq")?.is_some(),
@@ -238,7 +238,7 @@ impl Store {
     pub async fn prune_idempotency_keys(&self) -> Result<u64, StoreError> {
         let r = sqlx::query("DELETE FROM idempotency_keys WHERE expires_ms < $1")
             .bind(now_ms())
-            .execute(&self.db().pool)
+            .execute(&self.catalog().pool)
             .await?;
         Ok(r.rows_affected())
     }

@@ -162,7 +162,7 @@ impl Store {
             "SELECT sha256, path, format, size_bytes, metadata, version FROM sources WHERE sha256 = $1",
         )
         .bind(sha256)
-        .fetch_optional(&self.db().pool)
+        .fetch_optional(&self.catalog().pool)
         .await?
         .ok_or_else(|| StoreError::not_found("source", sha256))?;
         let metadata = serde_json::from_str(&r.s("metadata")?)
@@ -181,7 +181,7 @@ impl Store {
     pub async fn source_version(&self, sha256: &str) -> Result<Option<i64>, StoreError> {
         let row = sqlx::query("SELECT version FROM sources WHERE sha256 = $1")
             .bind(sha256)
-            .fetch_optional(&self.db().pool)
+            .fetch_optional(&self.catalog().pool)
             .await?;
         row.map(|r| r.i("version")).transpose()
     }
@@ -449,7 +449,7 @@ impl IngestWriter {
         };
         self.finish_file().await?;
         let store = self.store.clone();
-        let mut tx = store.db().begin_version_write().await?;
+        let mut tx = store.catalog().begin_version_write().await?;
         if let Some(r) = sqlx::query("SELECT version FROM sources WHERE sha256 = $1")
             .bind(&self.source.sha256)
             .fetch_optional(&mut *tx)

@@ -39,7 +39,7 @@ async fn chain(store: &Store, v: i64) -> Result<Vec<ChainLink>, StoreError> {
              LEFT JOIN data_files d ON d.path = v.labels_path WHERE v.version < $1 ORDER BY v.version DESC LIMIT 256",
         )
         .bind(before)
-        .fetch_all(&store.db().pool)
+        .fetch_all(&store.catalog().pool)
         .await?;
         if rows.is_empty() {
             return Err(StoreError::invalid(format!("version {v}: no full labels file starts its chain")));
@@ -136,12 +136,12 @@ pub(crate) async fn write_checkpoint(store: &Store, v: i64) -> Result<bool, Stor
         covers("l", "$1")
     ))
     .bind(v)
-    .fetch_all(&store.db().pool)
+    .fetch_all(&store.catalog().pool)
     .await?;
     let labels = rows.iter().map(|r| label_row(r, false)).collect::<Result<Vec<_>, _>>()?;
     drop(rows);
     let (path, size, writer) = put_pending_labels_file(store, v, LabelsKind::Full, &labels).await?;
-    let mut tx = store.db().begin_version_write().await?;
+    let mut tx = store.catalog().begin_version_write().await?;
     // Attached or not, the file is no longer pending: referenced now, or garbage for gc.
     let live = Store::release_pending(&mut tx, &writer, &path).await?;
     let attached = live && attach(&mut tx, v, &path, size, labels.len() as i64).await?;

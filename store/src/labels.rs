@@ -76,7 +76,7 @@ impl Store {
             return Ok(Vec::new());
         }
         let backend = self.backend();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let mut out = Vec::with_capacity(updates.len());
         let mut counts = CountDeltas::default();
         let mut events = Vec::new();
@@ -109,7 +109,7 @@ impl Store {
             order.sort_by(|&a, &b| items[a].0.episode_id.cmp(&items[b].0.episode_id));
         }
         let mut out: Vec<Option<Result<LabelChange, StoreError>>> = (0..items.len()).map(|_| None).collect();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let mut counts = CountDeltas::default();
         let mut events = Vec::new();
         for i in order {
@@ -138,7 +138,7 @@ impl Store {
              FROM label_events WHERE episode_id = $1 ORDER BY revision",
         )
         .bind(episode_id)
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         if rows.is_empty() {
             self.episode(episode_id, None).await?;
@@ -158,7 +158,7 @@ impl Store {
         )
         .bind(after_id)
         .bind(limit)
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter().map(|r| Ok((r.i("id")?, event_from_row(r)?))).collect()
     }
@@ -204,7 +204,7 @@ impl Store {
         actor: &str,
         message: &str,
     ) -> Result<CommitInfo, StoreError> {
-        let mut tx = self.db().begin_version_write().await?;
+        let mut tx = self.catalog().begin_version_write().await?;
         let version = next_version(&mut tx).await?;
         let head = VersionHead {
             version,
@@ -235,7 +235,7 @@ impl Store {
         let row = sqlx::query(&format!(
             "SELECT COUNT(*) AS n FROM (SELECT e.id FROM {from} WHERE {unfrozen} LIMIT 1) x"
         ))
-        .fetch_one(&self.db().pool)
+        .fetch_one(&self.catalog().pool)
         .await?;
         Ok(row.i("n")? > 0)
     }
@@ -247,7 +247,7 @@ impl Store {
         actor: &str,
         message: &str,
     ) -> Result<CommitInfo, StoreError> {
-        let mut tx = self.db().begin_version_write().await?;
+        let mut tx = self.catalog().begin_version_write().await?;
         let version = next_version(&mut tx).await?;
         let mut counts = CountDeltas::default();
         for id in ids {

@@ -190,10 +190,8 @@ impl Store {
         self.inner.objects.size(path).await
     }
 
-    pub(crate) fn db(&self) -> &catalog::Catalog {
-        &self.inner.db
-    }
-    /// The catalog itself, for the store's upper crates ([`sql`]).
+    /// The catalog itself: this crate's rooms and the store's upper crates ([`sql`]) keep their
+    /// rows through it.
     pub fn catalog(&self) -> &sql::Catalog {
         &self.inner.db
     }

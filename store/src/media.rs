@@ -35,7 +35,7 @@ impl Store {
              JOIN data_files d ON d.path = e.data_file WHERE e.id = $1",
         )
         .bind(id)
-        .fetch_optional(&self.db().pool)
+        .fetch_optional(&self.catalog().pool)
         .await?
         .ok_or_else(|| StoreError::not_found("episode", id))?;
         if row.oi("version_removed")?.is_some() {
@@ -50,7 +50,7 @@ impl Store {
         )
         .bind(id)
         .bind(key)
-        .fetch_optional(&self.db().pool)
+        .fetch_optional(&self.catalog().pool)
         .await?
         .ok_or_else(|| StoreError::not_found("media", format!("{key:?} of episode {id}")))?;
         Ok(EpisodeMedia {
@@ -79,7 +79,7 @@ impl Store {
                  FROM episodes WHERE data_file = $1",
             )
             .bind(data_file)
-            .fetch_all(&self.db().pool)
+            .fetch_all(&self.catalog().pool)
             .await?;
             let mut locations = Vec::with_capacity(eps.len());
             for r in &eps {
@@ -126,7 +126,7 @@ impl Store {
                 }
             }
         }
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         insert_rows(
             &mut tx,
             "episode_media",
@@ -197,15 +197,18 @@ mod tests {
         assert!(matches!(store.episode_media(&eps[200].id, "front").await, Err(StoreError::NotFound { .. })));
 
         // As if written before migration 0005: no rows, file not indexed.
-        sqlx::query("DELETE FROM episode_media").execute(&store.db().pool).await.unwrap();
-        sqlx::query("UPDATE data_files SET media_indexed = NULL").execute(&store.db().pool).await.unwrap();
+        sqlx::query("DELETE FROM episode_media").execute(&store.catalog().pool).await.unwrap();
+        sqlx::query("UPDATE data_files SET media_indexed = NULL")
+            .execute(&store.catalog().pool)
+            .await
+            .unwrap();
         let before = store.fetch_counts();
         assert_eq!(store.episode_media(&with.id, "front").await.unwrap(), m);
         let fetched = store.fetch_counts().since(before).bytes_fetched;
         let size: u64 = std::fs::metadata(dir.path().join("objects").join(&with.data_file)).unwrap().len();
         assert!(fetched * 4 < size, "indexing read {fetched} bytes of a {size}-byte file");
         let rows: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM episode_media")
-            .fetch_one(&store.db().pool)
+            .fetch_one(&store.catalog().pool)
             .await
             .unwrap();
         assert_eq!(rows, 150);

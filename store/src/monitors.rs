@@ -71,7 +71,7 @@ impl Store {
         }
         let id = crate::sha256_hex(new.record_json)[..16].to_string();
         let now = now_rfc3339();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let inserted = sqlx::query(&format!(
             "INSERT INTO monitors ({MON_COLS}) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10) ON CONFLICT DO NOTHING"
         ))
@@ -107,7 +107,7 @@ impl Store {
     pub async fn monitor(&self, id: &str) -> Result<MonitorEntry, StoreError> {
         let row = sqlx::query(&format!("SELECT {MON_COLS} FROM monitors WHERE id = $1"))
             .bind(id)
-            .fetch_optional(&self.db().pool)
+            .fetch_optional(&self.catalog().pool)
             .await?
             .ok_or_else(|| StoreError::not_found("monitor", id))?;
         let mut m = monitor_from_row(&row)?;
@@ -129,7 +129,7 @@ impl Store {
         .bind(policy.unwrap_or(""))
         .bind(checkpoint.unwrap_or(""))
         .bind(artifact_id.unwrap_or(""))
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         let mut out = Vec::with_capacity(rows.len());
         for r in &rows {
@@ -146,7 +146,7 @@ impl Store {
             "SELECT {MON_COLS} FROM monitors WHERE artifact_id = $1 ORDER BY created_at DESC, id DESC LIMIT 1"
         ))
         .bind(artifact_id)
-        .fetch_optional(&self.db().pool)
+        .fetch_optional(&self.catalog().pool)
         .await?;
         let Some(row) = row else { return Ok(None) };
         let mut m = monitor_from_row(&row)?;
@@ -157,7 +157,7 @@ impl Store {
     async fn monitor_aliases_of(&self, id: &str) -> Result<Vec<String>, StoreError> {
         let rows = sqlx::query("SELECT alias FROM monitor_aliases WHERE monitor_id = $1 ORDER BY alias")
             .bind(id)
-            .fetch_all(&self.db().pool)
+            .fetch_all(&self.catalog().pool)
             .await?;
         rows.iter().map(|r| r.s("alias")).collect()
     }
@@ -169,7 +169,7 @@ impl Store {
             return Err(StoreError::invalid(format!("alias {alias:?} may not contain '@' or '/'")));
         }
         let m = self.monitor(id).await?;
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         upsert_monitor_alias(&mut tx, &m.policy, &m.checkpoint, alias, id, &now_rfc3339()).await?;
         let event = monitor_alias_moved(&m.policy, &m.checkpoint, alias, id);
         self.commit_with_events(tx, &[event]).await?;
@@ -190,7 +190,7 @@ impl Store {
         .bind(policy)
         .bind(checkpoint)
         .bind(alias)
-        .fetch_optional(&self.db().pool)
+        .fetch_optional(&self.catalog().pool)
         .await?
         .ok_or_else(|| StoreError::not_found("monitor alias", reference))?;
         self.monitor(&row.s("monitor_id")?).await

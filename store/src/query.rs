@@ -185,13 +185,15 @@ struct LabelSource {
 impl Store {
     /// The latest committed version (0 for an empty store).
     pub async fn head_version(&self) -> Result<i64, StoreError> {
-        let r = sqlx::query("SELECT version FROM store_head WHERE id = 1").fetch_one(&self.db().pool).await?;
+        let r = sqlx::query("SELECT version FROM store_head WHERE id = 1")
+            .fetch_one(&self.catalog().pool)
+            .await?;
         r.i("version")
     }
 
     pub async fn versions(&self) -> Result<Vec<VersionInfo>, StoreError> {
         let rows = sqlx::query(&format!("SELECT {VERSION_COLS} FROM versions ORDER BY version"))
-            .fetch_all(&self.db().pool)
+            .fetch_all(&self.catalog().pool)
             .await?;
         rows.iter().map(version_from_row).collect()
     }
@@ -199,7 +201,7 @@ impl Store {
     pub async fn version(&self, version: i64) -> Result<VersionInfo, StoreError> {
         let row = sqlx::query(&format!("SELECT {VERSION_COLS} FROM versions WHERE version = $1"))
             .bind(version)
-            .fetch_optional(&self.db().pool)
+            .fetch_optional(&self.catalog().pool)
             .await?
             .ok_or_else(|| StoreError::not_found("version", version.to_string()))?;
         version_from_row(&row)
@@ -214,7 +216,7 @@ impl Store {
         for a in args {
             q = bind_val(q, a);
         }
-        let rows = q.fetch_all(&self.db().pool).await?;
+        let rows = q.fetch_all(&self.catalog().pool).await?;
         rows.iter().map(episode_from_row).collect()
     }
 
@@ -358,7 +360,8 @@ impl Store {
     }
 
     pub async fn policies(&self) -> Result<Vec<String>, StoreError> {
-        let rows = sqlx::query("SELECT name FROM policies ORDER BY name").fetch_all(&self.db().pool).await?;
+        let rows =
+            sqlx::query("SELECT name FROM policies ORDER BY name").fetch_all(&self.catalog().pool).await?;
         rows.iter().map(|r| r.s("name")).collect()
     }
 
@@ -368,13 +371,14 @@ impl Store {
             "SELECT policy, name FROM checkpoints WHERE ($1 = '' OR policy = $1) ORDER BY policy, name",
         )
         .bind(policy.unwrap_or(""))
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter().map(|r| Ok((r.s("policy")?, r.s("name")?))).collect()
     }
 
     pub async fn tasks(&self) -> Result<Vec<String>, StoreError> {
-        let rows = sqlx::query("SELECT name FROM tasks ORDER BY name").fetch_all(&self.db().pool).await?;
+        let rows =
+            sqlx::query("SELECT name FROM tasks ORDER BY name").fetch_all(&self.catalog().pool).await?;
         rows.iter().map(|r| r.s("name")).collect()
     }
 

@@ -246,7 +246,7 @@ impl Store {
             for id in chunk {
                 q = q.bind(id.as_str());
             }
-            for r in q.fetch_all(&self.db().pool).await? {
+            for r in q.fetch_all(&self.catalog().pool).await? {
                 if visible(r.i("version_added")?, r.oi("version_removed")?, version) {
                     let (id, loc) = EpisodeLocation::from_row(&r, "id")?;
                     found.insert(id, loc);

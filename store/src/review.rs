@@ -173,7 +173,7 @@ impl Store {
                 Val::S(now.clone()),
             ]);
         }
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         insert_rows(
             &mut tx,
             "episode_scores",
@@ -199,7 +199,7 @@ impl Store {
             "SELECT policy, artifact_id, updated_by, updated_at FROM review_artifacts WHERE policy = $1",
         )
         .bind(policy)
-        .fetch_optional(&self.db().pool)
+        .fetch_optional(&self.catalog().pool)
         .await?;
         row.map(|r| {
             Ok(ReviewArtifact {
@@ -222,7 +222,7 @@ impl Store {
     ) -> Result<ReviewArtifact, StoreError> {
         let a = self.resolve_artifact(reference).await?;
         let now = now_rfc3339();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         sqlx::query(
             "INSERT INTO review_artifacts (policy, artifact_id, updated_by, updated_at) VALUES ($1, $2, $3, $4) \
              ON CONFLICT (policy) DO UPDATE SET artifact_id = excluded.artifact_id, updated_by = excluded.updated_by, \
@@ -246,7 +246,7 @@ impl Store {
 
     /// Back to the default (each checkpoint's `classifier@latest`); false when none was set.
     pub async fn clear_review_artifact(&self, policy: &str) -> Result<bool, StoreError> {
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let r = sqlx::query("DELETE FROM review_artifacts WHERE policy = $1")
             .bind(policy)
             .execute(&mut *tx)
@@ -318,7 +318,7 @@ impl Store {
         )
         .bind(&artifact)
         .bind(episode_id)
-        .fetch_optional(&self.db().pool)
+        .fetch_optional(&self.catalog().pool)
         .await?
         .ok_or_else(|| StoreError::not_found("episode score", format!("{episode_id} by {artifact}")))?;
         Ok(EpisodeScore {
@@ -357,7 +357,7 @@ impl Store {
         for a in args {
             q = bind_val(q, a);
         }
-        let rows = q.fetch_all(&self.db().pool).await?;
+        let rows = q.fetch_all(&self.catalog().pool).await?;
         rows.iter().map(|r| review_entry_from_row(r, order)).collect()
     }
 
@@ -484,7 +484,7 @@ mod tests {
                     q = bind_val(q, a);
                 }
                 let plan: Vec<String> = q
-                    .fetch_all(&store.db().pool)
+                    .fetch_all(&store.catalog().pool)
                     .await
                     .unwrap()
                     .iter()

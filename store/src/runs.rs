@@ -210,7 +210,7 @@ impl Store {
              ORDER BY name, id",
         )
         .bind(name.unwrap_or(""))
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter().map(run_from_row).collect()
     }
@@ -220,7 +220,7 @@ impl Store {
         let row =
             sqlx::query("SELECT id, name, steering, artifact_id, tags, created_at FROM runs WHERE id = $1")
                 .bind(id)
-                .fetch_optional(&self.db().pool)
+                .fetch_optional(&self.catalog().pool)
                 .await?
                 .ok_or_else(|| StoreError::not_found("run", id))?;
         run_from_row(&row)

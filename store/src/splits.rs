@@ -229,7 +229,7 @@ impl Store {
         // guidance) are evaluations of the policy plus a verifier, not its on-policy rollouts.
         let steered: std::collections::HashSet<String> =
             sqlx::query("SELECT id FROM runs WHERE steering <> 'base'")
-                .fetch_all(&self.db().pool)
+                .fetch_all(&self.catalog().pool)
                 .await?
                 .iter()
                 .map(|r| r.s("id"))
@@ -253,7 +253,7 @@ impl Store {
 
     /// Writes a split's row and its episodes' parts in one transaction.
     async fn insert_split(&self, rec: &SplitRecord, parts: &[SplitEpisode]) -> Result<(), StoreError> {
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         sqlx::query(&format!(
             "INSERT INTO splits ({SPLIT_COLS}) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12)"
         ))
@@ -309,7 +309,7 @@ impl Store {
     pub async fn split(&self, id: &str) -> Result<SplitRecord, StoreError> {
         let row = sqlx::query(&format!("SELECT {SPLIT_COLS} FROM splits WHERE id = $1"))
             .bind(id)
-            .fetch_optional(&self.db().pool)
+            .fetch_optional(&self.catalog().pool)
             .await?
             .ok_or_else(|| StoreError::not_found("split", id))?;
         let rec = split_from_row(&row)?;
@@ -319,7 +319,7 @@ impl Store {
 
     pub async fn splits(&self) -> Result<Vec<SplitRecord>, StoreError> {
         let rows = sqlx::query(&format!("SELECT {SPLIT_COLS} FROM splits ORDER BY created_at"))
-            .fetch_all(&self.db().pool)
+            .fetch_all(&self.catalog().pool)
             .await?;
         let mut out = Vec::with_capacity(rows.len());
         for r in &rows {
@@ -343,7 +343,7 @@ impl Store {
              GROUP BY e.policy, e.checkpoint ORDER BY e.policy, e.checkpoint",
         )
         .bind(id)
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter()
             .map(|r| {
@@ -367,7 +367,7 @@ impl Store {
             "SELECT episode_id, part, label FROM split_episodes WHERE split_id = $1 ORDER BY episode_id",
         )
         .bind(id)
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter()
             .map(|r| {

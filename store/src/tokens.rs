@@ -66,7 +66,7 @@ impl Store {
         let secret = format!("ufops_{}{}", uuid::Uuid::new_v4().simple(), uuid::Uuid::new_v4().simple());
         let id = format!("tok_{}", &uuid::Uuid::new_v4().simple().to_string()[..12]);
         let now = now_rfc3339();
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         sqlx::query(
             "INSERT INTO tokens (id, name, role, token_hash, created_at) VALUES ($1, $2, $3, $4, $5)",
         )
@@ -88,7 +88,7 @@ impl Store {
             "SELECT id, name, role, created_at, revoked_at FROM tokens WHERE token_hash = $1 AND revoked_at IS NULL",
         )
         .bind(crate::sha256_hex(secret.as_bytes()))
-        .fetch_optional(&self.db().pool)
+        .fetch_optional(&self.catalog().pool)
         .await?;
         row.as_ref().map(from_row).transpose()
     }
@@ -96,13 +96,13 @@ impl Store {
     pub async fn tokens(&self) -> Result<Vec<TokenRecord>, StoreError> {
         let rows =
             sqlx::query("SELECT id, name, role, created_at, revoked_at FROM tokens ORDER BY created_at")
-                .fetch_all(&self.db().pool)
+                .fetch_all(&self.catalog().pool)
                 .await?;
         rows.iter().map(from_row).collect()
     }
 
     pub async fn revoke_token(&self, id: &str) -> Result<(), StoreError> {
-        let mut tx = self.db().begin_write().await?;
+        let mut tx = self.catalog().begin_write().await?;
         let row = sqlx::query(
             "UPDATE tokens SET revoked_at = $1 WHERE id = $2 AND revoked_at IS NULL RETURNING name, role",
         )

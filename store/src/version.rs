@@ -271,7 +271,7 @@ pub(crate) struct LabelsFileAhead {
 
 pub(crate) async fn write_labels_file_ahead(store: &Store) -> Result<LabelsFileAhead, StoreError> {
     // A read transaction: the head and the changes read from one snapshot (no lock taken).
-    let mut tx = store.db().pool.begin().await?;
+    let mut tx = store.catalog().pool.begin().await?;
     let version =
         sqlx::query("SELECT version FROM store_head WHERE id = 1").fetch_one(&mut *tx).await?.i("version")?
             + 1;

@@ -141,7 +141,7 @@ impl Store {
         )
         .bind(name)
         .bind(producer_hash)
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter().map(|r| r.s("episode_id")).collect()
     }
@@ -154,7 +154,7 @@ impl Store {
               AND e.version_removed IS NULL) AS episodes \
              FROM layers l ORDER BY l.name, l.version_added",
         )
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         rows.iter()
             .map(|r| {
@@ -182,7 +182,7 @@ impl Store {
              WHERE e.episode_id = $1 ORDER BY e.layer",
         )
         .bind(episode_id)
-        .fetch_all(&self.db().pool)
+        .fetch_all(&self.catalog().pool)
         .await?;
         let mut out = Vec::new();
         for r in rows {
@@ -222,7 +222,7 @@ impl Store {
                 for id in chunk {
                     q = q.bind(id.as_str());
                 }
-                for r in q.fetch_all(&self.db().pool).await? {
+                for r in q.fetch_all(&self.catalog().pool).await? {
                     if visible(r.i("version_added")?, r.oi("version_removed")?, version) {
                         let (id, loc) = EpisodeLocation::from_row(&r, "episode_id")?;
                         found.insert(id, (loc, r.s("producer_hash")?));

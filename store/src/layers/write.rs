@@ -334,7 +334,7 @@ impl Store {
         writer: &str,
         actor: &str,
     ) -> Result<Option<(i64, usize)>, StoreError> {
-        let mut tx = self.db().begin_version_write().await?;
+        let mut tx = self.catalog().begin_version_write().await?;
         // Under the version write lock: a concurrent writer of this producer may have committed
         // some of these episodes since they were checked; they are not written again.
         let ids: Vec<String> = todo.iter().map(|e| e.episode_id.clone()).collect();
@@ -394,7 +394,7 @@ impl Store {
         let r = sqlx::query("SELECT dim FROM layers WHERE name = $1 AND producer_hash = $2")
             .bind(name)
             .bind(hash)
-            .fetch_optional(&self.db().pool)
+            .fetch_optional(&self.catalog().pool)
             .await?;
         r.map(|r| r.i("dim")).transpose()
     }
@@ -406,7 +406,7 @@ impl Store {
         producer_hash: &str,
         ids: &[String],
     ) -> Result<HashSet<String>, StoreError> {
-        let mut conn = self.db().pool.acquire().await?;
+        let mut conn = self.catalog().pool.acquire().await?;
         episodes_with_layer_in(&mut conn, name, producer_hash, ids).await
     }
 }
