@@ -296,17 +296,18 @@ fn export_carries_failure_causes_and_spans() {
         eps.as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap().to_string()).collect();
     let rt = tokio::runtime::Runtime::new().unwrap();
     rt.block_on(async {
+        use store_labeling::Consensus;
         let store = store::Store::open(&store::StoreConfig::local(&data)).await.unwrap();
         store
             .set_failure_causes("*", &["missed grasp".to_string(), "collision".to_string()], "admin")
             .await
             .unwrap();
-        let vote = store::NewVote {
+        let vote = store_labeling::NewVote {
             episode_id: ids[1].clone(),
             label: store::Label::Failure,
-            data: store::VerdictData {
+            data: store_labeling::VerdictData {
                 failure_cause: Some("collision".into()),
-                spans: vec![store::Span { start_step: 2, end_step: 5 }],
+                spans: vec![store_labeling::Span { start_step: 2, end_step: 5 }],
             },
             note: None,
             expect_revision: None,

@@ -9,7 +9,8 @@
 use crate::common::{self, browser, Target};
 use serde_json::{json, Value};
 use std::collections::HashMap;
-use store::{Label, NewArtifact, RunInput, Steering, StoreConfig, VectorColumn};
+use store::{Label, RunInput, Steering, StoreConfig, VectorColumn};
+use store_artifacts::{Artifacts, NewArtifact};
 use verifier::steps::{steering_array, step_inputs};
 use verifier::testutil::RandomSpec;
 use verifier::SteeringStep;

@@ -13,6 +13,7 @@ use std::path::Path;
 use std::process::{Child, Stdio};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use store::{Store, StoreConfig};
+use store_artifacts::Artifacts;
 use store_jobs::{JobQueue, JobRecord, JobState};
 
 const JOBS: usize = 10;

@@ -21,6 +21,7 @@ use serde_json::json;
 use sha2::Digest;
 use std::sync::atomic::Ordering;
 use store::Role;
+use store_artifacts::Artifacts;
 use store_jobs::JobQueue;
 use tokio::io::AsyncWriteExt;
 use utoipa::IntoParams;

@@ -18,6 +18,7 @@ use sim::{rollout, ChunkChoice, ChunkPolicy, DiffusionPolicy, EnvConfig, FlowPol
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use store::{EpisodeInput, Label, RunInput, SourceInput, Steering, Store, VectorColumn};
+use store_artifacts::{Artifacts, Monitors};
 use store_compare::Scoreboards;
 
 pub const POLICY: &str = "nav-dp";
@@ -240,7 +241,7 @@ async fn train_verifier(
     action_space: &trainer::ActionSpace,
     artifacts_dir: &Path,
     ensemble: Option<usize>,
-) -> Result<(store::ArtifactRecord, steer::Verifier)> {
+) -> Result<(store_artifacts::ArtifactRecord, steer::Verifier)> {
     // The verifier takes chunks in the policy's normalised space (velocity / max_speed), as in
     // the paper; the stored rollouts hold raw velocities, so the trainer gets the normaliser.
     let mut tc = trainer::TrainConfig {
@@ -370,7 +371,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     let mut keep_for_plot = None;
     // Every best-of-N run of the base policy with its verifier: the report ranks the verifiers'
     // figures against the gains.
-    let mut bon_runs: Vec<(String, u32, store::ArtifactRecord)> = Vec::new();
+    let mut bon_runs: Vec<(String, u32, store_artifacts::ArtifactRecord)> = Vec::new();
     let verifiers: [(&str, &steer::Verifier); 2] = [("C", &clf), ("Q", &q)];
     let record_of = |name: &str| if name == "C" { &c_rec } else { &q_rec };
     let artifact_of = |name: &str| record_of(name).id.as_str();
@@ -651,7 +652,7 @@ pub async fn run(store: &Store, cfg: &DemoConfig) -> Result<Report> {
     let record_json = serde_json::to_vec(&cal.record)?;
     let evaluation = serde_json::to_value(&cal.evaluation)?;
     let m = store
-        .put_monitor(store::NewMonitor {
+        .put_monitor(store_artifacts::NewMonitor {
             record_json: &record_json,
             policy: POLICY,
             checkpoint: BASE,

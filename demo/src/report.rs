@@ -197,7 +197,7 @@ pub struct SteeringQuality {
 impl SteeringQuality {
     /// From the report's rows and the best-of-N runs' `(run, n, artifact)` (rows of other
     /// checkpoints than the base are left out: their gain is another policy's).
-    pub fn new(rows: &[Row], runs: &[(String, u32, store::ArtifactRecord)]) -> Self {
+    pub fn new(rows: &[Row], runs: &[(String, u32, store_artifacts::ArtifactRecord)]) -> Self {
         let rows: Vec<SteeringQualityRow> = runs
             .iter()
             .filter_map(|(run, n, a)| {

@@ -20,7 +20,8 @@ use std::collections::{HashMap, HashSet};
 
 use serde::Serialize;
 use sha2::{Digest, Sha256};
-use store::{ArtifactRecord, EpisodeRecord, Label, Store};
+use store::{EpisodeRecord, Label, Store};
+use store_artifacts::ArtifactRecord;
 use verifier::monitor::{
     conformal_rank, conformal_threshold, held_out_exceedance, peak, training_conditional_rank,
     training_conditional_threshold, MonitorRecord, MonitorStep, Statistic, MONITOR_SCHEMA_VERSION,

@@ -5,9 +5,9 @@ use std::collections::HashMap;
 
 use monitor::{calibrate, calibration_draws, evaluate, CalibrateSpec};
 use store::test_support::{self, open_test_store};
-use store::{
-    Backend, EpisodeRecord, Label, NewArtifact, NewMonitor, NewVote, Span, Store, VectorColumn, VerdictData,
-};
+use store::{Backend, EpisodeRecord, Label, Store, VectorColumn};
+use store_artifacts::{ArtifactRecord, Artifacts, Monitors, NewArtifact, NewMonitor};
+use store_labeling::{Consensus, NewVote, Span, VerdictData};
 use verifier::monitor::{
     conformal_threshold, peak, training_conditional_threshold, MonitorRecord, Statistic,
     SPLIT_CONFORMAL_PEAK, SPLIT_CONFORMAL_PEAK_PAC,
@@ -37,7 +37,7 @@ fn rollout(i: u32) -> store::EpisodeInput {
     }
 }
 
-async fn seeded_store(store: &Store, dir: &std::path::Path) -> (store::ArtifactRecord, Verifier, Verifier) {
+async fn seeded_store(store: &Store, dir: &std::path::Path) -> (ArtifactRecord, Verifier, Verifier) {
     let mut w = store.begin_ingest(test_support::source("monitor"), "pol", "c1").await.unwrap();
     for i in 0..EPISODES {
         w.add_episode(rollout(i)).await.unwrap();

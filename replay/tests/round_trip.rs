@@ -7,7 +7,8 @@ use std::collections::HashMap;
 
 use replay::{replay, ReplaySpec};
 use store::test_support::{self, open_test_store};
-use store::{Backend, Label, NewArtifact, RunInput, Steering, Store, VectorColumn};
+use store::{Backend, Label, RunInput, Steering, Store, VectorColumn};
+use store_artifacts::{ArtifactRecord, Artifacts, NewArtifact};
 use verifier::steps::{steering_array, steering_log, step_inputs};
 use verifier::testutil::RandomSpec;
 use verifier::{SteeringStep, Verifier};
@@ -66,7 +67,7 @@ fn steer_episode(v: &Verifier, i: u32) -> Vec<SteeringStep> {
     log
 }
 
-async fn publish(store: &Store, d: &std::path::Path) -> store::ArtifactRecord {
+async fn publish(store: &Store, d: &std::path::Path) -> ArtifactRecord {
     let new = NewArtifact {
         dir: d,
         policy: "pol",

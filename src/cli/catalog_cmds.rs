@@ -3,6 +3,7 @@
 use super::{print_json, StoreArgs};
 use anyhow::{bail, Result};
 use store::{Role, SplitRequest};
+use store_artifacts::Artifacts;
 use store_compare::PolicyAliases;
 use store_feed::Automations;
 

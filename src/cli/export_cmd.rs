@@ -7,6 +7,7 @@ use super::{print_json, EpisodeFilterArgs, StoreArgs};
 use anyhow::{bail, Context, Result};
 use std::io::IsTerminal;
 use std::path::PathBuf;
+use store_artifacts::Artifacts;
 
 /// Which episodes `export` and `rank` take: the filters every episode-listing command shares,
 /// a split, and the layers to carry.

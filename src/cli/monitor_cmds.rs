@@ -8,6 +8,7 @@ use std::path::PathBuf;
 
 use super::export_cmd::StoreVerifier;
 use super::{print_json, StoreArgs};
+use store_artifacts::{Artifacts, Monitors};
 
 #[derive(Subcommand, Debug)]
 pub enum MonitorCommand {
@@ -145,7 +146,7 @@ fn print_evaluation(e: &monitor::Evaluation) {
 async fn load_record(
     store: &store::Store,
     reference: &str,
-) -> Result<(store::MonitorEntry, verifier::MonitorRecord)> {
+) -> Result<(store_artifacts::MonitorEntry, verifier::MonitorRecord)> {
     let entry = store.resolve_monitor(reference).await?;
     let record = verifier::MonitorRecord::from_json(entry.record.to_string().as_bytes())
         .with_context(|| format!("monitor {}", entry.id))?;
@@ -182,7 +183,7 @@ pub async fn run(args: &StoreArgs, command: MonitorCommand) -> Result<()> {
             let record_json = serde_json::to_vec(&cal.record)?;
             let evaluation = serde_json::to_value(&cal.evaluation)?;
             let mut entry = store
-                .put_monitor(store::NewMonitor {
+                .put_monitor(store_artifacts::NewMonitor {
                     record_json: &record_json,
                     policy: &rec.policy,
                     checkpoint: &rec.checkpoint,

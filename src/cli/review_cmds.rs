@@ -7,7 +7,8 @@
 use super::{print_json, StoreArgs};
 use anyhow::{Context, Result};
 use clap::Subcommand;
-use store::{EpisodeFilter, Label, ReviewOrder};
+use store::{EpisodeFilter, Label};
+use store_labeling::{Consensus, ReviewOrder, ReviewQueue};
 
 #[derive(Subcommand, Debug)]
 pub enum ReviewCommand {

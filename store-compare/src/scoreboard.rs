@@ -16,6 +16,7 @@ use store::sql::covers;
 use store::sql::{bind_val, RowExt, Val};
 use store::{sql::run_from_row, RunRecord};
 use store::{Label, Store, StoreError};
+use store_artifacts::{Artifacts, Monitors};
 
 /// The run name the rows of episodes ingested without a run go by.
 pub const NO_RUN: &str = "-";
@@ -173,7 +174,7 @@ impl Scoreboard {
 }
 
 /// What the scoreboard shows of an artifact's training metrics (`config.metrics.final`).
-fn verifier_quality(a: &store::ArtifactRecord) -> serde_json::Value {
+fn verifier_quality(a: &store_artifacts::ArtifactRecord) -> serde_json::Value {
     let m = &a.config["metrics"]["final"];
     let c = &m["val_calibration"];
     serde_json::json!({
@@ -197,7 +198,7 @@ fn verifier_quality(a: &store::ArtifactRecord) -> serde_json::Value {
 
 /// What the scoreboard shows of the artifact's latest failure monitor: its α and what its
 /// calibration measured on held-out episodes.
-fn monitor_summary(m: &store::MonitorEntry) -> serde_json::Value {
+fn monitor_summary(m: &store_artifacts::MonitorEntry) -> serde_json::Value {
     let e = m.evaluation.clone().unwrap_or(serde_json::Value::Null);
     serde_json::json!({
         "id": m.id,

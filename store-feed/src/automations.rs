@@ -33,6 +33,7 @@ use store::{CountFilter, Store, StoreError};
 use store::{EventFilter, EventKind, NewEvent};
 use store_compare::{ScoreboardRequest, Scoreboards};
 use store_jobs::{insert_job, JobKind, JobQueue};
+use store_labeling::ReviewQueue;
 
 /// What an automation does.
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]

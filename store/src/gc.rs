@@ -14,6 +14,7 @@
 use crate::catalog::RowExt;
 use crate::objects::writer_lease_ms;
 use crate::{Store, StoreError};
+use bytes::Bytes;
 use serde::Serialize;
 use std::collections::HashSet;
 
@@ -58,10 +59,8 @@ impl Store {
         for r in sqlx::query("SELECT path FROM media_objects").fetch_all(pool).await? {
             set.insert(r.s("path")?);
         }
-        for a in self.artifacts(None, None, None).await? {
-            for f in &a.files {
-                set.insert(format!("{}/{}", a.prefix, f.name));
-            }
+        for r in sqlx::query("SELECT prefix, files FROM artifacts").fetch_all(pool).await? {
+            set.extend(artifact_paths(&r)?);
         }
         Ok(set)
     }
@@ -207,9 +206,7 @@ impl Store {
         }
         // Artifacts published since the listing (few rows: read them all).
         for r in sqlx::query("SELECT prefix, files FROM artifacts").fetch_all(&mut *tx).await? {
-            let prefix = r.s("prefix")?;
-            let files: Vec<crate::ArtifactFile> = serde_json::from_str(&r.s("files")?)?;
-            referenced.extend(files.into_iter().map(|f| format!("{prefix}/{}", f.name)));
+            referenced.extend(artifact_paths(&r)?);
         }
         let mut out = BatchOutcome { referenced: 0, pending: 0, deleted: Vec::new() };
         for p in paths {
@@ -236,6 +233,23 @@ impl Store {
             .bind(crate::now_ms())
             .execute(&self.catalog().pool)
             .await?;
+        Ok(())
+    }
+
+    /// Writes content-addressed objects that `writer` is about to reference from a row: each is
+    /// recorded as pending first, so gc keeps it until that row commits in a transaction that
+    /// also runs [`forget_pending`] (as an artifact's publication does).
+    pub async fn put_pending_content(
+        &self,
+        writer: &str,
+        objects: Vec<(String, Bytes)>,
+    ) -> Result<(), StoreError> {
+        for (path, _) in &objects {
+            self.register_pending(writer, path).await?;
+        }
+        for (path, data) in objects {
+            self.objects().put_content_addressed(&path, data).await?;
+        }
         Ok(())
     }
 
@@ -278,4 +292,23 @@ impl Store {
             .await?;
         Ok(())
     }
+}
+
+/// Forgets all of `writer`'s pending records inside `tx`, the transaction that commits the rows
+/// referencing its objects ([`Store::put_pending_content`]).
+pub async fn forget_pending(tx: &mut crate::catalog::Tx, writer: &str) -> Result<(), StoreError> {
+    sqlx::query("DELETE FROM pending_objects WHERE writer = $1").bind(writer).execute(&mut **tx).await?;
+    Ok(())
+}
+
+/// The object paths of an artifact row (`prefix`, `files`: the JSON list of its files, each
+/// named inside the prefix; `store-artifacts` writes them).
+fn artifact_paths(r: &sqlx::any::AnyRow) -> Result<Vec<String>, StoreError> {
+    #[derive(serde::Deserialize)]
+    struct Named {
+        name: String,
+    }
+    let prefix = r.s("prefix")?;
+    let files: Vec<Named> = serde_json::from_str(&r.s("files")?)?;
+    Ok(files.into_iter().map(|f| format!("{prefix}/{}", f.name)).collect())
 }

@@ -1,14 +1,14 @@
 //! Ingest writes: data files first under unique names (put-if-absent), then one catalog
-//! transaction that makes the new version visible (`version.rs`). A crash before the commit
+//! transaction that makes the new version visible (`versioning/version.rs`). A crash before the commit
 //! leaves only unreferenced objects, which `gc` removes.
 //!
 //! Past 700 lines with its unit tests (about 100 of them).
 
-use crate::catalog::{insert_rows, RowExt, Tx, Val};
-use crate::counts::CountDeltas;
+use crate::catalog::{insert_rows, RowExt, Val};
 use crate::model::{check_name, check_ref_name};
 use crate::steps::{self, StepsFileWriter};
-use crate::version::{finish_version, next_version, VersionHead};
+use crate::versioning::counts::CountDeltas;
+use crate::versioning::version::{finish_version, next_version, VersionHead};
 use crate::{now_rfc3339, EpisodeInput, ExtraColumn, Label, MediaFile, SourceInput, Store, StoreError};
 use std::collections::{HashMap, HashSet};
 
@@ -507,11 +507,15 @@ impl IngestWriter {
         .bind(&now)
         .execute(&mut *tx)
         .await?;
-        self.insert_files(&mut tx, version).await?;
         let ids: Vec<String> =
             self.episodes.iter().map(|e| steps::episode_id(&prefix, e.source_index)).collect();
-        self.insert_episodes(&mut tx, version, &ids, run_id.clone(), &now).await?;
-        self.insert_media_refs_and_label_events(&mut tx, &ids, &now).await?;
+        let [files, media] = self.file_rows(version);
+        let [episodes, tags] = self.episode_rows(version, &ids, run_id.clone(), &now)?;
+        let [media_refs, label_events] = self.media_ref_and_label_event_rows(&ids, &now);
+        // Parents before the rows that reference them.
+        for t in [files, media, episodes, tags, media_refs, label_events] {
+            insert_rows(&mut tx, t.table, t.cols, t.rows, t.suffix).await?;
+        }
         let n = self.episodes.len();
         let mut counts = CountDeltas::default();
         for e in &self.episodes {
@@ -545,58 +549,58 @@ impl IngestWriter {
     /// The commit's data files (steps files and media objects). (`&mut self`, as every method
     /// here: a steps file's column writers are not `Sync`, so the writer is only ever borrowed
     /// uniquely across an await.)
-    async fn insert_files(&mut self, tx: &mut Tx, version: i64) -> Result<(), StoreError> {
-        insert_rows(
-            tx,
-            "data_files",
-            &["path", "kind", "size_bytes", "num_rows", "version_added", "media_indexed"],
-            self.files
-                .iter()
-                .map(|f| {
-                    vec![
-                        f.path.as_str().into(),
-                        "steps".into(),
-                        f.size.into(),
-                        f.rows.into(),
-                        version.into(),
-                        1i64.into(),
-                    ]
-                })
-                .collect(),
-            "",
-        )
-        .await?;
-        insert_rows(
-            tx,
-            "media_objects",
-            &["sha256", "path", "content_type", "size_bytes", "version_added"],
-            self.media
-                .iter()
-                .map(|(sha, (p, ct, sz))| {
-                    vec![
-                        sha.as_str().into(),
-                        p.as_str().into(),
-                        ct.as_str().into(),
-                        (*sz).into(),
-                        version.into(),
-                    ]
-                })
-                .collect(),
-            "ON CONFLICT DO NOTHING",
-        )
-        .await?;
-        Ok(())
+    /// The rows of the version's steps files and of the media objects they first reference.
+    fn file_rows(&self, version: i64) -> [TableRows; 2] {
+        [
+            TableRows {
+                table: "data_files",
+                cols: &["path", "kind", "size_bytes", "num_rows", "version_added", "media_indexed"],
+                rows: self
+                    .files
+                    .iter()
+                    .map(|f| {
+                        vec![
+                            f.path.as_str().into(),
+                            "steps".into(),
+                            f.size.into(),
+                            f.rows.into(),
+                            version.into(),
+                            1i64.into(),
+                        ]
+                    })
+                    .collect(),
+                suffix: "",
+            },
+            TableRows {
+                table: "media_objects",
+                cols: &["sha256", "path", "content_type", "size_bytes", "version_added"],
+                rows: self
+                    .media
+                    .iter()
+                    .map(|(sha, (p, ct, sz))| {
+                        vec![
+                            sha.as_str().into(),
+                            p.as_str().into(),
+                            ct.as_str().into(),
+                            (*sz).into(),
+                            version.into(),
+                        ]
+                    })
+                    .collect(),
+                suffix: "ON CONFLICT DO NOTHING",
+            },
+        ]
     }
 
     /// The commit's episodes (ids `ids`, in order).
-    async fn insert_episodes(
-        &mut self,
-        tx: &mut Tx,
+    /// The rows of the version's episodes and of their tags.
+    fn episode_rows(
+        &self,
         version: i64,
         ids: &[String],
         run_id: Option<String>,
         now: &str,
-    ) -> Result<(), StoreError> {
+    ) -> Result<[TableRows; 2], StoreError> {
         let ep_rows: Vec<Vec<Val>> = self
             .episodes
             .iter()
@@ -630,10 +634,9 @@ impl IngestWriter {
                 ]
             })
             .collect();
-        insert_rows(
-            tx,
-            "episodes",
-            &[
+        let episodes = TableRows {
+            table: "episodes",
+            cols: &[
                 "id",
                 "policy",
                 "checkpoint",
@@ -659,27 +662,23 @@ impl IngestWriter {
                 "first_intervention",
                 "intervention_steps",
             ],
-            ep_rows,
-            "",
-        )
-        .await?;
+            rows: ep_rows,
+            suffix: "",
+        };
         // The tag index (`tag=` filters).
         let mut tag_rows: Vec<Vec<Val>> = Vec::new();
         for (e, id) in self.episodes.iter().zip(ids) {
             let tags: std::collections::BTreeSet<String> = serde_json::from_str(&e.tags)?;
             tag_rows.extend(tags.into_iter().map(|t| vec![t.into(), id.as_str().into()]));
         }
-        insert_rows(tx, "episode_tags", &["tag", "episode_id"], tag_rows, "").await?;
-        Ok(())
+        let tags =
+            TableRows { table: "episode_tags", cols: &["tag", "episode_id"], rows: tag_rows, suffix: "" };
+        Ok([episodes, tags])
     }
 
     /// The episodes' (ids `ids`, in order) media references and their first label events.
-    async fn insert_media_refs_and_label_events(
-        &mut self,
-        tx: &mut Tx,
-        ids: &[String],
-        now: &str,
-    ) -> Result<(), StoreError> {
+    /// The rows of the episodes' media references and of their first label events.
+    fn media_ref_and_label_event_rows(&self, ids: &[String], now: &str) -> [TableRows; 2] {
         let media_rows: Vec<Vec<Val>> = self
             .episodes
             .iter()
@@ -696,14 +695,12 @@ impl IngestWriter {
                 })
             })
             .collect();
-        insert_rows(
-            tx,
-            "episode_media",
-            &["episode_id", "media_key", "path", "start_seconds", "end_seconds"],
-            media_rows,
-            "",
-        )
-        .await?;
+        let media_refs = TableRows {
+            table: "episode_media",
+            cols: &["episode_id", "media_key", "path", "start_seconds", "end_seconds"],
+            rows: media_rows,
+            suffix: "",
+        };
         let ev_rows: Vec<Vec<Val>> = self
             .episodes
             .iter()
@@ -721,16 +718,31 @@ impl IngestWriter {
                 ]
             })
             .collect();
-        insert_rows(
-            tx,
-            "label_events",
-            &["episode_id", "revision", "old_label", "new_label", "source", "actor", "note", "created_at"],
-            ev_rows,
-            "",
-        )
-        .await?;
-        Ok(())
+        let label_events = TableRows {
+            table: "label_events",
+            cols: &[
+                "episode_id",
+                "revision",
+                "old_label",
+                "new_label",
+                "source",
+                "actor",
+                "note",
+                "created_at",
+            ],
+            rows: ev_rows,
+            suffix: "",
+        };
+        [media_refs, label_events]
     }
+}
+
+/// One table's rows of a version, inserted with [`insert_rows`] (`suffix`: its conflict clause).
+struct TableRows {
+    table: &'static str,
+    cols: &'static [&'static str],
+    rows: Vec<Vec<Val>>,
+    suffix: &'static str,
 }
 
 #[cfg(test)]

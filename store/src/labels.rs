@@ -2,9 +2,9 @@
 //! current label is the latest event; optimistic concurrency via the expected revision.
 
 use crate::catalog::{RowExt, Tx};
-use crate::counts::CountDeltas;
 use crate::events::{EventKind, NewEvent};
-use crate::version::{
+use crate::versioning::counts::CountDeltas;
+use crate::versioning::version::{
     finish_version, next_version, unfrozen_episodes, write_labels_file_ahead, LabelsFileAhead, VersionHead,
 };
 use crate::{now_rfc3339, Backend, CommitInfo, Label, Store, StoreError};
@@ -480,6 +480,64 @@ fn event_from_row(r: &sqlx::any::AnyRow) -> Result<LabelEvent, StoreError> {
             None => None,
         },
     })
+}
+
+/// A label write with data, inside `tx`: the ordinary write (revision, audit event, counts) and
+/// the event's data (a failure cause, spans, the votes behind a consensus), in the same
+/// transaction. The labelers' protocol (`store-labeling`) writes its verdicts through it.
+pub async fn write_label(
+    tx: &mut Tx,
+    backend: Backend,
+    update: &LabelUpdate,
+    actor: &str,
+    source: &str,
+    data: Option<serde_json::Value>,
+    events: &mut Vec<NewEvent>,
+) -> Result<LabelChange, StoreError> {
+    let mut counts = CountDeltas::default();
+    let change = apply_one(tx, backend, update, actor, source, &mut counts, events).await?;
+    counts.apply(tx, backend).await?;
+    if let Some(d) = data {
+        sqlx::query("UPDATE label_events SET data = $1 WHERE episode_id = $2 AND revision = $3")
+            .bind(d.to_string())
+            .bind(&update.episode_id)
+            .bind(change.revision)
+            .execute(&mut **tx)
+            .await?;
+    }
+    Ok(change)
+}
+
+impl Store {
+    /// The data of the label events `(episode id, revision)` that have any (exports record the
+    /// failure cause and spans behind each label), by episode id.
+    pub async fn label_event_data(
+        &self,
+        keys: &[(String, i64)],
+    ) -> Result<std::collections::HashMap<String, serde_json::Value>, StoreError> {
+        let mut out = std::collections::HashMap::new();
+        for chunk in keys.chunks(500) {
+            let sql = format!(
+                "SELECT episode_id, revision, data FROM label_events WHERE data IS NOT NULL AND episode_id IN ({})",
+                crate::catalog::placeholders(chunk.len())
+            );
+            let mut q = sqlx::query(&sql);
+            for (id, _) in chunk {
+                q = q.bind(id);
+            }
+            let wanted: std::collections::HashMap<&str, i64> =
+                chunk.iter().map(|(id, rev)| (id.as_str(), *rev)).collect();
+            for r in q.fetch_all(&self.catalog().pool).await? {
+                let id = r.s("episode_id")?;
+                if wanted.get(id.as_str()) == Some(&r.i("revision")?) {
+                    let d = serde_json::from_str(&r.s("data")?)
+                        .map_err(|e| StoreError::Corrupt(format!("label event data: {e}")))?;
+                    out.insert(id, d);
+                }
+            }
+        }
+        Ok(out)
+    }
 }
 
 #[cfg(test)]

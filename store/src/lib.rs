@@ -9,31 +9,29 @@
 //! idempotency keys (`idempotency.rs`) build on.
 //!
 //! Above it, on its catalog face ([`sql`]), stand the crates that keep rows of their own: the
-//! job queue (`store-jobs`), what the feed drives (`store-feed`: webhooks, automations) and the
-//! comparison of checkpoints (`store-compare`: compare, scoreboard, policy aliases).
+//! job queue (`store-jobs`), what the feed drives (`store-feed`: webhooks, automations), the
+//! comparison of checkpoints (`store-compare`: compare, scoreboard, policy aliases), what
+//! training publishes (`store-artifacts`: verifier artifacts and failure monitors with their
+//! aliases) and the labelers' protocol (`store-labeling`: votes and consensus, the review queue).
 
-mod artifacts;
 mod catalog;
-mod consensus;
-mod counts;
 mod episodes_arrow;
 mod events;
 mod exports;
+mod extensions;
 mod frames;
 mod gc;
 mod idempotency;
 mod ingest_writer;
-mod label_files;
 mod labels;
 mod layers;
 mod lru;
 mod media;
-mod monitors;
 mod objects;
 mod query;
 mod read;
-mod review;
 mod runs;
+mod scores;
 mod selection;
 mod spans;
 mod splits;
@@ -41,16 +39,9 @@ mod splits;
 #[cfg(any(test, feature = "testing"))]
 pub mod test_support;
 mod tokens;
-mod version;
-pub mod video;
+mod versioning;
 
-pub use artifacts::{ArtifactFile, ArtifactRecord, NewArtifact};
 pub use catalog::{migration_names, Backend};
-pub use consensus::{
-    Agreement, Campaign, ConsensusState, Dispute, EpisodeVotes, LabelerCounts, NewVote, PairAgreement, Span,
-    VerdictData, Vote, VoteOutcome, CAMPAIGN_CACHE_TTL, MAX_FAILURE_CAUSES, MAX_LABELS_NEEDED, MAX_SPANS,
-};
-pub use counts::{CountFilter, LabelCounts};
 pub use episodes_arrow::{episodes_batch, episodes_schema};
 pub use events::{
     with_request, Event, EventFilter, EventKind, EventPage, NewEvent, RequestContext, MAX_EVENT_PAGE,
@@ -67,22 +58,21 @@ pub use layers::{
 };
 pub use media::EpisodeMedia;
 pub use model::*;
-pub use monitors::{MonitorEntry, NewMonitor};
 pub use objects::FetchCounts;
 pub use query::{EpisodeFilter, EpisodeRecord, VersionDiff, VersionInfo};
 pub use read::{EpisodeLocation, EpisodeSteps, StepsReadError, StepsStream};
-pub use review::{
-    EpisodeScore, ReviewArtifact, ReviewEntry, ReviewOrder, DEFAULT_REVIEW_ALIAS, DEFAULT_REVIEW_KIND,
-};
 pub use runs::{RunInput, RunRecord, Steering};
+pub use scores::{EpisodeScore, DEFAULT_REVIEW_ALIAS, DEFAULT_REVIEW_KIND};
 pub use selection::{
     for_each_episode, for_each_episode_with_layers, select, EpisodeReader, Progress, ScoreRange, Selected,
     Selection,
 };
 pub use splits::{SplitCheckpointSteps, SplitEpisode, SplitRecord, SplitRequest, MAX_VAL_FRACTION};
-/// The data model and the steps layout live below the catalog, in `store-layout`.
-pub use store_layout::{model, steps, StoreError};
+/// The data model, the steps layout and the stored video's decoding live below the catalog,
+/// in `store-layout`.
+pub use store_layout::{model, steps, video, StoreError};
 pub use tokens::{Role, TokenRecord};
+pub use versioning::{CountFilter, LabelCounts};
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -117,9 +107,8 @@ struct Inner {
     meta_cache: read::MetaCache,
     /// Decoded pages of image columns (frames served one at a time).
     frame_pages: frames::PageCache,
-    /// The policies whose campaign needs several labelers, read at most once a second (every
-    /// label PUT asks: `consensus.rs`).
-    multi_labeler: consensus::MultiLabelerCache,
+    /// State kept per store by the upper crates ([`Store::extension`]).
+    extensions: extensions::Extensions,
     /// The newest event sequence number this handle committed (`events.rs`).
     feed: tokio::sync::watch::Sender<i64>,
 }
@@ -147,7 +136,7 @@ impl Store {
                 data_dir: config.data_dir.clone(),
                 meta_cache,
                 frame_pages,
-                multi_labeler: Default::default(),
+                extensions: Default::default(),
                 feed: tokio::sync::watch::Sender::new(0),
             }),
         })
@@ -195,19 +184,30 @@ impl Store {
     pub fn catalog(&self) -> &sql::Catalog {
         &self.inner.db
     }
+    /// This store handle's one value of type `T` (made with `T::default()` on first use): state
+    /// an upper crate keeps per store, such as a cache of catalog reads, shared by the handle's
+    /// clones and by nothing else.
+    pub fn extension<T: Default + Send + Sync + 'static>(&self) -> Arc<T> {
+        self.inner.extensions.get_or_default()
+    }
     pub(crate) fn objects(&self) -> &objects::Objects {
         &self.inner.objects
     }
 }
 
-/// The catalog face that the store's upper crates (`store-jobs`, `store-feed`, `store-compare`)
-/// keep their rows with: the connection pool and its write transactions, the dialect helpers,
+/// The catalog face that the store's upper crates (`store-jobs`, `store-feed`, `store-compare`,
+/// `store-artifacts`, `store-labeling`) keep their rows with: the connection pool and its write transactions, the
+/// dialect helpers, the episode filter's SQL, the label write inside a transaction,
 /// the change feed's commit ([`Store::commit_with_events`]) and the version spans. The tables
 /// are all the catalog's (one migration sequence, `migrations/`); applications use `Store`'s
 /// methods and those crates' traits instead.
 pub mod sql {
     pub use crate::catalog::{bind_val, insert_rows, placeholders, Catalog, RowExt, Tx, Val};
+    pub use crate::gc::forget_pending;
+    pub use crate::labels::write_label;
+    pub use crate::query::{episode_conds, episode_from_row, label_conds, push_arg, EPISODE_SELECT};
     pub use crate::runs::run_from_row;
+    pub use crate::scores::refresh_review_scores_where;
     pub use crate::spans::covers;
     pub use crate::{now_ms, now_rfc3339};
 }

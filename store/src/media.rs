@@ -7,6 +7,7 @@ use crate::catalog::{insert_rows, RowExt, Val};
 use crate::steps::MEDIA_PREFIX;
 use crate::{EpisodeLocation, Store, StoreError};
 use arrow::array::{Array, Float64Array, StringArray};
+use store_layout::video;
 
 /// Where one camera's frames of an episode live.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
@@ -141,6 +142,33 @@ impl Store {
             .await?;
         tx.commit().await?;
         Ok(())
+    }
+}
+
+impl Store {
+    /// The sample entry type of a stored MP4's video track (`video::video_sample_entry`), from its
+    /// top-level box headers and its `moov` box: the media data is not read.
+    pub async fn video_codec(&self, path: &str) -> Result<String, StoreError> {
+        let size = self.object_size(path).await?;
+        let mut at = 0u64;
+        for _ in 0..video::MAX_TOP_LEVEL_BOXES {
+            if at + 8 > size {
+                break;
+            }
+            let head = self.get_object_range(path, at..(at + 16).min(size)).await?;
+            let (kind, total, header) = video::box_header(&head, size - at)
+                .ok_or_else(|| video::bad(format!("{path}: a box overruns the file")))?;
+            if &kind == b"moov" {
+                if total > video::MAX_MOOV_BYTES {
+                    return Err(video::bad(format!("{path}: a moov box of {total} bytes")));
+                }
+                let moov = self.get_object_range(path, at + header..at + total).await?;
+                return video::video_sample_entry(&moov)
+                    .ok_or_else(|| video::bad(format!("{path}: no video track")));
+            }
+            at += total;
+        }
+        Err(video::bad(format!("{path}: no moov box")))
     }
 }
 

@@ -114,20 +114,20 @@ fn version_from_row(r: &sqlx::any::AnyRow) -> Result<VersionInfo, StoreError> {
 
 /// The episode columns every episode listing selects (`e`: the episodes table); the label
 /// columns and the FROM clause follow.
-pub(crate) const EPISODE_SELECT: &str =
+pub const EPISODE_SELECT: &str =
     "SELECT e.id, e.policy, e.checkpoint, e.task, e.source_sha256, e.source_name, e.source_index, \
      e.length, e.tags, e.metadata, e.data_file, e.row_group, COALESCE(e.row_offset, 0) AS row_offset, \
      COALESCE(e.row_count, e.length) AS row_count, e.version_added, e.created_at, e.run_id, \
      e.first_intervention, e.intervention_steps, ";
 
 /// Binds `v` as the next parameter of a statement being built; its placeholder (`$n`).
-pub(crate) fn push_arg(args: &mut Vec<Val>, v: Val) -> String {
+pub fn push_arg(args: &mut Vec<Val>, v: Val) -> String {
     args.push(v);
     format!("${}", args.len())
 }
 
 /// The filter's conditions on the label columns of table alias `lab` (label, then source).
-pub(crate) fn label_conds(filter: &EpisodeFilter, lab: &str, args: &mut Vec<Val>) -> Vec<String> {
+pub fn label_conds(filter: &EpisodeFilter, lab: &str, args: &mut Vec<Val>) -> Vec<String> {
     let mut conds = Vec::new();
     if let Some(l) = filter.label {
         conds.push(format!("{lab}.label = {}", push_arg(args, Val::S(l.as_str().into()))));
@@ -139,7 +139,7 @@ pub(crate) fn label_conds(filter: &EpisodeFilter, lab: &str, args: &mut Vec<Val>
 }
 
 /// The filter's conditions on the episode's own columns (`e`): id, policy, checkpoint, task, tag.
-pub(crate) fn episode_conds(filter: &EpisodeFilter, args: &mut Vec<Val>) -> Result<Vec<String>, StoreError> {
+pub fn episode_conds(filter: &EpisodeFilter, args: &mut Vec<Val>) -> Result<Vec<String>, StoreError> {
     let mut conds = Vec::new();
     if let Some(id) = &filter.id {
         conds.push(format!("e.id = {}", push_arg(args, Val::S(id.clone()))));
@@ -408,7 +408,7 @@ impl Store {
     }
 }
 
-pub(crate) fn episode_from_row(r: &sqlx::any::AnyRow) -> Result<EpisodeRecord, StoreError> {
+pub fn episode_from_row(r: &sqlx::any::AnyRow) -> Result<EpisodeRecord, StoreError> {
     Ok(EpisodeRecord {
         id: r.s("id")?,
         policy: r.s("policy")?,

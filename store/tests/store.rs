@@ -3,6 +3,7 @@
 
 use store::test_support::{episode, source};
 use store::*;
+use store_artifacts::{Artifacts, NewArtifact};
 
 async fn ingest(store: &Store, tag: &str, ckpt: &str, n: u32) -> CommitInfo {
     let mut w = store.begin_ingest(source(tag), "pol", ckpt).await.unwrap();

@@ -7,10 +7,8 @@
     reason = "tests: a failed unwrap is a failed test, and a scenario reads top to bottom"
 )]
 
-mod campaign_cache;
 mod catalog_lists;
 mod gc_in_flight;
-mod review_index;
 mod split_sample;
 mod store;
 mod version_history;

@@ -10,6 +10,7 @@ use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
+use store_artifacts::Artifacts;
 
 /// What a training job runs (stored as the job's spec).
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -218,7 +219,7 @@ pub async fn run_train_job(
     job_id: Option<&str>,
     observer: Box<dyn FnMut(&EpochReport) + Send>,
     cancel: Option<Arc<AtomicBool>>,
-) -> Result<store::ArtifactRecord> {
+) -> Result<store_artifacts::ArtifactRecord> {
     let split = store.split(&spec.split_id).await?;
     let data = load_split(store, spec).await?;
     // The paper's recipe for its input: the image column (features variant) when the
@@ -272,7 +273,7 @@ pub async fn run_train_job(
         Kind::Q => "q",
     };
     let rec = store
-        .publish_artifact(store::NewArtifact {
+        .publish_artifact(store_artifacts::NewArtifact {
             dir: dir.path(),
             policy: &split.policy,
             checkpoint: &split.checkpoint,

@@ -30,21 +30,21 @@ pub struct ArtifactQuery {
 
 /// Artifacts, optionally filtered.
 #[utoipa::path(get, path = "/v1/artifacts", tag = "artifacts", params(ArtifactQuery),
-    responses((status = 200, body = Vec<store::ArtifactRecord>)))]
+    responses((status = 200, body = Vec<store_artifacts::ArtifactRecord>)))]
 pub async fn list_artifacts(
     State(s): State<AppState>,
     ApiQuery(q): ApiQuery<ArtifactQuery>,
-) -> ApiResult<Json<Vec<store::ArtifactRecord>>> {
+) -> ApiResult<Json<Vec<store_artifacts::ArtifactRecord>>> {
     Ok(Json(s.store().artifacts(q.policy.as_deref(), q.checkpoint.as_deref(), q.kind.as_deref()).await?))
 }
 
 /// An artifact by id.
 #[utoipa::path(get, path = "/v1/artifacts/{id}", tag = "artifacts", params(("id" = String, Path)),
-    responses((status = 200, body = store::ArtifactRecord), (status = 404, description = "no such artifact")))]
+    responses((status = 200, body = store_artifacts::ArtifactRecord), (status = 404, description = "no such artifact")))]
 pub async fn get_artifact(
     State(s): State<AppState>,
     ApiPath(id): ApiPath<String>,
-) -> ApiResult<Json<store::ArtifactRecord>> {
+) -> ApiResult<Json<store_artifacts::ArtifactRecord>> {
     check_id("artifact id", &id)?;
     Ok(Json(s.store().artifact(&id).await?))
 }
@@ -65,7 +65,11 @@ pub async fn artifact_file(
     send_artifact_file(&s, &a, &name).await
 }
 
-async fn send_artifact_file(s: &AppState, a: &store::ArtifactRecord, name: &str) -> ApiResult<Response> {
+async fn send_artifact_file(
+    s: &AppState,
+    a: &store_artifacts::ArtifactRecord,
+    name: &str,
+) -> ApiResult<Response> {
     let f = a
         .files
         .iter()
@@ -107,11 +111,11 @@ fn split_kind_alias(s: &str) -> ApiResult<(&str, &str)> {
 #[utoipa::path(get, path = "/v1/policies/{policy}/checkpoints/{checkpoint}/verifiers/{kind_at_alias}", tag = "artifacts",
     params(("policy" = String, Path), ("checkpoint" = String, Path),
            ("kind_at_alias" = String, Path, description = "KIND@ALIAS, e.g. classifier@latest")),
-    responses((status = 200, body = store::ArtifactRecord), (status = 404, description = "no artifact has that alias")))]
+    responses((status = 200, body = store_artifacts::ArtifactRecord), (status = 404, description = "no artifact has that alias")))]
 pub async fn resolve_verifier(
     State(s): State<AppState>,
     ApiPath((policy, checkpoint, ka)): ApiPath<(String, String, String)>,
-) -> ApiResult<Json<store::ArtifactRecord>> {
+) -> ApiResult<Json<store_artifacts::ArtifactRecord>> {
     check_name("policy", &policy)?;
     check_name("checkpoint", &checkpoint)?;
     let (kind, alias) = split_kind_alias(&ka)?;
@@ -142,13 +146,13 @@ pub async fn resolve_verifier_file(
 /// Points an alias of the artifact's (policy, checkpoint, kind) at it.
 #[utoipa::path(put, path = "/v1/artifacts/{id}/aliases/{alias}", tag = "artifacts",
     params(("id" = String, Path), ("alias" = String, Path)),
-    responses((status = 200, body = store::ArtifactRecord), (status = 404, description = "no such artifact"),
+    responses((status = 200, body = store_artifacts::ArtifactRecord), (status = 404, description = "no such artifact"),
               (status = 409, description = "the alias cannot be moved"), (status = 403, description = "the token's role is below trainer")))]
 pub async fn set_alias(
     State(s): State<AppState>,
     Extension(caller): Extension<Caller>,
     ApiPath((id, alias)): ApiPath<(String, String)>,
-) -> ApiResult<Json<store::ArtifactRecord>> {
+) -> ApiResult<Json<store_artifacts::ArtifactRecord>> {
     caller.require(Role::Trainer)?;
     check_id("artifact id", &id)?;
     check_id("alias", &alias)?;

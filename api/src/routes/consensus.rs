@@ -3,7 +3,7 @@
 //! the store (`store::consensus`); these handlers check roles and hide votes from blind labelers.
 
 use super::*;
-use store::{Agreement, Campaign, Dispute, EpisodeVotes, NewVote, Span, VerdictData, VoteOutcome};
+use store_labeling::{Agreement, Campaign, Dispute, EpisodeVotes, NewVote, Span, VerdictData, VoteOutcome};
 
 /// The routes of this resource (behind the token check).
 pub(crate) fn router() -> Router<AppState> {

@@ -78,7 +78,7 @@ pub enum EpisodeSort {
     Id,
 }
 
-/// The review orders of `GET /v1/episodes` (the doc's enum; `store::ReviewOrder` parses them).
+/// The review orders of `GET /v1/episodes` (the doc's enum; `store_labeling::ReviewOrder` parses them).
 #[derive(ToSchema)]
 #[schema(rename_all = "lowercase")]
 #[allow(dead_code)]

@@ -67,6 +67,8 @@ use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use std::sync::atomic::Ordering;
 use store::{EpisodeFilter, Label, LabelUpdate, Role};
+use store_artifacts::{Artifacts, Monitors};
+use store_labeling::{Consensus, ReviewQueue};
 use utoipa::{IntoParams, ToSchema};
 
 pub const ARROW_STREAM: &str = "application/vnd.apache.arrow.stream";

@@ -31,7 +31,7 @@ pub struct ReviewScoreRef {
 
 /// `GET /v1/episodes?order=…` other than `id` (see [`EpisodeQuery`]).
 pub(crate) async fn list_review_queue(s: &AppState, order: &str, q: EpisodeQuery) -> ApiResult<EpisodePage> {
-    let order: store::ReviewOrder = order.parse()?;
+    let order: store_labeling::ReviewOrder = order.parse()?;
     if q.sort.as_deref().is_some_and(|s| s != "id") {
         return Err(ApiError::bad_request("give order or sort, not both"));
     }
@@ -103,7 +103,7 @@ pub struct ReviewArtifactSetting {
 
 impl ReviewArtifactSetting {
     /// A policy's stored setting.
-    fn from_setting(a: store::ReviewArtifact) -> Self {
+    fn from_setting(a: store_labeling::ReviewArtifact) -> Self {
         ReviewArtifactSetting {
             policy: a.policy,
             artifact_id: a.artifact_id,

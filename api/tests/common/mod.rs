@@ -10,6 +10,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 pub use store::test_support::{episode, source};
 use store::*;
+use store_artifacts::{Artifacts, NewArtifact};
 use store_jobs::JobRecord;
 
 pub mod load;

@@ -15,6 +15,7 @@ use pyo3::types::PyBytes;
 
 use crate::errors::{from_store, from_verifier, NotFoundError};
 use crate::verifier::PyVerifier;
+use store_artifacts::{Artifacts, Monitors};
 
 /// A stored episode's verifier inputs: `(obs (T, obs_dim), t (T,), act (T, act_dim))`.
 type StepInputs<'py> = (Bound<'py, PyArray2<f32>>, Bound<'py, PyArray1<u32>>, Bound<'py, PyArray2<f32>>);

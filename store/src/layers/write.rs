@@ -4,7 +4,7 @@
 use super::{check_layer_name, producer_hash, LayerValues, LayerWrite, IDS_PER_QUERY, MAX_LAYER_DIM};
 use crate::catalog::{insert_rows, RowExt, Tx, Val};
 use crate::steps::{OBS_PREFIX, PAGE_MAX_BYTES, ROW_GROUP_MAX_BYTES};
-use crate::version::{finish_version, next_version, VersionHead};
+use crate::versioning::version::{finish_version, next_version, VersionHead};
 use crate::{Store, StoreError};
 use arrow::array::{ArrayRef, FixedSizeListArray, Float32Array, Int32Array, RecordBatch, StringArray};
 use arrow::datatypes::{DataType, Field, Schema};

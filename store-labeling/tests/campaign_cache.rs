@@ -3,8 +3,8 @@
 //! another process's (a second server on the same catalog) within `CAMPAIGN_CACHE_TTL`.
 
 use store::test_support::{source, two_step_episode};
-use store::CAMPAIGN_CACHE_TTL;
 use store::{Label, Store, StoreConfig};
+use store_labeling::{Consensus, CAMPAIGN_CACHE_TTL};
 
 #[tokio::test]
 async fn campaign_changes_reach_label_writes_at_once_here_and_within_the_ttl_elsewhere() {

@@ -4,10 +4,11 @@
 //! record's meaning is the verifier core's (`verifier::monitor`); the store keeps it as JSON and
 //! checks only what it indexes.
 
-use crate::catalog::RowExt;
-use crate::events::{EventKind, NewEvent};
-use crate::{now_rfc3339, Store, StoreError};
+use crate::Artifacts;
 use serde::Serialize;
+use std::future::Future;
+use store::sql::{now_rfc3339, RowExt, Tx};
+use store::{sha256_hex, EventKind, NewEvent, Store, StoreError};
 
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -45,11 +46,49 @@ pub struct NewMonitor<'a> {
 const MON_COLS: &str =
     "id, policy, checkpoint, artifact_id, alpha, threshold, record, evaluation, created_by, created_at";
 
-impl Store {
+/// Failure monitors on a [`Store`]: calibrated thresholds of an artifact, with per-checkpoint
+/// aliases.
+pub trait Monitors {
     /// Records a monitor (idempotent: the same record is the same monitor) and moves the
     /// checkpoint's `latest` monitor alias to it. The artifact must be in the store and belong to
     /// the same policy and checkpoint.
-    pub async fn put_monitor(&self, new: NewMonitor<'_>) -> Result<MonitorEntry, StoreError> {
+    fn put_monitor(
+        &self,
+        new: NewMonitor<'_>,
+    ) -> impl Future<Output = Result<MonitorEntry, StoreError>> + Send;
+
+    fn monitor(&self, id: &str) -> impl Future<Output = Result<MonitorEntry, StoreError>> + Send;
+
+    /// Monitors, oldest first, narrowed by policy, checkpoint and artifact (empty = any).
+    fn monitors(
+        &self,
+        policy: Option<&str>,
+        checkpoint: Option<&str>,
+        artifact_id: Option<&str>,
+    ) -> impl Future<Output = Result<Vec<MonitorEntry>, StoreError>> + Send;
+
+    /// The newest monitor calibrated for `artifact_id`, if any (what the scoreboard shows).
+    fn latest_monitor(
+        &self,
+        artifact_id: &str,
+    ) -> impl Future<Output = Result<Option<MonitorEntry>, StoreError>> + Send;
+
+    /// Points `alias` of the monitor's (policy, checkpoint) at it.
+    fn set_monitor_alias(
+        &self,
+        alias: &str,
+        id: &str,
+    ) -> impl Future<Output = Result<MonitorEntry, StoreError>> + Send;
+
+    /// Resolves a monitor reference: an id, or `POLICY/CHECKPOINT@ALIAS`.
+    fn resolve_monitor(
+        &self,
+        reference: &str,
+    ) -> impl Future<Output = Result<MonitorEntry, StoreError>> + Send;
+}
+
+impl Monitors for Store {
+    async fn put_monitor(&self, new: NewMonitor<'_>) -> Result<MonitorEntry, StoreError> {
         let record: serde_json::Value = serde_json::from_slice(new.record_json)
             .map_err(|e| StoreError::invalid(format!("monitor record is not JSON: {e}")))?;
         for (field, want) in
@@ -69,7 +108,7 @@ impl Store {
                 artifact.id, artifact.policy, artifact.checkpoint, new.policy, new.checkpoint
             )));
         }
-        let id = crate::sha256_hex(new.record_json)[..16].to_string();
+        let id = sha256_hex(new.record_json)[..16].to_string();
         let now = now_rfc3339();
         let mut tx = self.catalog().begin_write().await?;
         let inserted = sqlx::query(&format!(
@@ -104,19 +143,18 @@ impl Store {
         self.monitor(&id).await
     }
 
-    pub async fn monitor(&self, id: &str) -> Result<MonitorEntry, StoreError> {
+    async fn monitor(&self, id: &str) -> Result<MonitorEntry, StoreError> {
         let row = sqlx::query(&format!("SELECT {MON_COLS} FROM monitors WHERE id = $1"))
             .bind(id)
             .fetch_optional(&self.catalog().pool)
             .await?
             .ok_or_else(|| StoreError::not_found("monitor", id))?;
         let mut m = monitor_from_row(&row)?;
-        m.aliases = self.monitor_aliases_of(id).await?;
+        m.aliases = monitor_aliases_of(self, id).await?;
         Ok(m)
     }
 
-    /// Monitors, oldest first, narrowed by policy, checkpoint and artifact (empty = any).
-    pub async fn monitors(
+    async fn monitors(
         &self,
         policy: Option<&str>,
         checkpoint: Option<&str>,
@@ -134,14 +172,13 @@ impl Store {
         let mut out = Vec::with_capacity(rows.len());
         for r in &rows {
             let mut m = monitor_from_row(r)?;
-            m.aliases = self.monitor_aliases_of(&m.id).await?;
+            m.aliases = monitor_aliases_of(self, &m.id).await?;
             out.push(m);
         }
         Ok(out)
     }
 
-    /// The newest monitor calibrated for `artifact_id`, if any (what the scoreboard shows).
-    pub async fn latest_monitor(&self, artifact_id: &str) -> Result<Option<MonitorEntry>, StoreError> {
+    async fn latest_monitor(&self, artifact_id: &str) -> Result<Option<MonitorEntry>, StoreError> {
         let row = sqlx::query(&format!(
             "SELECT {MON_COLS} FROM monitors WHERE artifact_id = $1 ORDER BY created_at DESC, id DESC LIMIT 1"
         ))
@@ -150,21 +187,12 @@ impl Store {
         .await?;
         let Some(row) = row else { return Ok(None) };
         let mut m = monitor_from_row(&row)?;
-        m.aliases = self.monitor_aliases_of(&m.id).await?;
+        m.aliases = monitor_aliases_of(self, &m.id).await?;
         Ok(Some(m))
     }
 
-    async fn monitor_aliases_of(&self, id: &str) -> Result<Vec<String>, StoreError> {
-        let rows = sqlx::query("SELECT alias FROM monitor_aliases WHERE monitor_id = $1 ORDER BY alias")
-            .bind(id)
-            .fetch_all(&self.catalog().pool)
-            .await?;
-        rows.iter().map(|r| r.s("alias")).collect()
-    }
-
-    /// Points `alias` of the monitor's (policy, checkpoint) at it.
-    pub async fn set_monitor_alias(&self, alias: &str, id: &str) -> Result<MonitorEntry, StoreError> {
-        crate::model::check_name("alias", alias)?;
+    async fn set_monitor_alias(&self, alias: &str, id: &str) -> Result<MonitorEntry, StoreError> {
+        store::model::check_name("alias", alias)?;
         if alias.contains('@') || alias.contains('/') {
             return Err(StoreError::invalid(format!("alias {alias:?} may not contain '@' or '/'")));
         }
@@ -176,8 +204,7 @@ impl Store {
         self.monitor(id).await
     }
 
-    /// Resolves a monitor reference: an id, or `POLICY/CHECKPOINT@ALIAS`.
-    pub async fn resolve_monitor(&self, reference: &str) -> Result<MonitorEntry, StoreError> {
+    async fn resolve_monitor(&self, reference: &str) -> Result<MonitorEntry, StoreError> {
         let Some((path, alias)) = reference.rsplit_once('@') else { return self.monitor(reference).await };
         let Some((policy, checkpoint)) = path.rsplit_once('/') else {
             return Err(StoreError::invalid(format!(
@@ -197,8 +224,16 @@ impl Store {
     }
 }
 
+async fn monitor_aliases_of(store: &Store, id: &str) -> Result<Vec<String>, StoreError> {
+    let rows = sqlx::query("SELECT alias FROM monitor_aliases WHERE monitor_id = $1 ORDER BY alias")
+        .bind(id)
+        .fetch_all(&store.catalog().pool)
+        .await?;
+    rows.iter().map(|r| r.s("alias")).collect()
+}
+
 async fn upsert_monitor_alias(
-    tx: &mut crate::catalog::Tx,
+    tx: &mut Tx,
     policy: &str,
     checkpoint: &str,
     alias: &str,

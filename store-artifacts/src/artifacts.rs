@@ -1,12 +1,12 @@
 //! Verifier artifacts: immutable, content-addressed file sets (id = sha256 of their manifest)
 //! with per-checkpoint aliases (`latest` is moved automatically on publish).
 
-use crate::catalog::RowExt;
-use crate::events::{EventKind, NewEvent};
-use crate::{now_rfc3339, Store, StoreError};
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
+use std::future::Future;
 use std::path::Path;
+use store::sql::{forget_pending, now_rfc3339, refresh_review_scores_where, RowExt, Tx};
+use store::{sha256_hex, EventKind, NewEvent, Store, StoreError, DEFAULT_REVIEW_ALIAS, DEFAULT_REVIEW_KIND};
 
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -51,17 +51,63 @@ fn read(dir: &Path, name: &str) -> Result<Vec<u8>, StoreError> {
         .map_err(|e| StoreError::invalid(format!("artifact {}: cannot read {name}: {e}", dir.display())))
 }
 
-impl Store {
+/// Verifier artifacts on a [`Store`]: published file sets with per-checkpoint aliases.
+pub trait Artifacts {
     /// Publishes an artifact directory: checks every file against its manifest, copies the files
     /// into object storage and records the artifact; moves the `latest` alias unless the artifact
     /// was trained off-policy (on other checkpoints' rollouts): a robot that asks for a
     /// checkpoint's `latest` verifier gets one trained on that checkpoint's own rollouts.
-    pub async fn publish_artifact(&self, new: NewArtifact<'_>) -> Result<ArtifactRecord, StoreError> {
+    fn publish_artifact(
+        &self,
+        new: NewArtifact<'_>,
+    ) -> impl Future<Output = Result<ArtifactRecord, StoreError>> + Send;
+
+    fn artifact(&self, id: &str) -> impl Future<Output = Result<ArtifactRecord, StoreError>> + Send;
+
+    fn artifacts(
+        &self,
+        policy: Option<&str>,
+        checkpoint: Option<&str>,
+        kind: Option<&str>,
+    ) -> impl Future<Output = Result<Vec<ArtifactRecord>, StoreError>> + Send;
+
+    /// Points `alias` of the artifact's (policy, checkpoint, kind) at the artifact.
+    fn set_alias(
+        &self,
+        alias: &str,
+        artifact_id: &str,
+    ) -> impl Future<Output = Result<ArtifactRecord, StoreError>> + Send;
+
+    /// Resolves `policy/checkpoint/kind@alias` to an artifact.
+    fn resolve_alias(
+        &self,
+        policy: &str,
+        checkpoint: &str,
+        kind: &str,
+        alias: &str,
+    ) -> impl Future<Output = Result<ArtifactRecord, StoreError>> + Send;
+
+    /// Resolves an artifact reference: an id, or `policy/checkpoint/kind@alias`.
+    fn resolve_artifact(
+        &self,
+        reference: &str,
+    ) -> impl Future<Output = Result<ArtifactRecord, StoreError>> + Send;
+
+    /// Copies an artifact's files into `dir` (checking their sha256).
+    fn download_artifact(
+        &self,
+        id: &str,
+        dir: &Path,
+    ) -> impl Future<Output = Result<ArtifactRecord, StoreError>> + Send;
+}
+
+impl Artifacts for Store {
+    async fn publish_artifact(&self, new: NewArtifact<'_>) -> Result<ArtifactRecord, StoreError> {
         if new.kind != "classifier" && new.kind != "q" {
             return Err(StoreError::invalid(format!("unknown verifier kind {:?}", new.kind)));
         }
         let manifest_bytes = read(new.dir, "manifest.json")?;
-        let id = crate::sha256_hex(&manifest_bytes)[..16].to_string();
+        let id = sha256_hex(&manifest_bytes)[..16].to_string();
         let manifest: serde_json::Value = serde_json::from_slice(&manifest_bytes)
             .map_err(|e| StoreError::invalid(format!("artifact manifest.json is not JSON: {e}")))?;
         let listed = manifest
@@ -71,7 +117,7 @@ impl Store {
         let prefix = format!("artifacts/{id}");
         let mut files = vec![ArtifactFile {
             name: "manifest.json".into(),
-            sha256: crate::sha256_hex(&manifest_bytes),
+            sha256: sha256_hex(&manifest_bytes),
             size_bytes: manifest_bytes.len() as u64,
         }];
         let mut config = serde_json::Value::Null;
@@ -81,7 +127,7 @@ impl Store {
                 return Err(StoreError::invalid(format!("artifact file name {name:?} is not a plain name")));
             }
             let data = read(new.dir, name)?;
-            let actual = crate::sha256_hex(&data);
+            let actual = sha256_hex(&data);
             if Some(actual.as_str()) != sha.as_str() {
                 return Err(StoreError::invalid(format!(
                     "artifact file {name}: sha256 {actual} does not match the manifest"
@@ -101,15 +147,11 @@ impl Store {
             Some(s) => self.split(s).await?.mode == "off_policy",
             None => false,
         };
-        // Recorded before the existence check of each content-addressed put: gc keeps them until
-        // the artifact's row commits (gc.rs).
+        // Pending until the artifact's row commits: gc keeps them (the store's gc.rs).
         let publisher = format!("publish-{}", uuid::Uuid::new_v4().simple());
-        for (name, _) in &uploads {
-            self.register_pending(&publisher, &format!("{prefix}/{name}")).await?;
-        }
-        for (name, data) in uploads {
-            self.objects().put_content_addressed(&format!("{prefix}/{name}"), Bytes::from(data)).await?;
-        }
+        let objects =
+            uploads.into_iter().map(|(name, data)| (format!("{prefix}/{name}"), Bytes::from(data))).collect();
+        self.put_pending_content(&publisher, objects).await?;
         let now = now_rfc3339();
         let mut tx = self.catalog().begin_write().await?;
         let inserted = sqlx::query(&format!(
@@ -147,26 +189,23 @@ impl Store {
             upsert_alias(&mut tx, new.policy, new.checkpoint, new.kind, "latest", &id, &now).await?;
             events.push(alias_moved(new.policy, new.checkpoint, new.kind, "latest", &id));
         }
-        sqlx::query("DELETE FROM pending_objects WHERE writer = $1")
-            .bind(&publisher)
-            .execute(&mut *tx)
-            .await?;
+        forget_pending(&mut tx, &publisher).await?;
         self.commit_with_events(tx, &events).await?;
         self.artifact(&id).await
     }
 
-    pub async fn artifact(&self, id: &str) -> Result<ArtifactRecord, StoreError> {
+    async fn artifact(&self, id: &str) -> Result<ArtifactRecord, StoreError> {
         let row = sqlx::query(&format!("SELECT {ART_COLS} FROM artifacts WHERE id = $1"))
             .bind(id)
             .fetch_optional(&self.catalog().pool)
             .await?
             .ok_or_else(|| StoreError::not_found("artifact", id))?;
         let mut rec = artifact_from_row(&row)?;
-        rec.aliases = self.aliases_of(id).await?;
+        rec.aliases = aliases_of(self, id).await?;
         Ok(rec)
     }
 
-    pub async fn artifacts(
+    async fn artifacts(
         &self,
         policy: Option<&str>,
         checkpoint: Option<&str>,
@@ -184,23 +223,14 @@ impl Store {
         let mut out = Vec::with_capacity(rows.len());
         for r in &rows {
             let mut rec = artifact_from_row(r)?;
-            rec.aliases = self.aliases_of(&rec.id).await?;
+            rec.aliases = aliases_of(self, &rec.id).await?;
             out.push(rec);
         }
         Ok(out)
     }
 
-    async fn aliases_of(&self, id: &str) -> Result<Vec<String>, StoreError> {
-        let rows = sqlx::query("SELECT alias FROM artifact_aliases WHERE artifact_id = $1 ORDER BY alias")
-            .bind(id)
-            .fetch_all(&self.catalog().pool)
-            .await?;
-        rows.iter().map(|r| r.s("alias")).collect()
-    }
-
-    /// Points `alias` of the artifact's (policy, checkpoint, kind) at the artifact.
-    pub async fn set_alias(&self, alias: &str, artifact_id: &str) -> Result<ArtifactRecord, StoreError> {
-        crate::model::check_name("alias", alias)?;
+    async fn set_alias(&self, alias: &str, artifact_id: &str) -> Result<ArtifactRecord, StoreError> {
+        store::model::check_name("alias", alias)?;
         if alias.contains('@') || alias.contains('/') {
             return Err(StoreError::invalid(format!("alias {alias:?} may not contain '@' or '/'")));
         }
@@ -212,8 +242,7 @@ impl Store {
         self.artifact(artifact_id).await
     }
 
-    /// Resolves `policy/checkpoint/kind@alias` to an artifact.
-    pub async fn resolve_alias(
+    async fn resolve_alias(
         &self,
         policy: &str,
         checkpoint: &str,
@@ -233,8 +262,7 @@ impl Store {
         self.artifact(&row.s("artifact_id")?).await
     }
 
-    /// Resolves an artifact reference: an id, or `policy/checkpoint/kind@alias`.
-    pub async fn resolve_artifact(&self, reference: &str) -> Result<ArtifactRecord, StoreError> {
+    async fn resolve_artifact(&self, reference: &str) -> Result<ArtifactRecord, StoreError> {
         if let Some((path, alias)) = reference.rsplit_once('@') {
             let parts: Vec<&str> = path.rsplitn(3, '/').collect();
             if parts.len() != 3 {
@@ -247,14 +275,13 @@ impl Store {
         self.artifact(reference).await
     }
 
-    /// Copies an artifact's files into `dir` (checking their sha256).
-    pub async fn download_artifact(&self, id: &str, dir: &Path) -> Result<ArtifactRecord, StoreError> {
+    async fn download_artifact(&self, id: &str, dir: &Path) -> Result<ArtifactRecord, StoreError> {
         let a = self.artifact(id).await?;
         std::fs::create_dir_all(dir)
             .map_err(|e| StoreError::invalid(format!("cannot create {}: {e}", dir.display())))?;
         for f in &a.files {
             let data = self.get_object(&format!("{}/{}", a.prefix, f.name)).await?;
-            if crate::sha256_hex(&data) != f.sha256 {
+            if sha256_hex(&data) != f.sha256 {
                 return Err(StoreError::Corrupt(format!("artifact {id} file {} fails its sha256", f.name)));
             }
             std::fs::write(dir.join(&f.name), &data)
@@ -264,8 +291,16 @@ impl Store {
     }
 }
 
+async fn aliases_of(store: &Store, id: &str) -> Result<Vec<String>, StoreError> {
+    let rows = sqlx::query("SELECT alias FROM artifact_aliases WHERE artifact_id = $1 ORDER BY alias")
+        .bind(id)
+        .fetch_all(&store.catalog().pool)
+        .await?;
+    rows.iter().map(|r| r.s("alias")).collect()
+}
+
 async fn upsert_alias(
-    tx: &mut crate::catalog::Tx,
+    tx: &mut Tx,
     policy: &str,
     checkpoint: &str,
     kind: &str,
@@ -288,8 +323,8 @@ async fn upsert_alias(
     .await?;
     // The checkpoint's review queue is scored by its `classifier@latest` (unless its policy has
     // a setting): its episodes' review scores follow the alias.
-    if kind == crate::review::DEFAULT_REVIEW_KIND && alias == crate::review::DEFAULT_REVIEW_ALIAS {
-        crate::review::refresh_review_scores_where(tx, policy, Some(checkpoint)).await?;
+    if kind == DEFAULT_REVIEW_KIND && alias == DEFAULT_REVIEW_ALIAS {
+        refresh_review_scores_where(tx, policy, Some(checkpoint)).await?;
     }
     Ok(())
 }

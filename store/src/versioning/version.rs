@@ -4,9 +4,9 @@
 //! move the head, commit. Data files are written before it (put-if-absent, unreferenced until
 //! this commit), so a crash leaves no visible partial version. A version costs what it changes.
 
+use super::counts::CountDeltas;
+use super::label_files::{label_cols, label_row, put_pending_labels_file};
 use crate::catalog::{insert_rows, RowExt, Tx, Val};
-use crate::counts::CountDeltas;
-use crate::label_files::{label_cols, label_row, put_pending_labels_file};
 use crate::steps::{self, LabelsKind};
 use crate::{now_rfc3339, Label, Store, StoreError};
 use bytes::Bytes;
@@ -395,7 +395,7 @@ pub(crate) async fn finish_version(
     events.extend(head.events);
     store.commit_with_events(tx, &events).await?;
     // Committed: a checkpoint that fails now only leaves the chain longer for the next one.
-    if let Err(e) = crate::label_files::checkpoint_if_due(store, v).await {
+    if let Err(e) = super::label_files::checkpoint_if_due(store, v).await {
         tracing::warn!("labels checkpoint of version {v} failed (the next version retries): {e}");
     }
     Ok(v)

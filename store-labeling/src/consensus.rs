@@ -4,7 +4,7 @@
 //! (`labels_needed`, default 1) and whether labelers work blind. Each labeler's verdict is an
 //! append-only vote (`label_votes`; a labeler's latest vote counts). When the latest votes of
 //! `labels_needed` labelers agree, the episode's label moves to that verdict through the ordinary
-//! label write ([`crate::labels::apply_one`]: revision, audit event, counts), so history,
+//! label write (`store::sql::write_label`: revision, audit event, counts), so history,
 //! snapshots and `version_labels` work as before; the event's data records the votes. When they
 //! disagree the episode is disputed until an adjudicator settles it (an event with source
 //! `adjudication`). With `labels_needed = 1` one vote is one label write, as a PUT is.
@@ -14,15 +14,13 @@
 //! One file past 700 lines: campaign settings, votes and their resolution are one protocol over the
 //! same tables.
 
-use crate::catalog::{RowExt, Tx};
-use crate::counts::CountDeltas;
-use crate::events::{EventKind, NewEvent};
-use crate::labels::apply_one;
-use crate::{now_rfc3339, Backend, Label, LabelChange, LabelUpdate, Store, StoreError};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, HashSet};
+use std::future::Future;
 use std::sync::Arc;
+use store::sql::{now_rfc3339, write_label, RowExt, Tx};
+use store::{Backend, EventKind, Label, LabelChange, LabelUpdate, NewEvent, Store, StoreError};
 
 /// The most labelers a campaign may require per episode.
 pub const MAX_LABELS_NEEDED: i64 = 10;
@@ -346,7 +344,7 @@ pub const CAMPAIGN_CACHE_TTL: std::time::Duration = std::time::Duration::from_se
 
 /// The policies whose campaign needs several labelers, and when they were read.
 #[derive(Default)]
-pub(crate) struct MultiLabelerCache(std::sync::Mutex<Option<(std::time::Instant, Arc<HashSet<String>>)>>);
+struct MultiLabelerCache(std::sync::Mutex<Option<(std::time::Instant, Arc<HashSet<String>>)>>);
 
 impl MultiLabelerCache {
     fn fresh(&self) -> Option<Arc<HashSet<String>>> {
@@ -376,9 +374,80 @@ async fn adjudicated_after_votes(tx: &mut Tx, id: &str) -> Result<bool, StoreErr
     Ok(adj.is_some() && adj == last && r.os("adj_at")? >= r.os("last_vote")?)
 }
 
-impl Store {
+/// Several labelers per episode on a [`Store`]: campaign settings, failure-cause taxonomies,
+/// votes, their consensus and its adjudication, and the labelers' agreement.
+pub trait Consensus {
     /// A policy's campaign settings (defaults when none were set).
-    pub async fn campaign(&self, policy: &str) -> Result<Campaign, StoreError> {
+    fn campaign(&self, policy: &str) -> impl Future<Output = Result<Campaign, StoreError>> + Send;
+
+    /// Whether the episode's campaign needs several labelers (a plain label write would bypass
+    /// their votes). Asks the catalog only when some campaign does (the policies whose
+    /// campaigns do are cached for [`CAMPAIGN_CACHE_TTL`]; this process's own campaign changes
+    /// are seen at once, another server's within that time).
+    fn votes_required(&self, episode_id: &str) -> impl Future<Output = Result<bool, StoreError>> + Send;
+
+    /// Whether any campaign needs several labelers (cached as [`Consensus::votes_required`] says).
+    fn any_multi_labeler_campaign(&self) -> impl Future<Output = Result<bool, StoreError>> + Send;
+
+    /// Sets a policy's campaign settings.
+    fn set_campaign(
+        &self,
+        policy: &str,
+        labels_needed: i64,
+        blind: bool,
+        actor: &str,
+    ) -> impl Future<Output = Result<Campaign, StoreError>> + Send;
+
+    /// The failure causes of a task, in number-key order (the `*` taxonomy when the task has
+    /// none of its own; empty when neither exists).
+    fn failure_causes(&self, task: &str) -> impl Future<Output = Result<Vec<String>, StoreError>> + Send;
+
+    /// Sets a task's failure causes (`*`: every task without its own).
+    fn set_failure_causes(
+        &self,
+        task: &str,
+        causes: &[String],
+        actor: &str,
+    ) -> impl Future<Output = Result<Vec<String>, StoreError>> + Send;
+
+    /// Records one labeler's verdict; moves the episode's label when enough labelers agree.
+    fn cast_vote(
+        &self,
+        vote: NewVote,
+        actor: &str,
+    ) -> impl Future<Output = Result<VoteOutcome, StoreError>> + Send;
+
+    /// An episode's votes (each labeler's latest) and their state, unfiltered: the API hides
+    /// the others' votes from a blind labeler with [`EpisodeVotes::hide_others`].
+    fn episode_votes(
+        &self,
+        episode_id: &str,
+    ) -> impl Future<Output = Result<EpisodeVotes, StoreError>> + Send;
+
+    /// Settles an episode: its label becomes `label` (source `adjudication`); the event's data
+    /// is the adjudicator's if given, else the votes'.
+    fn adjudicate(
+        &self,
+        episode_id: &str,
+        label: Label,
+        data: VerdictData,
+        note: Option<String>,
+        actor: &str,
+    ) -> impl Future<Output = Result<LabelChange, StoreError>> + Send;
+
+    /// Disputed episodes of a policy (or all), oldest episode id first.
+    fn adjudication_queue(
+        &self,
+        policy: Option<&str>,
+        limit: usize,
+    ) -> impl Future<Output = Result<Vec<Dispute>, StoreError>> + Send;
+
+    /// Per-labeler counts, pairwise Cohen's κ and Krippendorff's α in a campaign.
+    fn agreement(&self, policy: &str) -> impl Future<Output = Result<Agreement, StoreError>> + Send;
+}
+
+impl Consensus for Store {
+    async fn campaign(&self, policy: &str) -> Result<Campaign, StoreError> {
         let r = sqlx::query(
             "SELECT labels_needed, blind, updated_by, updated_at FROM campaigns WHERE policy = $1",
         )
@@ -388,12 +457,8 @@ impl Store {
         campaign_from(policy, r)
     }
 
-    /// Whether the episode's campaign needs several labelers (a plain label write would bypass
-    /// their votes). Asks the catalog only when some campaign does (the policies whose
-    /// campaigns do are cached for [`CAMPAIGN_CACHE_TTL`]; this process's own campaign changes
-    /// are seen at once, another server's within that time).
-    pub async fn votes_required(&self, episode_id: &str) -> Result<bool, StoreError> {
-        if self.multi_labeler_policies().await?.is_empty() {
+    async fn votes_required(&self, episode_id: &str) -> Result<bool, StoreError> {
+        if multi_labeler_policies(self).await?.is_empty() {
             return Ok(false);
         }
         let r = sqlx::query(
@@ -408,65 +473,19 @@ impl Store {
         })
     }
 
-    /// The data of the label events `(episode id, revision)` that have any (exports record the
-    /// failure cause and spans behind each label), by episode id.
-    pub async fn label_event_data(
-        &self,
-        keys: &[(String, i64)],
-    ) -> Result<std::collections::HashMap<String, Value>, StoreError> {
-        let mut out = std::collections::HashMap::new();
-        for chunk in keys.chunks(500) {
-            let sql = format!(
-                "SELECT episode_id, revision, data FROM label_events WHERE data IS NOT NULL AND episode_id IN ({})",
-                crate::catalog::placeholders(chunk.len())
-            );
-            let mut q = sqlx::query(&sql);
-            for (id, _) in chunk {
-                q = q.bind(id);
-            }
-            let wanted: std::collections::HashMap<&str, i64> =
-                chunk.iter().map(|(id, rev)| (id.as_str(), *rev)).collect();
-            for r in q.fetch_all(&self.catalog().pool).await? {
-                let id = r.s("episode_id")?;
-                if wanted.get(id.as_str()) == Some(&r.i("revision")?) {
-                    let d = serde_json::from_str(&r.s("data")?)
-                        .map_err(|e| StoreError::Corrupt(format!("label event data: {e}")))?;
-                    out.insert(id, d);
-                }
-            }
-        }
-        Ok(out)
+    async fn any_multi_labeler_campaign(&self) -> Result<bool, StoreError> {
+        Ok(!multi_labeler_policies(self).await?.is_empty())
     }
 
-    /// Whether any campaign needs several labelers (cached as [`Store::votes_required`] says).
-    pub async fn any_multi_labeler_campaign(&self) -> Result<bool, StoreError> {
-        Ok(!self.multi_labeler_policies().await?.is_empty())
-    }
-
-    /// The policies whose campaign needs several labelers, from the cache when it is fresh.
-    async fn multi_labeler_policies(&self) -> Result<Arc<HashSet<String>>, StoreError> {
-        let cache = &self.inner.multi_labeler;
-        if let Some(p) = cache.fresh() {
-            return Ok(p);
-        }
-        let rows = sqlx::query("SELECT policy FROM campaigns WHERE labels_needed > 1")
-            .fetch_all(&self.catalog().pool)
-            .await?;
-        let policies = Arc::new(rows.iter().map(|r| r.s("policy")).collect::<Result<HashSet<_>, _>>()?);
-        cache.store(policies.clone());
-        Ok(policies)
-    }
-
-    /// Sets a policy's campaign settings.
-    pub async fn set_campaign(
+    async fn set_campaign(
         &self,
         policy: &str,
         labels_needed: i64,
         blind: bool,
         actor: &str,
     ) -> Result<Campaign, StoreError> {
-        crate::model::check_name("policy", policy)?;
-        crate::model::check_name("actor", actor)?;
+        store::model::check_name("policy", policy)?;
+        store::model::check_name("actor", actor)?;
         if !(1..=MAX_LABELS_NEEDED).contains(&labels_needed) {
             return Err(StoreError::invalid(format!(
                 "labels_needed must be 1 to {MAX_LABELS_NEEDED}, not {labels_needed}"
@@ -493,13 +512,11 @@ impl Store {
         )
         .of(policy, None);
         self.commit_with_events(tx, &[event]).await?;
-        self.inner.multi_labeler.clear();
+        self.extension::<MultiLabelerCache>().clear();
         Ok(c)
     }
 
-    /// The failure causes of a task, in number-key order (the `*` taxonomy when the task has
-    /// none of its own; empty when neither exists).
-    pub async fn failure_causes(&self, task: &str) -> Result<Vec<String>, StoreError> {
+    async fn failure_causes(&self, task: &str) -> Result<Vec<String>, StoreError> {
         let rows = sqlx::query("SELECT task, causes FROM failure_causes WHERE task = $1 OR task = '*'")
             .bind(task)
             .fetch_all(&self.catalog().pool)
@@ -512,22 +529,21 @@ impl Store {
         }
     }
 
-    /// Sets a task's failure causes (`*`: every task without its own).
-    pub async fn set_failure_causes(
+    async fn set_failure_causes(
         &self,
         task: &str,
         causes: &[String],
         actor: &str,
     ) -> Result<Vec<String>, StoreError> {
-        crate::model::check_name("task", task)?;
-        crate::model::check_name("actor", actor)?;
+        store::model::check_name("task", task)?;
+        store::model::check_name("actor", actor)?;
         if causes.len() > MAX_FAILURE_CAUSES {
             return Err(StoreError::invalid(format!(
                 "at most {MAX_FAILURE_CAUSES} failure causes (one number key each)"
             )));
         }
         for (i, c) in causes.iter().enumerate() {
-            crate::model::check_name("failure cause", c)?;
+            store::model::check_name("failure cause", c)?;
             if causes[..i].contains(c) {
                 return Err(StoreError::invalid(format!("failure cause {c:?} is listed twice")));
             }
@@ -549,47 +565,8 @@ impl Store {
         Ok(causes.to_vec())
     }
 
-    /// Checks a verdict's data against the episode: the cause is in the task's taxonomy and
-    /// goes with a failure, spans lie inside the episode.
-    async fn check_data(&self, head: &EpisodeHead, label: Label, d: &VerdictData) -> Result<(), StoreError> {
-        if let Some(c) = &d.failure_cause {
-            if label != Label::Failure {
-                return Err(StoreError::invalid("a failure cause goes with a failure verdict"));
-            }
-            let causes = self.failure_causes(head.task.as_deref().unwrap_or("*")).await?;
-            if !causes.contains(c) {
-                // The taxonomy is the campaign's state, not the request's shape: 409.
-                return Err(StoreError::Conflict(format!(
-                    "{c:?} is not a failure cause of this task (causes: {causes:?})"
-                )));
-            }
-        }
-        if d.spans.len() > MAX_SPANS {
-            return Err(StoreError::invalid(format!("at most {MAX_SPANS} spans per verdict")));
-        }
-        for s in &d.spans {
-            if s.start_step < 0 || s.end_step < s.start_step {
-                return Err(StoreError::invalid(format!(
-                    "span {}..{}: steps from 0, start before end",
-                    s.start_step, s.end_step
-                )));
-            }
-            if s.end_step >= head.length {
-                // The episode's length is its state: a span past its end is a conflict (409).
-                return Err(StoreError::Conflict(format!(
-                    "span {}..{} is not inside the episode's steps 0..{}",
-                    s.start_step,
-                    s.end_step,
-                    head.length - 1
-                )));
-            }
-        }
-        Ok(())
-    }
-
-    /// Records one labeler's verdict; moves the episode's label when enough labelers agree.
-    pub async fn cast_vote(&self, vote: NewVote, actor: &str) -> Result<VoteOutcome, StoreError> {
-        crate::model::check_name("actor", actor)?;
+    async fn cast_vote(&self, vote: NewVote, actor: &str) -> Result<VoteOutcome, StoreError> {
+        store::model::check_name("actor", actor)?;
         if vote.note.as_ref().is_some_and(|n| n.len() > 4000) {
             return Err(StoreError::invalid("label note is longer than 4000 bytes"));
         }
@@ -601,7 +578,7 @@ impl Store {
             tx.rollback().await?;
             h
         };
-        self.check_data(&pre, vote.label, &vote.data).await?;
+        check_data(self, &pre, vote.label, &vote.data).await?;
         let mut tx = self.catalog().begin_write().await?;
         let head = episode_head(&mut tx, backend, &vote.episode_id).await?;
         let campaign = campaign_in(&mut tx, &head.policy).await?;
@@ -653,7 +630,7 @@ impl Store {
                 expect_revision: expect,
                 note: vote.note.clone(),
             };
-            let change = write_event(&mut tx, backend, &update, actor, source, data, &mut events).await?;
+            let change = write_label(&mut tx, backend, &update, actor, source, data, &mut events).await?;
             out.label = change.label;
             out.revision = change.revision;
             out.change = Some(change);
@@ -662,9 +639,7 @@ impl Store {
         Ok(out)
     }
 
-    /// An episode's votes (each labeler's latest) and their state, unfiltered: the API hides
-    /// the others' votes from a blind labeler with [`EpisodeVotes::hide_others`].
-    pub async fn episode_votes(&self, episode_id: &str) -> Result<EpisodeVotes, StoreError> {
+    async fn episode_votes(&self, episode_id: &str) -> Result<EpisodeVotes, StoreError> {
         let mut tx = self.catalog().pool.begin().await?;
         let head = episode_head(&mut tx, Backend::Sqlite, episode_id).await?;
         let campaign = campaign_in(&mut tx, &head.policy).await?;
@@ -683,9 +658,7 @@ impl Store {
         })
     }
 
-    /// Settles an episode: its label becomes `label` (source `adjudication`); the event's data
-    /// is the adjudicator's if given, else the votes'.
-    pub async fn adjudicate(
+    async fn adjudicate(
         &self,
         episode_id: &str,
         label: Label,
@@ -693,7 +666,7 @@ impl Store {
         note: Option<String>,
         actor: &str,
     ) -> Result<LabelChange, StoreError> {
-        crate::model::check_name("actor", actor)?;
+        store::model::check_name("actor", actor)?;
         if note.as_ref().is_some_and(|n| n.len() > 4000) {
             return Err(StoreError::invalid("label note is longer than 4000 bytes"));
         }
@@ -703,7 +676,7 @@ impl Store {
             tx.rollback().await?;
             h
         };
-        self.check_data(&pre, label, &data).await?;
+        check_data(self, &pre, label, &data).await?;
         let backend = self.backend();
         let mut tx = self.catalog().begin_write().await?;
         episode_head(&mut tx, backend, episode_id).await?;
@@ -715,18 +688,17 @@ impl Store {
         let update = LabelUpdate { episode_id: episode_id.to_string(), label, expect_revision: None, note };
         let mut events = Vec::new();
         let change =
-            write_event(&mut tx, backend, &update, actor, "adjudication", Some(d), &mut events).await?;
+            write_label(&mut tx, backend, &update, actor, "adjudication", Some(d), &mut events).await?;
         self.commit_with_events(tx, &events).await?;
         Ok(change)
     }
 
-    /// Disputed episodes of a policy (or all), oldest episode id first.
-    pub async fn adjudication_queue(
+    async fn adjudication_queue(
         &self,
         policy: Option<&str>,
         limit: usize,
     ) -> Result<Vec<Dispute>, StoreError> {
-        let votes = self.policy_votes(policy).await?;
+        let votes = policy_votes(self, policy).await?;
         let mut out = Vec::new();
         let mut tx = self.catalog().pool.begin().await?;
         for (id, (pol, label, revision, latest)) in votes {
@@ -746,41 +718,9 @@ impl Store {
         Ok(out)
     }
 
-    /// Each labeler's latest vote per episode of a policy (or all): id → (policy, label,
-    /// revision, votes).
-    #[allow(clippy::type_complexity)]
-    async fn policy_votes(
-        &self,
-        policy: Option<&str>,
-    ) -> Result<BTreeMap<String, (String, Label, i64, Vec<Vote>)>, StoreError> {
-        let rows = sqlx::query(
-            "SELECT v.episode_id, e.policy, e.label AS episode_label, e.label_revision, v.actor, v.label, v.data, v.note, \
-             v.created_at FROM label_votes v JOIN episodes e ON e.id = v.episode_id \
-             WHERE e.version_removed IS NULL AND (CAST($1 AS TEXT) IS NULL OR e.policy = $1) ORDER BY v.id",
-        )
-        .bind(policy)
-        .fetch_all(&self.catalog().pool)
-        .await?;
-        let mut all: BTreeMap<String, (String, Label, i64, Vec<Vote>)> = BTreeMap::new();
-        for r in &rows {
-            let e = all.entry(r.s("episode_id")?).or_insert((
-                r.s("policy")?,
-                r.s("episode_label")?.parse()?,
-                r.i("label_revision")?,
-                Vec::new(),
-            ));
-            e.3.push(vote_from_row(r)?);
-        }
-        for e in all.values_mut() {
-            e.3 = latest_by_actor(std::mem::take(&mut e.3));
-        }
-        Ok(all)
-    }
-
-    /// Per-labeler counts, pairwise Cohen's κ and Krippendorff's α in a campaign.
-    pub async fn agreement(&self, policy: &str) -> Result<Agreement, StoreError> {
+    async fn agreement(&self, policy: &str) -> Result<Agreement, StoreError> {
         let campaign = self.campaign(policy).await?;
-        let votes = self.policy_votes(Some(policy)).await?;
+        let votes = policy_votes(self, Some(policy)).await?;
         let mut counts: BTreeMap<String, LabelerCounts> = BTreeMap::new();
         let mut by_pair: BTreeMap<(String, String), Vec<(Label, Label)>> = BTreeMap::new();
         let mut units: Vec<Vec<&'static str>> = Vec::new();
@@ -853,27 +793,90 @@ impl Store {
     }
 }
 
-/// A label write with data, inside `tx`: the ordinary write (revision, audit event, counts) and
-/// the event's data, in the same transaction.
-async fn write_event(
-    tx: &mut Tx,
-    backend: Backend,
-    update: &LabelUpdate,
-    actor: &str,
-    source: &str,
-    data: Option<Value>,
-    events: &mut Vec<NewEvent>,
-) -> Result<LabelChange, StoreError> {
-    let mut counts = CountDeltas::default();
-    let change = apply_one(tx, backend, update, actor, source, &mut counts, events).await?;
-    counts.apply(tx, backend).await?;
-    if let Some(d) = data {
-        sqlx::query("UPDATE label_events SET data = $1 WHERE episode_id = $2 AND revision = $3")
-            .bind(d.to_string())
-            .bind(&update.episode_id)
-            .bind(change.revision)
-            .execute(&mut **tx)
-            .await?;
+/// The policies whose campaign needs several labelers, from the cache when it is fresh.
+async fn multi_labeler_policies(store: &Store) -> Result<Arc<HashSet<String>>, StoreError> {
+    let cache = store.extension::<MultiLabelerCache>();
+    if let Some(p) = cache.fresh() {
+        return Ok(p);
     }
-    Ok(change)
+    let rows = sqlx::query("SELECT policy FROM campaigns WHERE labels_needed > 1")
+        .fetch_all(&store.catalog().pool)
+        .await?;
+    let policies = Arc::new(rows.iter().map(|r| r.s("policy")).collect::<Result<HashSet<_>, _>>()?);
+    cache.store(policies.clone());
+    Ok(policies)
+}
+
+/// Checks a verdict's data against the episode: the cause is in the task's taxonomy and
+/// goes with a failure, spans lie inside the episode.
+async fn check_data(
+    store: &Store,
+    head: &EpisodeHead,
+    label: Label,
+    d: &VerdictData,
+) -> Result<(), StoreError> {
+    if let Some(c) = &d.failure_cause {
+        if label != Label::Failure {
+            return Err(StoreError::invalid("a failure cause goes with a failure verdict"));
+        }
+        let causes = store.failure_causes(head.task.as_deref().unwrap_or("*")).await?;
+        if !causes.contains(c) {
+            // The taxonomy is the campaign's state, not the request's shape: 409.
+            return Err(StoreError::Conflict(format!(
+                "{c:?} is not a failure cause of this task (causes: {causes:?})"
+            )));
+        }
+    }
+    if d.spans.len() > MAX_SPANS {
+        return Err(StoreError::invalid(format!("at most {MAX_SPANS} spans per verdict")));
+    }
+    for s in &d.spans {
+        if s.start_step < 0 || s.end_step < s.start_step {
+            return Err(StoreError::invalid(format!(
+                "span {}..{}: steps from 0, start before end",
+                s.start_step, s.end_step
+            )));
+        }
+        if s.end_step >= head.length {
+            // The episode's length is its state: a span past its end is a conflict (409).
+            return Err(StoreError::Conflict(format!(
+                "span {}..{} is not inside the episode's steps 0..{}",
+                s.start_step,
+                s.end_step,
+                head.length - 1
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Each labeler's latest vote per episode of a policy (or all): id → (policy, label,
+/// revision, votes).
+#[allow(clippy::type_complexity)]
+async fn policy_votes(
+    store: &Store,
+    policy: Option<&str>,
+) -> Result<BTreeMap<String, (String, Label, i64, Vec<Vote>)>, StoreError> {
+    let rows = sqlx::query(
+        "SELECT v.episode_id, e.policy, e.label AS episode_label, e.label_revision, v.actor, v.label, v.data, v.note, \
+         v.created_at FROM label_votes v JOIN episodes e ON e.id = v.episode_id \
+         WHERE e.version_removed IS NULL AND (CAST($1 AS TEXT) IS NULL OR e.policy = $1) ORDER BY v.id",
+    )
+    .bind(policy)
+    .fetch_all(&store.catalog().pool)
+    .await?;
+    let mut all: BTreeMap<String, (String, Label, i64, Vec<Vote>)> = BTreeMap::new();
+    for r in &rows {
+        let e = all.entry(r.s("episode_id")?).or_insert((
+            r.s("policy")?,
+            r.s("episode_label")?.parse()?,
+            r.i("label_revision")?,
+            Vec::new(),
+        ));
+        e.3.push(vote_from_row(r)?);
+    }
+    for e in all.values_mut() {
+        e.3 = latest_by_actor(std::mem::take(&mut e.3));
+    }
+    Ok(all)
 }

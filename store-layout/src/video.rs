@@ -8,10 +8,10 @@
 //! [`KEY_FRAME_INTERVAL`] frames). Other codecs (LeRobot's AV1) and reordered frames are refused
 //! with an error that says so; malformed files are errors, never panics.
 //!
-//! [`Store::video_codec`] names a stored video's codec from its `moov` box alone (a few range
+//! `store::Store::video_codec` names a stored video's codec from its `moov` box alone (a few range
 //! requests), so a writer can tell an AV1 video it will not decode without fetching it whole.
 
-use crate::{Store, StoreError};
+use crate::StoreError;
 use openh264::decoder::Decoder;
 use openh264::formats::YUVSource;
 use std::io::Cursor;
@@ -58,7 +58,7 @@ struct Track {
     length_size: usize,
 }
 
-fn bad(why: impl std::fmt::Display) -> StoreError {
+pub fn bad(why: impl std::fmt::Display) -> StoreError {
     StoreError::invalid(format!("video: {why}"))
 }
 
@@ -228,10 +228,10 @@ pub fn decode_all(mp4_bytes: Vec<u8>, mut each: impl FnMut(f64, RgbFrame)) -> Re
 }
 
 /// Top-level boxes looked at for `moov` before giving up (an MP4 has a handful).
-const MAX_TOP_LEVEL_BOXES: usize = 64;
+pub const MAX_TOP_LEVEL_BOXES: usize = 64;
 
 /// The largest `moov` box read to name a codec (it holds the sample tables: a few MB for hours).
-const MAX_MOOV_BYTES: u64 = 64 << 20;
+pub const MAX_MOOV_BYTES: u64 = 64 << 20;
 
 /// A box header at the start of `b` with `left` bytes up to its parent's end: its type, its total
 /// size and its header's size; `None` when it is cut short or overruns its parent. (ISO BMFF box
@@ -288,32 +288,6 @@ pub fn codec_name(sample_entry: &str) -> String {
         "vp09" => "VP9".into(),
         "vp08" => "VP8".into(),
         other => other.into(),
-    }
-}
-
-impl Store {
-    /// The sample entry type of a stored MP4's video track ([`video_sample_entry`]), from its
-    /// top-level box headers and its `moov` box: the media data is not read.
-    pub async fn video_codec(&self, path: &str) -> Result<String, StoreError> {
-        let size = self.object_size(path).await?;
-        let mut at = 0u64;
-        for _ in 0..MAX_TOP_LEVEL_BOXES {
-            if at + 8 > size {
-                break;
-            }
-            let head = self.get_object_range(path, at..(at + 16).min(size)).await?;
-            let (kind, total, header) = box_header(&head, size - at)
-                .ok_or_else(|| bad(format!("{path}: a box overruns the file")))?;
-            if &kind == b"moov" {
-                if total > MAX_MOOV_BYTES {
-                    return Err(bad(format!("{path}: a moov box of {total} bytes")));
-                }
-                let moov = self.get_object_range(path, at + header..at + total).await?;
-                return video_sample_entry(&moov).ok_or_else(|| bad(format!("{path}: no video track")));
-            }
-            at += total;
-        }
-        Err(bad(format!("{path}: no moov box")))
     }
 }
 

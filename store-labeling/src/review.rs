@@ -1,18 +1,18 @@
-//! The review queue: verifier scores of episodes, stored by the `score` job (one row
-//! per artifact and episode: the mean step score and the per-step series), the artifact that
-//! scores each policy's queue, and the queue itself ordered by those stored scores.
+//! The review queue: each policy's episodes in the order that matters to a labeler, by the
+//! scores stored for them (`store`'s `scores.rs`: the `score` job writes them, each episode's
+//! `review_score` follows the artifact that scores its policy's queue), and that artifact's
+//! setting per policy.
 
-use crate::catalog::{bind_val, insert_rows, RowExt, Tx, Val};
-use crate::query::{
-    episode_conds, episode_from_row, label_conds, push_arg, EpisodeFilter, EpisodeRecord, EPISODE_SELECT,
-};
-use crate::spans::covers;
-use crate::{now_rfc3339, Store, StoreError};
 use serde::Serialize;
-
-/// The artifact kind and alias that score a checkpoint's episodes when its policy names none.
-pub const DEFAULT_REVIEW_KIND: &str = "classifier";
-pub const DEFAULT_REVIEW_ALIAS: &str = "latest";
+use std::future::Future;
+use store::sql::{
+    bind_val, covers, episode_conds, episode_from_row, label_conds, now_rfc3339, push_arg,
+    refresh_review_scores_where, RowExt, Val, EPISODE_SELECT,
+};
+use store::{
+    EpisodeFilter, EpisodeRecord, EpisodeScore, Store, StoreError, DEFAULT_REVIEW_ALIAS, DEFAULT_REVIEW_KIND,
+};
+use store_artifacts::Artifacts;
 
 /// How the review queue is ordered. Every order ends with the episode id (a total order, so
 /// keyset pages neither repeat nor skip), and episodes without a stored score come last.
@@ -76,21 +76,6 @@ pub struct ReviewEntry {
     pub cursor: String,
 }
 
-/// An episode's stored verifier scores by one artifact: one per step, and their mean.
-#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema), schema(as = EpisodeScores))]
-#[derive(Debug, Clone, Serialize, PartialEq)]
-pub struct EpisodeScore {
-    pub episode_id: String,
-    pub artifact_id: String,
-    /// The mean of `step_scores` (what orders the queue).
-    pub score: f64,
-    /// One score per step, in step order (a classifier's success probability).
-    pub step_scores: Vec<f32>,
-    /// The score job that stored them.
-    pub job_id: Option<String>,
-    pub created_at: String,
-}
-
 /// The artifact a policy's queue is scored with, when set explicitly.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct ReviewArtifact {
@@ -101,100 +86,75 @@ pub struct ReviewArtifact {
 }
 
 /// The artifact each episode row `e` is scored by: its policy's override, else its checkpoint's
-/// default alias (its score by it is `e.review_score`, see [`REFRESH_REVIEW_SCORE`]).
+/// default alias (its score by it is `e.review_score`, kept by the store's `scores.rs`).
 const REVIEW_JOINS: &str = "LEFT JOIN review_artifacts ra ON ra.policy = e.policy \
      LEFT JOIN artifact_aliases aa ON aa.policy = e.policy AND aa.checkpoint = e.checkpoint \
      AND aa.kind = 'classifier' AND aa.alias = 'latest'";
 
-/// Sets `episodes.review_score` to the episode's stored score by its review artifact (the
-/// policy's setting, else its checkpoint's `classifier@latest`), NULL without one, for the rows
-/// a condition appended to this statement picks. Every write that can change that score runs it
-/// in its own transaction: scores stored, the policy's setting, the `latest` classifier alias
-/// moving (a new episode has no stored score: its id is new). The same rule as
-/// [`REVIEW_JOINS`] and migration 0014's backfill.
-pub(crate) const REFRESH_REVIEW_SCORE: &str = "UPDATE episodes SET review_score = (\
-     SELECT s.score FROM episode_scores s WHERE s.episode_id = episodes.id AND s.artifact_id = COALESCE(\
-     (SELECT ra.artifact_id FROM review_artifacts ra WHERE ra.policy = episodes.policy), \
-     (SELECT aa.artifact_id FROM artifact_aliases aa WHERE aa.policy = episodes.policy \
-     AND aa.checkpoint = episodes.checkpoint AND aa.kind = 'classifier' AND aa.alias = 'latest'))) WHERE ";
-
-/// [`REFRESH_REVIEW_SCORE`] for the episodes `ids` (in statements of at most 500 ids).
-pub(crate) async fn refresh_review_scores_of(tx: &mut Tx, ids: &[String]) -> Result<(), StoreError> {
-    for chunk in ids.chunks(500) {
-        let sql = format!("{REFRESH_REVIEW_SCORE}id IN ({})", crate::catalog::placeholders(chunk.len()));
-        let mut q = sqlx::query(&sql);
-        for id in chunk {
-            q = q.bind(id);
-        }
-        q.execute(&mut **tx).await?;
-    }
-    Ok(())
-}
-
-/// [`REFRESH_REVIEW_SCORE`] for a policy's episodes, or one checkpoint's.
-pub(crate) async fn refresh_review_scores_where(
-    tx: &mut Tx,
-    policy: &str,
-    checkpoint: Option<&str>,
-) -> Result<(), StoreError> {
-    let sql = match checkpoint {
-        Some(_) => format!("{REFRESH_REVIEW_SCORE}policy = $1 AND checkpoint = $2"),
-        None => format!("{REFRESH_REVIEW_SCORE}policy = $1"),
-    };
-    sqlx::query(&sql).bind(policy).bind(checkpoint).execute(&mut **tx).await?;
-    Ok(())
-}
-
-impl Store {
-    /// Stores episode scores of `artifact_id` (replacing earlier ones): `(episode, mean step
-    /// score, per-step scores)`.
-    pub async fn put_episode_scores(
-        &self,
-        artifact_id: &str,
-        job_id: Option<&str>,
-        rows: Vec<(String, f64, Vec<f32>)>,
-    ) -> Result<(), StoreError> {
-        if rows.is_empty() {
-            return Ok(());
-        }
-        let now = now_rfc3339();
-        let mut vals = Vec::with_capacity(rows.len());
-        let ids: Vec<String> = rows.iter().map(|(e, _, _)| e.clone()).collect();
-        for (episode, score, steps) in rows {
-            if !score.is_finite() || steps.iter().any(|x| !x.is_finite()) {
-                return Err(StoreError::invalid(format!("episode {episode}: a score is not finite")));
-            }
-            vals.push(vec![
-                Val::S(artifact_id.into()),
-                Val::S(episode),
-                Val::F(score),
-                Val::S(serde_json::to_string(&steps)?),
-                Val::OS(job_id.map(String::from)),
-                Val::S(now.clone()),
-            ]);
-        }
-        let mut tx = self.catalog().begin_write().await?;
-        insert_rows(
-            &mut tx,
-            "episode_scores",
-            &["artifact_id", "episode_id", "score", "step_scores", "job_id", "created_at"],
-            vals,
-            "ON CONFLICT (artifact_id, episode_id) DO UPDATE SET score = excluded.score, \
-             step_scores = excluded.step_scores, job_id = excluded.job_id, created_at = excluded.created_at",
-        )
-        .await?;
-        refresh_review_scores_of(&mut tx, &ids).await?;
-        let event = crate::events::NewEvent::new(
-            crate::events::EventKind::ReviewScored,
-            artifact_id,
-            serde_json::json!({"episodes": ids.len(), "job_id": job_id}),
-        );
-        self.commit_with_events(tx, &[event]).await?;
-        Ok(())
-    }
-
+/// The review queue on a [`Store`]: the artifact that scores each policy's queue, the
+/// episodes' stored scores by it and the queue in the order a labeler asks for.
+pub trait ReviewQueue {
     /// The artifact that scores `policy`'s queue when set explicitly.
-    pub async fn review_artifact(&self, policy: &str) -> Result<Option<ReviewArtifact>, StoreError> {
+    fn review_artifact(
+        &self,
+        policy: &str,
+    ) -> impl Future<Output = Result<Option<ReviewArtifact>, StoreError>> + Send;
+
+    /// Scores `policy`'s queue with `reference` (an artifact id or `P/C/KIND@ALIAS`, resolved
+    /// now so the setting names one artifact).
+    fn set_review_artifact(
+        &self,
+        policy: &str,
+        reference: &str,
+        actor: &str,
+    ) -> impl Future<Output = Result<ReviewArtifact, StoreError>> + Send;
+
+    /// Back to the default (each checkpoint's `classifier@latest`); false when none was set.
+    fn clear_review_artifact(&self, policy: &str) -> impl Future<Output = Result<bool, StoreError>> + Send;
+
+    /// The artifact that scores a checkpoint's episodes in the review queue, if any.
+    fn review_artifact_for(
+        &self,
+        policy: &str,
+        checkpoint: &str,
+    ) -> impl Future<Output = Result<Option<String>, StoreError>> + Send;
+
+    /// The artifact a score job for `policy` (one `checkpoint`'s episodes, or all) uses:
+    /// `reference` (an id or `P/C/KIND@ALIAS`) resolved when given, else the checkpoint's review
+    /// artifact, else the policy's setting; `None` when there is none. The API's
+    /// `POST /v1/review/score` and `ufops review score` choose it alike.
+    fn artifact_to_score(
+        &self,
+        policy: &str,
+        checkpoint: Option<&str>,
+        reference: Option<&str>,
+    ) -> impl Future<Output = Result<Option<String>, StoreError>> + Send;
+
+    /// An episode's stored score by `artifact_id` (default: the artifact of its review queue).
+    fn episode_score(
+        &self,
+        episode_id: &str,
+        artifact_id: Option<&str>,
+    ) -> impl Future<Output = Result<EpisodeScore, StoreError>> + Send;
+
+    /// The episodes matching `filter` (its `id` and `after` must be unset), now or as a past
+    /// `version` froze them (its episodes and labels), in review `order` by the current scores, a
+    /// keyset page after `cursor` (an entry's `cursor`). Any text is a position: one that is not
+    /// a position of this order lies past its end (an empty page). A policy's `uncertain` and
+    /// `disagreement` pages of the current labels walk an index on the order's key (migration
+    /// 0014: a page costs its rows, plus those the other filters skip); without a policy, at a
+    /// past version or in `source` order, a page sorts the filtered episodes.
+    fn review_queue(
+        &self,
+        filter: &EpisodeFilter,
+        order: ReviewOrder,
+        cursor: Option<&str>,
+        limit: i64,
+    ) -> impl Future<Output = Result<Vec<ReviewEntry>, StoreError>> + Send;
+}
+
+impl ReviewQueue for Store {
+    async fn review_artifact(&self, policy: &str) -> Result<Option<ReviewArtifact>, StoreError> {
         let row = sqlx::query(
             "SELECT policy, artifact_id, updated_by, updated_at FROM review_artifacts WHERE policy = $1",
         )
@@ -212,9 +172,7 @@ impl Store {
         .transpose()
     }
 
-    /// Scores `policy`'s queue with `reference` (an artifact id or `P/C/KIND@ALIAS`, resolved
-    /// now so the setting names one artifact).
-    pub async fn set_review_artifact(
+    async fn set_review_artifact(
         &self,
         policy: &str,
         reference: &str,
@@ -244,8 +202,7 @@ impl Store {
         })
     }
 
-    /// Back to the default (each checkpoint's `classifier@latest`); false when none was set.
-    pub async fn clear_review_artifact(&self, policy: &str) -> Result<bool, StoreError> {
+    async fn clear_review_artifact(&self, policy: &str) -> Result<bool, StoreError> {
         let mut tx = self.catalog().begin_write().await?;
         let r = sqlx::query("DELETE FROM review_artifacts WHERE policy = $1")
             .bind(policy)
@@ -258,8 +215,7 @@ impl Store {
         Ok(r.rows_affected() > 0)
     }
 
-    /// The artifact that scores a checkpoint's episodes in the review queue, if any.
-    pub async fn review_artifact_for(
+    async fn review_artifact_for(
         &self,
         policy: &str,
         checkpoint: &str,
@@ -274,11 +230,7 @@ impl Store {
         }
     }
 
-    /// The artifact a score job for `policy` (one `checkpoint`'s episodes, or all) uses:
-    /// `reference` (an id or `P/C/KIND@ALIAS`) resolved when given, else the checkpoint's review
-    /// artifact, else the policy's setting; `None` when there is none. The API's
-    /// `POST /v1/review/score` and `ufops review score` choose it alike.
-    pub async fn artifact_to_score(
+    async fn artifact_to_score(
         &self,
         policy: &str,
         checkpoint: Option<&str>,
@@ -291,8 +243,7 @@ impl Store {
         }
     }
 
-    /// An episode's stored score by `artifact_id` (default: the artifact of its review queue).
-    pub async fn episode_score(
+    async fn episode_score(
         &self,
         episode_id: &str,
         artifact_id: Option<&str>,
@@ -331,14 +282,7 @@ impl Store {
         })
     }
 
-    /// The episodes matching `filter` (its `id` and `after` must be unset), now or as a past
-    /// `version` froze them (its episodes and labels), in review `order` by the current scores, a
-    /// keyset page after `cursor` (an entry's `cursor`). Any text is a position: one that is not
-    /// a position of this order lies past its end (an empty page). A policy's `uncertain` and
-    /// `disagreement` pages of the current labels walk an index on the order's key (migration
-    /// 0014: a page costs its rows, plus those the other filters skip); without a policy, at a
-    /// past version or in `source` order, a page sorts the filtered episodes.
-    pub async fn review_queue(
+    async fn review_queue(
         &self,
         filter: &EpisodeFilter,
         order: ReviewOrder,
@@ -350,7 +294,7 @@ impl Store {
                 "a review order pages with its own cursor (no id or after filter)",
             ));
         }
-        let Some((sql, args)) = self.review_queue_sql(filter, order, cursor, limit).await? else {
+        let Some((sql, args)) = review_queue_sql(self, filter, order, cursor, limit).await? else {
             return Ok(Vec::new());
         };
         let mut q = sqlx::query(&sql);
@@ -360,74 +304,71 @@ impl Store {
         let rows = q.fetch_all(&self.catalog().pool).await?;
         rows.iter().map(|r| review_entry_from_row(r, order)).collect()
     }
+}
 
-    /// The statement [`Self::review_queue`] runs and the values it binds; none when `cursor` is
-    /// not a position of `order` (the page past its end is empty).
-    async fn review_queue_sql(
-        &self,
-        filter: &EpisodeFilter,
-        order: ReviewOrder,
-        cursor: Option<&str>,
-        limit: i64,
-    ) -> Result<Option<(String, Vec<Val>)>, StoreError> {
-        let mut args: Vec<Val> = Vec::new();
-        let (lab, labels_from) = self.review_labels_from(filter.version, &mut args).await?;
-        let key = order.key_sql(lab);
-        let mut sql = format!(
-            "{EPISODE_SELECT}e.review_score AS review_score, COALESCE(ra.artifact_id, aa.artifact_id) AS review_artifact, {}",
-            labels_from.replace("{key}", &format!("{key} AS review_key"))
-        );
-        let mut conds = label_conds(filter, lab, &mut args);
-        conds.extend(episode_conds(filter, &mut args)?);
-        if let Some(c) = cursor {
-            let Some(after) = cursor_cond(order, &key, c, &mut args) else { return Ok(None) };
-            conds.push(after);
-        }
-        for c in conds {
-            sql.push_str(" AND ");
-            sql.push_str(&c);
-        }
-        sql.push_str(&format!(
-            " ORDER BY review_key, e.id LIMIT {}",
-            push_arg(&mut args, Val::I(limit.max(0)))
-        ));
-        Ok(Some((sql, args)))
+/// The statement [`ReviewQueue::review_queue`] runs and the values it binds; none when `cursor` is
+/// not a position of `order` (the page past its end is empty).
+async fn review_queue_sql(
+    store: &Store,
+    filter: &EpisodeFilter,
+    order: ReviewOrder,
+    cursor: Option<&str>,
+    limit: i64,
+) -> Result<Option<(String, Vec<Val>)>, StoreError> {
+    let mut args: Vec<Val> = Vec::new();
+    let (lab, labels_from) = review_labels_from(store, filter.version, &mut args).await?;
+    let key = order.key_sql(lab);
+    let mut sql = format!(
+        "{EPISODE_SELECT}e.review_score AS review_score, COALESCE(ra.artifact_id, aa.artifact_id) AS review_artifact, {}",
+        labels_from.replace("{key}", &format!("{key} AS review_key"))
+    );
+    let mut conds = label_conds(filter, lab, &mut args);
+    conds.extend(episode_conds(filter, &mut args)?);
+    if let Some(c) = cursor {
+        let Some(after) = cursor_cond(order, &key, c, &mut args) else { return Ok(None) };
+        conds.push(after);
     }
+    for c in conds {
+        sql.push_str(" AND ");
+        sql.push_str(&c);
+    }
+    sql.push_str(&format!(" ORDER BY review_key, e.id LIMIT {}", push_arg(&mut args, Val::I(limit.max(0)))));
+    Ok(Some((sql, args)))
+}
 
-    /// The alias of the table holding the label columns, and the queue's label columns, `{key}`
-    /// placeholder and FROM clause up to an open WHERE: the episodes now, or as `version` froze
-    /// them (which must exist; its number is bound into `args`).
-    async fn review_labels_from(
-        &self,
-        version: Option<i64>,
-        args: &mut Vec<Val>,
-    ) -> Result<(&'static str, String), StoreError> {
-        Ok(match version {
-            None => (
-                "e",
-                format!(
-                    "e.label AS label, e.label_source AS label_source, e.label_revision AS label_revision, \
-                     e.label_actor AS label_actor, e.label_updated_at AS label_updated_at, {{key}} \
-                     FROM episodes e {REVIEW_JOINS} WHERE e.version_removed IS NULL"
-                ),
+/// The alias of the table holding the label columns, and the queue's label columns, `{key}`
+/// placeholder and FROM clause up to an open WHERE: the episodes now, or as `version` froze
+/// them (which must exist; its number is bound into `args`).
+async fn review_labels_from(
+    store: &Store,
+    version: Option<i64>,
+    args: &mut Vec<Val>,
+) -> Result<(&'static str, String), StoreError> {
+    Ok(match version {
+        None => (
+            "e",
+            format!(
+                "e.label AS label, e.label_source AS label_source, e.label_revision AS label_revision, \
+                 e.label_actor AS label_actor, e.label_updated_at AS label_updated_at, {{key}} \
+                 FROM episodes e {REVIEW_JOINS} WHERE e.version_removed IS NULL"
             ),
-            Some(v) => {
-                self.version(v).await?;
-                let p = push_arg(args, Val::I(v));
-                (
-                    "l",
-                    format!(
-                        "l.label AS label, l.label_source AS label_source, l.revision AS label_revision, \
-                         ev.actor AS label_actor, ev.created_at AS label_updated_at, {{key}} FROM episodes e \
-                         JOIN version_labels l ON l.episode_id = e.id AND {} \
-                         JOIN label_events ev ON ev.episode_id = e.id AND ev.revision = l.revision \
-                         {REVIEW_JOINS} WHERE 1 = 1",
-                        covers("l", &p)
-                    ),
-                )
-            }
-        })
-    }
+        ),
+        Some(v) => {
+            store.version(v).await?;
+            let p = push_arg(args, Val::I(v));
+            (
+                "l",
+                format!(
+                    "l.label AS label, l.label_source AS label_source, l.revision AS label_revision, \
+                     ev.actor AS label_actor, ev.created_at AS label_updated_at, {{key}} FROM episodes e \
+                     JOIN version_labels l ON l.episode_id = e.id AND {} \
+                     JOIN label_events ev ON ev.episode_id = e.id AND ev.revision = l.revision \
+                     {REVIEW_JOINS} WHERE 1 = 1",
+                    covers("l", &p)
+                ),
+            )
+        }
+    })
 }
 
 /// The keyset condition for the page after `cursor` (`key|episode id`) in `order`, whose sort
@@ -447,7 +388,7 @@ fn cursor_cond(order: ReviewOrder, key: &str, cursor: &str, args: &mut Vec<Val>)
     Some(format!("({key}, e.id) > ({pk}, {pid})"))
 }
 
-/// One queue entry from a row of [`Store::review_queue`]'s statement.
+/// One queue entry from a row of [`ReviewQueue::review_queue`]'s statement.
 fn review_entry_from_row(r: &sqlx::any::AnyRow, order: ReviewOrder) -> Result<ReviewEntry, StoreError> {
     use sqlx::Row;
     let episode = episode_from_row(r)?;
@@ -463,7 +404,7 @@ fn review_entry_from_row(r: &sqlx::any::AnyRow, order: ReviewOrder) -> Result<Re
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::StoreConfig;
+    use store::StoreConfig;
 
     /// A policy's page of either order, first or after a cursor, walks the order's index of
     /// migration 0014: SQLite's plan names it and sorts nothing.
@@ -477,7 +418,8 @@ mod tests {
             (ReviewOrder::Disagreement, "episodes_review_disagreement"),
         ] {
             for cursor in [None, Some("0.25|e-1")] {
-                let (sql, args) = store.review_queue_sql(&filter, order, cursor, 50).await.unwrap().unwrap();
+                let (sql, args) =
+                    review_queue_sql(&store, &filter, order, cursor, 50).await.unwrap().unwrap();
                 let explain = format!("EXPLAIN QUERY PLAN {sql}");
                 let mut q = sqlx::query(&explain);
                 for a in args {

@@ -7,6 +7,8 @@
 
 use std::collections::HashMap;
 use store::*;
+use store_artifacts::{Artifacts, NewArtifact};
+use store_labeling::{ReviewOrder, ReviewQueue};
 
 struct Rng(evalstats::splitmix::SplitMix64);
 impl Rng {
