@@ -210,6 +210,9 @@ export class Player {
         this.seek(this.n - 1);
         return;
       }
+      // A play() that a pending seek interrupted rejects and leaves the camera paused: ask again
+      // (every camera, the master too) until it plays, instead of a player stuck on one frame.
+      if (master.el.paused) master.el.play().catch(() => {});
       const offset = master.el.currentTime - master.ts[f];
       for (const c of cams.slice(1)) {
         const want = c.ts[Math.min(f, c.ts.length - 1)] + offset;
