@@ -17,15 +17,10 @@ use std::process::Command;
 use steer::Scorer;
 use verifier::StepScorer;
 
+/// The numpy reference's python3 with numpy and safetensors, by the tests' one rule for a missing
+/// tool (a notice and the Rust parts only; a failure under UFOPS_REQUIRE_PYTHON).
 fn numpy_available() -> bool {
-    let importable =
-        Command::new("python3").args(["-c", "import numpy, safetensors"]).status().is_ok_and(|s| s.success());
-    if !importable && std::env::var("UFOPS_REQUIRE_PYTHON").as_deref() == Ok("1") {
-        panic!(
-            "UFOPS_REQUIRE_PYTHON=1: python3 with numpy and safetensors is required for the numpy reference"
-        );
-    }
-    importable
+    store::test_support::require_python(&["numpy", "safetensors"])
 }
 
 fn floats(v: &serde_json::Value) -> Vec<f32> {
@@ -333,8 +328,6 @@ fn every_client_gives_the_same_scores_and_gradients() {
             assert_eq!(py["artifact_id"].as_str(), robot.id());
             same(&format!("{name}: numpy scores"), &floats(&py["scores"]), &scores, 1e-5);
             same(&format!("{name}: numpy gradients"), &nested(&py["grads"]), &grads, 1e-5);
-        } else {
-            eprintln!("SKIPPED the numpy reference: python3 with numpy and safetensors is not importable");
         }
     }
 }

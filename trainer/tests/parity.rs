@@ -12,18 +12,10 @@ use trainer::artifact::{grad_rows, score_json, write_artifact, ScoreRow};
 use trainer::data::build_samples;
 use trainer::{ActionSpace, ExtraInputSpec, Kind, TrainConfig, Variant};
 
+/// The numpy reference needs python3 with numpy and safetensors (the tests' one rule for a
+/// missing tool: skipped with a notice, a failure under UFOPS_REQUIRE_PYTHON).
 fn python_ready() -> bool {
-    let ok = Command::new("python3")
-        .args(["-c", "import numpy, safetensors"])
-        .output()
-        .map(|o| o.status.success())
-        .unwrap_or(false);
-    if !ok {
-        let required = std::env::var("UFOPS_REQUIRE_PYTHON").is_ok_and(|v| v == "1");
-        assert!(!required, "UFOPS_REQUIRE_PYTHON=1 but python3 with numpy and safetensors is not importable");
-        eprintln!("SKIPPED numpy parity: python3 with numpy and safetensors is not importable (pip install numpy safetensors)");
-    }
-    ok
+    store::test_support::require_python(&["numpy", "safetensors"])
 }
 
 #[test]
