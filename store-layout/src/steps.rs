@@ -513,7 +513,7 @@ struct ClosedRowGroup {
 /// Bytes a steps file is written in (its encoded pages are buffered up to this much).
 const WRITE_BUFFER_BYTES: usize = 1 << 20;
 
-/// A Parquet steps file being filled in a temporary file. Several episodes share a row group
+/// A Parquet steps file being filled in a temporary file (or a store's staging file). Several episodes share a row group
 /// (cut between episodes at [`ROW_GROUP_MAX_ROWS`] / [`ROW_GROUP_MAX_BYTES`]);
 /// [`Self::write_episode`] says where each one landed. The `episode_id` column
 /// (`<prefix>-<index:05>`) is written when a row group closes; until the prefix (from the
@@ -762,8 +762,8 @@ impl StepsFileWriter {
             + self.open.as_ref().map_or(0, OpenRowGroup::estimated_bytes)
     }
 
-    /// Closes the file (the id prefix must be known) and returns it (a temporary file, read
-    /// from its start) and its size.
+    /// Closes the file (the id prefix must be known) and returns it (the temporary or staging
+    /// file it was built in, read from its start) and its size.
     pub fn finish(mut self) -> Result<(std::fs::File, u64), StoreError> {
         use std::io::{Seek, SeekFrom};
         self.close_row_group()?;

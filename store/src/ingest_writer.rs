@@ -13,8 +13,7 @@ use crate::version::{finish_version, next_version, VersionHead};
 use crate::{now_rfc3339, EpisodeInput, ExtraColumn, Label, MediaFile, SourceInput, Store, StoreError};
 use std::collections::{HashMap, HashSet};
 
-/// Roll over to a new data file past this many encoded bytes (bounds memory: a steps file is
-/// built in memory, then uploaded with one put).
+/// Roll over to a new data file past this many encoded bytes (bounds one object's size).
 pub const MAX_STEPS_FILE_BYTES: usize = 64 << 20;
 
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
