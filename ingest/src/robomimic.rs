@@ -22,7 +22,7 @@ use serde_json::{json, Map, Value};
 use sha2::Digest;
 
 use crate::error::{IngestError, Result};
-use crate::h5src::{h5err, Src, MAX_DATASET_BYTES, MAX_DECLARED_RATIO};
+use crate::h5src::{h5err, BlockCached, Src, MAX_DATASET_BYTES, MAX_DECLARED_RATIO};
 use crate::model::{EpisodeInput, ExtraColumn, ImageColumn, Label, VectorColumn};
 use crate::options::ReadOptions;
 use crate::sink::{EpisodeSink, SourceMeta};
@@ -107,7 +107,7 @@ pub fn read_file_notes(path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSi
     let len = f.metadata().map_err(|e| IngestError::io(path, e))?.len();
     let props = hdf5_pure::FileAccessProperties::new()
         .with_metadata_cache(hdf5_pure::MetadataCacheConfig::new(METADATA_CACHE_BYTES));
-    let file = File::from_source_with_options(PositionedFile { file: f, len }, props)
+    let file = File::from_source_with_options(BlockCached::new(PositionedFile { file: f, len }), props)
         .map_err(|e| IngestError::invalid(path, format!("not a readable HDF5 file: {e}")))?;
     read_h5(&file, path, opts, sink)
 }

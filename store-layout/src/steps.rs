@@ -510,7 +510,10 @@ struct ClosedRowGroup {
     episodes: Vec<(u32, usize)>,
 }
 
-/// A Parquet steps file being filled in a temporary file. Several episodes share a row group
+/// Bytes a steps file is written in (its encoded pages are buffered up to this much).
+const WRITE_BUFFER_BYTES: usize = 1 << 20;
+
+/// A Parquet steps file being filled in a temporary file (or a store's staging file). Several episodes share a row group
 /// (cut between episodes at [`ROW_GROUP_MAX_ROWS`] / [`ROW_GROUP_MAX_BYTES`]);
 /// [`Self::write_episode`] says where each one landed. The `episode_id` column
 /// (`<prefix>-<index:05>`) is written when a row group closes; until the prefix (from the
@@ -519,7 +522,7 @@ struct ClosedRowGroup {
 /// in memory is the open row group's non-image columns and a page per camera: never an
 /// episode's frames.
 pub struct StepsFileWriter {
-    file: SerializedFileWriter<std::fs::File>,
+    file: SerializedFileWriter<std::io::BufWriter<std::fs::File>>,
     factory: ArrowRowGroupWriterFactory,
     props: WriterPropertiesPtr,
     parquet: SchemaDescriptor,
@@ -537,13 +540,21 @@ pub struct StepsFileWriter {
 
 impl StepsFileWriter {
     pub fn new(schema: SchemaRef) -> Result<Self, StoreError> {
+        let tmp = tempfile::tempfile()
+            .map_err(|e| StoreError::invalid(format!("cannot create a temporary steps file: {e}")))?;
+        Self::in_file(schema, tmp)
+    }
+
+    /// Like [`Self::new`], building the file in `file` (empty, opened for reading and writing):
+    /// a local store stages it where the object will live, so storing it is a rename.
+    pub fn in_file(schema: SchemaRef, file: std::fs::File) -> Result<Self, StoreError> {
         let parquet = ArrowSchemaConverter::new().convert(&schema)?;
         let mut props = steps_writer_properties(&parquet);
         add_encoded_arrow_schema_to_metadata(&schema, &mut props);
         let props = Arc::new(props);
-        let tmp = tempfile::tempfile()
-            .map_err(|e| StoreError::invalid(format!("cannot create a temporary steps file: {e}")))?;
-        let file = SerializedFileWriter::new(tmp, parquet.root_schema_ptr(), props.clone())?;
+        // Parquet buffers only 8 KiB: a file of small pages would be ~one write per page.
+        let out = std::io::BufWriter::with_capacity(WRITE_BUFFER_BYTES, file);
+        let file = SerializedFileWriter::new(out, parquet.root_schema_ptr(), props.clone())?;
         let factory = ArrowRowGroupWriterFactory::new(&file, schema.clone());
         let image_leaf = (0..parquet.num_columns())
             .map(|leaf| {
@@ -589,6 +600,23 @@ impl StepsFileWriter {
         }
         self.waiting_bytes = 0;
         Ok(())
+    }
+
+    /// Moves the file being built into `file` (empty, opened for reading and writing) if nothing
+    /// has reached the current one yet, which holds until the id prefix is known (row groups wait
+    /// in memory until then): a writer started before the source's hash was known is moved from
+    /// its temporary file to a staging file in the store. Returns whether it moved.
+    pub fn move_to(&mut self, file: std::fs::File) -> Result<bool, StoreError> {
+        let current = self.file.inner_mut().get_mut();
+        let written = current
+            .metadata()
+            .map_err(|e| StoreError::invalid(format!("cannot inspect a temporary steps file: {e}")))?
+            .len();
+        if written > 0 {
+            return Ok(false);
+        }
+        *current = file;
+        Ok(true)
     }
 
     /// Appends one episode: `columns` are its columns after `episode_id` (see
@@ -734,15 +762,17 @@ impl StepsFileWriter {
             + self.open.as_ref().map_or(0, OpenRowGroup::estimated_bytes)
     }
 
-    /// Closes the file (the id prefix must be known) and returns it (a temporary file, read
-    /// from its start) and its size.
+    /// Closes the file (the id prefix must be known) and returns it (the temporary or staging
+    /// file it was built in, read from its start) and its size.
     pub fn finish(mut self) -> Result<(std::fs::File, u64), StoreError> {
         use std::io::{Seek, SeekFrom};
         self.close_row_group()?;
         if !self.waiting.is_empty() {
             return Err(StoreError::invalid("steps file finished before its episode ids were known"));
         }
-        let mut f = self.file.into_inner()?;
+        let mut f = self.file.into_inner()?.into_inner().map_err(|e| {
+            StoreError::invalid(format!("cannot write a temporary steps file: {}", e.error()))
+        })?;
         let size = f
             .seek(SeekFrom::End(0))
             .and_then(|n| f.seek(SeekFrom::Start(0)).map(|_| n))

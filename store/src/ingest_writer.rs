@@ -6,14 +6,14 @@
 
 use crate::catalog::{insert_rows, RowExt, Val};
 use crate::model::{check_name, check_ref_name};
+use crate::objects::Staging;
 use crate::steps::{self, StepsFileWriter};
 use crate::versioning::counts::CountDeltas;
 use crate::versioning::version::{finish_version, next_version, VersionHead};
 use crate::{now_rfc3339, EpisodeInput, ExtraColumn, Label, MediaFile, SourceInput, Store, StoreError};
 use std::collections::{HashMap, HashSet};
 
-/// Roll over to a new data file past this many encoded bytes (bounds memory: a steps file is
-/// built in memory, then uploaded with one put).
+/// Roll over to a new data file past this many encoded bytes (bounds one object's size).
 pub const MAX_STEPS_FILE_BYTES: usize = 64 << 20;
 
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
@@ -68,9 +68,10 @@ pub struct IngestWriter {
     checkpoint: String,
     /// `<source sha256[:12]>`, the episode id prefix, once the source's hash is known.
     id_prefix: Option<String>,
-    current: Option<(String, StepsFileWriter)>,
+    /// The steps file being filled: its object path, its writer, and where it is staged.
+    current: Option<(String, StepsFileWriter, Staging)>,
     /// Files complete but for their episode ids (the schema changed before the hash was known).
-    parked: Vec<(String, StepsFileWriter)>,
+    parked: Vec<(String, StepsFileWriter, Staging)>,
     files: Vec<WrittenFile>,
     episodes: Vec<PendingEpisode>,
     indexes: HashSet<u32>,
@@ -209,7 +210,7 @@ impl IngestWriter {
         if self.id_prefix.is_some() {
             return 0;
         }
-        self.parked.iter().chain(self.current.as_ref()).map(|(_, w)| w.bytes_written()).sum()
+        self.parked.iter().chain(self.current.as_ref()).map(|(_, w, _)| w.bytes_written()).sum()
     }
 
     /// Supplies the source's sha256 and size (see [`Store::begin_ingest_unhashed`]). Fails with
@@ -227,11 +228,16 @@ impl IngestWriter {
         self.source.size_bytes = size_bytes;
         let prefix = sha256[..12].to_string();
         self.id_prefix = Some(prefix.clone());
-        for (path, mut w) in std::mem::take(&mut self.parked) {
+        for (path, mut w, mut staged) in std::mem::take(&mut self.parked) {
+            self.stage(&path, &mut w, &mut staged)?;
             w.set_id_prefix(&prefix)?;
-            self.put_file(path, w).await?;
+            self.put_file(path, w, staged).await?;
         }
-        if let Some((_, w)) = self.current.as_mut() {
+        if let Some((path, mut w, mut staged)) = self.current.take() {
+            self.stage(&path, &mut w, &mut staged)?;
+            self.current = Some((path, w, staged));
+        }
+        if let Some((_, w, _)) = self.current.as_mut() {
             w.set_id_prefix(&prefix)?;
             if w.bytes_written() > self.max_file_bytes {
                 self.finish_file().await?;
@@ -334,16 +340,25 @@ impl IngestWriter {
             )));
         }
         let schema = steps::schema_with_extras(&ep, &extras, steering.is_some());
-        if self.current.as_ref().is_some_and(|(_, w)| w.schema != schema) {
+        if self.current.as_ref().is_some_and(|(_, w, _)| w.schema != schema) {
             self.finish_file().await?;
         }
         if self.current.is_none() {
             let path = format!("steps/{}.parquet", uuid::Uuid::new_v4());
-            let mut w = StepsFileWriter::new(schema)?.with_max_row_group_bytes(self.max_row_group_bytes);
+            // Staged in the store only once the hash is known: nothing is written there before.
+            let staged = match &self.id_prefix {
+                Some(_) => self.store.objects().local_staging_file(&path)?,
+                None => None,
+            };
+            let (w, staged) = match staged {
+                Some((file, staged)) => (StepsFileWriter::in_file(schema, file)?, staged),
+                None => (StepsFileWriter::new(schema)?, Staging::temporary()),
+            };
+            let mut w = w.with_max_row_group_bytes(self.max_row_group_bytes);
             if let Some(p) = &self.id_prefix {
                 w = w.with_id_prefix(p);
             }
-            self.current = Some((path, w));
+            self.current = Some((path, w, staged));
         }
         let pending = PendingEpisode {
             source_name: ep.source_name.clone(),
@@ -378,7 +393,7 @@ impl IngestWriter {
             &self.checkpoint,
             &self.media_paths,
         )?;
-        let (path, w) = self.current.as_mut().expect("writer just created");
+        let (path, w, _) = self.current.as_mut().expect("writer just created");
         let range = w.write_episode(index, cols)?;
         self.episodes.push(PendingEpisode { data_file: path.clone(), range, ..pending });
         if w.bytes_written() > self.max_file_bytes && self.id_prefix.is_some() {
@@ -388,21 +403,37 @@ impl IngestWriter {
     }
 
     async fn finish_file(&mut self) -> Result<(), StoreError> {
-        if let Some((path, w)) = self.current.take() {
+        if let Some((path, w, staged)) = self.current.take() {
             if self.id_prefix.is_some() {
-                self.put_file(path, w).await?;
+                self.put_file(path, w, staged).await?;
             } else {
-                self.parked.push((path, w));
+                self.parked.push((path, w, staged));
             }
         }
         Ok(())
     }
 
-    async fn put_file(&mut self, path: String, w: StepsFileWriter) -> Result<(), StoreError> {
+    /// Moves a file started before the hash was known (in a temporary file) to a staging file
+    /// in a local store, so that storing it is a rename rather than a copy.
+    fn stage(&self, path: &str, w: &mut StepsFileWriter, staged: &mut Staging) -> Result<(), StoreError> {
+        if let Some((file, s)) = self.store.objects().local_staging_file(path)? {
+            if w.move_to(file)? {
+                *staged = s;
+            }
+        }
+        Ok(())
+    }
+
+    async fn put_file(
+        &mut self,
+        path: String,
+        w: StepsFileWriter,
+        staged: Staging,
+    ) -> Result<(), StoreError> {
         let rows = w.rows as i64;
         let (file, size) = w.finish()?;
         self.protect(&path).await?;
-        self.store.objects().put_new_file(&path, file, size).await?;
+        self.store.objects().put_new_staged(&path, staged, file, size).await?;
         self.files.push(WrittenFile { path, size: size as i64, rows });
         Ok(())
     }
@@ -776,6 +807,10 @@ mod tests {
         }
     }
 
+    fn source_hashed(tag: &str) -> SourceInput {
+        SourceInput { sha256: sha256_hex(tag.as_bytes()), ..source(tag) }
+    }
+
     fn steps_files(dir: &std::path::Path) -> usize {
         std::fs::read_dir(dir.join("objects/steps")).map(|d| d.count()).unwrap_or(0)
     }
@@ -825,6 +860,41 @@ mod tests {
         }
         let src = store.source_version(&sha).await.unwrap();
         assert_eq!(src, Some(info.version));
+    }
+
+    /// Steps files are built in staging files of the local store and linked into place: nothing
+    /// is staged before the hash is known, none is left after a commit or once a writer is
+    /// dropped, and the stored files read back.
+    #[tokio::test]
+    async fn steps_files_are_staged_in_the_store_and_none_is_left() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(&StoreConfig::local(dir.path())).await.unwrap();
+        let staged = || store.objects().local_staging_files().len();
+        let mut w = store.begin_ingest_unhashed(source("s"), "pol", "c1").unwrap().with_max_file_bytes(2000);
+        for i in 0..3 {
+            w.push_episode(episode(i, 10, 2)).await.unwrap();
+        }
+        assert_eq!(staged(), 0, "nothing staged before the hash is known");
+        let sha = sha256_hex(b"s");
+        w.set_source_hash(&sha, 1).await.unwrap();
+        for i in 3..40 {
+            w.push_episode(episode(i, 10 + i as usize, 2)).await.unwrap();
+        }
+        assert_eq!(staged(), 1, "the open file is staged in the store");
+        w.commit("t").await.unwrap();
+        assert_eq!(staged(), 0);
+        assert!(steps_files(dir.path()) > 2);
+        for e in store.episodes(&EpisodeFilter::default()).await.unwrap() {
+            let (i, n) = (e.source_index as u32, e.length as usize);
+            check_episode(&store, &e.id, i, n, 2).await;
+        }
+        let files = steps_files(dir.path());
+        let mut w = store.begin_ingest(source_hashed("t"), "pol", "c1").await.unwrap();
+        w.push_episode(episode(0, 4, 2)).await.unwrap();
+        assert_eq!(staged(), 1);
+        drop(w);
+        assert_eq!(staged(), 0, "a dropped writer leaves no staging file");
+        assert_eq!(steps_files(dir.path()), files);
     }
 
     /// The same content again: refused as soon as the hash is set, and nothing is written.

@@ -306,6 +306,65 @@ impl Objects {
         Ok(())
     }
 
+    /// For a local store, an empty file to build the new object `path` in, and its guard. It
+    /// lies in the object directory's root under a staging name (`<name>#<digits>`: listings
+    /// hide it, and gc removes it once old if a crash left it; not under the object's own
+    /// folder, so nothing shows there before the object is stored), and
+    /// [`Self::put_new_staged`] links it into place instead of copying it. `None` for S3.
+    pub(crate) fn local_staging_file(
+        &self,
+        path: &str,
+    ) -> Result<Option<(std::fs::File, Staging)>, StoreError> {
+        let Some(root) = &self.local_root else { return Ok(None) };
+        let name = path.replace('/', "-");
+        for n in 1..=1000 {
+            let staged = root.join(format!("{name}#{n}"));
+            match std::fs::OpenOptions::new().read(true).write(true).create_new(true).open(&staged) {
+                Ok(f) => return Ok(Some((f, Staging { local: Some(staged) }))),
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+                Err(e) => {
+                    return Err(StoreError::invalid(format!("cannot create {}: {e}", staged.display())))
+                }
+            }
+        }
+        Err(StoreError::invalid(format!("no free staging name for {path}")))
+    }
+
+    /// Stores the staging file `staged`, open as `file` (`len` bytes, positioned at its start),
+    /// as the new object `path` (put-if-absent). A local staging file is hard-linked into place
+    /// (no copy; a link across file systems falls back to one), anything else is uploaded.
+    pub(crate) async fn put_new_staged(
+        &self,
+        path: &str,
+        mut staged: Staging,
+        file: std::fs::File,
+        len: u64,
+    ) -> Result<(), StoreError> {
+        if let (Some(local), Some(root)) = (staged.local.take(), &self.local_root) {
+            let dest = root.join(path);
+            if let Some(dir) = dest.parent() {
+                tokio::fs::create_dir_all(dir)
+                    .await
+                    .map_err(|e| StoreError::invalid(format!("cannot create {}: {e}", dir.display())))?;
+            }
+            // the hard link fails when `dest` exists: put-if-absent, as `put_new`
+            let linked = tokio::fs::hard_link(&local, &dest).await;
+            let _ = tokio::fs::remove_file(&local).await;
+            match linked {
+                Ok(()) => return Ok(()),
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    return Err(object_store::Error::AlreadyExists {
+                        path: path.to_string(),
+                        source: Box::new(e),
+                    }
+                    .into())
+                }
+                Err(_) => {} // e.g. another file system mounted under the root: copy instead
+            }
+        }
+        self.put_new_file(path, file, len).await
+    }
+
     /// Copies a local file into the object `path` (replacing it), streamed in parts: memory is a
     /// few parts whatever the file's size. Returns the number of bytes copied.
     pub async fn put_file(&self, path: &str, local: &std::path::Path) -> Result<u64, StoreError> {
@@ -582,6 +641,27 @@ impl Objects {
         match self.store.delete(&ObjPath::from(path)).await {
             Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
             Err(e) => Err(e.into()),
+        }
+    }
+}
+
+/// Where a staging file ([`Objects::local_staging_file`]) lies, if anywhere; dropped before the
+/// file was stored (an aborted ingest), it removes the file.
+pub(crate) struct Staging {
+    local: Option<std::path::PathBuf>,
+}
+
+impl Staging {
+    /// A file outside the store (a temporary file): stored by copying it.
+    pub(crate) fn temporary() -> Staging {
+        Staging { local: None }
+    }
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        if let Some(p) = self.local.take() {
+            let _ = std::fs::remove_file(p);
         }
     }
 }
