@@ -337,7 +337,7 @@ impl Objects {
         &self,
         path: &str,
         mut staged: Staging,
-        file: std::fs::File,
+        mut file: std::fs::File,
         len: u64,
     ) -> Result<(), StoreError> {
         if let (Some(local), Some(root)) = (staged.local.take(), &self.local_root) {
@@ -347,11 +347,27 @@ impl Objects {
                     .await
                     .map_err(|e| StoreError::invalid(format!("cannot create {}: {e}", dir.display())))?;
             }
+            // The version that references the object commits right after, durably (the catalog
+            // syncs its log): its bytes must be on disk first, and so must its name.
+            file = tokio::task::spawn_blocking(move || file.sync_data().map(|()| file))
+                .await
+                .map_err(|e| StoreError::invalid(format!("syncing {path}: {e}")))?
+                .map_err(|e| StoreError::invalid(format!("cannot sync the staged file of {path}: {e}")))?;
             // the hard link fails when `dest` exists: put-if-absent, as `put_new`
             let linked = tokio::fs::hard_link(&local, &dest).await;
             let _ = tokio::fs::remove_file(&local).await;
             match linked {
-                Ok(()) => return Ok(()),
+                Ok(()) => {
+                    if let Some(dir) = dest.parent().map(std::path::Path::to_path_buf) {
+                        tokio::task::spawn_blocking(move || std::fs::File::open(&dir)?.sync_all())
+                            .await
+                            .map_err(|e| StoreError::invalid(format!("syncing {path}: {e}")))?
+                            .map_err(|e| {
+                                StoreError::invalid(format!("cannot sync the folder of {path}: {e}"))
+                            })?;
+                    }
+                    return Ok(());
+                }
                 Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
                     return Err(object_store::Error::AlreadyExists {
                         path: path.to_string(),
