@@ -35,7 +35,7 @@ use serde_json::{json, Map, Value};
 
 use crate::error::{IngestError, Result};
 use crate::h5rows::{raw_camera, read_rows_windowed};
-use crate::h5src::{h5err, Src};
+use crate::h5src::{h5err, BlockCached, Src};
 use crate::model::{EpisodeInput, ExtraColumn, Frames, ImageColumn, Label, VectorColumn};
 use crate::options::ReadOptions;
 use crate::robomimic::{
@@ -117,7 +117,7 @@ fn open(path: &Path) -> Result<File> {
     let len = f.metadata().map_err(|e| IngestError::io(path, e))?.len();
     let props = hdf5_pure::FileAccessProperties::new()
         .with_metadata_cache(hdf5_pure::MetadataCacheConfig::new(METADATA_CACHE_BYTES));
-    File::from_source_with_options(PositionedFile { file: f, len }, props)
+    File::from_source_with_options(BlockCached::new(PositionedFile { file: f, len }), props)
         .map_err(|e| IngestError::invalid(path, format!("not a readable HDF5 file: {e}")))
 }
 
