@@ -1,5 +1,5 @@
 //! The hostile-input corpus: every source written by
-//! `ingest::hostile::write_corpus` is given to the real `ufops ingest` as a child process, which
+//! `hostile_corpus::write_corpus` is given to the real `ufops ingest` as a child process, which
 //! must refuse it with the expected error and a non-zero exit, without a panic, with its peak
 //! resident memory under [`MAX_RSS_BYTES`], and leave the store as it was (same versions, same
 //! object files).
@@ -23,7 +23,7 @@ use std::os::unix::process::ExitStatusExt;
 use std::path::Path;
 use std::process::Stdio;
 
-use ingest::hostile::{write_corpus, Attack, Case};
+use hostile_corpus::{write_corpus, Attack, Case};
 
 /// Generous: a refused source should cost a few tens of MB; the attacks cost GBs.
 const MAX_RSS_BYTES: u64 = 512 << 20;

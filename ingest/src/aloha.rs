@@ -35,12 +35,10 @@ use serde_json::{json, Map, Value};
 
 use crate::error::{IngestError, Result};
 use crate::h5rows::{raw_camera, read_rows_windowed};
-use crate::h5src::{h5err, BlockCached, Src};
+use crate::h5src::{h5err, Src};
 use crate::model::{EpisodeInput, ExtraColumn, Frames, ImageColumn, Label, VectorColumn};
 use crate::options::ReadOptions;
-use crate::robomimic::{
-    check_signature_file, dtype_name, group_attrs, info, is_numeric, PositionedFile, METADATA_CACHE_BYTES,
-};
+use crate::robomimic::{dtype_name, group_attrs, info, is_numeric, open_h5};
 use crate::sink::{EpisodeSink, SourceMeta};
 
 /// Label source of a root attribute `success`.
@@ -99,7 +97,7 @@ pub fn looks_like_dir(dir: &Path) -> bool {
 
 /// An HDF5 file with `/observations/qpos` and `/action` and no `/data` group (robomimic's).
 pub fn looks_like_file(path: &Path) -> bool {
-    let Ok(f) = open(path) else { return false };
+    let Ok(f) = open_h5(path) else { return false };
     let root = f.root();
     let groups = root.groups().unwrap_or_default();
     if groups.iter().any(|g| g == "data") || !groups.iter().any(|g| g == "observations") {
@@ -109,16 +107,6 @@ pub fn looks_like_file(path: &Path) -> bool {
     let has_qpos =
         f.group("observations").and_then(|g| g.datasets()).is_ok_and(|d| d.iter().any(|n| n == "qpos"));
     has_action && has_qpos
-}
-
-fn open(path: &Path) -> Result<File> {
-    check_signature_file(path)?;
-    let f = std::fs::File::open(path).map_err(|e| IngestError::io(path, e))?;
-    let len = f.metadata().map_err(|e| IngestError::io(path, e))?.len();
-    let props = hdf5_pure::FileAccessProperties::new()
-        .with_metadata_cache(hdf5_pure::MetadataCacheConfig::new(METADATA_CACHE_BYTES));
-    File::from_source_with_options(BlockCached::new(PositionedFile { file: f, len }), props)
-        .map_err(|e| IngestError::invalid(path, format!("not a readable HDF5 file: {e}")))
 }
 
 /// Reads an ALOHA folder (every `episode_<i>.hdf5`, by index) or one episode file.
@@ -754,7 +742,7 @@ pub fn read_episode(
     task: Option<String>,
     opts: &ReadOptions,
 ) -> Result<(EpisodeInput, Vec<ExtraColumn>, Vec<String>)> {
-    let file = open(path)?;
+    let file = open_h5(path)?;
     let src = &Src::new(path, file.file_size());
     let name = path
         .file_name()

@@ -14,8 +14,8 @@
 //!
 //! Sources are untrusted: [`confine`] keeps every path a source's metadata names inside it, and
 //! the readers check every declared size against the file's size and a cap before allocating
-//! (see the README, *Sources are untrusted*); `hostile` (feature `testing`, for tests only)
-//! generates the corpus of hostile sources the tests run.
+//! (see the README, *Sources are untrusted*); the `hostile-corpus` crate (tests only) generates
+//! the corpus of hostile sources the tests run.
 
 pub mod aloha;
 pub mod confine;
@@ -27,9 +27,6 @@ pub mod fuzzing;
 mod h5rows;
 mod h5src;
 pub mod hashing;
-/// The hostile-input corpus of the tests (feature `testing`).
-#[cfg(any(test, feature = "testing"))]
-pub mod hostile;
 pub mod lerobot;
 pub mod lerobot_eval;
 pub mod mapping;

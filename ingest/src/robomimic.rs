@@ -102,14 +102,19 @@ pub fn read_file(path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) ->
 
 /// [`read_file`], returning notes on what could not be kept (for the user, as warnings).
 pub fn read_file_notes(path: &Path, opts: &ReadOptions, sink: &mut dyn EpisodeSink) -> Result<Vec<String>> {
+    read_h5(&open_h5(path)?, path, opts, sink)
+}
+
+/// Opens a source's HDF5 file (robomimic or ALOHA): its signature checked, its metadata cached
+/// and its small reads served from cached blocks of the file.
+pub(crate) fn open_h5(path: &Path) -> Result<File> {
     check_signature_file(path)?;
     let f = std::fs::File::open(path).map_err(|e| IngestError::io(path, e))?;
     let len = f.metadata().map_err(|e| IngestError::io(path, e))?.len();
     let props = hdf5_pure::FileAccessProperties::new()
         .with_metadata_cache(hdf5_pure::MetadataCacheConfig::new(METADATA_CACHE_BYTES));
-    let file = File::from_source_with_options(BlockCached::new(PositionedFile { file: f, len }), props)
-        .map_err(|e| IngestError::invalid(path, format!("not a readable HDF5 file: {e}")))?;
-    read_h5(&file, path, opts, sink)
+    File::from_source_with_options(BlockCached::new(PositionedFile { file: f, len }), props)
+        .map_err(|e| IngestError::invalid(path, format!("not a readable HDF5 file: {e}")))
 }
 
 /// Reads a robomimic file held in memory (`name` is used in error messages).

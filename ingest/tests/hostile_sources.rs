@@ -1,4 +1,4 @@
-//! The readers refuse every source of the hostile corpus (`ingest::hostile`) with the
+//! The readers refuse every source of the hostile corpus (`hostile-corpus`) with the
 //! expected error, and no single allocation comes near what the sources declare (a counting global
 //! allocator records the largest request). The same corpus through the `ufops` binary, with the
 //! child's peak RSS and the store checked, is `tests/hostile_corpus.rs` at the workspace root.
@@ -22,7 +22,7 @@ const MAX_ALLOCATION: usize = 64 << 20;
 #[test]
 fn readers_refuse_every_hostile_source_without_a_huge_allocation() {
     let dir = tempfile::tempdir().unwrap();
-    let cases = ingest::hostile::write_corpus(dir.path()).unwrap();
+    let cases = hostile_corpus::write_corpus(dir.path()).unwrap();
     assert!(cases.len() >= 12, "{} cases", cases.len());
     let mut failures = Vec::new();
     for c in &cases {
@@ -52,7 +52,7 @@ fn readers_refuse_every_hostile_source_without_a_huge_allocation() {
 /// buffer is sized (snappy zero-fills it), in the fuzz body as in a dataset.
 #[test]
 fn a_page_declaring_gigabytes_is_refused() {
-    let data = ingest::hostile::parquet_page_bomb(i32::MAX);
+    let data = hostile_corpus::parquet_page_bomb(i32::MAX);
     let err = ingest::lerobot::fuzz_entry(b"", &data).unwrap_err().to_string();
     assert!(err.contains("declares 2147483647 uncompressed bytes from 64 compressed bytes"), "{err}");
     assert!(err.contains("column episode_index"), "{err}");

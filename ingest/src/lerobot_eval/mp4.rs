@@ -132,9 +132,9 @@ fn from_moov(moov: &[u8], file_size: u64) -> std::result::Result<VideoInfo, Stri
 mod tests {
     use super::*;
 
-    /// The `moov` payload of [`crate::hostile::mp4_header`]'s file.
+    /// The `moov` payload of `hostile_corpus::mp4_header`'s file.
     fn moov(timescale: u32, stts: &[(u32, u32)], count: u32) -> Vec<u8> {
-        let file = crate::hostile::mp4_header(timescale, stts, count);
+        let file = hostile_corpus::mp4_header(timescale, stts, count);
         let at = file.windows(4).position(|w| w == b"moov").unwrap();
         file[at + 4..].to_vec()
     }

@@ -1,4 +1,4 @@
-//! Generator of the hostile-input corpus: sources whose own metadata tries to make
+//! `hostile-corpus`: the generator of ingest's hostile-input corpus, for tests only: sources whose own metadata tries to make
 //! ingest read outside them, or whose declared sizes would drive memory (or describe frames that
 //! are not there: ALOHA's `compress_len`). Every file is written by
 //! code here into a folder the caller gives (a temp dir): nothing hand-edited is committed.
